@@ -1,0 +1,1 @@
+"""nanostage: experiment_runner."""

@@ -1,0 +1,55 @@
+"""``nanostage`` command line: one entry point, one subcommand per job."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def _paper(args):
+    from experiment_runner.paper import run_paper
+    return run_paper(out=args.out, as_json=args.json, only=args.only)
+
+
+def _bench(args):
+    from experiment_runner.bench import run_bench
+    return run_bench(as_json=args.json, quick=args.quick)
+
+
+def _presets(args):
+    from stage_sim.config import list_presets, load_preset
+    if args.name:
+        print(load_preset(args.name).model_dump_json(indent=2))
+    else:
+        for name in list_presets():
+            print(f"{name:24s} {load_preset(name).description.splitlines()[0] if load_preset(name).description else ''}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="nanostage", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("paper", help="reproduce the seed's simulation results: claim | seed | ours | agrees")
+    p.add_argument("--json", action="store_true", help="print the claims as JSON")
+    p.add_argument("--out", default="out/paper", help="folder for plots and the Markdown table")
+    p.add_argument("--only", nargs="*", default=None, help="run only claims whose id starts with these")
+    p.set_defaults(func=_paper)
+
+    p = sub.add_parser("bench", help="benchmark the simulation core (simulated s per wall s, memory)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--quick", action="store_true", help="shorter runs")
+    p.set_defaults(func=_bench)
+
+    p = sub.add_parser("presets", help="list the stage presets, or show one")
+    p.add_argument("name", nargs="?")
+    p.set_defaults(func=_presets)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

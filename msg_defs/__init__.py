@@ -1,0 +1,1 @@
+"""nanostage: msg_defs."""

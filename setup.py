@@ -1,0 +1,30 @@
+"""ament_python package ``nanostage`` (also installable with plain pip)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "nanostage"
+MODULES = ["stage_sim", "stage_control", "experiment_runner", "msg_defs"]
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=[p for m in MODULES for p in (m, f"{m}.*")]),
+    package_data={"stage_sim": ["presets/*.yaml"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/presets", glob("stage_sim/presets/*.yaml")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=False,
+    maintainer="nanostage developers",
+    maintainer_email="nanostage@example.com",
+    description="Nanopositioning stages with pre-motion friction: simulation, control, experiments.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "nanostage = experiment_runner.cli:main",
+        ],
+    },
+)

@@ -1,0 +1,1 @@
+"""nanostage: stage_control."""

@@ -1,0 +1,499 @@
+"""Plant simulator: lumped-mass stage with friction, isolators, drive, sensors.
+
+:func:`build_plant` compiles a validated :class:`stage_sim.config.Stage` into a
+:class:`PlantModel` (plain arrays), and :func:`plant_step` advances one trial by
+one control period. The same compiled step is called by the batch engine
+(``experiment_runner.batch``) and by the ROS plant node, so both produce the same
+trajectories.
+
+Integration scheme (per control period ``dt``, ``n_sub`` sub-steps of ``h``):
+
+* the linear part (masses, joints, structural modes, viscous friction) is advanced
+  with its exact zero-order-hold discretisation ``z+ = Phi z + Gam f``;
+* friction, lock and impact forces are held over a sub-step and then updated
+  exactly in the displacement domain (Dahl, GMS) or at constant velocity (LuGre);
+* Coulomb elements are solved implicitly per sub-step (stick if the force needed
+  to stop is within the static limit), so there is no chattering at rest;
+* ``n_sub`` is chosen so the stiffest mode of the configuration -- including the
+  tangent stiffness of pre-motion friction and the SAI lock -- satisfies
+  ``omega_max * h <= max_omega_h``.
+
+Coordinates: DOF 0 is the table (plus any rigidly attached bearing), then each
+bearing on a joint, then structural-mode masses. Rotary stages use the same
+equations with rad, N·m and kg·m².
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import scipy.linalg
+from numba import njit
+
+from .config import CoulombFriction, DahlFriction, GmsFriction, LugreFriction, Stage
+from .friction import dahl_update, gms_update, lugre_update, stribeck
+
+# friction element kinds
+DAHL, GMS, LUGRE, COULOMB = 1, 2, 3, 4
+# per-trial scalar state slots
+P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX = range(8)
+N_PSTATE = 8
+# status codes returned by plant_step
+OK, DIVERGED, OUT_OF_TRAVEL = 0, 1, 2
+STATUS_TEXT = {OK: "ok", DIVERGED: "state diverged (non-finite or beyond 1e3 x travel)",
+               OUT_OF_TRAVEL: "table left the travel range"}
+
+
+class SimulationError(RuntimeError):
+    """A simulation stopped: the message names the trial, the time and the reason."""
+
+
+class PlantModel(NamedTuple):
+    """Compiled plant (SI units). Built by :func:`build_plant`; read-only."""
+    n: int                 # number of DOFs
+    n_sub: int             # sub-steps per control period
+    h: float               # sub-step [s]
+    dt: float              # control period [s]
+    phi: np.ndarray        # (2n, 2n) exact state transition over h
+    gam: np.ndarray        # (2n, n) exact ZOH force input over h
+    fr_kind: np.ndarray    # (nf,) friction element kind
+    fr_dof: np.ndarray     # (nf,) DOF the element acts on
+    fr_par: np.ndarray     # (nf, 6) kind-specific parameters
+    fr_k: np.ndarray       # (nf, nmax) GMS block stiffnesses
+    fr_alpha: np.ndarray   # (nf, nmax) GMS block fractions
+    fr_n: np.ndarray       # (nf,) GMS block count
+    fr_noise: np.ndarray   # (nf,) random force per control sample, RMS [N]
+    dither_dof: np.ndarray  # (2,) DOF driven by piezo 0 / 1, -1 if none
+    kf_ratio: float        # true / nominal force constant
+    peak: float            # peak force [N]
+    cont: float            # continuous force [N]
+    th_alpha: float        # dt / thermal time constant
+    noise_std: float       # drive noise force RMS [N]
+    noise_a: float         # noise low-pass coefficient (1 = white)
+    noise_gain: float      # keeps the filtered noise RMS equal to noise_std
+    delay: int             # drive delay [samples]
+    q_table: float         # encoder resolution [m]
+    bear_dof: int          # first bearing on a joint (0 = table if none)
+    bsens_dof: int         # DOF seen by the bearing sensor, -1 if none
+    q_bearing: float       # bearing sensor resolution [m]
+    travel_min: float
+    travel_max: float
+    x_limit: float         # divergence bound on any position [m]
+    sai_dof: int           # bearing DOF locked by the SAI, -1 if none
+    k_lock: float
+    c_lock: float
+    cap_lock: float
+    rc_a: float            # RC filter coefficient per sub-step (1 = no filter)
+    arm_steps: int         # armature travel time [sub-steps]
+    pulse_force: float     # impact force during the pulse [N]
+    pulse_steps: int       # impact duration [sub-steps]
+
+
+def _friction_params(fr):
+    """(kind, par[6], k_blocks, alpha_blocks, tangent stiffness) of a friction config."""
+    par = np.zeros(6)
+    k = alpha = np.zeros(0)
+    if isinstance(fr, DahlFriction):
+        par[:3] = fr.k_sigma, fr.f_c, fr.shape
+        return DAHL, par, k, alpha, fr.k_sigma
+    if isinstance(fr, GmsFriction):
+        par[0] = fr.f_c
+        k, alpha = np.array(fr.k), np.array(fr.alpha)
+        return GMS, par, k, alpha, float(k.sum())
+    if isinstance(fr, LugreFriction):
+        par[:6] = fr.sigma0, fr.sigma1, fr.f_c, fr.f_s, fr.v_s, fr.exponent
+        return LUGRE, par, k, alpha, fr.sigma0
+    if isinstance(fr, CoulombFriction):
+        par[:2] = fr.f_c, fr.f_c if fr.f_s is None else fr.f_s
+        return COULOMB, par, k, alpha, 0.0
+    raise TypeError(f"unknown friction config {fr!r}")
+
+
+def _exact_zoh(a, b, h):
+    """Van Loan: exact ZOH discretisation of z' = a z + b f over h."""
+    nz, nu = b.shape
+    big = np.zeros((nz + nu, nz + nu))
+    big[:nz, :nz] = a * h
+    big[:nz, nz:] = b * h
+    e = scipy.linalg.expm(big)
+    return e[:nz, :nz].copy(), e[:nz, nz:].copy()
+
+
+def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
+                max_substeps: int = 200) -> PlantModel:
+    """Compile a stage configuration into a :class:`PlantModel`.
+
+    Parameters
+    ----------
+    stage : Stage
+        Validated stage configuration.
+    rate : float
+        Control rate [Hz]; the plant advances ``1/rate`` per :func:`plant_step`.
+    max_omega_h : float
+        Largest allowed ``omega_max * h`` [-], which sets the number of sub-steps.
+    max_substeps : int
+        Refuse configurations needing more sub-steps than this.
+
+    Examples
+    --------
+    >>> from stage_sim.config import load_preset
+    >>> pm = build_plant(load_preset("fi_stage").stage)
+    >>> pm.n_sub >= 1
+    True
+    """
+    dt = 1.0 / rate
+    m_table = stage.table.mass + sum(b.mass for b in stage.bearings if b.joint is None)
+    masses = [m_table]
+    springs = []                     # (i, j, k, c); j = -1 for ground
+    fr_list = []                     # (config, dof, noise)
+    dither_dof = [-1, -1]
+    bearing_dofs = []
+    if stage.table_friction is not None:
+        fr_list.append((stage.table_friction, 0, 0.0))
+    for b in stage.bearings:
+        if b.joint is None:
+            dof = 0
+        else:
+            dof = len(masses)
+            masses.append(b.mass)
+            springs.append((0, dof, b.joint.stiffness, b.joint.damping))
+            bearing_dofs.append(dof)
+        fr_list.append((b.friction, dof, b.force_noise_rms))
+        if b.dither_channel is not None:
+            dither_dof[b.dither_channel] = dof
+    for mode in stage.modes:
+        dof = len(masses)
+        ms = mode.mass_ratio * stage.table.mass
+        w = 2 * math.pi * mode.frequency
+        masses.append(ms)
+        springs.append((0, dof, ms * w * w, 2 * mode.damping_ratio * ms * w))
+
+    n = len(masses)
+    kmat, cmat = np.zeros((n, n)), np.zeros((n, n))
+    for i, j, k, c in springs:
+        for mat, val in ((kmat, k), (cmat, c)):
+            mat[i, i] += val
+            mat[j, j] += val
+            mat[i, j] -= val
+            mat[j, i] -= val
+
+    nf = len(fr_list)
+    nmax = max([1] + [len(f.k) for f, _, _ in fr_list if isinstance(f, GmsFriction)])
+    fr_kind = np.zeros(nf, np.int64)
+    fr_dof = np.zeros(nf, np.int64)
+    fr_par = np.zeros((nf, 6))
+    fr_k = np.zeros((nf, nmax))
+    fr_alpha = np.zeros((nf, nmax))
+    fr_n = np.zeros(nf, np.int64)
+    fr_noise = np.zeros(nf)
+    k_tangent = np.zeros((n, n))
+    c_explicit = np.zeros(n)
+    for e, (fr, dof, noise) in enumerate(fr_list):
+        kind, par, kb, ab, kt = _friction_params(fr)
+        fr_kind[e], fr_dof[e], fr_par[e], fr_noise[e] = kind, dof, par, noise
+        fr_k[e, :len(kb)], fr_alpha[e, :len(ab)], fr_n[e] = kb, ab, len(kb)
+        cmat[dof, dof] += fr.viscous
+        k_tangent[dof, dof] += kt
+        if kind == LUGRE:
+            c_explicit[dof] += fr.sigma1
+
+    sai_dof, k_lock, c_lock, cap, rc_a, arm_steps, pulse_force, pulse_steps = -1, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0
+    sai = stage.sai
+    if sai is not None:
+        sai_dof = bearing_dofs[0]
+        k_lock, c_lock, cap = sai.lock_stiffness, sai.lock_damping, sai.lock_capacity
+        for mat, val in ((k_tangent, k_lock),):
+            mat[0, 0] += val
+            mat[sai_dof, sai_dof] += val
+            mat[0, sai_dof] -= val
+            mat[sai_dof, 0] -= val
+        c_explicit[0] += c_lock
+        c_explicit[sai_dof] += c_lock
+
+    minv = np.diag(1.0 / np.array(masses))
+    eig = np.linalg.eigvals(minv @ (kmat + k_tangent))
+    omega_max = float(np.sqrt(np.max(np.abs(eig))))
+    rate_max = float(np.max(c_explicit / np.array(masses)))  # explicit damping rate [1/s]
+    n_sub = max(1, math.ceil(max(omega_max, rate_max) * dt / max_omega_h))
+    if n_sub > max_substeps:
+        raise ValueError(
+            f"stage needs {n_sub} sub-steps per control period (stiffest mode "
+            f"{omega_max / (2 * math.pi):.0f} Hz); limit is simulation.max_substeps={max_substeps}")
+    h = dt / n_sub
+
+    a = np.zeros((2 * n, 2 * n))
+    a[:n, n:] = np.eye(n)
+    a[n:, :n] = -minv @ kmat
+    a[n:, n:] = -minv @ cmat
+    b = np.zeros((2 * n, n))
+    b[n:, :] = minv
+    phi, gam = _exact_zoh(a, b, h)
+
+    if sai is not None:
+        rc_a = 1.0 if sai.rc_cutoff is None else 1.0 - math.exp(-2 * math.pi * sai.rc_cutoff * h)
+        arm_steps = int(round(sai.switch_delay / h))
+        pulse_steps = max(1, int(round(sai.impact_duration / h)))
+        pulse_force = sai.impact_impulse * (1.0 - sai.cushioning) / (pulse_steps * h)
+
+    d = stage.drive
+    noise_a, noise_gain = 1.0, 1.0
+    if d.noise_cutoff is not None:
+        noise_a = 1.0 - math.exp(-2 * math.pi * d.noise_cutoff * dt)
+        noise_gain = math.sqrt((2.0 - noise_a) / noise_a)   # unit-variance AR(1) output
+    span = stage.travel.max - stage.travel.min
+    bsens = -1
+    if stage.bearing_sensor is not None:
+        bsens = bearing_dofs[0]
+    return PlantModel(
+        n=n, n_sub=n_sub, h=h, dt=dt, phi=phi, gam=gam,
+        fr_kind=fr_kind, fr_dof=fr_dof, fr_par=fr_par, fr_k=fr_k, fr_alpha=fr_alpha,
+        fr_n=fr_n, fr_noise=fr_noise, dither_dof=np.array(dither_dof, np.int64),
+        kf_ratio=d.force_constant_ratio, peak=d.peak_force, cont=d.continuous_force,
+        th_alpha=dt / d.thermal_time_constant,
+        noise_std=d.noise_current_rms * d.force_constant * d.force_constant_ratio,
+        noise_a=noise_a, noise_gain=noise_gain, delay=d.delay_samples,
+        q_table=stage.encoder.resolution, bsens_dof=bsens,
+        bear_dof=bearing_dofs[0] if bearing_dofs else 0,
+        q_bearing=0.0 if stage.bearing_sensor is None else stage.bearing_sensor.resolution,
+        travel_min=stage.travel.min, travel_max=stage.travel.max,
+        x_limit=1e3 * span + abs(stage.travel.min) + abs(stage.travel.max),
+        sai_dof=sai_dof, k_lock=k_lock, c_lock=c_lock, cap_lock=cap, rc_a=rc_a,
+        arm_steps=arm_steps, pulse_force=pulse_force, pulse_steps=pulse_steps,
+    )
+
+
+class PlantState(NamedTuple):
+    """State of a batch of trials: every array has the trial index first."""
+    z: np.ndarray        # (B, 2n) positions then velocities
+    fr: np.ndarray       # (B, nf, nmax) friction states
+    ps: np.ndarray       # (B, N_PSTATE) scalar states (see P_* slots)
+    dbuf: np.ndarray     # (B, delay+1) drive delay line
+    f: np.ndarray        # (B, n) scratch: forces
+    zn: np.ndarray       # (B, 2n) scratch: next state
+
+
+def init_plant_state(pm: PlantModel, n_trials: int, x0=0.0, sai_mode: float = 1.0) -> PlantState:
+    """Relaxed state: every body at rest at ``x0`` [m] (scalar or per trial), friction zero.
+
+    ``sai_mode`` is the initial isolator mode (1 compliant, 0 stiff and locked).
+    """
+    n = pm.n
+    z = np.zeros((n_trials, 2 * n))
+    z[:, :n] = np.broadcast_to(np.asarray(x0, float), (n_trials,))[:, None]
+    ps = np.zeros((n_trials, N_PSTATE))
+    ps[:, P_RC] = sai_mode
+    if pm.sai_dof >= 0 and sai_mode < 0.5:
+        ps[:, P_LOCKED] = 1.0
+    return PlantState(z=z, fr=np.zeros((n_trials,) + pm.fr_k.shape), ps=ps,
+                      dbuf=np.zeros((n_trials, pm.delay + 1)), f=np.zeros((n_trials, n)),
+                      zn=np.zeros((n_trials, 2 * n)))
+
+
+@njit(cache=True)
+def _splitmix(x):
+    x = x + np.uint64(0x9E3779B97F4A7C15)
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+@njit(cache=True)
+def gauss(seed, k, channel):
+    """Standard normal sample, a pure function of (seed, sample index, channel).
+
+    Counter-based, so a trial's noise does not depend on batch size or execution
+    order: the ROS graph and the batch engine draw identical sequences.
+    """
+    x = _splitmix(np.uint64(seed) * np.uint64(0x100000001B3) + np.uint64(k) * np.uint64(64)
+                  + np.uint64(channel))
+    y = _splitmix(x)
+    u1 = ((x >> np.uint64(11)) + np.uint64(1)) * (1.0 / 9007199254740993.0)
+    u2 = (y >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+    return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+
+
+@njit(cache=True)
+def _quantize(x, q):
+    if q > 0.0:
+        return q * math.floor(x / q + 0.5)
+    return x
+
+
+@njit(cache=True)
+def friction_force(pm, fr, e, z):
+    """Friction force of element ``e`` held over the next sub-step [N].
+
+    The value is the model's force plus its tangent stiffness times half the
+    predicted sub-step displacement ``v h / 2`` (a mid-point force): a held spring
+    force would lag by half a sub-step and pump energy into lightly damped
+    pre-motion resonances; the mid-point force keeps the scheme area-preserving.
+    Coulomb elements return 0 (solved implicitly in :func:`plant_step`).
+    """
+    kind = pm.fr_kind[e]
+    v = z[pm.n + pm.fr_dof[e]]
+    s = 1.0 if v > 0.0 else -1.0
+    p = pm.fr_par[e]
+    if kind == DAHL:
+        f = fr[e, 0]
+        u = 1.0 - s * f / p[1]
+        kt = p[0] * u ** p[2] if u > 0.0 else 0.0
+        return f + kt * v * (0.5 * pm.h)
+    if kind == GMS:
+        f = 0.0
+        kt = 0.0
+        for i in range(pm.fr_n[e]):
+            fi = fr[e, i]
+            f += fi
+            if s * fi < pm.fr_alpha[e, i] * p[0]:
+                kt += pm.fr_k[e, i]
+        return f + kt * v * (0.5 * pm.h)
+    if kind == LUGRE:
+        g = stribeck(v, p[2], p[3], p[4], p[5])
+        zb = fr[e, 0]
+        zdot = v - p[0] * abs(v) * zb / g
+        kt = p[0] * max(0.0, 1.0 - p[0] * s * zb / g)
+        return p[0] * zb + p[1] * zdot + kt * v * (0.5 * pm.h)
+    return 0.0
+
+
+@njit(cache=True)
+def plant_step(pm, z, fr, ps, dbuf, f, zn, u_cmd, d0, d1, mode, k, seed, meas):
+    """Advance one trial by one control period.
+
+    Parameters
+    ----------
+    pm : PlantModel
+    z, fr, ps, dbuf, f, zn : ndarray
+        This trial's rows of a :class:`PlantState` (updated in place).
+    u_cmd : float
+        Servo force command [N] (drive input, scaled by the nominal force constant).
+    d0, d1 : float
+        Piezo dither forces [N]: ``+d0`` on the channel-0 bearing, ``-d1`` on the
+        channel-1 bearing (Eq. 3.2).
+    mode : float
+        SAI solenoid command: 1 compliant (lock released), 0 stiff.
+    k : int
+        Control sample index (selects the noise samples).
+    seed : int
+        Trial seed.
+    meas : ndarray, shape (2,)
+        Out: quantized table position and bearing-sensor position [m].
+
+    Returns
+    -------
+    int
+        ``OK``, ``DIVERGED`` or ``OUT_OF_TRAVEL``.
+    """
+    n = pm.n
+    # ---- drive: delay, peak and thermal (I²t) limits, force-constant error, noise
+    if pm.delay > 0:
+        i = int(ps[P_DELAY_IDX])
+        u_in = dbuf[i]
+        dbuf[i] = u_cmd
+        ps[P_DELAY_IDX] = (i + 1) % pm.delay
+    else:
+        u_in = u_cmd
+    u = min(max(u_in, -pm.peak), pm.peak)
+    if ps[P_THERMAL] > pm.cont * pm.cont:
+        u = min(max(u, -pm.cont), pm.cont)
+    ps[P_THERMAL] += pm.th_alpha * (u * u - ps[P_THERMAL])
+    force = pm.kf_ratio * u
+    if pm.noise_std > 0.0:
+        w = gauss(seed, k, 0)
+        if pm.noise_a < 1.0:
+            ps[P_NOISE] += pm.noise_a * (w * pm.noise_gain - ps[P_NOISE])
+            w = ps[P_NOISE]
+        force += pm.noise_std * w
+    nf = pm.fr_kind.shape[0]
+
+    for _ in range(pm.n_sub):
+        for i in range(n):
+            f[i] = 0.0
+        f[0] += force
+        if pm.dither_dof[0] >= 0:
+            f[pm.dither_dof[0]] += d0
+        if pm.dither_dof[1] >= 0:
+            f[pm.dither_dof[1]] -= d1
+        for e in range(nf):
+            fe = friction_force(pm, fr, e, z)
+            if pm.fr_noise[e] > 0.0:
+                fe += pm.fr_noise[e] * gauss(seed, k, 1 + e)
+            f[pm.fr_dof[e]] -= fe
+        # ---- SAI: RC-filtered solenoid, armature travel, friction lock, impact
+        if pm.sai_dof >= 0:
+            b = pm.sai_dof
+            ps[P_RC] += pm.rc_a * (mode - ps[P_RC])
+            if ps[P_LOCKED] > 0.5 and ps[P_RC] > 0.5:
+                ps[P_LOCKED] = 0.0                      # release: stored deflection acts
+                ps[P_ARM_TIMER] = 0.0
+            elif ps[P_LOCKED] < 0.5 and ps[P_RC] < 0.5:
+                ps[P_ARM_TIMER] += 1.0
+                if ps[P_ARM_TIMER] > pm.arm_steps:
+                    ps[P_LOCKED] = 1.0                  # lock: keep the present deflection
+                    ps[P_ANCHOR] = z[0] - z[b]
+                    ps[P_PULSE] = pm.pulse_steps
+            if ps[P_LOCKED] > 0.5:
+                spring = pm.k_lock * (z[0] - z[b] - ps[P_ANCHOR])
+                if abs(spring) > pm.cap_lock:          # the lock slips
+                    sgn = 1.0 if spring > 0.0 else -1.0
+                    ps[P_ANCHOR] = z[0] - z[b] - sgn * pm.cap_lock / pm.k_lock
+                    spring = sgn * pm.cap_lock
+                dv = z[n] - z[n + b]
+                fl = spring + pm.c_lock * dv
+                if abs(spring) < pm.cap_lock:
+                    fl += pm.k_lock * dv * (0.5 * pm.h)
+                f[0] -= fl
+                f[b] += fl
+            if ps[P_PULSE] > 0.0:
+                f[0] += pm.pulse_force
+                f[b] -= pm.pulse_force
+                ps[P_PULSE] -= 1.0
+        # ---- exact linear propagation
+        for r in range(2 * n):
+            acc = 0.0
+            for c in range(2 * n):
+                acc += pm.phi[r, c] * z[c]
+            for c in range(n):
+                acc += pm.gam[r, c] * f[c]
+            zn[r] = acc
+        # ---- Coulomb elements: implicit stick/slip
+        for e in range(nf):
+            if pm.fr_kind[e] == COULOMB:
+                dof = pm.fr_dof[e]
+                a = zn[n + dof]
+                g = pm.gam[n + dof, dof]
+                f_stop = a / g
+                lim = pm.fr_par[e, 1] if z[n + dof] == 0.0 else pm.fr_par[e, 0]
+                if abs(f_stop) <= lim:
+                    fc = f_stop
+                else:
+                    fc = pm.fr_par[e, 0] * (1.0 if a > 0.0 else -1.0)
+                for r in range(2 * n):
+                    zn[r] -= pm.gam[r, dof] * fc
+                if abs(f_stop) <= lim:
+                    zn[n + dof] = 0.0
+        # ---- friction state updates in the displacement domain
+        for e in range(nf):
+            kind = pm.fr_kind[e]
+            dof = pm.fr_dof[e]
+            dx = zn[dof] - z[dof]
+            p = pm.fr_par[e]
+            if kind == DAHL:
+                fr[e, 0] = dahl_update(fr[e, 0], dx, p[0], p[1], p[2])
+            elif kind == GMS:
+                gms_update(fr[e], dx, pm.fr_k[e], pm.fr_alpha[e], p[0], pm.fr_n[e])
+            elif kind == LUGRE:
+                zb, _ = lugre_update(fr[e, 0], dx, pm.h, p[0], p[1], p[2], p[3], p[4], p[5])
+                fr[e, 0] = zb
+        for r in range(2 * n):
+            z[r] = zn[r]
+
+    for r in range(2 * n):
+        if not math.isfinite(z[r]) or abs(z[r]) > pm.x_limit * (1.0 if r < n else 1e4):
+            return DIVERGED
+    meas[0] = _quantize(z[0], pm.q_table)
+    meas[1] = _quantize(z[pm.bsens_dof], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
+    if z[0] < pm.travel_min or z[0] > pm.travel_max:
+        return OUT_OF_TRAVEL
+    return OK
