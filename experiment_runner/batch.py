@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -79,36 +80,62 @@ class BatchResult:
 
 @njit(cache=True, parallel=True)
 def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction,
-         z, fr, ps, dbuf, f, zn, ss, ds, sa,
-         out_xr, out_y, out_yb, out_u, out_xt, out_xb, out_d, out_mode, status, fail):
-    n_trials, n_steps = x_ref.shape
-    bdof = pm.bear_dof
-    for b in prange(n_trials):
-        meas = np.empty(2)
-        dout = np.zeros(2)
-        meas[0] = z[b, 0] if pm.q_table <= 0 else pm.q_table * math.floor(z[b, 0] / pm.q_table + 0.5)
-        meas[1] = math.nan
+         z, fr, ps, dbuf, f, zn, force, ss, ds, sa,
+         o_xr, o_y, o_yb, o_u, o_xt, o_xb, o_d0, o_d1, o_mode, status, fail):
+    """Closed loop over time for each chunk of trials; arrays are (chunk, ..., trial)."""
+    n_chunks, n_steps, nb = x_ref.shape
+    for c in prange(n_chunks):
+        meas = np.empty((2, nb))
+        dout = np.zeros((2, nb))
+        u = np.zeros(nb)
+        mode = np.zeros(nb)
+        xc = np.zeros(nb)
+        xr = np.zeros(nb)
+        st = status[c]
+        for b in range(nb):
+            q = pm.q_table
+            meas[0, b] = z[c, 0, b] if q <= 0 else q * math.floor(z[c, 0, b] / q + 0.5)
+            meas[1, b] = math.nan
         for k in range(n_steps):
             ka = min(k + lead, n_steps - 1)
-            mode, xc = sai_step(am, sa[b], correction, k, v_ref[b, k], v_ref[b, ka])
-            xr = x_ref[b, k] + xc
-            dither_step(dm, ds[b], k, xr, v_ref[b, k], meas[0], dout)
-            u = servo_step(sm, ss[b], xr, v_ref[b, k], meas[0])
-            out_xr[b, k] = xr
-            out_y[b, k] = meas[0]
-            out_yb[b, k] = meas[1]
-            out_u[b, k] = u
-            out_xt[b, k] = z[b, 0]
-            out_xb[b, k] = z[b, bdof]
-            out_d[b, k, 0] = dout[0]
-            out_d[b, k, 1] = dout[1]
-            out_mode[b, k] = mode
-            st = plant_step(pm, z[b], fr[b], ps[b], dbuf[b], f[b], zn[b], u, dout[0], dout[1],
-                            mode, k, seeds[b], meas)
-            if st != 0:
-                status[b] = st
-                fail[b] = k
-                break
+            vr = v_ref[c, k]
+            sai_step(am, sa[c], correction, k, vr, v_ref[c, ka], mode, xc)
+            for b in range(nb):
+                xr[b] = x_ref[c, k, b] + xc[b]
+            y = meas[0]
+            dither_step(dm, ds[c], k, xr, vr, y, dout)
+            servo_step(sm, ss[c], xr, vr, y, u)
+            for b in range(nb):
+                o_xr[c, k, b] = xr[b]
+                o_y[c, k, b] = meas[0, b]
+                o_yb[c, k, b] = meas[1, b]
+                o_u[c, k, b] = u[b]
+                o_xt[c, k, b] = z[c, 0, b]
+                o_xb[c, k, b] = z[c, pm.bear_dof, b]
+                o_d0[c, k, b] = dout[0, b]
+                o_d1[c, k, b] = dout[1, b]
+                o_mode[c, k, b] = mode[b]
+            plant_step(pm, z[c], fr[c], ps[c], dbuf[c], f[c], zn[c], force[c], u, dout[0], dout[1],
+                       mode, k, seeds[c], meas, st)
+            for b in range(nb):
+                if st[b] != OK and fail[c, b] < 0:
+                    fail[c, b] = k
+
+
+def _chunked(a, n_chunks, size):
+    """(B, ...) -> (n_chunks, ..., size): pad by repeating the last trial, trial axis last."""
+    a = np.asarray(a)
+    pad = n_chunks * size - a.shape[0]
+    if pad:
+        a = np.concatenate([a, np.repeat(a[-1:], pad, axis=0)])
+    a = a.reshape((n_chunks, size) + a.shape[1:])
+    return np.ascontiguousarray(np.moveaxis(a, 1, -1))
+
+
+def _unchunked(a, n_trials):
+    """(n_chunks, ..., size) -> (B, ...) without the padding."""
+    a = np.moveaxis(a, -1, 1)
+    return a.reshape((-1,) + a.shape[2:])[:n_trials]
 
 
 def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None, seeds=None,
@@ -150,30 +177,32 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
         v_ref = np.broadcast_to(v_ref, x_ref.shape)
     if x_ref.shape != (n_trials, x_ref.shape[1]) or v_ref.shape != x_ref.shape:
         raise ValueError(f"reference shape {x_ref.shape} does not match n_trials={n_trials}")
-    x_ref = np.ascontiguousarray(x_ref)
-    v_ref = np.ascontiguousarray(v_ref)
     seeds = (np.arange(n_trials) + preset.simulation.seed if seeds is None
              else np.asarray(seeds)).astype(np.int64)
     corr = np.zeros(0) if correction is None else np.asarray(correction, float)
 
+    n_chunks = max(1, min(numba.get_num_threads(), n_trials))
+    size = -(-n_trials // n_chunks)
     pm = models.plant
-    init_mode = 0.0 if (preset.sai_manager and preset.sai_manager.rule in ("point_to_point", "tracking",
-                                                                            "always_stiff")) else 1.0
-    st = init_plant_state(pm, n_trials, x_ref[:, 0], sai_mode=init_mode)
-    ss = init_servo_state(models.servo, n_trials)
-    ds = init_dither_state(models.dither, n_trials)
-    sa = init_sai_state(models.sai, n_trials)
+    init_mode = 0.0 if (preset.sai_manager and preset.sai_manager.rule != "always_compliant") else 1.0
+    st = init_plant_state(pm, n_chunks * size, _chunked(x_ref[:, 0], 1, n_chunks * size)[0],
+                          sai_mode=init_mode)
+    plant = [np.ascontiguousarray(np.moveaxis(a.reshape(a.shape[:-1] + (n_chunks, size)), -2, 0))
+             for a in st]
     T = x_ref.shape[1]
-    out = {k: np.zeros((n_trials, T)) for k in ("xr", "y", "yb", "u", "xt", "xb", "mode")}
-    out_d = np.zeros((n_trials, T, 2))
-    status = np.zeros(n_trials, np.int64)
-    fail = -np.ones(n_trials, np.int64)
-    _run(pm, models.servo, models.dither, models.sai, models.lead, x_ref, v_ref, seeds, corr,
-         st.z, st.fr, st.ps, st.dbuf, st.f, st.zn, ss, ds, sa,
-         out["xr"], out["y"], out["yb"], out["u"], out["xt"], out["xb"], out_d, out["mode"],
-         status, fail)
-    res = BatchResult(t=np.arange(T) / preset.controller.rate, x_ref=out["xr"], v_ref=v_ref,
-                      y=out["y"], y_bearing=out["yb"], u=out["u"], x_table=out["xt"],
-                      x_bearing=out["xb"], dither=out_d, mode=out["mode"], status=status,
-                      fail_step=fail)
+    states = [np.ascontiguousarray(np.moveaxis(
+        init(m, n_chunks * size).reshape(-1, n_chunks, size), 1, 0))
+        for init, m in ((init_servo_state, models.servo), (init_dither_state, models.dither),
+                        (init_sai_state, models.sai))]
+    outs = [np.zeros((n_chunks, T, size)) for _ in range(9)]
+    status = np.zeros((n_chunks, size), np.int64)
+    fail = -np.ones((n_chunks, size), np.int64)
+    _run(pm, models.servo, models.dither, models.sai, models.lead,
+         _chunked(x_ref, n_chunks, size), _chunked(v_ref, n_chunks, size),
+         _chunked(seeds, n_chunks, size), corr, *plant, *states, *outs, status, fail)
+    xr, y, yb, u, xt, xb, d0, d1, mode = (_unchunked(o, n_trials) for o in outs)
+    res = BatchResult(t=np.arange(T) / preset.controller.rate, x_ref=xr, v_ref=np.asarray(v_ref),
+                      y=y, y_bearing=yb, u=u, x_table=xt, x_bearing=xb,
+                      dither=np.stack([d0, d1], axis=-1), mode=mode,
+                      status=_unchunked(status, n_trials), fail_step=_unchunked(fail, n_trials))
     return res.check() if check else res

@@ -31,7 +31,7 @@ __all__ = [
 ]
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, inline="always")
 def dahl_update(f, dx, k_sigma, f_c, shape):
     """Exact Dahl update (Eq. 1.1) for a monotone displacement increment.
 

@@ -32,7 +32,7 @@ import scipy.linalg
 from numba import njit
 
 from .config import CoulombFriction, DahlFriction, GmsFriction, LugreFriction, Stage
-from .friction import dahl_update, gms_update, lugre_update, stribeck
+from .friction import dahl_update, lugre_update, stribeck
 
 # friction element kinds
 DAHL, GMS, LUGRE, COULOMB = 1, 2, 3, 4
@@ -264,13 +264,14 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
 
 
 class PlantState(NamedTuple):
-    """State of a batch of trials: every array has the trial index first."""
-    z: np.ndarray        # (B, 2n) positions then velocities
-    fr: np.ndarray       # (B, nf, nmax) friction states
-    ps: np.ndarray       # (B, N_PSTATE) scalar states (see P_* slots)
-    dbuf: np.ndarray     # (B, delay+1) drive delay line
-    f: np.ndarray        # (B, n) scratch: forces
-    zn: np.ndarray       # (B, 2n) scratch: next state
+    """State of a batch of trials; the trial axis is LAST (batch-inner layout)."""
+    z: np.ndarray        # (2n, B) positions then velocities
+    fr: np.ndarray       # (nf, nmax, B) friction states
+    ps: np.ndarray       # (N_PSTATE, B) scalar states (see P_* slots)
+    dbuf: np.ndarray     # (delay+1, B) drive delay line
+    f: np.ndarray        # (n, B) scratch: forces
+    zn: np.ndarray       # (2n, B) scratch: next state
+    force: np.ndarray    # (B,) scratch: motor force
 
 
 def init_plant_state(pm: PlantModel, n_trials: int, x0=0.0, sai_mode: float = 1.0) -> PlantState:
@@ -279,18 +280,18 @@ def init_plant_state(pm: PlantModel, n_trials: int, x0=0.0, sai_mode: float = 1.
     ``sai_mode`` is the initial isolator mode (1 compliant, 0 stiff and locked).
     """
     n = pm.n
-    z = np.zeros((n_trials, 2 * n))
-    z[:, :n] = np.broadcast_to(np.asarray(x0, float), (n_trials,))[:, None]
-    ps = np.zeros((n_trials, N_PSTATE))
-    ps[:, P_RC] = sai_mode
+    z = np.zeros((2 * n, n_trials))
+    z[:n, :] = np.broadcast_to(np.asarray(x0, float), (n_trials,))[None, :]
+    ps = np.zeros((N_PSTATE, n_trials))
+    ps[P_RC] = sai_mode
     if pm.sai_dof >= 0 and sai_mode < 0.5:
-        ps[:, P_LOCKED] = 1.0
-    return PlantState(z=z, fr=np.zeros((n_trials,) + pm.fr_k.shape), ps=ps,
-                      dbuf=np.zeros((n_trials, pm.delay + 1)), f=np.zeros((n_trials, n)),
-                      zn=np.zeros((n_trials, 2 * n)))
+        ps[P_LOCKED] = 1.0
+    return PlantState(z=z, fr=np.zeros(pm.fr_k.shape + (n_trials,)), ps=ps,
+                      dbuf=np.zeros((pm.delay + 1, n_trials)), f=np.zeros((n, n_trials)),
+                      zn=np.zeros((2 * n, n_trials)), force=np.zeros(n_trials))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _splitmix(x):
     x = x + np.uint64(0x9E3779B97F4A7C15)
     x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -298,7 +299,7 @@ def _splitmix(x):
     return x ^ (x >> np.uint64(31))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def gauss(seed, k, channel):
     """Standard normal sample, a pure function of (seed, sample index, channel).
 
@@ -313,7 +314,7 @@ def gauss(seed, k, channel):
     return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _quantize(x, q):
     if q > 0.0:
         return q * math.floor(x / q + 0.5)
@@ -321,179 +322,273 @@ def _quantize(x, q):
 
 
 @njit(cache=True)
-def friction_force(pm, fr, e, z):
-    """Friction force of element ``e`` held over the next sub-step [N].
+def _friction_forces(pm, z, fr, f, k, seeds):
+    """Subtract every friction element's held force from ``f`` (all trials).
 
-    The value is the model's force plus its tangent stiffness times half the
-    predicted sub-step displacement ``v h / 2`` (a mid-point force): a held spring
-    force would lag by half a sub-step and pump energy into lightly damped
+    The held value is the model's force plus its tangent stiffness times half the
+    predicted sub-step displacement ``v h / 2`` (a mid-point force): a plainly held
+    spring force lags by half a sub-step and pumps energy into lightly damped
     pre-motion resonances; the mid-point force keeps the scheme area-preserving.
-    Coulomb elements return 0 (solved implicitly in :func:`plant_step`).
+    Coulomb elements are solved implicitly in :func:`plant_step` instead.
     """
-    kind = pm.fr_kind[e]
-    v = z[pm.n + pm.fr_dof[e]]
-    s = 1.0 if v > 0.0 else -1.0
-    p = pm.fr_par[e]
-    if kind == DAHL:
-        f = fr[e, 0]
-        u = 1.0 - s * f / p[1]
-        kt = p[0] * u ** p[2] if u > 0.0 else 0.0
-        return f + kt * v * (0.5 * pm.h)
-    if kind == GMS:
-        f = 0.0
-        kt = 0.0
-        for i in range(pm.fr_n[e]):
-            fi = fr[e, i]
-            f += fi
-            if s * fi < pm.fr_alpha[e, i] * p[0]:
-                kt += pm.fr_k[e, i]
-        return f + kt * v * (0.5 * pm.h)
-    if kind == LUGRE:
-        g = stribeck(v, p[2], p[3], p[4], p[5])
-        zb = fr[e, 0]
-        zdot = v - p[0] * abs(v) * zb / g
-        kt = p[0] * max(0.0, 1.0 - p[0] * s * zb / g)
-        return p[0] * zb + p[1] * zdot + kt * v * (0.5 * pm.h)
-    return 0.0
+    n = pm.n
+    hh = 0.5 * pm.h
+    nb = z.shape[1]
+    par = pm.fr_par
+    for e in range(pm.fr_kind.shape[0]):
+        kind = pm.fr_kind[e]
+        dof = pm.fr_dof[e]
+        if kind == DAHL:
+            k0, fc, shape = par[e, 0], par[e, 1], par[e, 2]
+            for b in range(nb):
+                v = z[n + dof, b]
+                fe = fr[e, 0, b]
+                u = 1.0 - (fe if v > 0.0 else -fe) / fc
+                if u <= 0.0:
+                    kt = 0.0
+                elif shape == 1.0:
+                    kt = k0 * u
+                else:
+                    kt = k0 * u ** shape
+                f[dof, b] -= fe + kt * v * hh
+        elif kind == GMS:
+            fc = par[e, 0]
+            for b in range(nb):
+                v = z[n + dof, b]
+                s = 1.0 if v > 0.0 else -1.0
+                fe = 0.0
+                kt = 0.0
+                for i in range(pm.fr_n[e]):
+                    fi = fr[e, i, b]
+                    fe += fi
+                    if s * fi < pm.fr_alpha[e, i] * fc:
+                        kt += pm.fr_k[e, i]
+                f[dof, b] -= fe + kt * v * hh
+        elif kind == LUGRE:
+            s0, s1 = par[e, 0], par[e, 1]
+            for b in range(nb):
+                v = z[n + dof, b]
+                s = 1.0 if v > 0.0 else -1.0
+                g = stribeck(v, par[e, 2], par[e, 3], par[e, 4], par[e, 5])
+                zb = fr[e, 0, b]
+                zdot = v - s0 * abs(v) * zb / g
+                kt = s0 * max(0.0, 1.0 - s0 * s * zb / g)
+                f[dof, b] -= s0 * zb + s1 * zdot + kt * v * hh
+        if pm.fr_noise[e] > 0.0:
+            for b in range(nb):
+                f[dof, b] -= pm.fr_noise[e] * gauss(seeds[b], k, 1 + e)
 
 
 @njit(cache=True)
-def plant_step(pm, z, fr, ps, dbuf, f, zn, u_cmd, d0, d1, mode, k, seed, meas):
-    """Advance one trial by one control period.
+def _sai_forces(pm, z, ps, f, mode):
+    """SAI: RC-filtered solenoid, armature travel, friction lock and impact pulse."""
+    n = pm.n
+    j = pm.sai_dof
+    for b in range(z.shape[1]):
+        ps[P_RC, b] += pm.rc_a * (mode[b] - ps[P_RC, b])
+        if ps[P_LOCKED, b] > 0.5 and ps[P_RC, b] > 0.5:
+            ps[P_LOCKED, b] = 0.0                     # release: the stored deflection acts
+            ps[P_ARM_TIMER, b] = 0.0
+        elif ps[P_LOCKED, b] < 0.5 and ps[P_RC, b] < 0.5:
+            ps[P_ARM_TIMER, b] += 1.0
+            if ps[P_ARM_TIMER, b] > pm.arm_steps:
+                ps[P_LOCKED, b] = 1.0                 # lock: keep the present deflection
+                ps[P_ANCHOR, b] = z[0, b] - z[j, b]
+                ps[P_PULSE, b] = pm.pulse_steps
+        if ps[P_LOCKED, b] > 0.5:
+            spring = pm.k_lock * (z[0, b] - z[j, b] - ps[P_ANCHOR, b])
+            dv = z[n, b] - z[n + j, b]
+            if abs(spring) > pm.cap_lock:             # the lock slips
+                sgn = 1.0 if spring > 0.0 else -1.0
+                ps[P_ANCHOR, b] = z[0, b] - z[j, b] - sgn * pm.cap_lock / pm.k_lock
+                fl = sgn * pm.cap_lock + pm.c_lock * dv
+            else:
+                fl = spring + pm.c_lock * dv + pm.k_lock * dv * (0.5 * pm.h)
+            f[0, b] -= fl
+            f[j, b] += fl
+        if ps[P_PULSE, b] > 0.0:
+            f[0, b] += pm.pulse_force
+            f[j, b] -= pm.pulse_force
+            ps[P_PULSE, b] -= 1.0
+
+
+@njit(cache=True)
+def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds, meas, status):
+    """Advance a batch of trials by one control period.
 
     Parameters
     ----------
     pm : PlantModel
-    z, fr, ps, dbuf, f, zn : ndarray
-        This trial's rows of a :class:`PlantState` (updated in place).
-    u_cmd : float
+    z, fr, ps, dbuf, f, zn, force : ndarray
+        The fields of a :class:`PlantState` (trial axis last), updated in place.
+    u_cmd : ndarray, shape (B,)
         Servo force command [N] (drive input, scaled by the nominal force constant).
-    d0, d1 : float
+    d0, d1 : ndarray, shape (B,)
         Piezo dither forces [N]: ``+d0`` on the channel-0 bearing, ``-d1`` on the
         channel-1 bearing (Eq. 3.2).
-    mode : float
+    mode : ndarray, shape (B,)
         SAI solenoid command: 1 compliant (lock released), 0 stiff.
     k : int
         Control sample index (selects the noise samples).
-    seed : int
-        Trial seed.
-    meas : ndarray, shape (2,)
+    seeds : ndarray of int64, shape (B,)
+        Trial seeds.
+    meas : ndarray, shape (2, B)
         Out: quantized table position and bearing-sensor position [m].
-
-    Returns
-    -------
-    int
-        ``OK``, ``DIVERGED`` or ``OUT_OF_TRAVEL``.
+    status : ndarray of int64, shape (B,)
+        Out: ``OK``, ``DIVERGED`` or ``OUT_OF_TRAVEL`` (a nonzero status is kept).
     """
     n = pm.n
+    nz = 2 * n
+    nb = u_cmd.shape[0]
     # ---- drive: delay, peak and thermal (I²t) limits, force-constant error, noise
-    if pm.delay > 0:
-        i = int(ps[P_DELAY_IDX])
-        u_in = dbuf[i]
-        dbuf[i] = u_cmd
-        ps[P_DELAY_IDX] = (i + 1) % pm.delay
-    else:
-        u_in = u_cmd
-    u = min(max(u_in, -pm.peak), pm.peak)
-    if ps[P_THERMAL] > pm.cont * pm.cont:
-        u = min(max(u, -pm.cont), pm.cont)
-    ps[P_THERMAL] += pm.th_alpha * (u * u - ps[P_THERMAL])
-    force = pm.kf_ratio * u
+    for b in range(nb):
+        if pm.delay > 0:
+            i = int(ps[P_DELAY_IDX, b])
+            u_in = dbuf[i, b]
+            dbuf[i, b] = u_cmd[b]
+            ps[P_DELAY_IDX, b] = (i + 1) % pm.delay
+        else:
+            u_in = u_cmd[b]
+        u = min(max(u_in, -pm.peak), pm.peak)
+        if ps[P_THERMAL, b] > pm.cont * pm.cont:
+            u = min(max(u, -pm.cont), pm.cont)
+        ps[P_THERMAL, b] += pm.th_alpha * (u * u - ps[P_THERMAL, b])
+        force[b] = pm.kf_ratio * u
     if pm.noise_std > 0.0:
-        w = gauss(seed, k, 0)
-        if pm.noise_a < 1.0:
-            ps[P_NOISE] += pm.noise_a * (w * pm.noise_gain - ps[P_NOISE])
-            w = ps[P_NOISE]
-        force += pm.noise_std * w
+        for b in range(nb):
+            w = gauss(seeds[b], k, 0)
+            if pm.noise_a < 1.0:
+                ps[P_NOISE, b] += pm.noise_a * (w * pm.noise_gain - ps[P_NOISE, b])
+                w = ps[P_NOISE, b]
+            force[b] += pm.noise_std * w
     nf = pm.fr_kind.shape[0]
+    j0, j1 = pm.dither_dof[0], pm.dither_dof[1]
 
     for _ in range(pm.n_sub):
         for i in range(n):
-            f[i] = 0.0
-        f[0] += force
-        if pm.dither_dof[0] >= 0:
-            f[pm.dither_dof[0]] += d0
-        if pm.dither_dof[1] >= 0:
-            f[pm.dither_dof[1]] -= d1
-        for e in range(nf):
-            fe = friction_force(pm, fr, e, z)
-            if pm.fr_noise[e] > 0.0:
-                fe += pm.fr_noise[e] * gauss(seed, k, 1 + e)
-            f[pm.fr_dof[e]] -= fe
-        # ---- SAI: RC-filtered solenoid, armature travel, friction lock, impact
+            for b in range(nb):
+                f[i, b] = 0.0
+        for b in range(nb):
+            f[0, b] = force[b]
+        if j0 >= 0:
+            for b in range(nb):
+                f[j0, b] += d0[b]
+        if j1 >= 0:
+            for b in range(nb):
+                f[j1, b] -= d1[b]
+        _friction_forces(pm, z, fr, f, k, seeds)
         if pm.sai_dof >= 0:
-            b = pm.sai_dof
-            ps[P_RC] += pm.rc_a * (mode - ps[P_RC])
-            if ps[P_LOCKED] > 0.5 and ps[P_RC] > 0.5:
-                ps[P_LOCKED] = 0.0                      # release: stored deflection acts
-                ps[P_ARM_TIMER] = 0.0
-            elif ps[P_LOCKED] < 0.5 and ps[P_RC] < 0.5:
-                ps[P_ARM_TIMER] += 1.0
-                if ps[P_ARM_TIMER] > pm.arm_steps:
-                    ps[P_LOCKED] = 1.0                  # lock: keep the present deflection
-                    ps[P_ANCHOR] = z[0] - z[b]
-                    ps[P_PULSE] = pm.pulse_steps
-            if ps[P_LOCKED] > 0.5:
-                spring = pm.k_lock * (z[0] - z[b] - ps[P_ANCHOR])
-                if abs(spring) > pm.cap_lock:          # the lock slips
-                    sgn = 1.0 if spring > 0.0 else -1.0
-                    ps[P_ANCHOR] = z[0] - z[b] - sgn * pm.cap_lock / pm.k_lock
-                    spring = sgn * pm.cap_lock
-                dv = z[n] - z[n + b]
-                fl = spring + pm.c_lock * dv
-                if abs(spring) < pm.cap_lock:
-                    fl += pm.k_lock * dv * (0.5 * pm.h)
-                f[0] -= fl
-                f[b] += fl
-            if ps[P_PULSE] > 0.0:
-                f[0] += pm.pulse_force
-                f[b] -= pm.pulse_force
-                ps[P_PULSE] -= 1.0
-        # ---- exact linear propagation
-        for r in range(2 * n):
-            acc = 0.0
-            for c in range(2 * n):
-                acc += pm.phi[r, c] * z[c]
+            _sai_forces(pm, z, ps, f, mode)
+        # ---- exact linear propagation  zn = phi z + gam f
+        for r in range(nz):
+            for b in range(nb):
+                zn[r, b] = 0.0
+            for c in range(nz):
+                a = pm.phi[r, c]
+                if a != 0.0:
+                    for b in range(nb):
+                        zn[r, b] += a * z[c, b]
             for c in range(n):
-                acc += pm.gam[r, c] * f[c]
-            zn[r] = acc
+                a = pm.gam[r, c]
+                if a != 0.0:
+                    for b in range(nb):
+                        zn[r, b] += a * f[c, b]
         # ---- Coulomb elements: implicit stick/slip
         for e in range(nf):
             if pm.fr_kind[e] == COULOMB:
                 dof = pm.fr_dof[e]
-                a = zn[n + dof]
                 g = pm.gam[n + dof, dof]
-                f_stop = a / g
-                lim = pm.fr_par[e, 1] if z[n + dof] == 0.0 else pm.fr_par[e, 0]
-                if abs(f_stop) <= lim:
-                    fc = f_stop
-                else:
-                    fc = pm.fr_par[e, 0] * (1.0 if a > 0.0 else -1.0)
-                for r in range(2 * n):
-                    zn[r] -= pm.gam[r, dof] * fc
-                if abs(f_stop) <= lim:
-                    zn[n + dof] = 0.0
-        # ---- friction state updates in the displacement domain
+                for b in range(nb):
+                    a = zn[n + dof, b]
+                    f_stop = a / g
+                    lim = pm.fr_par[e, 1] if z[n + dof, b] == 0.0 else pm.fr_par[e, 0]
+                    stick = abs(f_stop) <= lim
+                    fc = f_stop if stick else pm.fr_par[e, 0] * (1.0 if a > 0.0 else -1.0)
+                    for r in range(nz):
+                        zn[r, b] -= pm.gam[r, dof] * fc
+                    if stick:
+                        zn[n + dof, b] = 0.0
+        # ---- friction states, exactly in the displacement domain
         for e in range(nf):
             kind = pm.fr_kind[e]
             dof = pm.fr_dof[e]
-            dx = zn[dof] - z[dof]
-            p = pm.fr_par[e]
             if kind == DAHL:
-                fr[e, 0] = dahl_update(fr[e, 0], dx, p[0], p[1], p[2])
+                k0, fc, shape = pm.fr_par[e, 0], pm.fr_par[e, 1], pm.fr_par[e, 2]
+                for b in range(nb):
+                    fr[e, 0, b] = dahl_update(fr[e, 0, b], zn[dof, b] - z[dof, b], k0, fc, shape)
             elif kind == GMS:
-                gms_update(fr[e], dx, pm.fr_k[e], pm.fr_alpha[e], p[0], pm.fr_n[e])
+                fc = pm.fr_par[e, 0]
+                for b in range(nb):
+                    dx = zn[dof, b] - z[dof, b]
+                    for i in range(pm.fr_n[e]):
+                        lim = pm.fr_alpha[e, i] * fc
+                        fr[e, i, b] = min(max(fr[e, i, b] + pm.fr_k[e, i] * dx, -lim), lim)
             elif kind == LUGRE:
-                zb, _ = lugre_update(fr[e, 0], dx, pm.h, p[0], p[1], p[2], p[3], p[4], p[5])
-                fr[e, 0] = zb
-        for r in range(2 * n):
-            z[r] = zn[r]
+                p = pm.fr_par
+                for b in range(nb):
+                    zb, _ = lugre_update(fr[e, 0, b], zn[dof, b] - z[dof, b], pm.h, p[e, 0],
+                                         p[e, 1], p[e, 2], p[e, 3], p[e, 4], p[e, 5])
+                    fr[e, 0, b] = zb
+        for r in range(nz):
+            for b in range(nb):
+                z[r, b] = zn[r, b]
 
-    for r in range(2 * n):
-        if not math.isfinite(z[r]) or abs(z[r]) > pm.x_limit * (1.0 if r < n else 1e4):
-            return DIVERGED
-    meas[0] = _quantize(z[0], pm.q_table)
-    meas[1] = _quantize(z[pm.bsens_dof], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
-    if z[0] < pm.travel_min or z[0] > pm.travel_max:
-        return OUT_OF_TRAVEL
-    return OK
+    for b in range(nb):
+        meas[0, b] = _quantize(z[0, b], pm.q_table)
+        meas[1, b] = _quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
+        if status[b] != OK:
+            continue
+        for r in range(nz):
+            if not math.isfinite(z[r, b]) or abs(z[r, b]) > pm.x_limit * (1.0 if r < n else 1e4):
+                status[b] = DIVERGED
+        if status[b] == OK and (z[0, b] < pm.travel_min or z[0, b] > pm.travel_max):
+            status[b] = OUT_OF_TRAVEL
+
+
+class PlantSim:
+    """Python-side stepper over :func:`plant_step` (used by the ROS plant node and tests).
+
+    Examples
+    --------
+    >>> from stage_sim.config import load_preset
+    >>> sim = PlantSim(build_plant(load_preset("als130h").stage))
+    >>> y = sim.step(0.5)          # 0.5 N for one control period
+    >>> float(y[0, 0]) > 0.0
+    True
+    """
+
+    def __init__(self, pm: PlantModel, n_trials: int = 1, x0=0.0, sai_mode: float = 1.0,
+                 seeds=None):
+        self.pm = pm
+        self.state = init_plant_state(pm, n_trials, x0, sai_mode)
+        self.seeds = np.arange(n_trials, dtype=np.int64) if seeds is None else np.asarray(seeds, np.int64)
+        self.k = 0
+        self.meas = np.zeros((2, n_trials))
+        self.status = np.zeros(n_trials, np.int64)
+        self._zeros = np.zeros(n_trials)
+
+    def step(self, u, d0=0.0, d1=0.0, mode=1.0):
+        """Apply command ``u`` [N], dither ``d0, d1`` [N] and SAI ``mode`` for one period.
+
+        Returns the measurement (2, n_trials): table and bearing-sensor positions [m].
+        Raises :class:`SimulationError` if a trial diverged or left the travel.
+        """
+        b = self._zeros.shape[0]
+        args = [np.broadcast_to(np.asarray(v, float), (b,)).copy() for v in (u, d0, d1, mode)]
+        plant_step(self.pm, *self.state, *args, self.k, self.seeds, self.meas, self.status)
+        self.k += 1
+        if self.status.any():
+            i = int(np.flatnonzero(self.status)[0])
+            raise SimulationError(f"trial {i} stopped at t = {self.k * self.pm.dt:.6f} s: "
+                                  f"{STATUS_TEXT[int(self.status[i])]}")
+        return self.meas
+
+    @property
+    def positions(self):
+        """True positions of every DOF, shape (n, n_trials) [m]."""
+        return self.state.z[:self.pm.n]
+
+    @property
+    def velocities(self):
+        """True velocities of every DOF, shape (n, n_trials) [m/s]."""
+        return self.state.z[self.pm.n:]
