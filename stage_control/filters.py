@@ -1,16 +1,18 @@
 """Discrete SISO state-space filters shared by the controllers.
 
 Filters are discretized once, at build time, with :func:`discretize` and advanced one
-sample at a time with the compiled :func:`ss_step`. Matrices use the standard shapes
-``A (n, n)``, ``B (n, 1)``, ``C (1, n)``, ``D (1, 1)`` (float64, C-contiguous).
+sample at a time, for a whole batch of trials, with the compiled :func:`ss_step`.
+Matrices use the standard shapes ``A (n, n)``, ``B (n, 1)``, ``C (1, n)``, ``D (1, 1)``
+(float64, C-contiguous); the state of a batch is ``(n, n_batch)`` (trial axis last).
 
 Examples
 --------
 >>> import numpy as np
 >>> A, B, C, D = discretize([1.0], [1.0, 1.0], 1e-3, "tustin")   # 1/(s+1)
->>> x = np.zeros(1)
->>> y = [ss_step(A, B, C, D, x, 1.0) for _ in range(20000)]
->>> abs(y[-1] - 1.0) < 1e-6
+>>> x, u, y = np.zeros((1, 3)), np.array([1.0, 2.0, 0.0]), np.zeros(3)
+>>> for _ in range(20000):
+...     ss_step(A, B, C, D, x, u, y)
+>>> bool(np.allclose(y, u, atol=1e-6))
 True
 """
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 from numba import njit
 from scipy import signal
 
-__all__ = ["discretize", "realize", "dc_state", "ss_step"]
+__all__ = ["discretize", "realize", "dc_state", "ss_coefficients", "ss_step", "SS1_FIELDS", "SS2_FIELDS"]
 
 _METHODS = {"zoh": "zoh", "tustin": "bilinear", "backward": "backward_diff"}
 
@@ -85,36 +87,93 @@ def dc_state(A, B):
     return np.ascontiguousarray(np.linalg.solve(np.eye(n) - A, B[:, 0]))
 
 
-@njit(cache=True)
-def ss_step(A, B, C, D, x, u):
-    """Advance a discrete SISO filter by one sample.
+SS1_FIELDS = ("a", "b", "c", "d")
+SS2_FIELDS = ("a00", "a01", "a10", "a11", "b0", "b1", "c0", "c1", "d")
+
+
+def ss_coefficients(prefix: str, A, B, C, D) -> dict:
+    """Realization of order 1 or 2 as named float fields, e.g. ``{"q_a00": ..., "q_d": ...}``.
+
+    Names: ``SS1_FIELDS`` (``a, b, c, d``) or ``SS2_FIELDS`` (``a00 a01 a10 a11`` of ``A``,
+    ``b0 b1``, ``c0 c1``, ``d``), each prefixed with ``prefix + "_"``.
+
+    Compiled step functions take filter coefficients as plain float fields of the model
+    NamedTuple: they are passed by value and unpacked into registers, whereas every
+    array field costs a reference-count increment/decrement pair (two atomic operations)
+    and nine words of argument passing per call. (A nested tuple field would be as cheap,
+    but Numba cannot pass tuples of tuples into a ``prange`` region, issue numba#9098.)
+    """
+    A, B, C, D = (np.asarray(m, float) for m in (A, B, C, D))
+    n = A.shape[0]
+    if n == 1:
+        vals = (A[0, 0], B[0, 0], C[0, 0], D[0, 0])
+        names = SS1_FIELDS
+    elif n == 2:
+        vals = (A[0, 0], A[0, 1], A[1, 0], A[1, 1], B[0, 0], B[1, 0], C[0, 0], C[0, 1], D[0, 0])
+        names = SS2_FIELDS
+    else:
+        raise ValueError(f"only orders 1 and 2 are supported, got {n}")
+    return {f"{prefix}_{k}": float(v) for k, v in zip(names, vals)}
+
+
+@njit(cache=True, error_model="numpy")
+def ss_step(A, B, C, D, x, u, y):
+    """Advance a batch of identical discrete SISO filters by one sample.
+
+    Batch-inner layout: the trial axis is last and innermost, so the loops over the
+    batch run over contiguous memory and vectorize; nothing is allocated for ``n <= 2``
+    (the only orders the controllers use; they inline the same arithmetic).
 
     Parameters
     ----------
     A, B, C, D : ndarray
         Realization from :func:`discretize`.
-    x : ndarray, shape (n,)
-        Filter state, updated in place (may be a view into a state row).
-    u : float
+    x : ndarray, shape (n, n_batch)
+        Filter state of every trial, updated in place.
+    u : ndarray, shape (n_batch,)
         Input at this sample.
-
-    Returns
-    -------
-    float
-        Output ``y = C x + D u`` (computed before the state update).
+    y : ndarray, shape (n_batch,)
+        Written: output ``y = C x + D u`` (computed before the state update).
     """
     n = x.shape[0]
-    y = D[0, 0] * u
-    for i in range(n):
-        y += C[0, i] * x[i]
-    if n == 1:
-        x[0] = A[0, 0] * x[0] + B[0, 0] * u
+    nb = x.shape[1]
+    d = D[0, 0]
+    if n == 0:
+        for b in range(nb):
+            y[b] = d * u[b]
+    elif n == 1:
+        a, bb, c = A[0, 0], B[0, 0], C[0, 0]
+        for b in range(nb):
+            ub = u[b]
+            x0 = x[0, b]
+            y[b] = d * ub + c * x0
+            x[0, b] = a * x0 + bb * ub
     elif n == 2:
-        x0 = x[0]
-        x1 = x[1]
-        x[0] = A[0, 0] * x0 + A[0, 1] * x1 + B[0, 0] * u
-        x[1] = A[1, 0] * x0 + A[1, 1] * x1 + B[1, 0] * u
-    elif n > 2:
-        xn = A @ x + B[:, 0] * u
-        x[:] = xn
-    return y
+        a00, a01, a10, a11 = A[0, 0], A[0, 1], A[1, 0], A[1, 1]
+        b0, b1, c0, c1 = B[0, 0], B[1, 0], C[0, 0], C[0, 1]
+        for b in range(nb):
+            ub = u[b]
+            x0 = x[0, b]
+            x1 = x[1, b]
+            y[b] = d * ub + c0 * x0 + c1 * x1
+            x[0, b] = a00 * x0 + a01 * x1 + b0 * ub
+            x[1, b] = a10 * x0 + a11 * x1 + b1 * ub
+    else:
+        # general order: one scratch copy of the old state per call (not used in the loops)
+        xo = x.copy()
+        for b in range(nb):
+            y[b] = d * u[b]
+        for i in range(n):
+            ci = C[0, i]
+            for b in range(nb):
+                y[b] += ci * xo[i, b]
+        for i in range(n):
+            bi = B[i, 0]
+            for b in range(nb):
+                x[i, b] = 0.0
+            for j in range(n):
+                aij = A[i, j]
+                for b in range(nb):
+                    x[i, b] += aij * xo[j, b]
+            for b in range(nb):
+                x[i, b] += bi * u[b]

@@ -14,8 +14,9 @@ correction restarts; ``x_correction = correction[j]`` at the ``j``-th sample aft
 switch (``j = 0`` at the first stiff sample), 0 after its end. The correction is learned
 offline between repetitions with :func:`ilc_update` (Eq. 5.2).
 
-State row (``n_state = 3``): previous mode, sample index of the last compliant->stiff
-switch, switch-seen flag.
+State (``n_state = 3`` rows, one column per trial): previous mode, sample index of the
+last compliant->stiff switch, switch-seen flag. :func:`sai_step` advances a whole batch
+(trial axis last and innermost).
 """
 from __future__ import annotations
 
@@ -64,55 +65,66 @@ def build_sai(manager: SaiManager, rate: float = 10_000.0) -> SaiModel:
 
 
 def init_sai_state(model: SaiModel, n_trials: int) -> np.ndarray:
-    """Initial SAI manager state (stiff, no switch yet), shape ``(n_trials, model.n_state)``."""
-    return np.zeros((int(n_trials), model.n_state))
+    """Initial SAI manager state of a batch (stiff, no switch yet), shape
+    ``(model.n_state, n_trials)`` (zeros)."""
+    return np.zeros((model.n_state, int(n_trials)))
 
 
-@njit(cache=True)
-def sai_step(model, state_row, correction, k, v_ref, v_ref_ahead):
-    """One sample of the SAI switch manager.
+@njit(cache=True, error_model="numpy")
+def sai_step(model, state, correction, k, v_ref, v_ref_ahead, mode_out, xc_out):
+    """One sample of the SAI switch manager for every trial of a batch.
 
     Parameters
     ----------
     model : SaiModel
-    state_row : ndarray, shape (n_state,)
-        One trial's state, updated in place.
+    state : ndarray, shape (n_state, n_batch)
+        Manager state, trial axis last (see :func:`init_sai_state`); updated in place.
     correction : ndarray, shape (q,)
-        Learned reference correction after a compliant->stiff switch [m]; may be empty.
+        Learned reference correction after a compliant->stiff switch [m] (shared by the
+        batch); may be empty.
     k : int
-        Sample index.
-    v_ref : float
+        Sample index shared by the batch.
+    v_ref : ndarray, shape (n_batch,)
         Reference velocity now [m/s].
-    v_ref_ahead : float
+    v_ref_ahead : ndarray, shape (n_batch,)
         Reference velocity ``lead`` samples ahead [m/s].
-
-    Returns
-    -------
-    mode : float
-        1.0 compliant, 0.0 stiff.
-    x_correction : float
-        Correction to add to the reference [m].
+    mode_out : ndarray, shape (n_batch,)
+        Written: 1.0 compliant, 0.0 stiff.
+    xc_out : ndarray, shape (n_batch,)
+        Written: correction to add to the reference [m].
     """
-    s = state_row
-    if model.rule == 0:
-        mode = 1.0 if (v_ref != 0.0 or v_ref_ahead != 0.0) else 0.0
-    elif model.rule == 1:
-        w = model.reversal_window
-        mode = 1.0 if (abs(v_ref) < w or abs(v_ref_ahead) < w) else 0.0
-    elif model.rule == 2:
-        mode = 1.0
-    else:
-        mode = 0.0
-    if s[SAI_MODE] == 1.0 and mode == 0.0:
-        s[SAI_K_SWITCH] = k
-        s[SAI_SWITCHED] = 1.0
-    s[SAI_MODE] = mode
-    xc = 0.0
-    if s[SAI_SWITCHED] == 1.0:
-        j = int(k - s[SAI_K_SWITCH])
-        if 0 <= j < correction.shape[0]:
-            xc = correction[j]
-    return mode, xc
+    s = state
+    rule = model.rule
+    w = model.reversal_window
+    p2p = rule == 0
+    tracking = rule == 1
+    always = rule == 2
+    kf = float(k)
+    nc = correction.shape[0]
+    for b in range(s.shape[1]):
+        # mode of every rule, then a select (one branch-free loop, vectorizes)
+        v = v_ref[b]
+        va = v_ref_ahead[b]
+        moving = (v != 0.0) | (va != 0.0)
+        reversal = (abs(v) < w) | (abs(va) < w)
+        compliant = moving if p2p else (reversal if tracking else always)
+        mode = 1.0 if compliant else 0.0
+        # Step II: restart the correction at every compliant -> stiff switch
+        switch = (s[SAI_MODE, b] == 1.0) & (mode == 0.0)
+        k_sw = s[SAI_K_SWITCH, b]
+        k_sw = kf if switch else k_sw
+        switched = s[SAI_SWITCHED, b]
+        switched = 1.0 if switch else switched
+        s[SAI_K_SWITCH, b] = k_sw
+        s[SAI_SWITCHED, b] = switched
+        s[SAI_MODE, b] = mode
+        mode_out[b] = mode
+        xc = 0.0
+        if switched == 1.0:
+            j = int(kf - k_sw)
+            if 0 <= j < nc:
+                xc = correction[j]
+        xc_out[b] = xc
 
 
 def ilc_update(u_k, e_k, ilc: Ilc, rate: float = 10_000.0) -> np.ndarray:

@@ -28,7 +28,11 @@ Design choices
   see increments only, and the derivative and DOB filters start at rest, so a trial may
   start anywhere in the travel.
 
-State row layout (``SERVO_*`` index constants); ``n_state = 12 + n_ff``: started flag,
+Batch layout: :func:`servo_step` advances a whole batch of trials at once; the state is
+``(n_state, n_batch)`` with the trial axis last, so each state variable is a contiguous row
+and the loops over the batch vectorize (a single trial is ``n_batch = 1``).
+
+State rows (``SERVO_*`` index constants); ``n_state = 12 + n_ff``: started flag,
 integral [N], derivative filter, DOB ``Q G_n^-1`` (2), DOB ``Q`` (2), previous command [N],
 previous ``x_ref`` [m], previous ``x_meas`` [m], NIASA direction, NIASA ``F_hat`` [N],
 feedforward friction (1 for Dahl, ``len(k)`` for GMS, 0 without feedforward).
@@ -40,9 +44,9 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from stage_control.filters import dc_state, discretize, realize, ss_step
+from stage_control.filters import dc_state, discretize, realize, ss_coefficients
 from stage_sim.config import Controller, DahlFriction, GmsFriction, Stage
-from stage_sim.friction import dahl_update, gms_update
+from stage_sim.friction import dahl_update
 
 __all__ = ["ServoModel", "build_servo", "init_servo_state", "servo_step"]
 
@@ -61,21 +65,35 @@ class ServoModel(NamedTuple):
     kp: float                 # [N/m]
     ki: float                 # [N/(m s)] (unused with NIASA)
     limit: float              # command saturation [N]
-    d_A: np.ndarray           # derivative filter, e -> N
-    d_B: np.ndarray
-    d_C: np.ndarray
-    d_D: np.ndarray
-    d_x0: np.ndarray          # its state per unit constant error
+    # derivative filter, e -> N (first order, ss_coefficients "d")
+    d_a: float
+    d_b: float
+    d_c: float
+    d_d: float
+    d_x0: float               # its state per unit constant error
     dob: int                  # 1 = DOB on
-    qg_A: np.ndarray          # Q G_n^-1, m -> N
-    qg_B: np.ndarray
-    qg_C: np.ndarray
-    qg_D: np.ndarray
-    qg_x0: np.ndarray         # its state per unit constant position
-    q_A: np.ndarray           # Q, N -> N
-    q_B: np.ndarray
-    q_C: np.ndarray
-    q_D: np.ndarray
+    # DOB Q G_n^-1, m -> N (second order, ss_coefficients "qg")
+    qg_a00: float
+    qg_a01: float
+    qg_a10: float
+    qg_a11: float
+    qg_b0: float
+    qg_b1: float
+    qg_c0: float
+    qg_c1: float
+    qg_d: float
+    qg_x0: float              # its state per unit constant position (2)
+    qg_x1: float
+    # DOB Q, N -> N (second order, ss_coefficients "q")
+    q_a00: float
+    q_a01: float
+    q_a10: float
+    q_a11: float
+    q_b0: float
+    q_b1: float
+    q_c0: float
+    q_c1: float
+    q_d: float
     ff_kind: int              # FF_NONE / FF_DAHL / FF_GMS
     ff_k: np.ndarray          # Dahl k_sigma (1,) or GMS k_i [N/m]
     ff_alpha: np.ndarray      # GMS alpha_i [-]
@@ -146,13 +164,14 @@ def build_servo(controller: Controller, stage: Stage) -> ServoModel:
     n_ff = {FF_NONE: 0, FF_DAHL: 1, FF_GMS: len(ff_k)}[kind]
 
     ni = controller.niasa
+    qg_x = dc_state(qg[0], qg[1])
     limit = pid.output_limit if pid.output_limit is not None else stage.drive.peak_force
     return ServoModel(
         dt=dt, kp=float(pid.kp), ki=float(pid.ki), limit=float(limit),
-        d_A=d_A, d_B=d_B, d_C=d_C, d_D=d_D, d_x0=dc_state(d_A, d_B),
+        **ss_coefficients("d", d_A, d_B, d_C, d_D), d_x0=float(dc_state(d_A, d_B)[0]),
         dob=int(dob is not None),
-        qg_A=qg[0], qg_B=qg[1], qg_C=qg[2], qg_D=qg[3], qg_x0=dc_state(qg[0], qg[1]),
-        q_A=q[0], q_B=q[1], q_C=q[2], q_D=q[3],
+        **ss_coefficients("qg", *qg), qg_x0=float(qg_x[0]), qg_x1=float(qg_x[1]),
+        **ss_coefficients("q", *q),
         ff_kind=kind, ff_k=np.ascontiguousarray(ff_k, float), ff_alpha=ff_alpha,
         ff_fc=float(ff_fc), ff_shape=float(ff_shape), ff_viscous=float(ff_visc), n_ff=n_ff,
         niasa=int(ni is not None),
@@ -162,82 +181,155 @@ def build_servo(controller: Controller, stage: Stage) -> ServoModel:
 
 
 def init_servo_state(model: ServoModel, n_trials: int) -> np.ndarray:
-    """Relaxed servo state, shape ``(n_trials, model.n_state)``."""
-    return np.zeros((int(n_trials), model.n_state))
+    """Relaxed servo state of a batch, shape ``(model.n_state, n_trials)`` (all zeros)."""
+    return np.zeros((model.n_state, int(n_trials)))
 
 
-@njit(cache=True)
-def servo_step(model, state_row, x_ref, v_ref, x_meas):
-    """One control sample of the servo.
+@njit(cache=True, error_model="numpy")
+def servo_step(model, state, x_ref, v_ref, x_meas, u_out):
+    """One control sample of the servo for every trial of a batch.
 
     Parameters
     ----------
     model : ServoModel
-    state_row : ndarray, shape (n_state,)
-        One trial's state, updated in place.
-    x_ref, v_ref : float
+    state : ndarray, shape (n_state, n_batch)
+        Servo state, trial axis last (see :func:`init_servo_state`); updated in place.
+    x_ref, v_ref : ndarray, shape (n_batch,)
         Reference position [m] and velocity [m/s].
-    x_meas : float
+    x_meas : ndarray, shape (n_batch,)
         Measured position [m].
+    u_out : ndarray, shape (n_batch,)
+        Written: saturated force command [N]. Must not alias the inputs (it is used as
+        scratch for the feedforward force before the final pass).
 
-    Returns
-    -------
-    float
-        Saturated force command [N].
+    Notes
+    -----
+    Every loop runs over the batch, innermost, over contiguous rows of ``state``; nothing
+    is allocated. The friction models (feedforward, NIASA: ``exp`` and branches) run in
+    their own loops first; the main loop (start latch, PID, DOB, anti-windup, saturation)
+    is compiled in four copies, one per DOB/NIASA configuration, each branch-free
+    (selects only) so that LLVM vectorizes it. The floating-point operations and their
+    order are those of the per-trial formulation: results are bit-identical to stepping
+    each trial alone.
     """
-    s = state_row
-    e = x_ref - x_meas
-    if s[SERVO_STARTED] == 0.0:
-        s[SERVO_STARTED] = 1.0
-        s[SERVO_DER] = model.d_x0[0] * e
-        s[SERVO_XREF_PREV] = x_ref
-        s[SERVO_XMEAS_PREV] = x_meas
-        for i in range(2):
-            s[SERVO_DOB_X + i] = model.qg_x0[i] * x_meas
-    # derivative
-    u_d = ss_step(model.d_A, model.d_B, model.d_C, model.d_D, s[SERVO_DER:SERVO_DER + 1], e)
+    s = state
+    nb = s.shape[1]
+    ff_kind = model.ff_kind
 
-    # NIASA nominal Dahl model driven by the measurement
-    dxm = x_meas - s[SERVO_XMEAS_PREV]
-    s[SERVO_XMEAS_PREV] = x_meas
-    ki = model.ki
+    # ---- feedforward friction driven by the reference, force -> u_out (scratch) --------
+    # A trial's first call latches the reference (dx = 0), as the main loop does below.
+    if ff_kind == FF_DAHL:
+        k0, fc, shape, visc = model.ff_k[0], model.ff_fc, model.ff_shape, model.ff_viscous
+        for b in range(nb):
+            xr = x_ref[b]
+            prev = xr if s[SERVO_STARTED, b] == 0.0 else s[SERVO_XREF_PREV, b]
+            f = dahl_update(s[SERVO_FF, b], xr - prev, k0, fc, shape)
+            s[SERVO_FF, b] = f
+            u_out[b] = f + visc * v_ref[b]
+    elif ff_kind == FF_GMS:
+        fc, visc = model.ff_fc, model.ff_viscous
+        for b in range(nb):
+            u_out[b] = 0.0
+        for i in range(model.n_ff):          # Eq. 4.4, block by block (= gms_update)
+            lim = model.ff_alpha[i] * fc
+            ki_ = model.ff_k[i]
+            row = SERVO_FF + i
+            for b in range(nb):
+                xr = x_ref[b]
+                prev = xr if s[SERVO_STARTED, b] == 0.0 else s[SERVO_XREF_PREV, b]
+                fi = s[row, b] + ki_ * (xr - prev)
+                fi = lim if fi > lim else (-lim if fi < -lim else fi)
+                s[row, b] = fi
+                u_out[b] += fi
+        for b in range(nb):
+            u_out[b] = u_out[b] + visc * v_ref[b]
+
+    # ---- NIASA nominal Dahl model driven by the measurement ----------------------------
     if model.niasa == 1:
-        if dxm != 0.0:
-            s[SERVO_NIASA_DIR] = 1.0 if dxm > 0.0 else -1.0
-            s[SERVO_NIASA_F] = dahl_update(s[SERVO_NIASA_F], dxm, model.ni_ksigma, model.ni_fc, 1.0)
-        kf = model.ni_ksigma * (1.0 - s[SERVO_NIASA_F] / model.ni_fc * s[SERVO_NIASA_DIR])
-        ki = (kf + model.kp) / model.ni_tau
+        n_ks, n_fc = model.ni_ksigma, model.ni_fc
+        for b in range(nb):
+            xm = x_meas[b]
+            prev = xm if s[SERVO_STARTED, b] == 0.0 else s[SERVO_XMEAS_PREV, b]
+            dxm = xm - prev
+            if dxm != 0.0:
+                s[SERVO_NIASA_DIR, b] = 1.0 if dxm > 0.0 else -1.0
+                s[SERVO_NIASA_F, b] = dahl_update(s[SERVO_NIASA_F, b], dxm, n_ks, n_fc, 1.0)
 
-    # feedforward friction driven by the reference
-    dxr = x_ref - s[SERVO_XREF_PREV]
-    s[SERVO_XREF_PREV] = x_ref
-    u_ff = 0.0
-    if model.ff_kind == FF_DAHL:
-        s[SERVO_FF] = dahl_update(s[SERVO_FF], dxr, model.ff_k[0], model.ff_fc, model.ff_shape)
-        u_ff = s[SERVO_FF] + model.ff_viscous * v_ref
-    elif model.ff_kind == FF_GMS:
-        u_ff = gms_update(s[SERVO_FF:SERVO_FF + model.n_ff], dxr, model.ff_k, model.ff_alpha,
-                          model.ff_fc, model.n_ff) + model.ff_viscous * v_ref
-
-    # disturbance observer
-    d_hat = 0.0
+    # ---- main loop, specialized on the DOB and NIASA switches ----------------------------
     if model.dob == 1:
-        d_hat = (ss_step(model.qg_A, model.qg_B, model.qg_C, model.qg_D,
-                         s[SERVO_DOB_X:SERVO_DOB_X + 2], x_meas)
-                 - ss_step(model.q_A, model.q_B, model.q_C, model.q_D,
-                           s[SERVO_DOB_U:SERVO_DOB_U + 2], s[SERVO_U_PREV]))
+        if model.niasa == 1:
+            _servo_main(model, s, x_ref, x_meas, u_out, 1, 1)
+        else:
+            _servo_main(model, s, x_ref, x_meas, u_out, 1, 0)
+    elif model.niasa == 1:
+        _servo_main(model, s, x_ref, x_meas, u_out, 0, 1)
+    else:
+        _servo_main(model, s, x_ref, x_meas, u_out, 0, 0)
 
-    # integral with clamping anti-windup
-    rest = model.kp * e + u_d + u_ff - d_hat
-    integ = s[SERVO_INT] + ki * model.dt * e
-    u = rest + integ
-    if (u > model.limit or u < -model.limit) and e * u > 0.0:
-        integ = s[SERVO_INT]
+
+@njit(inline="always", error_model="numpy")
+def _servo_main(model, s, x_ref, x_meas, u_out, dob, niasa):
+    """Start latch, PID, DOB, integral with clamping anti-windup, saturation; batch loop.
+
+    ``dob`` and ``niasa`` are literal constants at every call site: inlined, they fold,
+    and each of the four copies of the loop is straight-line (selects only) and vectorizes.
+    ``u_out`` holds the feedforward force on entry when ``model.ff_kind != FF_NONE``.
+    """
+    nb = s.shape[1]
+    m = model
+    d_a, d_b, d_c, d_d, d_x0 = m.d_a, m.d_b, m.d_c, m.d_d, m.d_x0
+    g00, g01, g10, g11, gb0, gb1 = m.qg_a00, m.qg_a01, m.qg_a10, m.qg_a11, m.qg_b0, m.qg_b1
+    gc0, gc1, gd, gx0, gx1 = m.qg_c0, m.qg_c1, m.qg_d, m.qg_x0, m.qg_x1
+    q00, q01, q10, q11, qb0, qb1 = m.q_a00, m.q_a01, m.q_a10, m.q_a11, m.q_b0, m.q_b1
+    qc0, qc1, qd = m.q_c0, m.q_c1, m.q_d
+    kp, dt, lim = model.kp, model.dt, model.limit
+    has_ff = model.ff_kind != FF_NONE
+    ki0, n_tau, n_ks, n_fc = model.ki, model.ni_tau, model.ni_ksigma, model.ni_fc
+    for b in range(nb):
+        xr = x_ref[b]
+        xm = x_meas[b]
+        e = xr - xm
+        # bumpless start: the first call sets the filters at rest on this sample
+        first = s[SERVO_STARTED, b] == 0.0
+        s[SERVO_STARTED, b] = 1.0
+        xd = s[SERVO_DER, b]
+        xd = d_x0 * e if first else xd
+        # derivative (first order)
+        u_d = d_d * e + d_c * xd
+        s[SERVO_DER, b] = d_a * xd + d_b * e
+        u_ff = u_out[b]       # loaded unconditionally: a conditional load blocks vectorization
+        u_ff = u_ff if has_ff else 0.0
+        rest = kp * e + u_d + u_ff
+        # disturbance observer: Q G_n^-1 [x_meas] - Q [u_{k-1}]
+        if dob == 1:
+            x0 = s[SERVO_DOB_X, b]
+            x1 = s[SERVO_DOB_X + 1, b]
+            x0 = gx0 * xm if first else x0
+            x1 = gx1 * xm if first else x1
+            y_qg = gd * xm + gc0 * x0 + gc1 * x1
+            s[SERVO_DOB_X, b] = g00 * x0 + g01 * x1 + gb0 * xm
+            s[SERVO_DOB_X + 1, b] = g10 * x0 + g11 * x1 + gb1 * xm
+            up = s[SERVO_U_PREV, b]
+            z0 = s[SERVO_DOB_U, b]
+            z1 = s[SERVO_DOB_U + 1, b]
+            y_q = qd * up + qc0 * z0 + qc1 * z1
+            s[SERVO_DOB_U, b] = q00 * z0 + q01 * z1 + qb0 * up
+            s[SERVO_DOB_U + 1, b] = q10 * z0 + q11 * z1 + qb1 * up
+            rest = rest - (y_qg - y_q)
+        # integral gain: ki, or NIASA (Eq. A.1) from the nominal friction state
+        ki = ki0
+        if niasa == 1:
+            kf = n_ks * (1.0 - s[SERVO_NIASA_F, b] / n_fc * s[SERVO_NIASA_DIR, b])
+            ki = (kf + kp) / n_tau
+        i_old = s[SERVO_INT, b]
+        integ = i_old + ki * dt * e
         u = rest + integ
-    s[SERVO_INT] = integ
-    if u > model.limit:
-        u = model.limit
-    elif u < -model.limit:
-        u = -model.limit
-    s[SERVO_U_PREV] = u
-    return u
+        wind = ((u > lim) | (u < -lim)) & (e * u > 0.0)
+        integ = i_old if wind else integ
+        u = rest + integ
+        s[SERVO_INT, b] = integ
+        u = lim if u > lim else (-lim if u < -lim else u)
+        s[SERVO_U_PREV, b] = u
+        s[SERVO_XREF_PREV, b] = xr
+        s[SERVO_XMEAS_PREV, b] = xm
+        u_out[b] = u

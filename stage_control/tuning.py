@@ -28,8 +28,10 @@ For a trial open-loop crossover ``wc`` [rad/s]:
 
 The crossover ``wc`` is then found with Brent's method so that the closed-loop
 ``-3 dB`` bandwidth of ``T = CG / (1 + CG)`` computed by python-control
-(:func:`control.bandwidth`) equals the requested bandwidth (to 1e-6 relative; the
-brief requires 1 %).
+(:func:`control.bandwidth`) equals the requested bandwidth (to 1e-6 relative).
+With the defaults (PM 40°, ``wd = 3 wc``, ``wi = wc/5``) the crossover lands at
+``wc = 0.572 x bandwidth`` (114.5 Hz for 200 Hz): the -3 dB point of a 40° loop lies
+well above its crossover because of the closed-loop peaking.
 
 Sampling delay
 --------------
@@ -39,8 +41,9 @@ zero-order hold behaves, below Nyquist, like a pure delay of half a sample,
 approximation (:func:`control.pade`); pass ``delay=1/rate`` for the more
 conservative one-sample (computation + ZOH-ish) delay, or ``delay=0`` for the
 continuous-time margins. :func:`closed_loop_bandwidth_hz` defaults to no delay, i.e.
-"from python-control on C*G" as the seed's loop-shaping bandwidth is defined; the
-half-sample delay changes the 200 Hz bandwidth by well under 1 %.
+the bandwidth of C*G as the loop-shaping target is defined; including the half-sample
+delay raises the -3 dB point by ~3 % (200 -> 205.7 Hz for the default shape) because
+the extra phase lag increases the closed-loop peaking.
 
 Examples
 --------

@@ -1,9 +1,12 @@
 """Dither generator, on-off regulation and HC controller (Sec. 3.2.2)."""
+import math
+
 import numpy as np
 import pytest
 from scipy import signal
 
 from stage_control.dither import build_dither, dither_step, init_dither_state, piezo_power
+from stage_control.filters import discretize
 from stage_control.servo import build_servo, init_servo_state, servo_step
 from stage_sim.config import Controller, Dither, Drive, Pid, Sensor, Stage, Table, Travel
 
@@ -11,15 +14,18 @@ RATE = 10_000.0
 DT = 1.0 / RATE
 
 
-def run(dither, v_ref, x_ref=None, x_meas=None):
+def run(dither, v_ref, x_ref=None, x_meas=None, ks=None):
+    """Single trial (batch of 1); returns ``out`` per sample, shape (n, 2)."""
     model = build_dither(dither, RATE)
-    s = init_dither_state(model, 1)[0]
+    s = init_dither_state(model, 1)
     n = len(v_ref)
     x_ref = np.zeros(n) if x_ref is None else x_ref
     x_meas = np.zeros(n) if x_meas is None else x_meas
-    out = np.zeros((n, 2))
-    for k in range(n):
-        dither_step(model, s, k, x_ref[k], v_ref[k], x_meas[k], out[k])
+    ks = range(n) if ks is None else ks
+    out, o = np.zeros((n, 2)), np.zeros((2, 1))
+    for i, k in enumerate(ks):
+        dither_step(model, s, k, x_ref[i:i + 1], v_ref[i:i + 1], x_meas[i:i + 1], o)
+        out[i] = o[:, 0]
     return out
 
 
@@ -78,14 +84,15 @@ def test_hc_rejects_harmonic_disturbance():
 
     def amplitude_at_f(hc_gain):
         dm = build_dither(Dither(amplitude=3.0, frequency=f, hc_gain=hc_gain, preemptive=0.1), RATE)
-        ds, ss = init_dither_state(dm, 1)[0], init_servo_state(servo, 1)[0]
-        z, out, x = np.zeros(2), np.zeros(2), np.empty(n)
+        ds, ss = init_dither_state(dm, 1), init_servo_state(servo, 1)
+        z, out, x = np.zeros(2), np.zeros((2, 1)), np.empty(n)
+        zero, meas, u = np.zeros(1), np.zeros(1), np.zeros(1)
         for i in range(n):
-            x[i] = z[0]
-            dither_step(dm, ds, i, 0.0, 0.0, z[0], out)
-            u = servo_step(servo, ss, 0.0, 0.0, z[0])
+            x[i] = meas[0] = z[0]
+            dither_step(dm, ds, i, zero, zero, meas, out)
+            servo_step(servo, ss, zero, zero, meas, u)
             # rigid body: bearing forces +out[0] and -out[1] both reach the table
-            z = A @ z + B[:, 0] * (u + out[0] - out[1] + dist[i])
+            z = A @ z + B[:, 0] * (u[0] + out[0, 0] - out[1, 0] + dist[i])
         tail = slice(n - 400, n)              # last 40 ms = 20 periods
         ph = np.exp(-2j * np.pi * f * k[tail] * DT)
         return 2 * abs(np.mean(x[tail] * ph))
@@ -95,6 +102,59 @@ def test_hc_rejects_harmonic_disturbance():
     assert a1 < 0.05 * a0
 
 
+def test_sine_phasor_stays_exact_over_long_runs_and_jumps():
+    """The recurrence for sin(w k dt) does not drift (resync) and follows jumps in k."""
+    f, n = 1234.5, 30_000
+    ks = np.r_[np.arange(7, n // 2), np.arange(n // 2 + 999, n + 999 + 7)][:n]
+    out = run(Dither(amplitude=1.0, frequency=f, preemptive=0.1), np.zeros(n), ks=ks)
+    np.testing.assert_allclose(out[:, 1], np.sin(2 * np.pi * f * ks / RATE), rtol=0, atol=1e-11)
+
+
+def test_batch_trials_are_independent():
+    """A batch (trial axis last) gives, per trial, exactly the single-trial outputs."""
+    d = Dither(amplitude=2.0, frequency=700.0, hc_gain=1e9, regulation="on_off", off_after=0.002)
+    model = build_dither(d, RATE)
+    rng = np.random.default_rng(4)
+    n, nb = 600, 3
+    v_ref = np.zeros((n, nb))
+    v_ref[50:150, 0], v_ref[100:120, 1], v_ref[300:500, 2] = 1e-3, -1e-3, 2e-3
+    x_ref, x_meas = np.full((n, nb), 1e-6), rng.normal(0, 1e-6, (n, nb))
+    s, out = init_dither_state(model, nb), np.zeros((n, 2, nb))
+    for k in range(n):
+        dither_step(model, s, k, x_ref[k], v_ref[k], x_meas[k], out[k])
+    assert np.any(out != 0.0) and np.any(out[:, 1] == 0.0)
+    for j in range(nb):
+        np.testing.assert_array_equal(out[:, :, j], run(d, v_ref[:, j], x_ref[:, j], x_meas[:, j]))
+
+
 def test_piezo_power_eq_3_7():
     # 0.3 W per actuator at 20 V_pp and 500 Hz (Sec. 3.4.3) -> C = 1.5 uF
     assert piezo_power(500.0, 1.5e-6, 20.0) == pytest.approx(0.3)
+
+
+def test_matches_per_trial_reference():
+    """Regulation and HC as the per-trial law (HC runs free while off); sine to rounding."""
+    d = Dither(amplitude=2.0, frequency=811.0, hc_gain=2e9, regulation="on_off", off_after=0.003)
+    model = build_dither(d, RATE)
+    rng = np.random.default_rng(6)
+    n = 3000
+    v = np.zeros(n)
+    v[200:500], v[1400:1450] = 1e-3, -1e-3
+    x_ref, x_meas = np.full(n, 1e-6), rng.normal(0, 1e-6, n)
+    x_ref[2000:] = 2e-6                      # an ideal step (v = 0) also starts the dither
+    out = run(d, v, x_ref, x_meas)
+    A, B, C, D = discretize([1.0, 0.0], [1.0, 0.0, model.omega ** 2], DT, "tustin", prewarp=model.omega)
+    x, on, moved, k_stop, ref = np.zeros(2), 0.0, 0.0, 0.0, np.zeros((n, 2))
+    for k in range(n):
+        if v[k] != 0.0 or (k > 0 and x_ref[k] != x_ref[k - 1]):
+            on, moved, k_stop = 1.0, 1.0, k + 1.0
+        elif moved == 1.0 and k - k_stop >= model.n_off:
+            on, moved = 0.0, 0.0
+        uh = (x_meas[k] - x_ref[k]) * d.hc_gain if on else 0.0
+        f_comp = D[0, 0] * uh + C[0, 0] * x[0] + C[0, 1] * x[1]
+        x = A @ x + B[:, 0] * uh
+        f_d = d.amplitude * math.sin(model.omega * (k / RATE))
+        ref[k] = (f_d + f_comp, f_d) if on else (0.0, 0.0)
+    assert np.any(ref[:, 0] - ref[:, 1] != 0.0) and np.any(ref == 0.0)
+    np.testing.assert_array_equal(out == 0.0, ref == 0.0)
+    np.testing.assert_allclose(out, ref, rtol=1e-9, atol=3e-12 * d.amplitude)

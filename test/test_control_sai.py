@@ -10,12 +10,16 @@ RATE = 10_000.0
 
 
 def run(manager, v_ref, correction=np.zeros(0)):
+    """Single trial (batch of 1); returns mode and correction per sample."""
     model = build_sai(manager, RATE)
-    s = init_sai_state(model, 1)[0]
+    s = init_sai_state(model, 1)
     n = len(v_ref)
-    out = np.array([sai_step(model, s, correction, k, v_ref[k], v_ref[min(k + model.lead, n - 1)])
-                    for k in range(n)])
-    return out[:, 0], out[:, 1]
+    mode, xc, m1, x1 = np.zeros(n), np.zeros(n), np.zeros(1), np.zeros(1)
+    for k in range(n):
+        ka = min(k + model.lead, n - 1)
+        sai_step(model, s, correction, k, v_ref[k:k + 1], v_ref[ka:ka + 1], m1, x1)
+        mode[k], xc[k] = m1[0], x1[0]
+    return mode, xc
 
 
 def test_point_to_point_sequence_and_correction():
@@ -56,6 +60,25 @@ def test_always_rules():
     assert np.all(run(SaiManager(rule="always_stiff"), v)[0] == 0.0)
 
 
+def test_batch_trials_are_independent():
+    """A batch (trial axis last) gives, per trial, exactly the single-trial outputs."""
+    v = np.zeros((1000, 3))
+    v[100:200, 0], v[300:650, 1], v[50:60, 2] = 1e-3, -1e-3, 2e-3
+    v[700:800, 2] = 1e-3
+    corr = np.linspace(1e-9, 1e-8, 25)
+    for manager in (SaiManager(rule="point_to_point", release_lead=0.002),
+                    SaiManager(rule="tracking", release_lead=0.001, reversal_window=1e-4)):
+        model = build_sai(manager, RATE)
+        s, mode, xc = init_sai_state(model, 3), np.zeros((1000, 3)), np.zeros((1000, 3))
+        for k in range(1000):
+            sai_step(model, s, corr, k, v[k], v[min(k + model.lead, 999)], mode[k], xc[k])
+        assert np.any(xc != 0.0)
+        for j in range(3):
+            m1, x1 = run(manager, v[:, j], corr)
+            np.testing.assert_array_equal(mode[:, j], m1)
+            np.testing.assert_array_equal(xc[:, j], x1)
+
+
 def test_ilc_converges_on_repeatable_switching_error():
     """Eq. 5.2 on a PID mass (100 Hz) hit by the same low-frequency force at each switch."""
     m, dt, q = 2.0, 1.0 / RATE, 1000
@@ -70,12 +93,12 @@ def test_ilc_converges_on_repeatable_switching_error():
     dist = 2.0 * np.exp(-t / 5e-3) * np.sin(2 * np.pi * 40 * t)     # repeatable switching force
 
     def repetition(u):
-        s = init_servo_state(servo, 1)[0]
-        z, e = np.zeros(2), np.empty(q)
+        s = init_servo_state(servo, 1)
+        z, e, f, zero = np.zeros(2), np.empty(q), np.zeros(1), np.zeros(1)
         for k in range(q):
             e[k] = 0.0 - z[0]                                      # at rest at the target
-            f = servo_step(servo, s, 0.0 + u[k], 0.0, z[0])       # corrected reference
-            z = A @ z + B[:, 0] * (f + dist[k])
+            servo_step(servo, s, 0.0 + u[k:k + 1], zero, z[:1], f)  # corrected reference
+            z = A @ z + B[:, 0] * (f[0] + dist[k])
         return e
 
     ilc = Ilc()

@@ -107,7 +107,8 @@ def test_encoder_quantization():
 
 
 def test_divergence_stops_with_reason():
-    preset = with_overrides(load_preset("als130h"), {"controller.pid.kd": 1e5})
+    preset = with_overrides(load_preset("als130h"), {
+        "controller.pid.kd": 1e5, "stage.drive.peak_force": 1e9, "stage.drive.continuous_force": 1e9})
     ref = point_to_point(50e-9, shape="step", dwell=0.05)
     with pytest.raises(SimulationError, match="diverged|travel"):
         simulate(preset, ref.x, ref.v)

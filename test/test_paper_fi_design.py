@@ -1,0 +1,153 @@
+"""Chapter 6 FI design analysis (Sec. 6.3.2, 6.4.2) and Appendix D rotary FI claims.
+
+Module-scoped fixtures run ``experiment_runner.paper.fi_design`` and ``...rotary`` once.
+Claims that reproduce assert ``agrees``; for the two that do not (Fig. 6.3(b) stiffness
+trend, Fig. 6.8 optimum location) the tests pin the honest property we find instead.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from experiment_runner.paper import fi_design, rotary
+
+
+@pytest.fixture(scope="module")
+def fi_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fi_design")
+    return out, {c.id: c for c in fi_design.claims(out)}
+
+
+@pytest.fixture(scope="module")
+def rot_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("rotary")
+    return out, {c.id: c for c in rotary.claims(out)}
+
+
+# ----------------------------------------------------------------------------- plant model
+def test_plant_matches_equations_of_motion():
+    """G(s) of Fig. 6.2 equals the direct solution of the 2-DOF equations at a few s."""
+    m_t, m_b, k, c, kf, cf = 0.8, 0.6, 3.3e4, 240.0, 2.19e6, 175.0
+    G = fi_design.plant_fi(m_t, m_b, k, c, kf, cf)
+    for w in (3.0, 300.0, 3000.0):
+        s = 1j * w
+        z, f = c * s + k, cf * s + kf
+        A = np.array([[m_t * s**2 + z, -z], [-z, m_b * s**2 + z + f]])
+        xt = np.linalg.solve(A, np.array([1.0, 0.0]))[0]
+        assert abs(G(s) / xt - 1) < 1e-9
+    # rigid limit -> No FI
+    G_rigid = fi_design.plant_fi(m_t, m_b, 1e12, 0.0, kf, cf)
+    G0 = fi_design.plant_nofi(m_t, m_b, kf, cf)
+    assert abs(G_rigid(100j) / G0(100j) - 1) < 1e-4
+
+
+def test_series_solver_linear_and_gms_limits():
+    # linear spring: k_c = Eq. 4.1
+    for eta in (1e-3, 0.1, 1.0, 10.0):
+        kc = fi_design.combined_stiffness(eta * 2.19e6, 2.19e6)
+        assert math.isclose(kc, eta * 2.19e6 / (1 + eta), rel_tol=1e-9)
+    # very stiff FI: series GMS -> plain GMS driven by the table
+    from stage_sim.friction import GMS
+    _, xt = fi_design.circle_x_path(n=2000)
+    f_series, _ = fi_design._series_gms(xt, 1e14, fi_design.GMS_K, fi_design.GMS_ALPHA, 5.31)
+    f_plain = GMS(fi_design.GMS_K, fi_design.GMS_ALPHA, 5.31).drive(xt)
+    assert np.max(np.abs(f_series - f_plain)) < 1e-6
+    # equilibrium: spring force = friction force at every sample
+    k_fi = 0.05 * 2.19e6
+    f, xb = fi_design._series_gms(xt, k_fi, fi_design.GMS_K, fi_design.GMS_ALPHA, 5.31)
+    assert np.max(np.abs(k_fi * (xt - xb) - f)) < 1e-9
+
+
+def test_rotary_eq_d1_d2_from_equations_of_motion():
+    """D.1/D.2 re-derived: roller + two bearings, same T_f on both."""
+    k, c, cf = 300.0, 0.01, 2.0
+    Gp, D, *_ = rotary.blocks(k, c, cf)
+    for w in (2.0, 150.0, 3000.0):
+        s = 1j * w
+        z = c * s + k
+        A = np.array([[rotary.I_P * s**2 + 2 * z, -2 * z], [-z, rotary.I_A * s**2 + z + cf * s]])
+        x_ta = np.linalg.solve(A, np.array([1.0, 0.0]))[0]     # motor torque
+        x_tf = np.linalg.solve(A, np.array([0.0, 1.0]))[0]     # T_f on each bearing
+        assert abs(Gp(s) / x_ta - 1) < 1e-9
+        assert abs(D(s) / x_tf - 1) < 1e-9
+
+
+# ----------------------------------------------------------------------------- fi_design claims
+def test_fi_design_plots(fi_out):
+    out, _ = fi_out
+    for name in ("fig_6_3_Ge.png", "fig_6_4_Gd.png", "fig_6_7_forces.png", "fig_6_8_gamma.png",
+                 "fig_6_9_kappa.png"):
+        assert (out / name).stat().st_size > 10_000, name
+
+
+def test_ge_claim_honest_property(fi_out):
+    """Fig. 6.3(b) is only partly reproduced: does NOT agree (optimum in k_fi, not a plateau)."""
+    c = fi_out[1]["6.3.2/Ge-threshold"]
+    n = c.numbers
+    assert c.agrees is False
+    # reproduced parts
+    for lab in ("LS-LD", "LS-HD", "HS-HD"):
+        assert n[f"Ge_ratio_{lab}"] <= 0.5
+    assert n["Ge_LS-LD"] < n["Ge_LS-HD"] < n["Ge_HS-HD"] < n["Ge_nofi"]
+    assert n["Ge_monotone_in_c"] and n["Ge_c_threshold_min"] >= 10.0
+    assert n["Ge_monotone_above_kopt"]
+    # the disagreement: softer than k* is clearly worse, for every c_f and structural variant
+    assert n["Ge_rise_below_kopt_max_c_le_1000"] > 0.5
+    assert 2e4 < n["Ge_k_opt_vs_c"]["1"] < 8e4
+    for v in list(n["sensitivity_c_f"].values()) + list(n["variants"].values()):
+        assert v["ge_agrees"] is False and v["ge_table_ok"] and v["ge_mono_c"]
+    assert n["max_closed_loop_pole_real"] < 0
+
+
+def test_gd_claim_agrees(fi_out):
+    c = fi_out[1]["6.3.2/Gd-monotone"]
+    assert c.agrees, c.note
+    n = c.numbers
+    assert n["Gd_nofi"] < n["Gd_grid_min"]
+    assert n["Gd_HS-HD"] < n["Gd_LS-HD"] < n["Gd_LS-LD"]
+    assert all(v["agrees"] for v in n["sensitivity_c_f"].values())
+
+
+def test_gamma_claim_honest_property(fi_out):
+    """Fig. 6.8: U shape and under/over-compensation reproduce; the optimum sits at ~0.02, not 0.05-0.1."""
+    c = fi_out[1]["6.4.2/gamma-optimum"]
+    n = c.numbers
+    assert c.agrees is False
+    assert n["u_shaped"] and n["underestimates_small"] and n["overcompensates_large"]
+    assert 0.01 <= n["eta_min"] <= 0.035
+    assert n["gamma_at_0.05"] < n["gamma_at_1"] and n["gamma_at_0.1"] < n["gamma_at_1"]
+    # the per-block series variant lands in the seed's range
+    assert 0.04 <= n["eta_min_per_block_variant"] <= 0.126
+
+
+def test_kappa_claim_agrees(fi_out):
+    c = fi_out[1]["6.4.2/kappa-eq4.2"]
+    assert c.agrees, c.note
+    assert c.numbers["kappa_at_0_1"] < 0.01
+    assert "η → ∞" in c.note
+
+
+# ----------------------------------------------------------------------------- rotary claims
+def test_rotary_plots(rot_out):
+    out, _ = rot_out
+    for name in ("fig_D5_Gd.png", "fig_D12_tracking_error.png"):
+        assert (out / name).stat().st_size > 10_000, name
+
+
+def test_d5_claim_agrees(rot_out):
+    c = rot_out[1]["D.2/Gd-lowpass"]
+    assert c.agrees, c.note
+    assert all(v < 0 for v in c.numbers["max_pole_real"].values())
+
+
+def test_d4_rms_claim(rot_out):
+    c = rot_out[1]["D.4/rms-10rpm"]
+    n = c.numbers
+    rms = {k: n[f"rms_true.{k}"] for k in rotary.PRESETS}
+    assert rms["FI w/ damper"] < rms["No FI"] < rms["FI w/o damper"]
+    # simulation agrees with the linear Eq. D.3 prediction for the same disturbance spectrum
+    for k in rotary.PRESETS:
+        assert abs(rms[k] / n[f"rms_predicted_EqD3.{k}"] - 1) < 0.15, k
+    assert c.agrees, c.note
