@@ -25,7 +25,7 @@ from stage_control.dither import build_dither, dither_step, init_dither_state
 from stage_control.sai import build_sai, init_sai_state, sai_step
 from stage_control.servo import build_servo, init_servo_state, servo_step
 from stage_sim.config import Dither, Preset, SaiManager
-from stage_sim.plant import (OK, STATUS_TEXT, PlantModel, SimulationError, build_plant,
+from stage_sim.plant import (OK, STATUS_TEXT, PlantModel, SimulationError, quantize, build_plant,
                              init_plant_state, plant_step)
 
 
@@ -85,38 +85,48 @@ def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction,
     """Closed loop over time for each chunk of trials; arrays are (chunk, ..., trial)."""
     n_chunks, n_steps, nb = x_ref.shape
     for c in prange(n_chunks):
+        # per-chunk views, hoisted out of the time loop
+        zc, frc, psc, dbc, fc, znc, forc = z[c], fr[c], ps[c], dbuf[c], f[c], zn[c], force[c]
+        ssc, dsc, sac, st, seed = ss[c], ds[c], sa[c], status[c], seeds[c]
+        xrc, vrc = x_ref[c], v_ref[c]
         meas = np.empty((2, nb))
+        y = np.empty(nb)
         dout = np.zeros((2, nb))
+        d0 = np.zeros(nb)
+        d1 = np.zeros(nb)
         u = np.zeros(nb)
         mode = np.zeros(nb)
         xc = np.zeros(nb)
         xr = np.zeros(nb)
-        st = status[c]
+        vr = np.zeros(nb)
+        va = np.zeros(nb)
         for b in range(nb):
-            q = pm.q_table
-            meas[0, b] = z[c, 0, b] if q <= 0 else q * math.floor(z[c, 0, b] / q + 0.5)
-            meas[1, b] = math.nan
+            meas[0, b] = quantize(zc[0, b], pm.q_table)
+            meas[1, b] = quantize(zc[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
         for k in range(n_steps):
             ka = min(k + lead, n_steps - 1)
-            vr = v_ref[c, k]
-            sai_step(am, sa[c], correction, k, vr, v_ref[c, ka], mode, xc)
             for b in range(nb):
-                xr[b] = x_ref[c, k, b] + xc[b]
-            y = meas[0]
-            dither_step(dm, ds[c], k, xr, vr, y, dout)
-            servo_step(sm, ss[c], xr, vr, y, u)
+                vr[b] = vrc[k, b]
+                va[b] = vrc[ka, b]
+            sai_step(am, sac, correction, k, vr, va, mode, xc)
             for b in range(nb):
+                xr[b] = xrc[k, b] + xc[b]
+                y[b] = meas[0, b]
+            dither_step(dm, dsc, k, xr, vr, y, dout)
+            servo_step(sm, ssc, xr, vr, y, u)
+            for b in range(nb):
+                d0[b] = dout[0, b]
+                d1[b] = dout[1, b]
                 o_xr[c, k, b] = xr[b]
-                o_y[c, k, b] = meas[0, b]
+                o_y[c, k, b] = y[b]
                 o_yb[c, k, b] = meas[1, b]
                 o_u[c, k, b] = u[b]
-                o_xt[c, k, b] = z[c, 0, b]
-                o_xb[c, k, b] = z[c, pm.bear_dof, b]
-                o_d0[c, k, b] = dout[0, b]
-                o_d1[c, k, b] = dout[1, b]
+                o_xt[c, k, b] = zc[0, b]
+                o_xb[c, k, b] = zc[pm.bear_dof, b]
+                o_d0[c, k, b] = d0[b]
+                o_d1[c, k, b] = d1[b]
                 o_mode[c, k, b] = mode[b]
-            plant_step(pm, z[c], fr[c], ps[c], dbuf[c], f[c], zn[c], force[c], u, dout[0], dout[1],
-                       mode, k, seeds[c], meas, st)
+            plant_step(pm, zc, frc, psc, dbc, fc, znc, forc, u, d0, d1, mode, k, seed, meas, st)
             for b in range(nb):
                 if st[b] != OK and fail[c, b] < 0:
                     fail[c, b] = k

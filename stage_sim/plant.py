@@ -315,7 +315,8 @@ def gauss(seed, k, channel):
 
 
 @njit(cache=True, inline="always")
-def _quantize(x, q):
+def quantize(x, q):
+    """Round ``x`` to the sensor resolution ``q`` (``q = 0``: ideal sensor)."""
     if q > 0.0:
         return q * math.floor(x / q + 0.5)
     return x
@@ -454,8 +455,7 @@ def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds,
             u = min(max(u, -pm.cont), pm.cont)
         ps[P_THERMAL, b] += pm.th_alpha * (u * u - ps[P_THERMAL, b])
         force[b] = pm.kf_ratio * u
-    if pm.noise_std > 0.0:
-        for b in range(nb):
+        if pm.noise_std > 0.0:
             w = gauss(seeds[b], k, 0)
             if pm.noise_a < 1.0:
                 ps[P_NOISE, b] += pm.noise_a * (w * pm.noise_gain - ps[P_NOISE, b])
@@ -465,16 +465,13 @@ def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds,
     j0, j1 = pm.dither_dof[0], pm.dither_dof[1]
 
     for _ in range(pm.n_sub):
-        for i in range(n):
-            for b in range(nb):
-                f[i, b] = 0.0
         for b in range(nb):
             f[0, b] = force[b]
-        if j0 >= 0:
-            for b in range(nb):
+            for i in range(1, n):
+                f[i, b] = 0.0
+            if j0 >= 0:
                 f[j0, b] += d0[b]
-        if j1 >= 0:
-            for b in range(nb):
+            if j1 >= 0:
                 f[j1, b] -= d1[b]
         _friction_forces(pm, z, fr, f, k, seeds)
         if pm.sai_dof >= 0:
@@ -544,13 +541,13 @@ def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds,
                     zb, _ = lugre_update(fr[e, 0, b], zn[dof, b] - z[dof, b], pm.h, p[e, 0],
                                          p[e, 1], p[e, 2], p[e, 3], p[e, 4], p[e, 5])
                     fr[e, 0, b] = zb
-        for r in range(nz):
-            for b in range(nb):
+        for b in range(nb):
+            for r in range(nz):
                 z[r, b] = zn[r, b]
 
     for b in range(nb):
-        meas[0, b] = _quantize(z[0, b], pm.q_table)
-        meas[1, b] = _quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
+        meas[0, b] = quantize(z[0, b], pm.q_table)
+        meas[1, b] = quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
         if status[b] != OK:
             continue
         # every DOF is coupled to the table through phi, so a non-finite or runaway
@@ -583,6 +580,9 @@ class PlantSim:
         self.meas = np.zeros((2, n_trials))
         self.status = np.zeros(n_trials, np.int64)
         self._zeros = np.zeros(n_trials)
+        self.meas[0] = [quantize(x, pm.q_table) for x in self.state.z[0]]
+        self.meas[1] = ([quantize(x, pm.q_bearing) for x in self.state.z[pm.bsens_dof]]
+                        if pm.bsens_dof >= 0 else np.nan)
 
     def step(self, u, d0=0.0, d1=0.0, mode=1.0):
         """Apply command ``u`` [N], dither ``d0, d1`` [N] and SAI ``mode`` for one period.
