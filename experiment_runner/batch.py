@@ -55,6 +55,7 @@ class BatchResult:
     """Recorded signals, each of shape (n_trials, T) unless noted; SI units."""
     t: np.ndarray            # (T,) time of each control sample [s]
     x_ref: np.ndarray        # reference actually used by the servo (incl. SAI correction) [m]
+    x_correction: np.ndarray  # SAI Step II correction included in x_ref [m]
     v_ref: np.ndarray        # reference velocity [m/s]
     y: np.ndarray            # measured table position at sample k [m]
     y_bearing: np.ndarray    # measured bearing position (nan without sensor) [m]
@@ -211,7 +212,8 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
          _chunked(x_ref, n_chunks, size), _chunked(v_ref, n_chunks, size),
          _chunked(seeds, n_chunks, size), corr, *plant, *states, *outs, status, fail)
     xr, y, yb, u, xt, xb, d0, d1, mode = (_unchunked(o, n_trials) for o in outs)
-    res = BatchResult(t=np.arange(T) / preset.controller.rate, x_ref=xr, v_ref=np.asarray(v_ref),
+    res = BatchResult(t=np.arange(T) / preset.controller.rate, x_ref=xr, x_correction=xr - x_ref,
+                      v_ref=np.asarray(v_ref),
                       y=y, y_bearing=yb, u=u, x_table=xt, x_bearing=xb,
                       dither=np.stack([d0, d1], axis=-1), mode=mode,
                       status=_unchunked(status, n_trials), fail_step=_unchunked(fail, n_trials))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import textwrap
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -40,12 +41,17 @@ def _markdown(claims: list[Claim]) -> str:
 
 
 def _table(claims: list[Claim]) -> str:
-    w = (44, 30, 30)
-    lines = [f"{'claim':{w[0]}} | {'seed':{w[1]}} | {'ours':{w[2]}} | agrees",
-             "-" * (sum(w) + 16)]
+    """Plain-text table, each cell wrapped to its column."""
+    widths = (46, 34, 40, 6)
+    sep = "-+-".join("-" * w for w in widths)
+    lines = [" | ".join(h.ljust(w) for h, w in zip(("claim", "seed", "ours", "agrees"), widths)), sep]
     for c in claims:
-        lines.append(f"{(c.source + ' ' + c.claim)[:w[0]]:{w[0]}} | {c.seed[:w[1]]:{w[1]}} | "
-                     f"{c.ours[:w[2]]:{w[2]}} | {'yes' if c.agrees else 'NO'}")
+        cells = [textwrap.wrap(text, w) or [""] for text, w in
+                 zip((f"{c.source}: {c.claim}", c.seed, c.ours, "yes" if c.agrees else "NO"), widths)]
+        for i in range(max(map(len, cells))):
+            lines.append(" | ".join((col[i] if i < len(col) else "").ljust(w)
+                                    for col, w in zip(cells, widths)))
+        lines.append(sep)
     return "\n".join(lines)
 
 
