@@ -25,6 +25,12 @@ setup(
     entry_points={
         "console_scripts": [
             "nanostage = experiment_runner.cli:main",
+            "plant_sim = stage_sim.node:main",
+            "servo_controller = stage_control.nodes:main_servo",
+            "dither_generator = stage_control.nodes:main_dither",
+            "sai_manager = stage_control.nodes:main_sai",
+            "experiment_sequencer = experiment_runner.sequencer:main",
+            "recorder = experiment_runner.recorder_node:main",
         ],
     },
 )

@@ -1,0 +1,177 @@
+"""Experiment files: which preset, which reference, how many trials, which metrics.
+
+An experiment (``experiment_runner/experiments/<name>.yaml``, or any path) is
+validated into an :class:`Experiment`, and :func:`build_trials` turns it into the
+list of :class:`Trial` references that both the ROS graph (the sequencer node) and
+the batch engine (:func:`run_batch`) execute, so both run exactly the same trials.
+
+Examples
+--------
+>>> exp = load_experiment("fi_p2p_5um")
+>>> trials = build_trials(exp)
+>>> len(trials), trials[0].case
+(3, 'fi_p2p_5um')
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional, Union
+
+import numpy as np
+import yaml
+from pydantic import Field, ValidationError
+
+from experiment_runner import metrics, profiles
+from stage_sim.config import (ConfigError, Finite, NonNeg, Pos, Preset, _format, _Strict,
+                              load_preset, with_overrides)
+
+EXPERIMENT_DIR = Path(__file__).with_name("experiments")
+
+
+class PointToPoint(_Strict):
+    kind: Literal["point_to_point"]
+    distance: Finite = Field(description="move size [m] (sign = direction)")
+    duration: Optional[Pos] = Field(None, description="move duration [s]; default from the seed's anchors")
+    dwell: Pos = Field(0.25, description="settling portion after the move [s]")
+    pre: NonNeg = Field(0.005, description="rest before the move [s]")
+    shape: Literal["cycloidal", "step"] = "cycloidal"
+
+
+class StepSequence(_Strict):
+    kind: Literal["step_sequence"]
+    distance: Finite
+    n_forward: int = Field(8, ge=0)
+    n_backward: int = Field(8, ge=0)
+    duration: Optional[Pos] = None
+    dwell: Pos = 0.25
+
+
+class Circle(_Strict):
+    kind: Literal["circle"]
+    radius: Pos = Field(description="circle radius [m]")
+    speed: Pos = Field(description="tangential speed [m/s]")
+    cycles: Pos = 1.0
+
+
+Profile = Union[PointToPoint, StepSequence, Circle]
+
+
+class Starts(_Strict):
+    """Start positions: uniformly random inside the travel (minus a margin), reproducible."""
+    margin: NonNeg = Field(0.005, description="distance kept from the travel ends [m]")
+    seed: int = Field(0, ge=0)
+
+
+class Experiment(_Strict):
+    name: str
+    description: str = ""
+    preset: str = Field(description="preset name or path")
+    overrides: dict = Field(default_factory=dict, description="dotted-path preset overrides")
+    profile: Profile = Field(discriminator="kind")
+    trials: int = Field(1, ge=1, le=100_000)
+    starts: Optional[Starts] = Field(None, description="random start positions; None = all start at 0")
+    window: Pos = Field(25e-9, description="settling window half-width [m]")
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One trial: its reference at the control rate and everything needed to judge it."""
+    case: str
+    index: int
+    x_ref: np.ndarray        # [m]
+    v_ref: np.ndarray        # [m/s]
+    seed: int
+    window: float            # [m]
+    segments: tuple          # profiles.Segment of the reference (settle / track ...)
+
+
+def load_experiment(name_or_path) -> Experiment:
+    """Load and validate an experiment file by name (shipped) or path; no code is executed."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = EXPERIMENT_DIR / f"{name_or_path}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"{name_or_path}: no such experiment (shipped: {', '.join(list_experiments())})")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    try:
+        return Experiment.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format(err, str(path))) from None
+
+
+def list_experiments() -> list[str]:
+    """Names of the experiments shipped with the package."""
+    return sorted(p.stem for p in EXPERIMENT_DIR.glob("*.yaml"))
+
+
+def experiment_preset(exp: Experiment) -> Preset:
+    """The experiment's preset with its overrides applied (re-validated)."""
+    preset = load_preset(exp.preset)
+    return with_overrides(preset, exp.overrides) if exp.overrides else preset
+
+
+def _reference(profile, dt):
+    if profile.kind == "point_to_point":
+        return profiles.point_to_point(profile.distance, duration=profile.duration, dwell=profile.dwell,
+                                       dt=dt, pre=profile.pre, shape=profile.shape)
+    if profile.kind == "step_sequence":
+        return profiles.step_sequence(profile.distance, profile.n_forward, profile.n_backward,
+                                      dwell=profile.dwell, dt=dt, duration=profile.duration)
+    return profiles.circle_x(profile.radius, profile.speed, cycles=profile.cycles, dt=dt)
+
+
+def build_trials(exp: Experiment, preset: Preset | None = None) -> list[Trial]:
+    """The trials of an experiment (seed of trial i = ``simulation.seed + i``, as the batch engine)."""
+    preset = preset or experiment_preset(exp)
+    ref = _reference(exp.profile, 1.0 / preset.controller.rate)
+    travel = preset.stage.travel
+    if exp.starts is None:
+        x0 = np.zeros(exp.trials)
+    else:
+        lo = travel.min - min(0.0, ref.x.min())
+        hi = travel.max - max(0.0, ref.x.max())
+        x0 = profiles.random_starts(exp.trials, (lo, hi), exp.starts.margin, exp.starts.seed)
+    return [Trial(case=exp.name, index=i, x_ref=ref.x + x0[i], v_ref=np.asarray(ref.v), seed=preset.simulation.seed + i,
+                  window=exp.window, segments=tuple(ref.segments)) for i in range(exp.trials)]
+
+
+def run_batch(exp: Experiment):
+    """Run every trial of the experiment on the batch engine; returns (trials, BatchResult)."""
+    from experiment_runner.batch import simulate
+    preset = experiment_preset(exp)
+    trials = build_trials(exp, preset)
+    res = simulate(preset, np.stack([t.x_ref for t in trials]), np.stack([t.v_ref for t in trials]),
+                   seeds=[t.seed for t in trials])
+    return trials, res
+
+
+def trial_metrics(trial: Trial, y: np.ndarray, x_ref: np.ndarray, rate: float) -> dict:
+    """Metrics of one trial from its measured positions ``y`` and used reference ``x_ref``.
+
+    Point-to-point trials: settling time into ±window after the reference reaches its
+    target (first settle segment) and RMS in-position error after settling. Tracking
+    trials: peak and RMS tracking error over the "track" segment. SI units; ``None``
+    where a metric is not defined (e.g. never settled).
+    """
+    t = np.arange(len(y)) / rate
+    out = {"trial": trial.index, "case": trial.case, "settling_time_s": None, "rms_in_position_m": None,
+           "peak_tracking_error_m": None, "rms_tracking_error_m": None}
+    settle = [s for s in trial.segments if s.kind == "settle"]
+    track = [s for s in trial.segments if s.kind == "track"]
+    if settle:
+        s = settle[0]
+        target = trial.x_ref[s.stop - 1]
+        ts = metrics.settling_time(t[:s.stop], y[:s.stop], target, t[s.start], trial.window)
+        if np.isfinite(ts):
+            out["settling_time_s"] = float(ts)
+            out["rms_in_position_m"] = float(metrics.rms_in_position(t[:s.stop], y[:s.stop], target,
+                                                                     t[s.start] + ts))
+    if track:
+        s = track[0]
+        peak, rms = metrics.tracking_errors(x_ref[s.start:s.stop], y[s.start:s.stop])
+        out["peak_tracking_error_m"], out["rms_tracking_error_m"] = float(peak), float(rms)
+    return out

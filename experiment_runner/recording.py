@@ -1,0 +1,804 @@
+"""MCAP recordings of nanostage runs, after ``shared/contract/recording.md``.
+
+Writing
+    :class:`McapRecorder` writes a rosbag2 bag (version 9, MCAP storage) with the
+    ``rosbags`` writer: a directory holding one MCAP file, ``<dir>/<dir name>.mcap``,
+    and ``metadata.yaml`` (the layout ``ros2 bag record -s mcap -o <dir>`` makes), so
+    ``ros2 bag``, ``rosbags`` and Foxglove/``mcap`` tools all open it. The MCAP file is
+    self-contained (profile ``ros2``, ``ros2msg`` schemas with their dependencies, ``cdr``
+    messages, chunk and message indexes, summary with statistics, each channel's
+    ``offered_qos_profiles``, the bag metadata as a ``rosbag2`` metadata record). A chunk
+    is closed and flushed every ``chunk_ns`` of stage time (0.1 s) or ``chunk_bytes``
+    (1 MiB), so a killed process loses at most that much. Log time and ``header.stamp``
+    of every message are the stage time of the sample [ns].
+    :func:`write_run` writes batch-engine trials (:class:`~experiment_runner.batch.BatchResult`)
+    as such a recording, laid out as the ROS graph would record them.
+
+Reading
+    :func:`read_recording` reads a recording (the MCAP file or its bag directory), from
+    ours, a rig's or any tool that follows the contract, into numpy arrays
+    (:class:`Recording`). It reads through the MCAP index; if the file was cut short (a
+    killed recorder) it falls back to reading record by record up to the last complete
+    chunk and says what it salvaged in ``Recording.salvaged``. Anything else that keeps
+    the file from being a contract recording raises :class:`RecordingError` naming the
+    problem.
+"""
+from __future__ import annotations
+
+import io
+import math
+import shutil
+import struct
+import tempfile
+from collections import Counter
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from msg_defs import convert
+from msg_defs.topics import (BEARING, CLOCK, COMMAND, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS, ISOLATOR,
+                             ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS, TABLE, TOPICS,
+                             TRUTH, Qos, qos_yaml)
+
+__all__ = ["RecordingError", "McapRecorder", "Recording", "JointSeries", "Trial", "read_recording",
+           "write_run", "run_config_yaml", "mcap_file"]
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+PROFILE = "ros2"
+_NS = 1_000_000_000
+
+
+class RecordingError(ValueError):
+    """A file is not a readable nanostage recording; the message says why."""
+
+
+# =========================================================================== writing
+@lru_cache(maxsize=None)
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+@lru_cache(maxsize=None)
+def _writer_classes():
+    """rosbags' Writer with its MCAP storage closing (and flushing) chunks by stage time."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.metadata import dump_qos_v9
+    from rosbags.rosbag2.storage_mcap import McapWriter
+
+    class ChunkedMcap(McapWriter):
+        chunk_ns = 100_000_000
+        chunk_bytes = 1 << 20
+
+        def add_connection(self, connection, offered_qos_profiles):
+            # the channel's offered_qos_profiles in rosbag2's (yaml-cpp) layout and key order
+            qos = qos_yaml(dump_qos_v9(list(connection.ext.offered_qos_profiles)))
+            super().add_connection(connection, qos)
+
+        def write(self, connection, timestamp, data):
+            super().write(connection, timestamp, data)
+            ck = self.chunk
+            if ck.msgs and (ck.message_end_time - ck.message_start_time >= self.chunk_ns
+                            or ck.bio.tell() >= self.chunk_bytes):
+                self.close_chunk()
+
+        def close_chunk(self):
+            super().close_chunk()
+            self.bio.flush()          # a killed process keeps every closed chunk
+
+    class ChunkedWriter(Writer):
+        STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: ChunkedMcap}
+
+    return ChunkedWriter, StoragePlugin
+
+
+def _rosbags_qos(q: Qos):
+    from rosbags.interfaces import Qos as RQos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    inf = QosTime(9223372036, 854775807)
+    return RQos(QosHistory[q.history.upper()], q.depth, QosReliability[q.reliability.upper()],
+                QosDurability[q.durability.upper()], inf, inf, QosLiveliness.AUTOMATIC, inf, False)
+
+
+def bag_layout(path) -> tuple[Path, Path]:
+    """``(bag directory, MCAP file)`` a recorder writes for ``path``.
+
+    ``path`` names the bag directory; a trailing ``.mcap`` is dropped from it, so
+    ``out/run`` and ``out/run.mcap`` both give ``out/run/run.mcap``.
+
+    >>> [str(p) for p in bag_layout("out/run.mcap")]
+    ['out/run', 'out/run/run.mcap']
+    """
+    path = Path(path)
+    bag = path.with_suffix("") if path.suffix == ".mcap" else path
+    return bag, bag / f"{bag.name}.mcap"
+
+
+class McapRecorder:
+    """Write a contract recording (rosbag2 bag, MCAP storage) message by message.
+
+    Parameters
+    ----------
+    path : str or Path
+        Bag directory to create (see :func:`bag_layout`); ``self.path`` is the MCAP file.
+    config_yaml : str, optional
+        YAML of the run's configuration, written first on ``/experiment/config``.
+    start_ns : int
+        Stage time [ns] of the config message.
+    chunk_ns : int
+        Close (and flush) a chunk once it spans this much stage time [ns].
+    chunk_bytes : int
+        ... or once it holds this many bytes (rosbags closes at 1 MiB anyway).
+    overwrite : bool
+        Remove an existing bag directory first (otherwise ``FileExistsError``).
+
+    ``write(topic, stamp_ns, msg)`` takes rclpy messages, rosbags messages or raw CDR
+    bytes. Topics of :data:`msg_defs.topics.TOPICS` get their contract type and QoS;
+    others need :meth:`add_topic` (or a message, whose type is then used). Use it as a
+    context manager, or call :meth:`close`, which writes the index and summary.
+    """
+
+    def __init__(self, path, config_yaml: str | None = None, *, start_ns: int = 0,
+                 chunk_ns: int = 100_000_000, chunk_bytes: int = 1 << 20, overwrite: bool = False):
+        self.bag_dir, self.path = bag_layout(path)
+        if self.bag_dir.exists():
+            if not overwrite:
+                raise FileExistsError(f"{self.bag_dir} exists; pass overwrite=True to replace it")
+            shutil.rmtree(self.bag_dir) if self.bag_dir.is_dir() else self.bag_dir.unlink()
+        self.bag_dir.parent.mkdir(parents=True, exist_ok=True)
+        writer_cls, plugin = _writer_classes()
+        self._store = _typestore()
+        self._writer = writer_cls(self.bag_dir, version=9, storage_plugin=plugin.MCAP)
+        self._writer.set_custom_data("nanostage_recording_contract", "1")
+        self._writer.open()
+        self._writer.storage.chunk_ns = int(chunk_ns)
+        self._writer.storage.chunk_bytes = int(chunk_bytes)
+        self._conns: dict = {}
+        self.counts: Counter = Counter()
+        self._closed = False
+        if config_yaml is not None:
+            self.write(CONFIG.name, start_ns, convert.string_msg(self._store, config_yaml))
+
+    # ------------------------------------------------------------------ topics
+    def add_topic(self, name: str, msg_type: str | None = None, qos: Qos | None = None):
+        """Declare a topic (contract topics need nothing; others need ``msg_type``)."""
+        topic = TOPICS.get(name)
+        if msg_type is None:
+            if topic is None:
+                raise KeyError(f"{name!r} is not a contract topic: give its msg_type")
+            msg_type = topic.msg_type
+        if topic is not None and msg_type != topic.msg_type:
+            raise TypeError(f"{name} carries {topic.msg_type} by contract, not {msg_type}")
+        if name in self._conns:
+            return self._conns[name]
+        if msg_type not in self._store.types:
+            raise TypeError(f"{name}: {msg_type} is not a standard ROS 2 Jazzy interface")
+        qos = qos or (topic.qos if topic else Qos())
+        conn = self._writer.add_connection(name, msg_type, typestore=self._store, serialization_format="cdr",
+                                           offered_qos_profiles=[_rosbags_qos(qos)])
+        self._conns[name] = conn
+        return conn
+
+    # ------------------------------------------------------------------ writing
+    def _serialize(self, topic: str, msg_type: str, msg):
+        store = self._store
+        if convert.is_rosbags(msg):
+            return store.serialize_cdr(msg, msg_type)
+        from rclpy.serialization import serialize_message
+        raw = serialize_message(msg)
+        # Fast CDR leaves padding bytes uninitialised and pads the end to 8 bytes, which
+        # rosbags' reader refuses: re-encode canonically (same values, zero padding).
+        msgdef = store.get_msgdef(msg_type)
+        func = msgdef.deserialize_cdr_le if raw[1] else msgdef.deserialize_cdr_be
+        obj, _ = func(raw[4:], 0, msgdef.cls, store)
+        return store.serialize_cdr(obj, msg_type)
+
+    def write(self, topic: str, stamp_ns: int, msg) -> None:
+        """Write one message at stage time ``stamp_ns`` [ns] (its MCAP log time).
+
+        A message with a header (or a Clock) must carry the same stamp. ``msg`` may be
+        raw CDR bytes (written as given). ``/experiment/config`` must come first, once.
+        """
+        if self._closed:
+            raise ValueError(f"{self.path}: recorder is closed")
+        stamp_ns = int(stamp_ns)
+        raw = isinstance(msg, (bytes, bytearray, memoryview))
+        if topic not in self._conns:
+            self.add_topic(topic, None if raw or topic in TOPICS else convert.message_type_of(msg))
+        conn = self._conns[topic]
+        if topic == CONFIG.name and sum(self.counts.values()):
+            raise ValueError(f"{CONFIG.name} must be written once, first (already written: "
+                             f"{dict(self.counts)})")
+        if raw:
+            data = bytes(msg)
+        else:
+            msg_type = convert.message_type_of(msg)
+            if msg_type != conn.msgtype:
+                raise TypeError(f"{topic} carries {conn.msgtype}, got a {msg_type}")
+            if hasattr(msg, "header") or hasattr(msg, "clock"):
+                got = convert.stamp_ns(msg)
+                if got != stamp_ns:
+                    raise ValueError(f"{topic}: message stamp {got} ns != log time {stamp_ns} ns "
+                                     "(both must be the sample's stage time)")
+            data = self._serialize(topic, msg_type, msg)
+        self._writer.write(conn, stamp_ns, data)
+        self.counts[topic] += 1
+
+    @property
+    def message_count(self) -> int:
+        return sum(self.counts.values())
+
+    def close(self) -> None:
+        """Write the last chunk, the index and summary, and ``metadata.yaml`` (idempotent)."""
+        if not self._closed:
+            self._closed = True
+            self._writer.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()          # even after an error: what was written stays readable
+        return False
+
+
+# =========================================================================== reading
+@dataclass
+class JointSeries:
+    """A JointState topic as arrays; rows follow ``stamp_ns``, columns ``names``."""
+    stamp_ns: np.ndarray          # (n,) int64 stage time [ns]
+    names: list[str]
+    position: np.ndarray          # (n, len(names)); nan where a message has no value
+    velocity: np.ndarray
+    effort: np.ndarray
+
+    @property
+    def t(self) -> np.ndarray:
+        """Stage time [s]."""
+        return self.stamp_ns * 1e-9
+
+    def joint(self, name: str, field: str = "position") -> np.ndarray:
+        """Column of joint ``name`` (nan if the joint is absent)."""
+        if name not in self.names:
+            return np.full(len(self.stamp_ns), np.nan)
+        return getattr(self, field)[:, self.names.index(name)]
+
+    def __len__(self):
+        return len(self.stamp_ns)
+
+
+@dataclass
+class Trial:
+    """One trial of a recording, cut by its ``/experiment/events``."""
+    trial: int
+    case: str | None
+    step_index: int | None
+    start: int                    # first sample (index into the Recording arrays)
+    stop: int                     # one past the last sample
+    start_ns: int
+    end_ns: int | None            # None: no trial_end (run cut short or aborted)
+    window_m: float | None
+    target_m: float | None
+    settle_start_ns: int | None
+    complete: bool                # trial_end seen and no abort/fault for it
+    events: list[dict] = field(default_factory=list)
+
+    @property
+    def slice(self) -> slice:
+        return slice(self.start, self.stop)
+
+
+@dataclass
+class Recording:
+    """A recording's signals (SI units), one entry per control sample."""
+    path: Path
+    stamp_ns: np.ndarray          # (N,) int64 stage time [ns]
+    t: np.ndarray                 # (N,) stage time [s]
+    x_ref: np.ndarray             # reference position [m]
+    v_ref: np.ndarray             # reference velocity [m/s]
+    u: np.ndarray                 # servo force command [N]
+    y: np.ndarray                 # measured table position [m]
+    y_bearing: np.ndarray         # measured bearing position [m] (nan without a sensor)
+    events: list[dict]            # /experiment/events objects (+ "log_time_ns")
+    results: list[dict]           # /experiment/results objects (+ "log_time_ns")
+    config: str | None            # /experiment/config YAML
+    truth: JointSeries | None
+    dither: JointSeries | None
+    isolator: JointSeries | None
+    topics: dict[str, str]        # every topic in the file -> its type
+    counts: dict[str, int]        # messages read per topic
+    profile: str
+    salvaged: str | None = None   # what was read from a file cut short (None = intact)
+    warnings: list[str] = field(default_factory=list)
+
+    def __len__(self):
+        return len(self.stamp_ns)
+
+    @property
+    def duration(self) -> float:
+        """Stage time from the first to the last control sample [s]."""
+        return float((self.stamp_ns[-1] - self.stamp_ns[0]) * 1e-9) if len(self) else 0.0
+
+    def trials(self) -> list[Trial]:
+        """The trials marked by ``trial_start`` / ``trial_end`` events, in order."""
+        out = []
+        evs = sorted(self.events, key=lambda e: e["stamp_ns"])
+        for i, ev in enumerate(evs):
+            if ev["event"] != "trial_start":
+                continue
+            mine = [ev]
+            end = None
+            for later in evs[i + 1:]:
+                if later.get("trial") == ev["trial"] and later["event"] in ("trial_end", "abort", "fault"):
+                    mine.append(later)
+                    if later["event"] == "trial_end":
+                        end = later
+                        break
+                if later["event"] == "trial_start":
+                    break
+            start = int(np.searchsorted(self.stamp_ns, ev["stamp_ns"], "left"))
+            stop = (int(np.searchsorted(self.stamp_ns, end["stamp_ns"], "right")) if end
+                    else len(self.stamp_ns))
+            out.append(Trial(
+                trial=ev["trial"], case=ev.get("case"), step_index=ev.get("step_index"), start=start,
+                stop=stop, start_ns=ev["stamp_ns"], end_ns=end["stamp_ns"] if end else None,
+                window_m=ev.get("window_m"), target_m=ev.get("target_m"),
+                settle_start_ns=ev.get("settle_start_ns"),
+                complete=end is not None and not any(e["event"] in ("abort", "fault") for e in mine),
+                events=mine))
+        return out
+
+
+def mcap_file(path) -> Path:
+    """The MCAP file of a recording given as the file, its bag directory, or the name a
+    recorder was given (``out/run.mcap`` -> ``out/run/run.mcap``)."""
+    p = Path(path)
+    if p.is_dir():
+        files = sorted(p.glob("*.mcap"))
+        if not files:
+            raise RecordingError(f"{p}: directory holds no .mcap file")
+        if len(files) > 1:
+            raise RecordingError(f"{p}: directory holds {len(files)} .mcap files "
+                                 f"({', '.join(f.name for f in files)}); a recording is one MCAP file")
+        return files[0]
+    if p.exists():
+        return p
+    bag, inner = bag_layout(p)
+    if p.suffix == ".mcap" and inner.is_file():
+        return inner
+    raise RecordingError(f"{p}: no such file or directory")
+
+
+class _Damage(Exception):
+    def __init__(self, offset: int, why: str):
+        super().__init__(why)
+        self.offset, self.why = offset, why
+
+
+def _opname(opcode: int) -> str:
+    from mcap.opcode import Opcode
+    try:
+        return Opcode(opcode).name.lower()
+    except ValueError:
+        return f"opcode 0x{opcode:02x}"
+
+
+def _walk(f, size: int):
+    """Yield ``(offset, opcode, body)`` for each whole record after the magic, up to the
+    footer; raise :class:`_Damage` where the file stops making sense."""
+    from mcap.opcode import Opcode
+    pos = len(MCAP_MAGIC)
+    f.seek(pos)
+    while True:
+        head = f.read(9)
+        if len(head) < 9:
+            raise _Damage(pos, "the file ends without a footer" if not head
+                          else "the file ends inside a record header")
+        opcode, length = struct.unpack("<BQ", head)
+        if length > size - pos - 9:
+            raise _Damage(pos, f"a {_opname(opcode)} record of {length} bytes runs past the end of the file")
+        body = f.read(length)
+        yield pos, opcode, body
+        pos += 9 + length
+        if opcode == Opcode.FOOTER:
+            return
+
+
+def _parse(opcode: int, body: bytes):
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Chunk, Header, Message, Schema
+    stream = ReadDataStream(io.BytesIO(body))
+    if opcode == Opcode.CHUNK:
+        return Chunk.read(stream)
+    if opcode == Opcode.SCHEMA:
+        return Schema.read(stream)
+    if opcode == Opcode.CHANNEL:
+        return Channel.read(stream)
+    if opcode == Opcode.MESSAGE:
+        return Message.read(stream, len(body))
+    if opcode == Opcode.HEADER:
+        return Header.read(stream)
+    return None
+
+
+@dataclass
+class _Raw:
+    """Undecoded content of an MCAP file."""
+    path: Path
+    profile: str
+    schemas: dict
+    channels: dict
+    messages: list                # mcap.records.Message, in log-time order
+    salvaged: str | None
+
+
+def _header(path: Path, f, size: int):
+    head = f.read(len(MCAP_MAGIC))
+    if head != MCAP_MAGIC:
+        raise RecordingError(f"{path}: not an MCAP file (starts with {head[:8]!r}, "
+                             f"expected the MCAP magic {MCAP_MAGIC!r})")
+    try:
+        off, opcode, body = next(_walk(f, size))
+        header = _parse(opcode, body)
+    except _Damage:
+        raise RecordingError(f"{path}: MCAP file cut short before the end of its header record "
+                             "(nothing was recorded)") from None
+    except Exception as err:      # noqa: BLE001 - parse errors
+        raise RecordingError(f"{path}: MCAP file without a readable header record ({err})") from None
+    from mcap.records import Header
+    if not isinstance(header, Header):
+        raise RecordingError(f"{path}: MCAP file does not start with a header record "
+                             f"(found a {_opname(opcode)} record)")
+    return header
+
+
+def _salvage(path: Path, f, size: int, indexed_error: Exception) -> _Raw:
+    """Read record by record up to the damage; keep whole chunks only."""
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import breakup_chunk
+    schemas, channels, messages = {}, {}, []
+    n_chunks = 0
+    damage = None
+    try:
+        for off, opcode, body in _walk(f, size):
+            try:
+                rec = _parse(opcode, body)
+                inner = breakup_chunk(rec, validate_crc=True) if opcode == Opcode.CHUNK else [rec]
+            except Exception as err:      # noqa: BLE001 - any parse failure is damage here
+                raise _Damage(off, f"a {_opname(opcode)} record does not parse ({err})") from None
+            n_chunks += opcode == Opcode.CHUNK
+            for r in inner:
+                if isinstance(r, Schema):
+                    schemas[r.id] = r
+                elif isinstance(r, Channel):
+                    channels[r.id] = r
+                elif isinstance(r, Message):
+                    messages.append(r)
+    except _Damage as d:
+        damage = d
+    messages.sort(key=lambda m: m.log_time)
+    if messages:
+        span = (f"{len(messages)} messages, stage time {messages[0].log_time * 1e-9:.6f} s to "
+                f"{messages[-1].log_time * 1e-9:.6f} s")
+    else:
+        span = "no messages"
+    if damage is not None:
+        note = (f"file cut short: {damage.why} at byte {damage.offset} of {size}; salvaged {span} "
+                f"from {n_chunks} complete chunk(s); anything after the last complete chunk is lost")
+    else:
+        why = f"{type(indexed_error).__name__}: {indexed_error}" if str(indexed_error) else type(indexed_error).__name__
+        note = (f"index unreadable ({why}); read the whole "
+                f"file record by record: {span} in {n_chunks} chunk(s)")
+    return _Raw(path, "", schemas, channels, messages, note)
+
+
+def _load(path) -> _Raw:
+    """Schemas, channels and messages of an MCAP file: indexed, else salvaged."""
+    from mcap.reader import SeekingReader
+    path = mcap_file(path)
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        header = _header(path, f, size)
+        if header.profile != PROFILE:
+            raise RecordingError(f"{path}: MCAP profile {header.profile!r}, a recording needs {PROFILE!r} "
+                                 f"(written by {header.library!r})")
+        try:
+            f.seek(0)
+            reader = SeekingReader(f)
+            schemas, channels, messages = {}, {}, []
+            for schema, channel, message in reader.iter_messages(log_time_order=True):
+                if schema is not None:
+                    schemas[schema.id] = schema
+                channels[channel.id] = channel
+                messages.append(message)
+            summary = reader.get_summary()
+            if summary is not None:
+                schemas.update(summary.schemas)
+                channels.update(summary.channels)
+            raw = _Raw(path, header.profile, schemas, channels, messages, None)
+        except Exception as err:          # noqa: BLE001 - truncated files fail in many ways
+            f.seek(0)
+            raw = _salvage(path, f, size, err)
+            raw.profile = header.profile
+    return raw
+
+
+def _joint_series(topic: str, items) -> JointSeries:
+    """(log_time, decoded JointState) pairs -> arrays, columns by joint name."""
+    names: list[str] = []
+    for _, m in items:
+        for n in m.name:
+            if n not in names:
+                names.append(n)
+    col = {n: i for i, n in enumerate(names)}
+    n = len(items)
+    arrs = {k: np.full((n, len(names)), np.nan) for k in ("position", "velocity", "effort")}
+    stamps = np.empty(n, np.int64)
+    for r, (lt, m) in enumerate(items):
+        stamps[r] = lt
+        idx = [col[x] for x in m.name]
+        for k, a in arrs.items():
+            vals = getattr(m, k)
+            if len(vals):
+                if len(vals) != len(idx):
+                    raise RecordingError(f"{topic}: message at {lt} ns has {len(idx)} names but "
+                                         f"{len(vals)} {k} values")
+                a[r, idx] = vals
+    return JointSeries(stamps, names, arrs["position"], arrs["velocity"], arrs["effort"])
+
+
+def _need(series: JointSeries, topic: str, name: str, fld: str) -> np.ndarray:
+    if name not in series.names:
+        raise RecordingError(f"{topic} has no joint {name!r} (names: {series.names})")
+    col = series.joint(name, fld)
+    if np.all(np.isnan(col)):
+        raise RecordingError(f"{topic}: joint {name!r} has no {fld} values")
+    return col
+
+
+def read_recording(path) -> Recording:
+    """Read a contract recording into arrays.
+
+    Parameters
+    ----------
+    path : str or Path
+        The MCAP file, or the bag directory holding it.
+
+    Returns
+    -------
+    Recording
+        Control samples are those present on all three contract topics (matched by
+        log time). ``salvaged`` describes what was recovered from a file cut short.
+
+    Raises
+    ------
+    RecordingError
+        Not an MCAP file, not profile ``ros2``, a contract topic missing or of the wrong
+        type, or messages that do not decode.
+    """
+    from mcap_ros2.decoder import DecoderFactory
+    raw = _load(path)
+    where = f"{raw.path}" + (f" ({raw.salvaged})" if raw.salvaged else "")
+    topics = {c.topic: (raw.schemas[c.schema_id].name if c.schema_id in raw.schemas else "?")
+              for c in raw.channels.values()}
+    missing = [t for t in CONTRACT_TOPICS if t not in topics]
+    if missing:
+        raise RecordingError(f"{where}: missing contract topic(s) {', '.join(missing)}; "
+                             f"topics present: {sorted(topics) or 'none'}")
+    for name, typ in topics.items():
+        if name in TOPICS and typ != TOPICS[name].msg_type:
+            raise RecordingError(f"{raw.path}: {name} has type {typ}, the contract says {TOPICS[name].msg_type}")
+
+    factory = DecoderFactory()
+    by_topic: dict[str, list] = {t: [] for t in TOPICS}
+    counts: Counter = Counter()
+    decoders = {}
+    for m in raw.messages:
+        ch = raw.channels[m.channel_id]
+        counts[ch.topic] += 1
+        if ch.topic not in TOPICS:
+            continue                       # a reader ignores topics it does not know
+        dec = decoders.get(ch.id)
+        if dec is None:
+            schema = raw.schemas.get(ch.schema_id)
+            try:
+                dec = factory.decoder_for(ch.message_encoding, schema)
+            except Exception as err:      # noqa: BLE001
+                raise RecordingError(f"{raw.path}: {ch.topic}: schema does not parse ({err})") from None
+            if dec is None:
+                raise RecordingError(
+                    f"{raw.path}: {ch.topic}: cannot decode message encoding {ch.message_encoding!r} with "
+                    f"schema encoding {getattr(schema, 'encoding', None)!r}; the contract wants cdr + ros2msg")
+            decoders[ch.id] = dec
+        try:
+            by_topic[ch.topic].append((m.log_time, dec(m.data)))
+        except Exception as err:          # noqa: BLE001
+            raise RecordingError(f"{raw.path}: {ch.topic}: message at {m.log_time} ns does not decode "
+                                 f"as {topics[ch.topic]} ({err})") from None
+
+    empty = [t for t in CONTRACT_TOPICS if not by_topic[t]]
+    if empty:
+        raise RecordingError(f"{where}: contract topic(s) {', '.join(empty)} hold no messages")
+    warnings = []
+    series = {t: _joint_series(t, by_topic[t]) for t in (*CONTRACT_TOPICS, TRUTH.name, DITHER.name, ISOLATOR.name)
+              if by_topic[t]}
+    for t in series:
+        bad = sum(1 for lt, m in by_topic[t] if hasattr(m, "header") and convert.stamp_ns(m) != lt)
+        if bad:
+            warnings.append(f"{t}: {bad} message(s) with header.stamp != log time (log time used)")
+
+    # control samples: stamps present on all three contract topics
+    firsts = {}
+    for t in CONTRACT_TOPICS:
+        uniq, idx = np.unique(series[t].stamp_ns, return_index=True)
+        if len(uniq) < len(series[t]):
+            warnings.append(f"{t}: {len(series[t]) - len(uniq)} duplicate stamp(s); first kept")
+        firsts[t] = (uniq, idx)
+    common = firsts[CONTRACT_TOPICS[0]][0]
+    for t in CONTRACT_TOPICS[1:]:
+        common = np.intersect1d(common, firsts[t][0], assume_unique=True)
+    if not len(common):
+        raise RecordingError(f"{where}: no control sample has messages on all of {', '.join(CONTRACT_TOPICS)}")
+    cols = {}
+    for t in CONTRACT_TOPICS:
+        uniq, idx = firsts[t]
+        rows = idx[np.searchsorted(uniq, common)]
+        if len(uniq) > len(common):
+            warnings.append(f"{t}: {len(uniq) - len(common)} sample(s) not on every contract topic, dropped")
+        cols[t] = rows
+    ref, cmd, meas = (series[t] for t in CONTRACT_TOPICS)
+    x_ref = _need(ref, REFERENCE.name, TABLE, "position")[cols[REFERENCE.name]]
+    v_ref = ref.joint(TABLE, "velocity")[cols[REFERENCE.name]]
+    u = _need(cmd, COMMAND.name, MOTOR, "effort")[cols[COMMAND.name]]
+    y = _need(meas, MEASURED.name, TABLE, "position")[cols[MEASURED.name]]
+    y_b = meas.joint(BEARING, "position")[cols[MEASURED.name]]
+
+    def _json_list(topic, parse):
+        out = []
+        for lt, m in by_topic[topic]:
+            try:
+                rec = parse(m.data)
+            except ValueError as err:
+                warnings.append(f"{topic}: message at {lt} ns skipped: {err}")
+                continue
+            if not isinstance(rec, dict):
+                warnings.append(f"{topic}: message at {lt} ns is not a JSON object; skipped")
+                continue
+            rec["log_time_ns"] = lt
+            out.append(rec)
+        return out
+
+    events = _json_list(EVENTS.name, convert.parse_event)
+    results = _json_list(RESULTS.name, convert.from_json)
+    configs = by_topic[CONFIG.name]
+    if len(configs) > 1:
+        warnings.append(f"{CONFIG.name}: {len(configs)} messages; the first is used")
+    return Recording(
+        path=raw.path, stamp_ns=common.astype(np.int64), t=common * 1e-9, x_ref=x_ref, v_ref=v_ref, u=u, y=y,
+        y_bearing=y_b, events=events, results=results, config=configs[0][1].data if configs else None,
+        truth=series.get(TRUTH.name), dither=series.get(DITHER.name), isolator=series.get(ISOLATOR.name),
+        topics=topics, counts=dict(counts), profile=raw.profile, salvaged=raw.salvaged, warnings=warnings)
+
+
+# =========================================================================== batch -> recording
+def run_config_yaml(preset, **run) -> str:
+    """``/experiment/config`` YAML: the preset (as validated) and the run's parameters."""
+    import yaml
+    doc = {"recording_contract": 1, "run": convert._clean(run), "preset": preset.model_dump(mode="json")}
+    return yaml.safe_dump(doc, sort_keys=False)
+
+
+def _sample_stamps(start_ns: int, first: int, n: int, rate: float) -> np.ndarray:
+    step = 1e9 / rate
+    k = np.arange(first, first + n, dtype=np.int64)
+    if float(step).is_integer():
+        return start_ns + k * int(step)
+    return start_ns + np.round(k * step).astype(np.int64)
+
+
+def write_run(path, result, preset, *, trials=None, reference=None, window: float | None = None,
+              case: str = "", config_yaml: str | None = None, truth: bool = True, clock: bool = False,
+              results: bool = True, start_ns: int = 0, node: str = "batch", overwrite: bool = False) -> Path:
+    """Write batch-engine trials as a contract recording; return the MCAP file.
+
+    Trials follow each other in stage time: sample ``k`` of the ``j``-th written trial is
+    at ``start_ns + (j * T + k) / rate`` (T samples per trial; a failed trial stops at
+    its failing sample with a ``fault`` event). Per sample: ``/stage/reference``
+    (x_ref incl. SAI correction, v_ref), ``/stage/command``, ``/stage/measured`` (with
+    ``bearing`` if the stage has a bearing sensor), ``/stage/truth`` (positions of
+    ``table`` and ``bearing``; the batch engine keeps no velocities), ``/stage/dither``
+    (dither stages), ``/stage/isolator`` on each change (SAI stages), ``/clock`` if
+    asked. Events: ``run_start``, per trial ``trial_start`` / ``trial_end`` (with
+    ``window_m``, and ``target_m``, ``settle_start_ns``, ``step_index`` from the last
+    ``"settle"`` segment of ``reference``), ``run_end``. With ``results`` (default) the
+    metrics of :func:`experiment_runner.replay.trial_metrics` go to ``/experiment/results``.
+
+    Parameters
+    ----------
+    path : str or Path
+        Bag directory (see :func:`bag_layout`).
+    result : BatchResult
+    preset : Preset
+        The preset the result was simulated with.
+    trials : iterable of int, optional
+        Which trials (default all).
+    reference : experiment_runner.profiles.Reference, optional
+        The shared reference, for the settle segment (target and its start).
+    window : float, optional
+        Half-width of the settling band [m].
+    """
+    from experiment_runner.replay import trial_metrics
+    from stage_sim.plant import OK, STATUS_TEXT
+    ts = _typestore()
+    rate = float(preset.controller.rate)
+    n_trials, T = result.y.shape
+    trials = list(range(n_trials)) if trials is None else [int(i) for i in trials]
+    settle = None
+    if reference is not None:
+        if len(reference.x) != T:
+            raise ValueError(f"reference has {len(reference.x)} samples, the result {T}")
+        segs = reference.select("settle")
+        settle = segs[-1] if segs else None
+    has_bsens = preset.stage.bearing_sensor is not None
+    has_bearing = bool(preset.stage.bearings)
+    has_dither = preset.dither is not None
+    has_sai = preset.sai_manager is not None or preset.stage.sai is not None
+    if config_yaml is None:
+        config_yaml = run_config_yaml(preset, source=node, case=case, trials=trials, rate=rate,
+                                      window_m=window, samples_per_trial=T)
+    J = convert.joint_state
+    with McapRecorder(path, config_yaml, start_ns=start_ns, overwrite=overwrite) as rec:
+        w = rec.write
+        first = True
+        for j, i in enumerate(trials):
+            failed = int(result.status[i]) != OK
+            n = int(result.fail_step[i]) + 1 if failed else T
+            stamps = _sample_stamps(start_ns, j * T, n, rate)
+            if first:
+                w(EVENTS.name, stamps[0], convert.event_msg(ts, "run_start", stamp_ns=stamps[0], case=case, node=node))
+                first = False
+            extra = {}
+            if settle is not None:
+                extra = {"step_index": settle.index, "settle_start_ns": int(_sample_stamps(start_ns, j * T + settle.start, 1, rate)[0]),
+                         "target_m": float(settle.target + (result.x_ref[i, 0] - reference.x[0]))}
+            w(EVENTS.name, stamps[0], convert.event_msg(ts, "trial_start", stamp_ns=stamps[0], trial=j, case=case,
+                                                        window_m=window, node=node, **extra))
+            x_ref, v_ref, u, y, yb = (a[i] for a in (result.x_ref, result.v_ref, result.u, result.y, result.y_bearing))
+            mode_prev = None
+            for k in range(n):
+                s = int(stamps[k])
+                if clock:
+                    w(CLOCK.name, s, convert.clock_msg(ts, s))
+                if has_sai and result.mode[i, k] != mode_prev:
+                    mode_prev = result.mode[i, k]
+                    w(ISOLATOR.name, s, J(ts, s, [ISOLATOR_JOINT], position=[mode_prev]))
+                w(REFERENCE.name, s, J(ts, s, [TABLE], position=[x_ref[k]], velocity=[v_ref[k]]))
+                if has_dither:
+                    w(DITHER.name, s, J(ts, s, PIEZOS, effort=result.dither[i, k]))
+                w(COMMAND.name, s, J(ts, s, [MOTOR], effort=[u[k]]))
+                w(MEASURED.name, s, J(ts, s, [TABLE, BEARING] if has_bsens else [TABLE],
+                                      position=[y[k], yb[k]] if has_bsens else [y[k]]))
+                if truth:
+                    w(TRUTH.name, s, J(ts, s, [TABLE, BEARING] if has_bearing else [TABLE],
+                                       position=([result.x_table[i, k], result.x_bearing[i, k]] if has_bearing
+                                                 else [result.x_table[i, k]])))
+            end = int(stamps[-1])
+            if failed:
+                w(EVENTS.name, end, convert.event_msg(ts, "fault", stamp_ns=end, trial=j, case=case, node=node,
+                                                      reason=STATUS_TEXT[int(result.status[i])]))
+            w(EVENTS.name, end, convert.event_msg(ts, "trial_end", stamp_ns=end, trial=j, case=case,
+                                                  window_m=window, node=node, **extra))
+            if results:
+                t = stamps * 1e-9
+                met = trial_metrics(t, x_ref[:n], v_ref[:n], y[:n], window=window,
+                                    target=extra.get("target_m"),
+                                    settle_start=extra["settle_start_ns"] * 1e-9 if extra else None)
+                w(RESULTS.name, end, convert.string_msg(ts, convert.to_json(
+                    {"trial": j, "case": case, **met, "node": node})))
+        if not first:
+            w(EVENTS.name, end, convert.event_msg(ts, "run_end", stamp_ns=end, case=case, node=node))
+    return rec.path
+

@@ -1,0 +1,149 @@
+"""``experiment_sequencer`` node: runs an experiment file through the graph.
+
+It publishes the run configuration, then each trial's trajectory (the same
+:func:`experiment_runner.experiment.build_trials` the batch engine uses), cuts the
+run into trials with ``/experiment/events``, computes each trial's metrics from
+what it hears on the contract topics and publishes them on ``/experiment/results``.
+If samples stop coming (a node died or hangs) or a node reports a fault, the trial
+is marked aborted with the reason and the node responsible, and the run ends.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import yaml
+
+from msg_defs import convert
+from msg_defs.node_io import NODE_OF_INPUT, StageNode, run_node
+from stage_sim.config import ConfigError
+from experiment_runner.experiment import build_trials, experiment_preset, load_experiment, trial_metrics
+
+
+def _check_experiment(name):
+    try:
+        load_experiment(name)
+    except ConfigError as err:
+        return str(err)
+    return None
+
+
+class SequencerNode(StageNode):
+    """Publishes trials one after the other and judges each one."""
+
+    def __init__(self, experiment: str | None = None, **kwargs):
+        super().__init__("experiment_sequencer", **kwargs)
+        name = self.param("experiment", experiment or "fi_p2p_5um",
+                          "experiment name (shipped) or YAML path", check=_check_experiment)
+        self.timeout = self.param("sample_timeout", 5.0, "wall-clock time without a new sample "
+                                  "before the trial is aborted [s]", 0.01, 3600.0)
+        self.wait_nodes = self.param("wait_for_nodes", 3, "subscribers of /experiment/trajectory "
+                                     "to wait for before starting", 0, 100)
+        self.exp = load_experiment(name)
+        self.preset = experiment_preset(self.exp)
+        self.trials = build_trials(self.exp, self.preset)
+        self.rate = self.preset.controller.rate
+        self.dt_ns = int(round(1e9 / self.rate))
+        self.pub_config = self.publisher("/experiment/config")
+        self.pub_traj = self.publisher("/experiment/trajectory")
+        self.pub_results = self.publisher("/experiment/results")
+        self.subscribe("/stage/measured", lambda m: self._sample(m, "measured", m.position[0]))
+        self.subscribe("/stage/reference", lambda m: self._sample(m, "reference", m.position[0]))
+        self.subscribe("/experiment/events", self._event_in)
+        self.results: list[dict] = []
+        self.done = False
+        self.aborted = None
+        self.current = -1
+        self.start = 0
+        self.last_progress = time.monotonic()
+        self.create_timer(0.05, self._tick)
+
+    def config_yaml(self) -> str:
+        return yaml.safe_dump({"experiment": self.exp.model_dump(), "preset": self.preset.model_dump()},
+                              sort_keys=False)
+
+    # ----------------------------------------------------------------- run control
+    def _tick(self):
+        if self.done:
+            return
+        if self.current < 0:
+            if self.pub_traj.get_subscription_count() >= self.wait_nodes:
+                self.pub_config.publish(convert.string_msg(None, self.config_yaml()))
+                self.event("run_start", stamp_ns=0, case=self.exp.name, window_m=self.exp.window)
+                self._next_trial()
+            return
+        if time.monotonic() - self.last_progress > self.timeout:
+            stale = "measured" if self.k_meas < self.k_ref else "reference"
+            node = NODE_OF_INPUT["/stage/measured" if stale == "measured" else "/stage/reference"]
+            self._abort(f"no {stale} sample after sample {min(self.k_meas, self.k_ref)} within "
+                        f"{self.timeout} s", node)
+
+    def _next_trial(self):
+        self.current += 1
+        if self.current >= len(self.trials):
+            self.event("run_end", stamp_ns=self.start * self.dt_ns, case=self.exp.name)
+            self.done = True
+            return
+        tr = self.trials[self.current]
+        if self.current:
+            self.start += len(self.trials[self.current - 1].x_ref)
+        n = len(tr.x_ref)
+        self.y = np.full(n, np.nan)
+        self.xr = np.full(n, np.nan)
+        self.k_meas = self.k_ref = -1
+        settle = [s for s in tr.segments if s.kind == "settle"]
+        extra = {}
+        if settle:
+            extra = {"target_m": float(tr.x_ref[settle[0].stop - 1]),
+                     "settle_start_ns": (self.start + settle[0].start) * self.dt_ns}
+        self.event("trial_start", stamp_ns=self.start * self.dt_ns, trial=tr.index, case=tr.case,
+                   step_index=0 if settle else None, window_m=tr.window, **extra)
+        self.last_progress = time.monotonic()
+        self.pub_traj.publish(convert.trajectory_to_msg(None, tr.x_ref, tr.v_ref, trial=tr.index,
+                                                        case=tr.case, start=self.start, rate=self.rate))
+
+    def _sample(self, msg, name, value):
+        if self.done or self.current < 0:
+            return
+        k = convert.stamp_ns(msg) // self.dt_ns - self.start
+        n = len(self.y)
+        if not 0 <= k < n:
+            return
+        if name == "measured":
+            self.y[k] = value
+            self.k_meas = max(self.k_meas, k)
+        else:
+            self.xr[k] = value
+            self.k_ref = max(self.k_ref, k)
+        self.last_progress = time.monotonic()
+        if self.k_meas == n - 1 and self.k_ref == n - 1 and not np.isnan(self.y).any() \
+                and not np.isnan(self.xr).any():
+            self._finish_trial()
+
+    def _finish_trial(self):
+        tr = self.trials[self.current]
+        res = trial_metrics(tr, self.y, self.xr, self.rate)
+        res["node"] = self.get_name()
+        self.results.append(res)
+        self.pub_results.publish(convert.string_msg(None, convert.to_json(res)))
+        self.event("trial_end", stamp_ns=(self.start + len(self.y) - 1) * self.dt_ns, trial=tr.index,
+                   case=tr.case, window_m=tr.window)
+        self._next_trial()
+
+    def _event_in(self, msg):
+        ev = convert.parse_event(msg.data)
+        if ev["event"] == "fault" and not self.done:
+            self._abort(ev.get("reason") or "fault", ev.get("silent") or ev.get("node"))
+
+    def _abort(self, reason, node):
+        nodes = node if isinstance(node, str) else ", ".join(node or [])
+        tr = self.trials[self.current] if 0 <= self.current < len(self.trials) else None
+        self.aborted = {"trial": None if tr is None else tr.index, "reason": reason, "node": nodes}
+        self.event("abort", stamp_ns=self.start * self.dt_ns, trial=None if tr is None else tr.index,
+                   case=self.exp.name, reason=f"{reason} (node: {nodes})", responsible=nodes)
+        self.event("run_end", stamp_ns=self.start * self.dt_ns, case=self.exp.name, reason="aborted")
+        self.done = True
+
+
+def main(args=None):
+    run_node(SequencerNode, args, until=lambda n: n.done, on_exit=lambda n: time.sleep(0.5))

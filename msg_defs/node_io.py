@@ -1,0 +1,150 @@
+"""What every nanostage node shares: publishers and subscriptions made from the topic
+contract, validated parameters, the run configuration, and lockstep sample bookkeeping.
+
+Nodes are thin adapters: they convert messages to the arrays the compiled core
+steps take (``msg_defs.convert``) and back; no algorithm lives here.
+"""
+from __future__ import annotations
+
+import os
+
+import yaml
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.node import Node
+
+from msg_defs import convert
+from msg_defs.topics import Qos, Topic, get_topic, qos_profile
+
+SAI_COMMAND = Topic(
+    "/sai/command", "sensor_msgs/msg/JointState", "1, m", Qos("reliable", "volatile", 1000),
+    "every control sample, one sample ahead (SAI stages)",
+    'name ["isolator"], position [mode] (1 compliant, 0 stiff), effort [x_correction]: the SAI '
+    "manager's mode and Step II reference correction for the sample of its stamp")
+"""Internal lockstep topic of the graph (not part of a recording)."""
+
+NODE_OF_INPUT = {"/stage/command": "servo_controller", "/stage/dither": "dither_generator",
+                 "/sai/command": "sai_manager", "/stage/measured": "plant_sim",
+                 "/stage/reference": "servo_controller"}
+"""Which node publishes each lockstep input (to name a silent node)."""
+
+
+def domain_env(domain_id: int | None = None) -> dict:
+    """Environment for an isolated graph: explicit domain, localhost-only discovery."""
+    env = dict(os.environ)
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+    env.setdefault("ROS_DOMAIN_ID", "42")
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    return env
+
+
+def run_node(factory, args=None, until=None, on_exit=None):
+    """``main`` of a node executable: init, spin (until ``until(node)`` is true), clean up.
+
+    Ctrl-C / SIGINT ends it cleanly; ``on_exit(node)`` runs last (e.g. close a file).
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = factory()
+        while rclpy.ok() and not (until and until(node)):
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            if on_exit:
+                on_exit(node)
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+class StageNode(Node):
+    """Base class: contract publishers/subscriptions, validated parameters, run config."""
+
+    def __init__(self, name: str, **kwargs):
+        super().__init__(name, **kwargs)
+        self._validators = {}
+        self.add_on_set_parameters_callback(self._validate)
+        self.config = None            # the run's configuration (dict) once received
+        self.on_config = None
+
+    # ----------------------------------------------------------------- topics
+    def publisher(self, topic):
+        t = topic if isinstance(topic, Topic) else get_topic(topic)
+        return self.create_publisher(convert.message_class(None, t.msg_type), t.name, qos_profile(t.qos))
+
+    def subscribe(self, topic, callback):
+        t = topic if isinstance(topic, Topic) else get_topic(topic)
+        return self.create_subscription(convert.message_class(None, t.msg_type), t.name, callback,
+                                        qos_profile(t.qos))
+
+    def listen_config(self, callback):
+        """Call ``callback(config_dict)`` when the run configuration arrives (latched)."""
+        self.on_config = callback
+        self.subscribe("/experiment/config", self._config)
+
+    def _config(self, msg):
+        self.config = yaml.safe_load(msg.data)
+        if self.on_config:
+            self.on_config(self.config)
+
+    # ----------------------------------------------------------------- parameters
+    def param(self, name, default, description, lo=None, hi=None, check=None):
+        """Declare a parameter with a description, an optional range and a validator."""
+        desc = ParameterDescriptor(description=description)
+        if isinstance(default, bool) or lo is None:
+            pass
+        elif isinstance(default, int):
+            desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+        else:
+            desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+        if check:
+            self._validators[name] = check
+        value = self.declare_parameter(name, default, desc).value
+        if check:
+            problem = check(value)
+            if problem:
+                raise ValueError(f"{self.get_name()}: parameter {name}={value!r}: {problem}")
+        return value
+
+    def _validate(self, params):
+        for p in params:
+            check = self._validators.get(p.name)
+            problem = check(p.value) if check else None
+            if problem:
+                return SetParametersResult(successful=False, reason=f"{p.name}={p.value!r}: {problem}")
+        return SetParametersResult(successful=True)
+
+    def event(self, kind, **fields):
+        """Publish an ``/experiment/events`` record from this node."""
+        if not hasattr(self, "_events"):
+            self._events = self.publisher("/experiment/events")
+        self._events.publish(convert.event_msg(None, kind, node=self.get_name(), **fields))
+
+
+class Lockstep:
+    """Collect per-sample inputs (by stamp) and tell when a sample has all of them."""
+
+    def __init__(self, needed: tuple[str, ...]):
+        self.needed = needed
+        self.pending: dict[int, dict] = {}
+
+    def put(self, key: int, name: str, value) -> dict | None:
+        """Store one input; return the complete set for ``key`` once everything is in."""
+        got = self.pending.setdefault(key, {})
+        got[name] = value
+        if all(n in got for n in self.needed):
+            return self.pending.pop(key)
+        return None
+
+    def missing(self, key: int) -> list[str]:
+        got = self.pending.get(key, {})
+        return [n for n in self.needed if n not in got]
+
+    def clear(self):
+        self.pending.clear()

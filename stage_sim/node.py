@@ -1,0 +1,159 @@
+"""``plant_sim`` node: the stage simulator on the ROS graph, in lockstep.
+
+A thin adapter around :class:`stage_sim.plant.PlantSim`: for every control sample it
+publishes ``/stage/measured``, ``/stage/truth`` and ``/clock``, waits until the
+servo command (and, where the stage has them, the dither forces and the SAI mode)
+for that sample has arrived, then advances one period. A missing input beyond
+``input_timeout`` (wall clock) ends the trial with a ``fault`` event naming the
+silent node -- never a hang.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from msg_defs import convert
+from msg_defs.node_io import NODE_OF_INPUT, SAI_COMMAND, Lockstep, StageNode, run_node
+from stage_sim.config import ConfigError, load_preset, preset_from_dict
+from stage_sim.plant import PlantSim, SimulationError, build_plant
+
+
+def _check_preset(name):
+    if not name:
+        return None
+    try:
+        load_preset(name)
+    except ConfigError as err:
+        return str(err)
+    return None
+
+
+class PlantNode(StageNode):
+    """Lockstep plant simulator (one trial at a time, reset at each trajectory)."""
+
+    def __init__(self, **kwargs):
+        super().__init__("plant_sim", **kwargs)
+        self.timeout = self.param("input_timeout", 5.0, "wall-clock time to wait for a sample's "
+                                  "inputs before the trial is aborted [s]", 0.01, 3600.0)
+        self.preset_name = self.param("preset", "", "preset name or YAML path; empty = the preset of "
+                                      "/experiment/config", check=_check_preset)
+        self.pub_measured = self.publisher("/stage/measured")
+        self.pub_truth = self.publisher("/stage/truth")
+        self.pub_clock = self.publisher("/clock")
+        self.pub_isolator = self.publisher("/stage/isolator")
+        self.subscribe("/experiment/trajectory", self._trajectory)
+        self.subscribe("/stage/command", lambda m: self._input(m, "command", m.effort[0]))
+        self.subscribe("/stage/dither", lambda m: self._input(m, "dither", (m.effort[0], m.effort[1])))
+        self.subscribe(SAI_COMMAND, lambda m: self._input(m, "sai", m.position[0]))
+        self.preset = load_preset(self.preset_name) if self.preset_name else None
+        self.listen_config(self._configure)
+        self.sim = None
+        self.lock = None
+        self._held = None
+        self.k = 0
+        self.n = 0
+        self.waiting_since = None
+        self.create_timer(0.1, self._watchdog)
+        if self.preset is not None:
+            self._build()
+
+    def _configure(self, cfg):
+        if not self.preset_name:
+            self.preset = preset_from_dict(cfg["preset"], "/experiment/config")
+            self._build()
+
+    def _build(self):
+        p = self.preset
+        self.pm = build_plant(p.stage, p.controller.rate, p.simulation.max_omega_h, p.simulation.max_substeps)
+        self.dt_ns = int(round(1e9 / p.controller.rate))
+        needed = ["command"] + (["dither"] if p.dither else []) + (["sai"] if p.sai_manager else [])
+        self.lock = Lockstep(tuple(needed))
+        self.init_mode = 0.0 if p.sai_manager and p.sai_manager.rule != "always_compliant" else 1.0
+        if self._held is not None:
+            self._trajectory(self._held)
+
+    def _trajectory(self, msg):
+        if self.lock is None:               # config still on its way: start once it is in
+            self._held = msg
+            return
+        self._held = None
+        tr = convert.trajectory_from_msg(msg)
+        self.trial = tr.trial
+        self.start = tr.start
+        self.n = len(tr.x_ref)
+        self.k = 0
+        self.mode = self.init_mode
+        self.lock.clear()
+        self.ready = {}
+        self.sim = PlantSim(self.pm, 1, x0=tr.x_ref[0], sai_mode=self.mode,
+                            seeds=[self.preset.simulation.seed + tr.trial])
+        self._publish_isolator()
+        self._publish_sample()
+
+    def _stamp(self, k):
+        return (self.start + k) * self.dt_ns
+
+    def _publish_sample(self):
+        stamp = self._stamp(self.k)
+        y = self.sim.meas[:, 0]
+        names, pos = (["table"], [y[0]]) if np.isnan(y[1]) else (["table", "bearing"], list(y))
+        self.pub_clock.publish(convert.clock_msg(None, stamp))
+        self.pub_measured.publish(convert.joint_state(None, stamp, names, position=pos))
+        n = self.pm.n
+        body = ["table"] + [f"body_{i}" for i in range(1, n)]
+        if self.pm.bear_dof:
+            body[self.pm.bear_dof] = "bearing"
+        self.pub_truth.publish(convert.joint_state(None, stamp, body, position=self.sim.positions[:, 0],
+                                                   velocity=self.sim.velocities[:, 0]))
+        self.waiting_since = time.monotonic()
+
+    def _publish_isolator(self):
+        if self.preset.stage.sai is not None:
+            self.pub_isolator.publish(convert.joint_state(None, self._stamp(self.k), ["isolator"],
+                                                          position=[self.mode]))
+
+    def _input(self, msg, name, value):
+        if self.sim is None or self.lock is None:
+            return
+        key = convert.stamp_ns(msg) // self.dt_ns - self.start
+        if key < self.k or key >= self.n:
+            return
+        got = self.lock.put(key, name, value)
+        if got is not None:
+            self.ready[key] = got
+            self._advance()
+
+    def _advance(self):
+        while self.k < self.n and self.k in self.ready:
+            got = self.ready.pop(self.k)
+            d0, d1 = got.get("dither", (0.0, 0.0))
+            mode = got.get("sai", self.mode)
+            try:
+                self.sim.step(got["command"], d0, d1, mode)
+            except SimulationError as err:
+                self.event("fault", stamp_ns=self._stamp(self.k), trial=self.trial, reason=str(err))
+                self.sim = None
+                return
+            self.k += 1
+            if mode != self.mode:
+                self.mode = mode
+                self._publish_isolator()
+            if self.k < self.n:
+                self._publish_sample()
+            else:
+                self.waiting_since = None
+
+    def _watchdog(self):
+        if self.sim is None or self.waiting_since is None or self.k >= self.n:
+            return
+        if time.monotonic() - self.waiting_since > self.timeout:
+            topics = {"command": "/stage/command", "dither": "/stage/dither", "sai": SAI_COMMAND.name}
+            silent = sorted({NODE_OF_INPUT[topics[m]] for m in self.lock.missing(self.k)})
+            self.event("fault", stamp_ns=self._stamp(self.k), trial=self.trial,
+                       reason=f"no input for sample {self.k} within {self.timeout} s from: "
+                              f"{', '.join(silent)}", silent=silent)
+            self.sim = None
+
+
+def main(args=None):
+    run_node(PlantNode, args)
