@@ -12,7 +12,27 @@ def _paper(args):
 
 def _bench(args):
     from experiment_runner.bench import run_bench
-    return run_bench(as_json=args.json, quick=args.quick)
+    return run_bench(as_json=args.json, quick=args.quick, graph=args.graph)
+
+
+def _graph(args):
+    from experiment_runner.experiment import list_experiments, load_experiment
+    if args.list:
+        for name in list_experiments():
+            print(f"{name:20s} {load_experiment(name).description}")
+        return 0
+    if not args.experiment:
+        raise SystemExit("nanostage graph: give an EXPERIMENT (name or YAML path), or --list")
+    from pathlib import Path
+
+    from experiment_runner.graph import run_graph
+    return run_graph(args.experiment, Path(args.out), processes=args.processes, domain_id=args.domain_id,
+                     timeout=args.timeout)
+
+
+def _replay(args):
+    from experiment_runner.replay import main_replay
+    return main_replay(args)
 
 
 def _presets(args):
@@ -38,7 +58,24 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="benchmark the simulation core (simulated s per wall s, memory)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--quick", action="store_true", help="shorter runs")
+    p.add_argument("--graph", action=argparse.BooleanOptionalAction, default=True,
+                   help="also time the ROS 2 node graph (one process, one per node) and raw rclpy "
+                        "round trips (default: on)")
     p.set_defaults(func=_bench)
+
+    p = sub.add_parser("graph", help="run an experiment through the ROS 2 node graph and record it to MCAP")
+    p.add_argument("experiment", nargs="?", help="experiment name (see --list) or YAML path")
+    p.add_argument("--out", default="out/graph", help="output folder (run.mcap is written there)")
+    p.add_argument("--processes", action="store_true", help="one process per node (default: one process)")
+    p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: env or 42)")
+    p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
+    p.add_argument("--list", action="store_true", help="list the shipped experiments")
+    p.set_defaults(func=_graph)
+
+    from experiment_runner.replay import add_replay_arguments
+    p = sub.add_parser("replay", help="republish a recording on its topics with /clock (like ros2 bag play)")
+    add_replay_arguments(p)
+    p.set_defaults(func=_replay)
 
     p = sub.add_parser("presets", help="list the stage presets, or show one")
     p.add_argument("name", nargs="?")

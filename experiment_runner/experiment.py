@@ -150,28 +150,13 @@ def run_batch(exp: Experiment):
 
 
 def trial_metrics(trial: Trial, y: np.ndarray, x_ref: np.ndarray, rate: float) -> dict:
-    """Metrics of one trial from its measured positions ``y`` and used reference ``x_ref``.
-
-    Point-to-point trials: settling time into ±window after the reference reaches its
-    target (first settle segment) and RMS in-position error after settling. Tracking
-    trials: peak and RMS tracking error over the "track" segment. SI units; ``None``
-    where a metric is not defined (e.g. never settled).
-    """
+    """:func:`experiment_runner.metrics.trial_metrics` of one trial, judged at the target
+    and settling start of its first settle segment (SI units, nan = not defined)."""
     t = np.arange(len(y)) / rate
-    out = {"trial": trial.index, "case": trial.case, "settling_time_s": None, "rms_in_position_m": None,
-           "peak_tracking_error_m": None, "rms_tracking_error_m": None}
     settle = [s for s in trial.segments if s.kind == "settle"]
-    track = [s for s in trial.segments if s.kind == "track"]
+    kw = {}
     if settle:
-        s = settle[0]
-        target = trial.x_ref[s.stop - 1]
-        ts = metrics.settling_time(t[:s.stop], y[:s.stop], target, t[s.start], trial.window)
-        if np.isfinite(ts):
-            out["settling_time_s"] = float(ts)
-            out["rms_in_position_m"] = float(metrics.rms_in_position(t[:s.stop], y[:s.stop], target,
-                                                                     t[s.start] + ts))
-    if track:
-        s = track[0]
-        peak, rms = metrics.tracking_errors(x_ref[s.start:s.stop], y[s.start:s.stop])
-        out["peak_tracking_error_m"], out["rms_tracking_error_m"] = float(peak), float(rms)
-    return out
+        kw = {"target": float(trial.x_ref[settle[0].stop - 1]), "settle_start": float(t[settle[0].start]),
+              "window": trial.window}
+    res = metrics.trial_metrics(t, x_ref, trial.v_ref, y, **kw)
+    return {"trial": trial.index, "case": trial.case, **res}

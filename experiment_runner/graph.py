@@ -26,8 +26,8 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
     """All nodes in this process under one single-threaded executor."""
     _isolate(domain_id)
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
 
+    from msg_defs.node_io import make_executor
     from experiment_runner.recorder_node import RecorderNode
     from experiment_runner.sequencer import SequencerNode
     from stage_control.nodes import DitherNode, SaiNode, ServoNode
@@ -37,7 +37,7 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
     try:
         nodes = [PlantNode(), ServoNode(), DitherNode(), SaiNode(), RecorderNode(out=str(out))]
         seq = SequencerNode(experiment=experiment)
-        ex = SingleThreadedExecutor()
+        ex = make_executor()
         for n in nodes + [seq]:
             ex.add_node(n)
         t0 = time.monotonic()
@@ -79,4 +79,34 @@ def run_processes(experiment: str, out: Path, timeout: float = 600.0, domain_id=
                 p.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 p.kill()
+    return code
+
+
+def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id=None,
+              timeout: float = 3600.0) -> int:
+    """``nanostage graph``: run, record ``out_dir/run.mcap``, print the trial results."""
+    import json
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bag = out_dir / "run"
+    t0 = time.monotonic()
+    if processes:
+        code = run_processes(experiment, bag, timeout, domain_id)
+    else:
+        summary = run_one_process(experiment, bag, timeout, domain_id)
+        code = 0 if summary["done"] and not summary["aborted"] else 1
+        if summary["aborted"]:
+            print(f"run aborted: {summary['aborted']}", file=sys.stderr)
+    from experiment_runner.recording import bag_layout, read_recording
+    bag_dir, mcap = bag_layout(bag)
+    final = out_dir / "run.mcap"
+    if mcap.exists():                      # make out_dir itself the rosbag2 bag: run.mcap + metadata.yaml
+        for f in bag_dir.iterdir():
+            f.replace(out_dir / f.name)
+        bag_dir.rmdir()
+    rec = read_recording(final)
+    for r in rec.results:
+        print(json.dumps({k: r[k] for k in ("trial", "case", "settling_time_s", "rms_in_position_m",
+                                            "peak_tracking_error_m", "rms_tracking_error_m")}))
+    print(f"{len(rec)} samples in {time.monotonic() - t0:.1f} s; recording: {final}"
+          + (f" (salvaged: {rec.salvaged})" if rec.salvaged else ""))
     return code

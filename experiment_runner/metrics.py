@@ -7,6 +7,7 @@ Time-domain functions accept a single record ``x`` of shape ``(T,)`` or a
 batch of trials of shape ``(n_trials, T)`` sharing the time vector ``t``.
 """
 
+import math
 from typing import NamedTuple
 
 import control
@@ -376,3 +377,62 @@ def error_spectrum(e, fs, window="hann"):
     if n % 2 == 0:
         amplitude[..., -1] /= 2.0
     return np.fft.rfftfreq(n, 1.0 / fs), amplitude
+
+
+METRICS = ("settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m")
+"""Keys of the per-trial metrics published on ``/experiment/results``."""
+
+
+def trial_metrics(t, x_ref, v_ref, y, *, window: float | None = None, target: float | None = None,
+                  settle_start: float | None = None) -> dict:
+    """Metrics of one trial from its samples (SI units).
+
+    Parameters
+    ----------
+    t, x_ref, v_ref, y : array_like, shape (T,)
+        Stage time [s], reference position [m] and velocity [m/s], measured position [m].
+    window : float, optional
+        Half-width of the settling band [m]; without it there is no settling time and the
+        in-position RMS starts at ``settle_start``.
+    target : float, optional
+        Position the trial settles at [m]; default the last reference position.
+    settle_start : float, optional
+        Stage time [s] the reference reaches the target; default the sample after the
+        last non-zero reference velocity (the trial's start if it never moves).
+
+    Returns
+    -------
+    dict
+        ``settling_time_s`` (nan if not settled), ``rms_in_position_m``,
+        ``peak_tracking_error_m``, ``rms_tracking_error_m`` (``x_ref - y`` over the
+        trial), plus the ``target_m`` and ``settle_start_s`` used.
+
+    Examples
+    --------
+    >>> t = np.arange(6) * 1e-4
+    >>> m = trial_metrics(t, [0, 1, 2, 2, 2, 2], [1, 1, 0, 0, 0, 0], [0, 0, 1, 2.5, 2, 2], window=0.1)
+    >>> m["settle_start_s"], round(m["settling_time_s"], 6), m["peak_tracking_error_m"]
+    (0.0002, 0.0002, 1.0)
+    """
+    t = np.asarray(t, float)
+    x_ref = np.asarray(x_ref, float)
+    y = np.asarray(y, float)
+    if not t.size:
+        return {k: math.nan for k in (*METRICS, "target_m", "settle_start_s")}
+    if settle_start is None:
+        moving = np.flatnonzero(np.nan_to_num(np.asarray(v_ref, float)) != 0)
+        k = int(moving[-1]) + 1 if moving.size else 0
+        settle_start = float(t[k]) if k < t.size else math.nan
+    if target is None:
+        target = float(x_ref[-1])
+    peak, rms = tracking_errors(x_ref, y)
+    if math.isnan(settle_start):
+        ts = rms_ip = math.nan
+    elif window:
+        ts = float(settling_time(t, y, target, settle_start, window))
+        rms_ip = float(rms_in_position(t, y, target, settle_start + ts)) if math.isfinite(ts) else math.nan
+    else:
+        ts = math.nan
+        rms_ip = float(rms_in_position(t, y, target, settle_start))
+    return {"settling_time_s": ts, "rms_in_position_m": rms_ip, "peak_tracking_error_m": float(peak),
+            "rms_tracking_error_m": float(rms), "target_m": float(target), "settle_start_s": float(settle_start)}

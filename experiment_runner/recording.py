@@ -43,7 +43,7 @@ from msg_defs.topics import (BEARING, CLOCK, COMMAND, CONFIG, CONTRACT_TOPICS, D
                              TRUTH, Qos, qos_yaml)
 
 __all__ = ["RecordingError", "McapRecorder", "Recording", "JointSeries", "Trial", "read_recording",
-           "write_run", "run_config_yaml", "mcap_file"]
+           "write_run", "run_config_yaml", "mcap_file", "bag_layout"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"
@@ -136,7 +136,8 @@ class McapRecorder:
     ``write(topic, stamp_ns, msg)`` takes rclpy messages, rosbags messages or raw CDR
     bytes. Topics of :data:`msg_defs.topics.TOPICS` get their contract type and QoS;
     others need :meth:`add_topic` (or a message, whose type is then used). Use it as a
-    context manager, or call :meth:`close`, which writes the index and summary.
+    context manager, or call :meth:`close`, which writes the index and summary. Not
+    thread-safe: call it from one thread (e.g. one recorder node's callbacks).
     """
 
     def __init__(self, path, config_yaml: str | None = None, *, start_ns: int = 0,
@@ -328,18 +329,23 @@ class Recording:
             if ev["event"] != "trial_start":
                 continue
             mine = [ev]
-            end = None
+            end = nxt = None
             for later in evs[i + 1:]:
+                if later["event"] == "trial_start":
+                    nxt = later
+                    break
                 if later.get("trial") == ev["trial"] and later["event"] in ("trial_end", "abort", "fault"):
                     mine.append(later)
                     if later["event"] == "trial_end":
                         end = later
                         break
-                if later["event"] == "trial_start":
-                    break
             start = int(np.searchsorted(self.stamp_ns, ev["stamp_ns"], "left"))
-            stop = (int(np.searchsorted(self.stamp_ns, end["stamp_ns"], "right")) if end
-                    else len(self.stamp_ns))
+            if end is not None:
+                stop = int(np.searchsorted(self.stamp_ns, end["stamp_ns"], "right"))
+            elif nxt is not None:         # no trial_end: up to the next trial
+                stop = int(np.searchsorted(self.stamp_ns, nxt["stamp_ns"], "left"))
+            else:                         # no trial_end: up to the end of the recording
+                stop = len(self.stamp_ns)
             out.append(Trial(
                 trial=ev["trial"], case=ev.get("case"), step_index=ev.get("step_index"), start=start,
                 stop=stop, start_ns=ev["stamp_ns"], end_ns=end["stamp_ns"] if end else None,
@@ -714,7 +720,7 @@ def write_run(path, result, preset, *, trials=None, reference=None, window: floa
     asked. Events: ``run_start``, per trial ``trial_start`` / ``trial_end`` (with
     ``window_m``, and ``target_m``, ``settle_start_ns``, ``step_index`` from the last
     ``"settle"`` segment of ``reference``), ``run_end``. With ``results`` (default) the
-    metrics of :func:`experiment_runner.replay.trial_metrics` go to ``/experiment/results``.
+    metrics of :func:`experiment_runner.metrics.trial_metrics` go to ``/experiment/results``.
 
     Parameters
     ----------
@@ -730,7 +736,7 @@ def write_run(path, result, preset, *, trials=None, reference=None, window: floa
     window : float, optional
         Half-width of the settling band [m].
     """
-    from experiment_runner.replay import trial_metrics
+    from experiment_runner.metrics import trial_metrics
     from stage_sim.plant import OK, STATUS_TEXT
     ts = _typestore()
     rate = float(preset.controller.rate)
@@ -788,7 +794,7 @@ def write_run(path, result, preset, *, trials=None, reference=None, window: floa
             end = int(stamps[-1])
             if failed:
                 w(EVENTS.name, end, convert.event_msg(ts, "fault", stamp_ns=end, trial=j, case=case, node=node,
-                                                      reason=STATUS_TEXT[int(result.status[i])]))
+                                                      reason=STATUS_TEXT.get(int(result.status[i]), f"plant status {int(result.status[i])}")))
             w(EVENTS.name, end, convert.event_msg(ts, "trial_end", stamp_ns=end, trial=j, case=case,
                                                   window_m=window, node=node, **extra))
             if results:
