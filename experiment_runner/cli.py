@@ -35,6 +35,11 @@ def _replay(args):
     return main_replay(args)
 
 
+def _campaign(args):
+    from experiment_runner.campaign import main_campaign
+    return main_campaign(args)
+
+
 def _presets(args):
     from stage_sim.config import list_presets, load_preset
     if args.name:
@@ -76,6 +81,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("replay", help="republish a recording on its topics with /clock (like ros2 bag play)")
     add_replay_arguments(p)
     p.set_defaults(func=_replay)
+
+    from experiment_runner.campaign import add_campaign_arguments
+    p = sub.add_parser("campaign", help="the seed's experiment tables as campaigns: calibrate, simulate, report")
+    add_campaign_arguments(p)
+    p.set_defaults(func=_campaign)
 
     p = sub.add_parser("presets", help="list the stage presets, or show one")
     p.add_argument("name", nargs="?")

@@ -1,0 +1,1251 @@
+"""Campaigns: the seed's comparison tables as YAML files, calibrated, run and reported.
+
+A campaign (``experiment_runner/campaigns/<name>.yaml``, or any path) is one of the
+seed's experimental comparisons, e.g. Table 4.2 (No FI vs FI, 5 mm and 5 µm
+point-to-point, 50 trials at random positions). It is validated into a
+:class:`Campaign` (pydantic, unknown keys refused, errors name the field) holding
+
+* ``cases`` -- what is compared (a preset plus dotted-path overrides each; optional SAI
+  Step II learning), one of them the ``baseline``;
+* ``test`` -- the reference family and its *conditions* (point-to-point step sizes,
+  or circle radius x speed), the window, the dwell;
+* ``sweep`` -- optionally one more axis: a parameter and its values (cases x
+  conditions x values);
+* ``trials`` and ``starts`` -- how many trials per case and condition, where they start;
+* ``seed`` -- the seed's numbers the simulation is compared with, and every finding the
+  seed reports as a direction (lower / higher / similar) between two cases;
+* ``calibration`` -- the few physically meaningful parameters fitted on the *baseline*
+  case only (:mod:`experiment_runner.calibration`); every other case is a prediction.
+
+:func:`run_campaign` calibrates, runs every case and condition on the batch engine
+(:func:`experiment_runner.batch.simulate`, the same trials and metrics as the ROS graph:
+:func:`experiment_runner.experiment.trial_metrics`), optionally runs the representative
+trial of every case and condition through the ROS 2 graph, and writes ``results.csv``,
+``results.json``, ``calibration.json``, ``report.md`` (:mod:`experiment_runner.report`),
+plots and MCAP recordings to the output folder.
+
+Trial ``i`` of a case starts at ``random_starts(1, travel, margin, starts.seed + i)`` with
+noise seed ``simulation.seed + i``: every trial is reproducible on its own, and the
+same in every case (common random numbers make the case comparisons paired). The
+one-trial experiment file written for the graph (:func:`graph_experiment`) therefore
+reproduces exactly that trial.
+
+Examples
+--------
+>>> {"table_4_2", "table_5_2"} <= set(list_campaigns())
+True
+>>> c = load_campaign("table_4_2")
+>>> c.baseline, [k.name for k in c.cases], [cond.label for cond in conditions(c)]
+('nofi', ['nofi', 'fi'], ['5 mm', '5 µm'])
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Annotated, Literal, Optional, Union
+
+import numpy as np
+import yaml
+from pydantic import Field, ValidationError, model_validator
+
+from experiment_runner import profiles
+from experiment_runner.experiment import Trial, trial_metrics
+from stage_sim.config import (ConfigError, Finite, Fraction, NonNeg, Pos, Preset, _Strict,
+                              load_preset, with_overrides)
+
+__all__ = ["Campaign", "load_campaign", "list_campaigns", "conditions", "run_campaign", "main_job",
+           "add_campaign_arguments", "main_campaign", "graph_experiment", "CAMPAIGN_DIR", "MAIN_JOB"]
+
+CAMPAIGN_DIR = Path(__file__).with_name("campaigns")
+MAIN_JOB = ("table_4_2", "table_5_2")
+"""Campaigns of :func:`main_job` (``nanostage campaign --main``)."""
+
+Metric = Literal["settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m"]
+METRIC_INFO = {  # label, display unit, scale from SI
+    "settling_time_s": ("mean settling time", "ms", 1e3),
+    "rms_in_position_m": ("RMS in-position error", "nm", 1e9),
+    "peak_tracking_error_m": ("peak tracking error", "µm", 1e6),
+    "rms_tracking_error_m": ("RMS tracking error", "µm", 1e6),
+}
+P2P_METRICS = ("settling_time_s", "rms_in_position_m")
+TRACK_METRICS = ("peak_tracking_error_m", "rms_tracking_error_m")
+Name = Annotated[str, Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=40)]
+
+
+# =========================================================================== schema
+class PointToPointTest(_Strict):
+    """Point-to-point moves (seed Sec. 3.4.1, Fig. 3.13): one condition per step size."""
+    kind: Literal["point_to_point"]
+    steps: list[Finite] = Field(min_length=1, description="step sizes [m] (signed), one condition each")
+    dwell: Pos = Field(1.0, description="settling portion after the reference stops [s]")
+    pre: NonNeg = Field(0.005, description="rest before the move [s]")
+    duration: Optional[Pos] = Field(None, description="move duration [s]; default from the seed's anchors")
+    shape: Literal["cycloidal", "step"] = "cycloidal"
+    window: Pos = Field(25e-9, description="settling window half-width [m]")
+
+    @model_validator(mode="after")
+    def _nonzero(self):
+        if any(s == 0 for s in self.steps):
+            raise ValueError("steps must be nonzero")
+        if len(set(self.steps)) != len(self.steps):
+            raise ValueError("steps must be distinct")
+        return self
+
+
+class CircleTest(_Strict):
+    """x-axis reference of circles (seed Sec. 3.4.2 / 4.4.2): one condition per radius x speed."""
+    kind: Literal["circle"]
+    radii: list[Pos] = Field(min_length=1, description="circle radii [m]")
+    speeds: list[Pos] = Field(min_length=1, description="tangential speeds [m/s]")
+    cycles: Pos = Field(1.0, description="revolutions")
+    window: Pos = Field(25e-9, description="(recorded only) [m]")
+
+
+Test = Annotated[Union[PointToPointTest, CircleTest], Field(discriminator="kind")]
+
+
+class Starts(_Strict):
+    """Trial ``i`` starts uniformly at random inside the travel minus ``margin`` (rng seed ``seed + i``)."""
+    margin: NonNeg = Field(0.003, description="distance kept from the travel ends [m]")
+    seed: int = Field(1, ge=0, description="rng seed of trial 0")
+
+
+class StepII(_Strict):
+    """SAI Step II (Sec. 5.3): learn the reference correction with the ILC of Eq. 5.2 at rest.
+
+    The stage holds position; the SAI goes compliant for ``compliant_time`` (the p2p rule
+    is triggered by a negligible reference velocity, which nothing else uses) and is
+    switched back to stiff; the error after the switch, averaged over ``trials`` start
+    positions, updates the correction (:func:`stage_control.sai.ilc_update`) for the
+    preset's ``sai_manager.ilc.iterations`` iterations (seed: u_10).
+    """
+    learn: Literal["at_rest"] = "at_rest"
+    compliant_time: Pos = Field(0.03, description="compliant period before the switch [s]")
+    settle_before: Pos = Field(0.02, description="rest before the compliant period [s]")
+    trials: int = Field(4, ge=1, le=64, description="start positions averaged per iteration")
+    iterations: Optional[int] = Field(None, ge=0, le=100, description="default: preset sai_manager.ilc.iterations")
+
+
+class Case(_Strict):
+    name: Name
+    label: str = Field(description="as in the seed's table, e.g. 'No FI'")
+    description: str = ""
+    preset: str = Field(description="preset name or path")
+    overrides: dict = Field(default_factory=dict, description="dotted-path preset overrides of this case")
+    step_ii: Optional[StepII] = None
+
+
+class Sweep(_Strict):
+    """One more axis: a parameter set to each of ``values`` (``mode: scale`` multiplies the preset's value)."""
+    name: Name
+    label: str
+    paths: list[str] = Field(min_length=1, description="dotted paths ('*' matches every list item)")
+    mode: Literal["value", "scale"] = "value"
+    values: list[Finite] = Field(min_length=1)
+    unit: str = ""
+    cases: Optional[list[str]] = Field(None, description="cases it applies to (default all)")
+
+
+class _At(_Strict):
+    """Condition selector: the step (point-to-point) or radius and speed (circle), and sweep value."""
+    step: Optional[Finite] = None
+    radius: Optional[Pos] = None
+    speed: Optional[Pos] = None
+    sweep: Optional[Finite] = None
+
+    def at(self) -> dict:
+        return {k: getattr(self, k) for k in ("step", "radius", "speed", "sweep") if getattr(self, k) is not None}
+
+
+class SeedValue(_At):
+    case: str
+    metric: Metric
+    value: Finite = Field(description="the seed's number, SI (s, m)")
+    source: str = ""
+
+
+class Finding(_At):
+    """A direction the seed reports: ``metric`` of ``case`` is lower / higher / similar vs ``versus``."""
+    id: Name
+    claim: str = Field(description="the seed's statement")
+    case: str
+    versus: str
+    metric: Metric
+    direction: Literal["lower", "higher", "similar"]
+    tolerance: Fraction = Field(0.2, description="'similar': largest relative difference")
+    note: str = Field("", description="why the model is expected to differ; shown when it disagrees")
+
+
+class SeedData(_Strict):
+    source: str
+    notes: str = ""
+    values: list[SeedValue] = Field(default_factory=list)
+    findings: list[Finding] = Field(default_factory=list)
+
+
+class CalTarget(_At):
+    metric: Metric
+    form: Literal["absolute", "quadrature_excess"] = "absolute"
+    seed_floor: NonNeg = Field(0.0, description="quadrature_excess: deterministic floor of the seed value [SI]")
+
+
+class CalParameter(_Strict):
+    name: Name
+    description: str = Field(description="what it is physically and why it is not known from the seed")
+    paths: list[str] = Field(min_length=1, description="dotted paths ('*' matches every list item)")
+    mode: Literal["value", "scale"] = "value"
+    bounds: tuple[Finite, Finite]
+    log: bool = False
+    neutral: Optional[Finite] = Field(None, description="value that removes the effect (quadrature_excess)")
+    unit: str = ""
+    target: CalTarget
+
+    @model_validator(mode="after")
+    def _bounds(self):
+        lo, hi = self.bounds
+        if not lo < hi:
+            raise ValueError(f"bounds {self.bounds}: lower must be below upper")
+        if self.log and lo <= 0:
+            raise ValueError("log: true needs positive bounds")
+        if self.target.form == "quadrature_excess" and self.neutral is None:
+            raise ValueError("target.form quadrature_excess needs 'neutral' (the value without the effect)")
+        return self
+
+
+class Calibration(_Strict):
+    trials: int = Field(16, ge=1, le=1000, description="baseline trials per evaluation (the first of the campaign's)")
+    rounds: int = Field(3, ge=1, le=10, description="Gauss-Seidel rounds at most")
+    rtol: Annotated[float, Field(gt=0, lt=1)] = 0.01
+    parameters: list[CalParameter] = Field(min_length=1, max_length=3)
+
+
+class Campaign(_Strict):
+    name: Name
+    title: str
+    description: str = ""
+    test: Test
+    trials: int = Field(ge=1, le=10_000, description="trials per case and condition")
+    starts: Starts = Starts()
+    overrides: dict = Field(default_factory=dict, description="dotted-path overrides for every case")
+    cases: list[Case] = Field(min_length=1)
+    baseline: str
+    sweep: Optional[Sweep] = None
+    calibration: Optional[Calibration] = None
+    seed: SeedData
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        names = [c.name for c in self.cases]
+        if len(set(names)) != len(names):
+            raise ValueError(f"case names must be unique: {names}")
+        if self.baseline not in names:
+            raise ValueError(f"baseline {self.baseline!r} is not a case ({names})")
+        if self.case(self.baseline).step_ii is not None:
+            raise ValueError("the baseline case cannot use step_ii (it is the conventional stage)")
+        conds = conditions(self)
+        metrics = P2P_METRICS if self.test.kind == "point_to_point" else TRACK_METRICS
+
+        def check_at(where, sel: _At, metric=None):
+            if metric is not None and metric not in metrics:
+                raise ValueError(f"{where}: metric {metric} is not measured by a {self.test.kind} test "
+                                 f"({', '.join(metrics)})")
+            if self.sweep is not None and sel.sweep is None:
+                raise ValueError(f"{where}: give 'sweep' (the campaign sweeps {self.sweep.name})")
+            if not [c for c in conds if c.matches(**sel.at())]:
+                raise ValueError(f"{where}: no condition matches {sel.at()} "
+                                 f"(conditions: {', '.join(c.label for c in conds)})")
+            n = len([c for c in conds if c.matches(**sel.at())])
+            if n > 1:
+                raise ValueError(f"{where}: {sel.at()} matches {n} conditions; give all of step/radius/speed/sweep")
+
+        for i, v in enumerate(self.seed.values):
+            if v.case not in names:
+                raise ValueError(f"seed.values.{i}: case {v.case!r} is not a case ({names})")
+            check_at(f"seed.values.{i}", v, v.metric)
+        ids = [f.id for f in self.seed.findings]
+        if len(set(ids)) != len(ids):
+            raise ValueError("seed.findings: ids must be unique")
+        for i, f in enumerate(self.seed.findings):
+            for who in (f.case, f.versus):
+                if who not in names:
+                    raise ValueError(f"seed.findings.{i} ({f.id}): case {who!r} is not a case ({names})")
+            if f.case == f.versus:
+                raise ValueError(f"seed.findings.{i} ({f.id}): case and versus are the same")
+            check_at(f"seed.findings.{i} ({f.id})", f, f.metric)
+        if self.sweep is not None and self.sweep.cases:
+            for c in self.sweep.cases:
+                if c not in names:
+                    raise ValueError(f"sweep.cases: {c!r} is not a case ({names})")
+        if self.calibration is not None:
+            pnames = [p.name for p in self.calibration.parameters]
+            if len(set(pnames)) != len(pnames):
+                raise ValueError("calibration.parameters: names must be unique")
+            for i, p in enumerate(self.calibration.parameters):
+                where = f"calibration.parameters.{i} ({p.name}).target"
+                check_at(where, p.target, p.target.metric)
+                if self.seed_value(self.baseline, p.target.metric, **p.target.at()) is None:
+                    raise ValueError(f"{where}: seed.values has no {p.target.metric} of the baseline "
+                                     f"{self.baseline!r} at {p.target.at()}")
+                for c in self.cases:
+                    clash = [q for q in p.paths if q in c.overrides]
+                    if clash:
+                        raise ValueError(f"{where}: case {c.name!r} overrides {clash}, which is calibrated")
+        return self
+
+    # ----------------------------------------------------------------- helpers
+    def case(self, name: str) -> Case:
+        return next(c for c in self.cases if c.name == name)
+
+    def seed_value(self, case: str, metric: str, **at) -> Optional[float]:
+        cond = [c for c in conditions(self) if c.matches(**at)]
+        for v in self.seed.values:
+            if v.case == case and v.metric == metric and cond and cond[0].matches(**v.at()) \
+                    and len([c for c in conditions(self) if c.matches(**v.at())]) == 1:
+                return v.value
+        return None
+
+
+# =========================================================================== conditions
+def fmt_length(x: float) -> str:
+    """``5e-3 -> '5 mm'``, ``5e-6 -> '5 µm'``, ``5e-8 -> '50 nm'``.
+
+    >>> fmt_length(5e-3), fmt_length(-5e-6), fmt_length(2e-5)
+    ('5 mm', '-5 µm', '20 µm')
+    """
+    a = abs(x)
+    for unit, s in (("m", 1.0), ("mm", 1e-3), ("µm", 1e-6), ("nm", 1e-9)):
+        if a >= s * 0.9999:
+            return f"{x / s:.4g} {unit}"
+    return f"{x * 1e12:.4g} pm"
+
+
+def _slug(s: str) -> str:
+    return "".join(ch if ch.isalnum() else "_" for ch in s.replace("µ", "u").replace(" ", "")).strip("_")
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One test condition (a step size, or a radius and speed) and sweep value."""
+    key: str
+    label: str
+    step: Optional[float] = None
+    radius: Optional[float] = None
+    speed: Optional[float] = None
+    sweep: Optional[float] = None
+
+    def matches(self, step=None, radius=None, speed=None, sweep=None) -> bool:
+        for mine, want in ((self.step, step), (self.radius, radius), (self.speed, speed), (self.sweep, sweep)):
+            if want is not None and (mine is None or not math.isclose(mine, want, rel_tol=1e-9, abs_tol=0.0)):
+                return False
+        return True
+
+    def at(self) -> dict:
+        return {k: getattr(self, k) for k in ("step", "radius", "speed", "sweep") if getattr(self, k) is not None}
+
+
+def conditions(c: Campaign) -> list[Condition]:
+    """Every condition of the campaign: test conditions x sweep values."""
+    t = c.test
+    base = []
+    if t.kind == "point_to_point":
+        for s in t.steps:
+            base.append(Condition(_slug(fmt_length(s)), fmt_length(s), step=float(s)))
+    else:
+        for r in t.radii:
+            for v in t.speeds:
+                lab = f"R {fmt_length(r)}, {fmt_length(v)}/s"
+                base.append(Condition(_slug(f"r{fmt_length(r)}_v{fmt_length(v)}s"), lab, radius=float(r), speed=float(v)))
+    if c.sweep is None:
+        return base
+    out = []
+    for b in base:
+        for v in c.sweep.values:
+            out.append(replace(b, key=f"{b.key}__{_slug(c.sweep.name)}_{v:g}".replace("-", "m").replace(".", "p"),
+                               label=f"{b.label}, {c.sweep.label} = {v:g}{(' ' + c.sweep.unit) if c.sweep.unit else ''}",
+                               sweep=float(v)))
+    return out
+
+
+# =========================================================================== loading
+def list_campaigns() -> list[str]:
+    """Names of the campaigns shipped with the package."""
+    return sorted(p.stem for p in CAMPAIGN_DIR.glob("*.yaml"))
+
+
+def load_campaign(name_or_path, check_presets: bool = True) -> Campaign:
+    """Load and validate a campaign by name (shipped) or path; no code is executed.
+
+    With ``check_presets`` every case's preset is loaded with the campaign's and the
+    case's overrides, and every calibrated or swept path is resolved, so a campaign
+    that loads also runs.
+    """
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = CAMPAIGN_DIR / f"{name_or_path}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"{name_or_path}: no such campaign (shipped: {', '.join(list_campaigns())})")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: top level must be a mapping")
+    try:
+        camp = Campaign.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_errors(err, str(path))) from None
+    if check_presets:
+        check_campaign(camp, str(path))
+    return camp
+
+
+def _format_errors(err: ValidationError, source: str) -> str:
+    """As :func:`stage_sim.config._format`, without echoing the whole file for cross-field errors
+    (their message names the field)."""
+    lines = [f"{source}: invalid campaign"]
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"])
+        msg = e["msg"].removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        elif e["type"] == "missing":
+            msg = "required field is missing"
+        shown = "" if e["type"] == "missing" or not loc or isinstance(e.get("input"), dict) \
+            else f" (got {e.get('input')!r})"
+        lines.append(f"  {loc + ': ' if loc else ''}{msg}{shown}")
+    return "\n".join(lines)
+
+
+def check_campaign(camp: Campaign, source: str = "<campaign>") -> None:
+    """Resolve every case's preset, overrides, calibrated and swept paths; ConfigError naming the field."""
+    for i, case in enumerate(camp.cases):
+        where = f"{source}: cases.{i} ({case.name})"
+        try:
+            preset = case_preset(camp, case)
+        except (ConfigError, KeyError, IndexError, ValueError, TypeError) as err:
+            raise ConfigError(f"{where}: preset {case.preset!r} with overrides: {err}") from None
+        if camp.calibration is not None:
+            for j, p in enumerate(camp.calibration.parameters):
+                try:
+                    resolve(preset, p.paths, p.mode, p.bounds[0])
+                except (ConfigError, KeyError, IndexError, ValueError, TypeError) as err:
+                    raise ConfigError(f"{source}: calibration.parameters.{j} ({p.name}).paths in case "
+                                      f"{case.name!r}: {err}") from None
+        if camp.sweep is not None and (not camp.sweep.cases or case.name in camp.sweep.cases):
+            for v in camp.sweep.values:
+                try:
+                    resolve(preset, camp.sweep.paths, camp.sweep.mode, v)
+                except (ConfigError, KeyError, IndexError, ValueError, TypeError) as err:
+                    raise ConfigError(f"{source}: sweep.paths in case {case.name!r} (value {v}): {err}") from None
+        if case.step_ii is not None and (preset.sai_manager is None or preset.sai_manager.ilc is None
+                                         or preset.sai_manager.rule != "point_to_point"):
+            raise ConfigError(f"{where}: step_ii needs a preset with sai_manager.rule point_to_point and an ilc")
+
+
+# =========================================================================== overrides
+def _expand(data, path: str) -> list[tuple[str, object]]:
+    """Dotted path with '*' wildcards -> [(concrete path, value)] in ``data`` (a model_dump)."""
+    nodes = [(data, [])]
+    for part in path.split("."):
+        nxt = []
+        for node, pre in nodes:
+            if part == "*":
+                if isinstance(node, list):
+                    nxt += [(v, pre + [str(i)]) for i, v in enumerate(node)]
+                elif isinstance(node, dict):
+                    nxt += [(v, pre + [k]) for k, v in node.items()]
+                else:
+                    raise ConfigError(f"{path}: '*' at {'.'.join(pre) or 'top'} which is not a list or mapping")
+            elif isinstance(node, list):
+                if not part.lstrip("-").isdigit() or not -len(node) <= int(part) < len(node):
+                    raise ConfigError(f"{path}: {'.'.join(pre)} has {len(node)} items, no {part!r}")
+                nxt.append((node[int(part)], pre + [str(int(part) % len(node))]))
+            elif isinstance(node, dict):
+                if part not in node:
+                    raise ConfigError(f"{path}: {'.'.join(pre) or 'preset'} has no field {part!r} "
+                                      f"(fields: {', '.join(node)})")
+                nxt.append((node[part], pre + [part]))
+            else:
+                raise ConfigError(f"{path}: {'.'.join(pre)} is {node!r}, not a mapping")
+        nodes = nxt
+    if not nodes:
+        raise ConfigError(f"{path}: matches nothing")
+    return [(".".join(pre), v) for v, pre in nodes]
+
+
+def _scaled(v, factor, path):
+    if isinstance(v, list):
+        return [_scaled(x, factor, path) for x in v]
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return float(v) * float(factor)
+    raise ConfigError(f"{path}: cannot scale {v!r}")
+
+
+def resolve(preset: Preset, paths, mode: str, value) -> dict:
+    """Absolute dotted-path overrides setting (``mode: value``) or scaling (``scale``) ``paths``.
+
+    >>> p = load_preset("fi_stage_gms")
+    >>> o = resolve(p, ["stage.bearings.*.friction.f_c"], "scale", 2.0)
+    >>> o
+    {'stage.bearings.0.friction.f_c': 5.31, 'stage.bearings.1.friction.f_c': 5.31}
+    """
+    data = preset.model_dump()
+    out = {}
+    for path in paths:
+        for concrete, old in _expand(data, path):
+            out[concrete] = _scaled(old, value, concrete) if mode == "scale" else _py(value)
+    return out
+
+
+def _py(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, (list, tuple)):
+        return [_py(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _py(x) for k, x in v.items()}
+    return v
+
+
+def case_overrides(camp: Campaign, case: Case, cal_values: Optional[dict] = None,
+                   cond: Optional[Condition] = None) -> dict:
+    """Every override of a case as absolute dotted paths, in application order: campaign,
+    case, calibrated parameters, sweep value. ``with_overrides(load_preset(case.preset), o)``
+    gives the case's preset (this is also what the graph experiment file holds)."""
+    flat = {**copy.deepcopy(camp.overrides), **copy.deepcopy(case.overrides)}
+    preset = with_overrides(load_preset(case.preset), flat) if flat else load_preset(case.preset)
+    if cal_values and camp.calibration is not None:
+        for p in camp.calibration.parameters:
+            if p.name in cal_values:
+                o = resolve(preset, p.paths, p.mode, cal_values[p.name])
+                flat.update(o)
+        preset = with_overrides(load_preset(case.preset), flat)
+    if cond is not None and cond.sweep is not None and camp.sweep is not None \
+            and (not camp.sweep.cases or case.name in camp.sweep.cases):
+        flat.update(resolve(preset, camp.sweep.paths, camp.sweep.mode, cond.sweep))
+    return _py(flat)
+
+
+def case_preset(camp: Campaign, case: Case, cal_values: Optional[dict] = None,
+                cond: Optional[Condition] = None) -> Preset:
+    flat = case_overrides(camp, case, cal_values, cond)
+    base = load_preset(case.preset)
+    return with_overrides(base, flat) if flat else base
+
+
+# =========================================================================== trials
+def reference(camp: Campaign, cond: Condition, rate: float) -> profiles.Reference:
+    """The shared (start-at-0) reference of a condition at the control rate."""
+    t = camp.test
+    dt = 1.0 / rate
+    if t.kind == "point_to_point":
+        return profiles.point_to_point(cond.step, duration=t.duration, dwell=t.dwell, dt=dt, pre=t.pre, shape=t.shape)
+    return profiles.circle_x(cond.radius, cond.speed, cycles=t.cycles, dt=dt)
+
+
+def start_position(camp: Campaign, preset: Preset, ref: profiles.Reference, i: int) -> float:
+    """Start of trial ``i``: as :func:`experiment_runner.experiment.build_trials` for a one-trial
+    experiment with ``starts.seed = campaign starts.seed + i``."""
+    travel = preset.stage.travel
+    lo = travel.min - min(0.0, float(ref.x.min()))
+    hi = travel.max - max(0.0, float(ref.x.max()))
+    return float(profiles.random_starts(1, (lo, hi), camp.starts.margin, camp.starts.seed + i)[0])
+
+
+def make_trials(camp: Campaign, case: Case, preset: Preset, ref, n: int) -> list[Trial]:
+    base = preset.simulation.seed
+    out = []
+    for i in range(n):
+        x0 = start_position(camp, preset, ref, i)
+        out.append(Trial(case=case.name, index=i, x_ref=ref.x + x0, v_ref=np.asarray(ref.v), seed=base + i,
+                         window=camp.test.window, segments=tuple(ref.segments)))
+    return out
+
+
+def graph_experiment(camp: Campaign, case: Case, cond: Condition, trial: int, cal_values=None) -> dict:
+    """A one-trial experiment file (:mod:`experiment_runner.experiment`) reproducing trial
+    ``trial`` of ``case`` at ``cond`` through the ROS graph."""
+    preset = case_preset(camp, case, cal_values, cond)
+    ov = case_overrides(camp, case, cal_values, cond)
+    ov["simulation.seed"] = int(preset.simulation.seed + trial)
+    t = camp.test
+    if t.kind == "point_to_point":
+        prof = {"kind": "point_to_point", "distance": cond.step, "dwell": t.dwell, "pre": t.pre, "shape": t.shape}
+        if t.duration is not None:
+            prof["duration"] = t.duration
+    else:
+        prof = {"kind": "circle", "radius": cond.radius, "speed": cond.speed, "cycles": t.cycles}
+    return {"name": f"{camp.name}_{case.name}_{cond.key}_t{trial}",
+            "description": f"{camp.title}: {case.label}, {cond.label}, trial {trial} (written by nanostage campaign)",
+            "preset": case.preset, "overrides": ov, "profile": prof, "trials": 1,
+            "starts": {"margin": camp.starts.margin, "seed": camp.starts.seed + trial}, "window": t.window}
+
+
+# =========================================================================== running
+@dataclass
+class Stat:
+    mean: float
+    std: float
+    n: int
+    n_valid: int
+    values: list
+
+    @classmethod
+    def of(cls, values) -> "Stat":
+        v = np.array([np.nan if x is None else float(x) for x in values], float)
+        ok = v[np.isfinite(v)]
+        return cls(mean=float(ok.mean()) if ok.size else math.nan,
+                   std=float(ok.std(ddof=1)) if ok.size > 1 else (0.0 if ok.size else math.nan),
+                   n=int(v.size), n_valid=int(ok.size), values=[None if not np.isfinite(x) else float(x) for x in v])
+
+
+@dataclass
+class Trace:
+    """What the plots need of a representative trial."""
+    trial: int
+    t: np.ndarray              # [s] from the start of the trial
+    e: np.ndarray              # measured position - target (p2p) or x_ref - y (tracking) [m]
+    settle_start: Optional[float]
+    settling_time: Optional[float]
+    window: float
+    y: np.ndarray              # measured position [m]
+    x_ref: np.ndarray          # reference used by the servo [m]
+
+
+@dataclass
+class RunResult:
+    """One case at one condition."""
+    case: str
+    cond: Condition
+    preset: Preset
+    overrides: dict
+    metrics: list               # per trial dicts (trial_metrics)
+    stats: dict                 # metric -> Stat
+    rep: int                    # representative trial index
+    trace: Trace
+    wall_s: float
+    recording: Optional[str] = None
+    graph: Optional[dict] = None
+    x0: list = field(default_factory=list)
+
+
+@dataclass
+class CampaignRun:
+    campaign: Campaign
+    out_dir: Path
+    conditions: list
+    runs: dict                  # (case, cond.key) -> RunResult
+    findings: list
+    calibration: Optional[dict]
+    step_ii: dict               # case -> {"correction": ..., "history": ...}
+    settings: dict
+    timing: dict
+    files: dict = field(default_factory=dict)
+
+    def stat(self, case, cond_key, metric) -> Stat:
+        return self.runs[(case, cond_key)].stats[metric]
+
+
+def _metric_names(camp):
+    return P2P_METRICS if camp.test.kind == "point_to_point" else TRACK_METRICS
+
+
+def simulate_case(camp, case, cond, preset, n, correction=None, models=None, keep=False):
+    """Run ``n`` trials of a case at a condition on the batch engine; metrics per trial."""
+    from experiment_runner.batch import simulate
+    rate = preset.controller.rate
+    ref = reference(camp, cond, rate)
+    trials = make_trials(camp, case, preset, ref, n)
+    x0 = np.array([tr.x_ref[0] - ref.x[0] for tr in trials])
+    res = simulate(preset, ref.x, ref.v, n_trials=n, x0=x0, seeds=[tr.seed for tr in trials],
+                   correction=correction, models=models, check=False)
+    mets = []
+    for i, tr in enumerate(trials):
+        if res.status[i] != 0:
+            from stage_sim.plant import STATUS_TEXT
+            m = {"trial": i, "case": case.name, **{k: None for k in METRIC_INFO},
+                 "failed": STATUS_TEXT[int(res.status[i])]}
+        else:
+            m = trial_metrics(tr, res.y[i], res.x_ref[i], rate)
+        mets.append(m)
+    return ref, trials, res, mets
+
+
+def _representative(camp, mets) -> int:
+    key = "settling_time_s" if camp.test.kind == "point_to_point" else "rms_tracking_error_m"
+    vals = np.array([np.nan if m.get(key) is None else m[key] for m in mets], float)
+    ok = np.flatnonzero(np.isfinite(vals))
+    if not ok.size:
+        return 0
+    med = np.median(vals[ok])
+    return int(ok[np.argmin(np.abs(vals[ok] - med))])
+
+
+def learn_step_ii(camp: Campaign, case: Case, preset: Preset, progress=None) -> dict:
+    """Step II of Sec. 5.3 at rest: ILC (Eq. 5.2) of the reference correction after a switch."""
+    from experiment_runner.batch import Models, simulate
+    from stage_control.sai import ilc_update
+    spec = case.step_ii
+    ilc = preset.sai_manager.ilc
+    rate = preset.controller.rate
+    q = int(round(ilc.length * rate))
+    n_pre = int(round(spec.settle_before * rate))
+    n_comp = int(round(spec.compliant_time * rate))
+    n_post = q + int(round(0.01 * rate))
+    x = np.zeros(n_pre + n_comp + n_post)
+    v = np.zeros_like(x)
+    v[n_pre:n_pre + n_comp] = 1e-12       # p2p rule: compliant while v_ref != 0 (no feedforward uses it)
+    travel = preset.stage.travel
+    x0 = profiles.random_starts(spec.trials, (travel.min, travel.max), camp.starts.margin,
+                                camp.starts.seed + 100_000)
+    seeds = preset.simulation.seed + 100_000 + np.arange(spec.trials)
+    models = Models.from_preset(preset)
+    iterations = ilc.iterations if spec.iterations is None else spec.iterations
+    u = np.zeros(q)
+    hist, peak = [], []
+    for it in range(iterations + 1):
+        r = simulate(preset, x, v, n_trials=spec.trials, x0=x0, seeds=seeds, correction=u, models=models)
+        errs = []
+        for b in range(spec.trials):
+            edges = np.flatnonzero((r.mode[b, :-1] == 1.0) & (r.mode[b, 1:] == 0.0))
+            k0 = int(edges[0]) + 1
+            e = (x0[b] + x - r.y[b])[k0:k0 + q]
+            errs.append(np.pad(e, (0, q - e.size)))
+        e_mean = np.mean(errs, axis=0)
+        hist.append(float(np.sqrt(np.mean(np.square(errs)))))
+        peak.append(float(np.max(np.abs(errs))))
+        if progress:
+            progress()
+        if it < iterations:
+            u = ilc_update(u, e_mean, ilc, rate)
+    return {"correction": u, "rms_history_m": hist, "peak_history_m": peak, "iterations": iterations,
+            "length_s": ilc.length, "trials": spec.trials, "compliant_time_s": spec.compliant_time}
+
+
+def _calibrate(camp: Campaign, n_trials: int, bar=None) -> dict:
+    """Fit the campaign's calibration parameters on its baseline case; returns calibration.json content."""
+    from experiment_runner.batch import Models
+    from experiment_runner.calibration import ParamSpec, fit
+    cal = camp.calibration
+    base = camp.case(camp.baseline)
+    preset0 = case_preset(camp, base)
+    specs, start, preset_values = [], {}, {}
+    for p in cal.parameters:
+        seed = camp.seed_value(camp.baseline, p.target.metric, **p.target.at())
+        specs.append(ParamSpec(name=p.name, bounds=tuple(p.bounds), seed_value=seed, log=p.log,
+                               form=p.target.form, seed_floor=p.target.seed_floor, null=p.neutral))
+        if p.mode == "scale":
+            start[p.name] = 1.0
+            preset_values[p.name] = 1.0
+        else:
+            vals = {v if not isinstance(v, list) else tuple(v) for v in
+                    (old for _, old in _expand(preset0.model_dump(), p.paths[0]))}
+            v0 = next(iter(vals))
+            start[p.name] = float(v0) if v0 is not None else float(p.bounds[0])
+            preset_values[p.name] = v0
+    conds = {}
+    for p in cal.parameters:
+        c = next(c for c in conditions(camp) if c.matches(**p.target.at()))
+        conds[c.key] = c
+
+    def evaluate(values):
+        out = {}
+        per_cond = {}
+        for key, c in conds.items():
+            preset = case_preset(camp, base, values, c)
+            _, _, _, mets = simulate_case(camp, base, c, preset, n_trials, models=Models.from_preset(preset))
+            per_cond[key] = mets
+        for p in cal.parameters:
+            c = next(c for c in conds.values() if c.matches(**p.target.at()))
+            st = Stat.of([m.get(p.target.metric) for m in per_cond[c.key]])
+            # an unsettled trial makes the mean undefined: report nan (the fit treats it as too large)
+            out[p.name] = st.mean if st.n_valid == st.n else math.nan
+        return out
+
+    t0 = time.monotonic()
+    res = fit(specs, start, evaluate, rounds=cal.rounds, rtol=cal.rtol,
+              progress=(lambda: bar.update(1)) if bar is not None else None)
+    # sensitivity profile around the fit (one parameter at a time, the others at their fit)
+    profile = {}
+    for spec in specs:
+        lo, hi = spec.bounds
+        v = res.values[spec.name]
+        pts = sorted({min(max(v * f if spec.log or v else v + f - 1.0, lo), hi) for f in (0.5, 0.71, 1.0, 1.41, 2.0)})
+        prof = []
+        for x in pts:
+            m = evaluate({**res.values, spec.name: x})
+            if bar is not None:
+                bar.update(1)
+            prof.append({"value": x, "metric": m[spec.name]})
+        profile[spec.name] = prof
+    params = []
+    for p, pf in zip(cal.parameters, res.params):
+        per_case = {c.name: resolve(case_preset(camp, c), p.paths, p.mode, pf.value) for c in camp.cases}
+        params.append({
+            "name": p.name, "description": p.description, "paths": p.paths, "mode": p.mode, "unit": p.unit,
+            "bounds": list(p.bounds), "log": p.log, "preset_value": _py(preset_values[p.name]),
+            "start": pf.start, "value": pf.value, "at_bound": pf.at_bound, "applied": per_case,
+            "target": {"case": camp.baseline, **p.target.at(), "metric": p.target.metric, "form": p.target.form,
+                       "seed_floor": p.target.seed_floor, "seed": pf.seed_value, "seed_effective": pf.seed_effective,
+                       "sim_before": pf.sim_start, "sim_after": pf.sim_value, "sim_effective": pf.sim_effective,
+                       "log_residual": pf.residual},
+            "profile": profile[p.name]})
+    return {"campaign": camp.name, "baseline": camp.baseline, "trials": n_trials,
+            "method": "paired bounded 1-D root finding (brentq on log(sim/seed)), Gauss-Seidel rounds",
+            "rounds": res.rounds, "converged": res.converged, "evaluations": res.evaluations,
+            "wall_s": time.monotonic() - t0, "values": res.values, "parameters": params,
+            "history": [{"values": v, "metrics": m} for v, m in res.history]}
+
+
+def evaluate_findings(camp: Campaign, runs: dict) -> list[dict]:
+    """Direction of every seed finding in the simulation (z: difference / its standard error)."""
+    out = []
+    conds = conditions(camp)
+    for f in camp.seed.findings:
+        cond = next(c for c in conds if c.matches(**f.at()))
+        a = runs[(f.case, cond.key)].stats[f.metric]
+        b = runs[(f.versus, cond.key)].stats[f.metric]
+        sa = camp.seed_value(f.case, f.metric, **cond.at())
+        sb = camp.seed_value(f.versus, f.metric, **cond.at())
+        seed_rel = (sa - sb) / sb if sa is not None and sb not in (None, 0) else None
+        rel = (a.mean - b.mean) / b.mean if b.mean and math.isfinite(a.mean) and math.isfinite(b.mean) else math.nan
+        se = math.sqrt((a.std ** 2 / a.n_valid if a.n_valid > 1 else 0.0)
+                       + (b.std ** 2 / b.n_valid if b.n_valid > 1 else 0.0))
+        diff = a.mean - b.mean
+        z = diff / se if se > 0 else (math.copysign(math.inf, diff) if diff else 0.0)
+        reasons = []
+        if not math.isfinite(rel):
+            agrees, status = False, "undefined (no settled trials)"
+        elif f.direction == "similar":
+            agrees = abs(rel) <= f.tolerance
+            status = f"within ±{f.tolerance:.0%}" if agrees else f"differs by {rel:+.0%} (> ±{f.tolerance:.0%})"
+        else:
+            want = -1 if f.direction == "lower" else 1
+            same_sign = np.sign(diff) == want
+            significant = abs(z) >= 2.0
+            agrees = bool(same_sign and significant)
+            status = ("agrees" if agrees else ("same sign but within the trial scatter (|z| < 2)" if same_sign
+                                                else "opposite direction"))
+        for who, s in ((f.case, a), (f.versus, b)):
+            if s.n_valid < s.n:
+                reasons.append(f"{s.n - s.n_valid} of {s.n} trials of {who} did not settle within the dwell")
+        out.append({"id": f.id, "claim": f.claim, "case": f.case, "versus": f.versus, "condition": cond.label,
+                    "condition_key": cond.key, **cond.at(), "metric": f.metric, "direction": f.direction,
+                    "tolerance": f.tolerance if f.direction == "similar" else None,
+                    "seed_case": sa, "seed_versus": sb, "seed_change": seed_rel,
+                    "sim_case": a.mean, "sim_versus": b.mean, "sim_change": rel if math.isfinite(rel) else None,
+                    "z": z if math.isfinite(z) else (None if z != z else (1e9 if z > 0 else -1e9)),
+                    "agrees": bool(agrees), "status": status, "notes": reasons,
+                    "explanation": f.note if not agrees else ""})
+    return out
+
+
+# =========================================================================== graph
+def _run_graph_with_correction(experiment: str, out: Path, timeout: float, domain_id, correction) -> dict:
+    """:func:`experiment_runner.graph.run_one_process` with a learned Step II correction held by the
+    SAI manager node from its start.
+
+    ``run_one_process`` has no way to hand the node a correction, so for the duration of the call
+    ``stage_control.nodes.SaiNode`` is a subclass that starts with it (``run_one_process`` imports
+    the node class when called). Only used in the spawned graph worker processes.
+    """
+    import stage_control.nodes as nodes_mod
+    from experiment_runner.graph import run_one_process
+    base = nodes_mod.SaiNode
+    corr = np.asarray(correction, float)
+
+    class SaiNodeWithCorrection(base):
+        def __init__(self, **kwargs):
+            super().__init__(**kwargs)
+            self.correction = corr.copy()
+
+    nodes_mod.SaiNode = SaiNodeWithCorrection
+    try:
+        return run_one_process(experiment, out, timeout, domain_id)
+    finally:
+        nodes_mod.SaiNode = base
+
+
+def _graph_worker(jobs: list, domain_id: int) -> list:
+    """Run graph jobs one after the other in this (spawned) process."""
+    out = []
+    for job in jobs:
+        t0 = time.monotonic()
+        try:
+            if job.get("correction") is not None:
+                s = _run_graph_with_correction(job["experiment"], Path(job["bag"]), job["timeout"], domain_id,
+                                               job["correction"])
+            else:
+                from experiment_runner.graph import run_one_process
+                s = run_one_process(job["experiment"], Path(job["bag"]), job["timeout"], domain_id)
+            s = {k: s[k] for k in ("results", "aborted", "done", "recording")}
+        except Exception as err:       # noqa: BLE001 - reported, the batch results stand
+            s = {"results": [], "aborted": {"reason": f"{type(err).__name__}: {err}"}, "done": False,
+                 "recording": None}
+        s["key"] = job["key"]
+        s["wall_s"] = time.monotonic() - t0
+        out.append(s)
+    return out
+
+
+def run_graph_jobs(jobs: list, workers: int = 2, bar=None) -> list:
+    """Run graph jobs on ``workers`` spawned processes, each on its own ROS domain."""
+    if not jobs:
+        return []
+    import concurrent.futures as cf
+    import multiprocessing as mp
+    workers = max(1, min(workers, len(jobs)))
+    parts = [[] for _ in range(workers)]
+    load = [0] * workers
+    for job in sorted(jobs, key=lambda j: -j["samples"]):
+        w = load.index(min(load))
+        parts[w].append(job)
+        load[w] += job["samples"]
+    base = 20 + (os.getpid() % 35) * 2
+    results = []
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
+        futs = [ex.submit(_graph_worker, part, base + w) for w, part in enumerate(parts)]
+        for fut in cf.as_completed(futs):
+            got = fut.result()
+            results += got
+            if bar is not None:
+                bar.update(len(got))
+    return results
+
+
+# =========================================================================== main
+def run_campaign(campaign, out_dir, *, trials: Optional[int] = None, dwell: Optional[float] = None,
+                 calibrate: bool = True, calibration: Optional[dict] = None,
+                 calibration_trials: Optional[int] = None, graph: bool = False, graph_workers: int = 2,
+                 plots: bool = True, mcap: bool = True, progress: bool = True, report: bool = True,
+                 graph_timeout: float = 600.0) -> CampaignRun:
+    """Calibrate (baseline only), run every case and condition, write the outputs.
+
+    Parameters
+    ----------
+    campaign : str, Path or Campaign
+    out_dir : path
+        Output folder (created; files in it are overwritten).
+    trials : int, optional
+        Override the campaign's trial count (e.g. fast tests).
+    dwell : float, optional
+        Override the point-to-point dwell [s].
+    calibrate : bool
+        Fit the calibration parameters (else the presets' values are used).
+    calibration : dict, optional
+        A previous ``calibration.json`` content: use its values, do not fit.
+    calibration_trials : int, optional
+        Override ``calibration.trials``.
+    graph : bool
+        Also run the representative trial of every case and condition through the ROS graph.
+    """
+    from tqdm import tqdm
+
+    from experiment_runner.batch import Models
+    t_start = time.monotonic()
+    camp = campaign if isinstance(campaign, Campaign) else load_campaign(campaign)
+    if trials is not None or dwell is not None:
+        data = camp.model_dump()
+        if trials is not None:
+            data["trials"] = int(trials)
+            if data.get("calibration"):
+                data["calibration"]["trials"] = min(data["calibration"]["trials"], int(trials))
+        if dwell is not None:
+            if camp.test.kind != "point_to_point":
+                raise ConfigError("--dwell applies to point-to-point campaigns only")
+            data["test"]["dwell"] = float(dwell)
+        camp = Campaign.model_validate(data)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    conds = conditions(camp)
+    timing = {}
+    disable = not progress
+
+    # ---- calibration (baseline case only)
+    cal = None
+    cal_values = None
+    if calibration is not None:
+        cal = dict(calibration)
+        cal["reused"] = True
+        cal_values = dict(cal["values"])
+    elif calibrate and camp.calibration is not None:
+        n_cal = min(calibration_trials or camp.calibration.trials, camp.trials)
+        with tqdm(desc=f"{camp.name}: calibrate {camp.baseline}", unit="eval", file=sys.stderr,
+                  disable=disable, leave=False, mininterval=0.5) as bar:
+            cal = _calibrate(camp, n_cal, bar)
+        cal_values = dict(cal["values"])
+        cal["reused"] = False
+    timing["calibration_s"] = time.monotonic() - t_start
+
+    # ---- Step II learning (cases with step_ii), then every case x condition
+    t1 = time.monotonic()
+    step_ii = {}
+    runs = {}
+    n_units = len(camp.cases) * len(conds) + sum(
+        ((c.step_ii.iterations if c.step_ii.iterations is not None else
+          case_preset(camp, c).sai_manager.ilc.iterations) + 1) for c in camp.cases if c.step_ii)
+    with tqdm(total=n_units, desc=f"{camp.name}: simulate", unit="run", file=sys.stderr, disable=disable,
+              leave=False, mininterval=0.5) as bar:
+        for case in camp.cases:
+            corr_cache = {}
+            for cond in conds:
+                preset = case_preset(camp, case, cal_values, cond)
+                corr = None
+                if case.step_ii is not None:
+                    key = preset.model_dump_json()
+                    if key not in corr_cache:
+                        corr_cache[key] = learn_step_ii(camp, case, preset, progress=lambda: bar.update(1))
+                        step_ii.setdefault(case.name, corr_cache[key])
+                    corr = corr_cache[key]["correction"]
+                tc = time.monotonic()
+                ref, trs, res, mets = simulate_case(camp, case, cond, preset, camp.trials, correction=corr,
+                                                    models=Models.from_preset(preset))
+                stats = {m: Stat.of([x.get(m) for x in mets]) for m in _metric_names(camp)}
+                rep = _representative(camp, mets)
+                tr = trs[rep]
+                rate = preset.controller.rate
+                if camp.test.kind == "point_to_point":
+                    s = ref.select("settle")[0]
+                    e = res.y[rep] - tr.x_ref[s.stop - 1]
+                    trace = Trace(rep, res.t.copy(), e, float(res.t[s.start]),
+                                  mets[rep].get("settling_time_s"), camp.test.window, res.y[rep].copy(),
+                                  res.x_ref[rep].copy())
+                else:
+                    trace = Trace(rep, res.t.copy(), res.x_ref[rep] - res.y[rep], None, None, camp.test.window,
+                                  res.y[rep].copy(), res.x_ref[rep].copy())
+                rr = RunResult(case=case.name, cond=cond, preset=preset,
+                               overrides=case_overrides(camp, case, cal_values, cond), metrics=mets, stats=stats,
+                               rep=rep, trace=trace, wall_s=time.monotonic() - tc,
+                               x0=[float(t.x_ref[0] - ref.x[0]) for t in trs])
+                if mcap:
+                    from experiment_runner.batch import BatchResult
+                    one = BatchResult(**{k: (getattr(res, k)[rep:rep + 1] if k != "t" else res.t)
+                                         for k in BatchResult.__dataclass_fields__})
+                    bag = out_dir / "recordings" / f"{case.name}_{cond.key}_batch"
+                    from experiment_runner.recording import write_run
+                    p = write_run(bag, one, preset, reference=ref, window=camp.test.window,
+                                  case=f"{camp.name}/{case.name}/{cond.key}/trial{rep}", overwrite=True, node="batch")
+                    rr.recording = str(p)
+                runs[(case.name, cond.key)] = rr
+                del res
+                bar.update(1)
+    timing["simulation_s"] = time.monotonic() - t1
+
+    # ---- representative trials through the ROS graph
+    t2 = time.monotonic()
+    if graph:
+        exp_dir = out_dir / "graph_experiments"
+        exp_dir.mkdir(exist_ok=True)
+        jobs = []
+        for case in camp.cases:
+            for cond in conds:
+                rr = runs[(case.name, cond.key)]
+                exp = graph_experiment(camp, case, cond, rr.rep, cal_values)
+                path = exp_dir / f"{case.name}_{cond.key}.yaml"
+                path.write_text(yaml.safe_dump(exp, sort_keys=False, allow_unicode=True))
+                bag = out_dir / "recordings" / f"{case.name}_{cond.key}_graph"
+                if bag.exists():
+                    shutil.rmtree(bag)
+                corr = step_ii[case.name]["correction"].tolist() if case.name in step_ii else None
+                jobs.append({"key": (case.name, cond.key), "experiment": str(path), "bag": str(bag),
+                             "timeout": graph_timeout, "correction": corr, "samples": len(rr.trace.t)})
+        with tqdm(total=len(jobs), desc=f"{camp.name}: ROS graph", unit="trial", file=sys.stderr,
+                  disable=disable, leave=False, mininterval=0.5) as bar:
+            got = run_graph_jobs(jobs, graph_workers, bar)
+        for g in got:
+            rr = runs[tuple(g["key"])]
+            g = _compare_graph(g, rr)
+            rr.graph = g
+    timing["graph_s"] = time.monotonic() - t2
+
+    findings = evaluate_findings(camp, runs)
+    settings = {"trials": camp.trials, "test": camp.test.model_dump(), "starts": camp.starts.model_dump(),
+                "calibrated": cal is not None, "calibration_trials": cal.get("trials") if cal else None,
+                "graph": graph}
+    cr = CampaignRun(campaign=camp, out_dir=out_dir, conditions=conds, runs=runs, findings=findings,
+                     calibration=cal, step_ii=step_ii, settings=settings, timing=timing)
+    t3 = time.monotonic()
+    write_results(cr)
+    if report:
+        from experiment_runner import report as rep_mod
+        if plots:
+            cr.files["plots"] = rep_mod.write_plots(cr)
+        timing["total_s"] = time.monotonic() - t_start
+        cr.files["report"] = rep_mod.write_report(cr)
+    timing["output_s"] = time.monotonic() - t3
+    timing["total_s"] = time.monotonic() - t_start
+    write_results(cr)          # again, with the final timing
+    return cr
+
+
+def _compare_graph(g: dict, rr: RunResult) -> dict:
+    """Graph trial vs the same batch trial: metrics and the largest difference of the measured position."""
+    out = {"done": g["done"], "aborted": g["aborted"], "wall_s": g["wall_s"], "recording": g["recording"],
+           "results": g["results"]}
+    if g["results"]:
+        r = g["results"][0]
+        b = rr.metrics[rr.rep]
+        out["metrics"] = {k: r.get(k) for k in METRIC_INFO}
+        out["batch_metrics"] = {k: b.get(k) for k in METRIC_INFO}
+    try:
+        from experiment_runner.recording import read_recording
+        rec = read_recording(g["recording"])
+        n = min(len(rec.y), len(rr.trace.y))
+        out["samples"] = int(len(rec.y))
+        out["batch_samples"] = int(len(rr.trace.y))
+        out["max_abs_diff_m"] = float(np.max(np.abs(rec.y[:n] - rr.trace.y[:n]))) if n else None
+        out["max_abs_ref_diff_m"] = float(np.max(np.abs(rec.x_ref[:n] - rr.trace.x_ref[:n]))) if n else None
+    except Exception as err:     # noqa: BLE001
+        out["read_error"] = f"{type(err).__name__}: {err}"
+    return out
+
+
+# =========================================================================== outputs
+def _num(v):
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def write_results(cr: CampaignRun) -> None:
+    """``results.csv``, ``results.json`` and ``calibration.json`` (SI units)."""
+    camp = cr.campaign
+    rows = []
+    for case in camp.cases:
+        for cond in cr.conditions:
+            rr = cr.runs[(case.name, cond.key)]
+            for m in _metric_names(camp):
+                st = rr.stats[m]
+                seed = camp.seed_value(case.name, m, **cond.at())
+                rows.append({
+                    "campaign": camp.name, "case": case.name, "case_label": case.label, "condition": cond.key,
+                    "condition_label": cond.label, "step_m": cond.step, "radius_m": cond.radius,
+                    "speed_m_s": cond.speed, "sweep_name": camp.sweep.name if camp.sweep else None,
+                    "sweep_value": cond.sweep, "metric": m, "mean": _num(st.mean), "std": _num(st.std),
+                    "n_trials": st.n, "n_valid": st.n_valid, "seed": seed,
+                    "sim_over_seed": _num(st.mean / seed) if seed and math.isfinite(st.mean) else None,
+                    "baseline": case.name == camp.baseline})
+    with open(cr.out_dir / "results.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if v is None else v) for k, v in r.items()})
+    doc = {
+        "campaign": camp.name, "title": camp.title, "description": camp.description, "seed_source": camp.seed.source,
+        "seed_notes": camp.seed.notes, "baseline": camp.baseline, "settings": cr.settings, "timing_s": cr.timing,
+        "cases": [{"name": c.name, "label": c.label, "preset": c.preset, "description": c.description,
+                   "step_ii": c.step_ii.model_dump() if c.step_ii else None,
+                   "overrides": {cond.key: cr.runs[(c.name, cond.key)].overrides for cond in cr.conditions}}
+                  for c in camp.cases],
+        "conditions": [{"key": c.key, "label": c.label, **c.at()} for c in cr.conditions],
+        "results": rows,
+        "findings": cr.findings,
+        "calibration": {k: v for k, v in (cr.calibration or {}).items() if k != "history"} or None,
+        "step_ii": {k: {kk: (vv.tolist() if isinstance(vv, np.ndarray) else vv) for kk, vv in v.items()}
+                    for k, v in cr.step_ii.items()},
+        "representative": [{"case": k[0], "condition": k[1], "trial": rr.rep, "x0_m": rr.x0[rr.rep],
+                            "metrics": {m: rr.metrics[rr.rep].get(m) for m in _metric_names(camp)},
+                            "recording": rr.recording, "graph": rr.graph} for k, rr in cr.runs.items()],
+        "trials": [{"case": k[0], "condition": k[1], "trial": i, "x0_m": rr.x0[i] if i < len(rr.x0) else None,
+                    **{m: met.get(m) for m in _metric_names(camp)}, **({"failed": met["failed"]} if "failed" in met else {})}
+                   for k, rr in cr.runs.items() for i, met in enumerate(rr.metrics)],
+        "files": {k: [str(x) for x in v] if isinstance(v, list) else str(v) for k, v in cr.files.items()},
+    }
+    (cr.out_dir / "results.json").write_text(json.dumps(_clean(doc), indent=1, allow_nan=False))
+    if cr.calibration is not None:
+        (cr.out_dir / "calibration.json").write_text(json.dumps(_clean(cr.calibration), indent=1, allow_nan=False))
+
+
+def _clean(o):
+    if isinstance(o, dict):
+        return {str(k): _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _clean(o.tolist())
+    if isinstance(o, (np.floating, float)):
+        return float(o) if math.isfinite(o) else None
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    return o
+
+
+# =========================================================================== main job + CLI
+def main_job(out_dir="out/campaigns", progress: bool = True, graph: bool = True) -> Path:
+    """Tables 4.2 and 5.2 end to end: calibration, all trials on the batch engine, one
+    representative trial per case and step size through the ROS graph; writes
+    ``out_dir/<campaign>/...`` and the summary ``out_dir/report.md``; returns its path."""
+    from experiment_runner import report as rep_mod
+    t0 = time.monotonic()
+    out_dir = Path(out_dir)
+    runs = [run_campaign(name, out_dir / name, graph=graph, progress=progress) for name in MAIN_JOB]
+    path = rep_mod.write_index(runs, out_dir, time.monotonic() - t0)
+    print(f"report: {path}")
+    return path
+
+
+def add_campaign_arguments(parser):
+    """Arguments of ``nanostage campaign`` (wire with ``set_defaults(func=main_campaign)``)."""
+    parser.add_argument("campaign", nargs="?", help="campaign name (see --list) or YAML path")
+    parser.add_argument("--list", action="store_true", help="list the shipped campaigns")
+    parser.add_argument("--main", action="store_true",
+                        help=f"the main job: {' and '.join(MAIN_JOB)} end to end with --graph")
+    parser.add_argument("--out", default=None, help="output folder (default out/campaigns[/NAME])")
+    parser.add_argument("--trials", type=int, default=None, help="trials per case and condition (override)")
+    parser.add_argument("--dwell", type=float, default=None, help="point-to-point dwell [s] (override)")
+    parser.add_argument("--graph", action="store_true",
+                        help="also run the representative trial of every case and condition through the ROS graph")
+    parser.add_argument("--no-calibrate", action="store_true", help="use the presets' values (no fit)")
+    parser.add_argument("--calibration", default=None, metavar="JSON",
+                        help="reuse the values of a calibration.json instead of fitting")
+    parser.add_argument("--calibration-trials", type=int, default=None, help="baseline trials per fit evaluation")
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    parser.add_argument("--no-mcap", action="store_true", help="skip the MCAP recordings of batch trials")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--json", action="store_true", help="print results.json's findings and calibration")
+    return parser
+
+
+def main_campaign(args) -> int:
+    """Run ``nanostage campaign`` from parsed arguments; 0 on success, 2 on a configuration error."""
+    try:
+        if args.list:
+            for name in list_campaigns():
+                c = load_campaign(name, check_presets=False)
+                print(f"{name:18s} {c.title}")
+            return 0
+        if args.main:
+            main_job(args.out or "out/campaigns", progress=not args.quiet)
+            return 0
+        if not args.campaign:
+            print("nanostage campaign: give a CAMPAIGN (name or YAML path), --list or --main", file=sys.stderr)
+            return 2
+        camp = load_campaign(args.campaign)
+        cal = json.loads(Path(args.calibration).read_text()) if args.calibration else None
+        out = Path(args.out or f"out/campaigns/{camp.name}")
+        cr = run_campaign(camp, out, trials=args.trials, dwell=args.dwell, calibrate=not args.no_calibrate,
+                          calibration=cal, calibration_trials=args.calibration_trials, graph=args.graph,
+                          plots=not args.no_plots, mcap=not args.no_mcap, progress=not args.quiet)
+    except ConfigError as err:
+        print(str(err), file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(_clean({"findings": cr.findings, "calibration": {
+            k: v for k, v in (cr.calibration or {}).items() if k != "history"}})))
+    else:
+        from experiment_runner.report import summary_lines
+        for line in summary_lines(cr):
+            print(line)
+        print(f"report: {cr.files.get('report')}")
+    return 0

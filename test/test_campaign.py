@@ -1,0 +1,279 @@
+"""Campaign files, calibration, runs and the seed findings they reproduce (reduced trial counts)."""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from experiment_runner import campaign as cm
+from experiment_runner.calibration import ParamSpec, fit
+from experiment_runner.experiment import Experiment, build_trials, experiment_preset
+from stage_sim.config import ConfigError
+
+# Calibrated values of the full main job (50 / 20 trials, dwell 1 s), reused so that the
+# direction tests run in seconds; test_calibration_fits_the_baseline checks the fit itself.
+CAL_4_2 = {"pid_integral_scale": 0.6387, "drive_noise_current_rms": 6.975e-4}
+CAL_5_2 = {"pid_integral_scale": 0.4116, "drive_noise_current_rms": 9.688e-4}
+CAL_3_3 = {"pid_integral_scale": 0.4078, "drive_noise_current_rms": 8.128e-4}
+
+
+def _cal(values):
+    return {"values": values, "parameters": [], "trials": 0}
+
+
+def _finding(cr, fid):
+    return next(f for f in cr.findings if f["id"] == fid)
+
+
+def _same_direction(f) -> bool:
+    """The simulation's change has the seed's direction (significance aside: reduced trial counts)."""
+    if f["direction"] == "similar":
+        return f["agrees"]
+    return f["sim_change"] is not None and (f["sim_change"] < 0) == (f["direction"] == "lower")
+
+
+# --------------------------------------------------------------------------- files
+@pytest.mark.parametrize("name", cm.list_campaigns())
+def test_every_campaign_file_validates(name):
+    c = cm.load_campaign(name)                 # presets, overrides, calibrated paths resolved too
+    conds = cm.conditions(c)
+    assert conds and c.baseline in [k.name for k in c.cases]
+    for v in c.seed.values:                     # every seed number belongs to exactly one condition
+        assert len([x for x in conds if x.matches(**v.at())]) == 1
+    assert c.seed.findings, "every campaign states the seed's findings"
+    if c.calibration:
+        for p in c.calibration.parameters:     # fitted to a baseline number only
+            assert c.seed_value(c.baseline, p.target.metric, **p.target.at()) is not None
+
+
+def test_main_job_campaigns_are_shipped():
+    assert set(cm.MAIN_JOB) <= set(cm.list_campaigns())
+    t42 = cm.load_campaign("table_4_2")
+    assert t42.trials == 50 and [c.preset for c in t42.cases] == ["fi_stage_nofi_gms", "fi_stage_gms"]
+    assert t42.seed_value("nofi", "settling_time_s", step=5e-3) == 0.044
+    assert t42.seed_value("fi", "rms_in_position_m", step=5e-6) == 2.7e-9
+    t52 = cm.load_campaign("table_5_2")
+    assert t52.trials == 20
+    assert {c.name: c.overrides.get("sai_manager.rule") for c in t52.cases} == {
+        "baseline": "always_stiff", "fi": "always_compliant", "sai": "point_to_point"}
+    assert t52.case("sai").step_ii is not None
+
+
+def _write(tmp_path, data, name="c.yaml"):
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(data, sort_keys=False, allow_unicode=True))
+    return p
+
+
+def _tiny(**extra):
+    d = {"name": "tiny", "title": "tiny", "test": {"kind": "point_to_point", "steps": [5e-6], "dwell": 0.1},
+         "trials": 2, "cases": [{"name": "nofi", "label": "No FI", "preset": "fi_stage_nofi_gms"},
+                                {"name": "fi", "label": "FI", "preset": "fi_stage_gms"}],
+         "baseline": "nofi",
+         "seed": {"source": "test", "values": [{"case": "nofi", "step": 5e-6, "metric": "settling_time_s",
+                                                "value": 0.06}],
+                  "findings": [{"id": "f", "claim": "FI faster", "case": "fi", "versus": "nofi", "step": 5e-6,
+                                "metric": "settling_time_s", "direction": "lower"}]}}
+    d.update(extra)
+    return d
+
+
+@pytest.mark.parametrize("mutate, where", [
+    (lambda d: d["cases"][0].update(bogus=1), "cases.0.bogus: unknown key"),
+    (lambda d: d.update(trials=0), "trials"),
+    (lambda d: d["test"].update(steps=[]), "test.point_to_point.steps"),
+    (lambda d: d["seed"]["findings"][0].update(metric="peak_tracking_error_m"), "seed.findings.0 (f)"),
+    (lambda d: d["seed"]["findings"][0].update(step=1e-3), "seed.findings.0 (f): no condition matches"),
+    (lambda d: d["seed"]["values"][0].update(case="nobody"), "seed.values.0: case 'nobody'"),
+    (lambda d: d.update(baseline="fi", calibration={"parameters": [
+        {"name": "n", "description": "x", "paths": ["stage.drive.noise_current_rms"], "bounds": [0, 1],
+         "target": {"step": 5e-6, "metric": "settling_time_s"}}]}), "seed.values has no settling_time_s"),
+    (lambda d: d["cases"][1].update(preset="no_such_preset"), "cases.1 (fi): preset 'no_such_preset'"),
+    (lambda d: d["cases"][1].update(overrides={"stage.drive.nope": 1}), "cases.1 (fi)"),
+    (lambda d: d.update(calibration={"parameters": [
+        {"name": "n", "description": "x", "paths": ["stage.drive.bogus"], "bounds": [0, 1],
+         "target": {"step": 5e-6, "metric": "settling_time_s"}}]}), "calibration.parameters.0 (n).paths"),
+])
+def test_schema_errors_name_the_field(tmp_path, mutate, where):
+    d = _tiny()
+    mutate(d)
+    with pytest.raises(ConfigError) as err:
+        cm.load_campaign(_write(tmp_path, d))
+    assert where in str(err.value)
+
+
+def test_resolve_wildcards_and_scale():
+    from stage_sim.config import load_preset
+    p = load_preset("fi_stage_gms")
+    o = cm.resolve(p, ["stage.bearings.*.friction.k"], "scale", 2.0)
+    assert sorted(o) == ["stage.bearings.0.friction.k", "stage.bearings.1.friction.k"]
+    assert o["stage.bearings.0.friction.k"][0] == 2 * p.stage.bearings[0].friction.k[0]
+    assert cm.resolve(p, ["controller.pid.ki"], "value", 3.0) == {"controller.pid.ki": 3.0}
+
+
+def test_graph_experiment_reproduces_the_batch_trial():
+    """The one-trial experiment file of trial i starts where trial i of the campaign starts, with
+    its noise seed and the same (calibrated) preset."""
+    c = cm.load_campaign("table_5_2")
+    case, cond = c.case("sai"), cm.conditions(c)[1]
+    preset = cm.case_preset(c, case, CAL_5_2, cond)
+    ref = cm.reference(c, cond, preset.controller.rate)
+    trials = cm.make_trials(c, case, preset, ref, 5)
+    exp = Experiment.model_validate(cm.graph_experiment(c, case, cond, 3, CAL_5_2))
+    got = build_trials(exp, experiment_preset(exp))
+    assert len(got) == 1
+    assert np.array_equal(got[0].x_ref, trials[3].x_ref) and got[0].seed == trials[3].seed
+    assert experiment_preset(exp).controller.pid.ki == preset.controller.pid.ki
+
+
+# --------------------------------------------------------------------------- calibration
+def test_fit_reports_an_unreachable_target():
+    res = fit([ParamSpec(name="p", bounds=(0.1, 1.0), seed_value=10.0)], {"p": 0.5}, lambda v: {"p": v["p"]})
+    assert res.params[0].at_bound == "upper" and res.values["p"] == 1.0
+
+
+def test_calibration_fits_the_baseline(tmp_path):
+    """Table 4.2 fitted on 4 No FI trials: the 5 mm settling time and the noise part of the RMS
+    in-position error land on the seed's No FI numbers; FI is not used."""
+    cr = cm.run_campaign("table_4_2", tmp_path, trials=4, calibration_trials=4, progress=False,
+                         plots=False, mcap=False, report=False)
+    cal = cr.calibration
+    assert cal["converged"] and cal["baseline"] == "nofi"
+    ts, rms = cal["parameters"]
+    assert ts["target"]["sim_after"] == pytest.approx(0.044, rel=0.02)
+    assert rms["target"]["sim_effective"] == pytest.approx(rms["target"]["seed_effective"], rel=0.05)
+    assert 0.4 < ts["value"] < 0.9 and 2e-4 < rms["value"] < 2e-3
+    assert ts["applied"]["nofi"] == ts["applied"]["fi"]         # the same PID in both cases
+    on_disk = json.loads((tmp_path / "calibration.json").read_text())
+    assert on_disk["values"] == pytest.approx(cal["values"])
+    # the No FI 5 mm mean is the calibration target; the FI case was not simulated while fitting
+    assert all(h["values"].keys() == {"pid_integral_scale", "drive_noise_current_rms"} for h in cal["history"])
+
+
+# --------------------------------------------------------------------------- runs and findings
+@pytest.fixture(scope="module")
+def t42(tmp_path_factory):
+    out = tmp_path_factory.mktemp("t42")
+    return cm.run_campaign("table_4_2", out, trials=8, calibration=_cal(CAL_4_2), progress=False)
+
+
+@pytest.fixture(scope="module")
+def t52(tmp_path_factory):
+    out = tmp_path_factory.mktemp("t52")
+    return cm.run_campaign("table_5_2", out, trials=8, calibration=_cal(CAL_5_2), progress=False)
+
+
+def test_outputs_are_written(t42):
+    out = t42.out_dir
+    for f in ("results.csv", "results.json", "calibration.json", "report.md"):
+        assert (out / f).is_file()
+    rows = list(csv.DictReader(open(out / "results.csv")))
+    assert len(rows) == 2 * 2 * 2           # cases x steps x metrics
+    r = next(r for r in rows if r["case"] == "nofi" and r["condition"] == "5mm" and r["metric"] == "settling_time_s")
+    assert float(r["seed"]) == 0.044 and int(r["n_trials"]) == 8 and float(r["mean"]) > 0
+    doc = json.loads((out / "results.json").read_text())
+    assert len(doc["trials"]) == 2 * 2 * 8 and len(doc["findings"]) == 4
+    pngs = {p.name for p in (out / "plots").glob("*.png")}
+    assert {"settling_5mm.png", "settling_5um.png", "distribution_settling_time_s.png",
+            "distribution_rms_in_position_m.png", "spectrum_5um.png"} <= pngs
+    from experiment_runner.recording import read_recording
+    rec = read_recording(out / "recordings" / "fi_5um_batch")
+    rr = t42.runs[("fi", "5um")]
+    assert np.array_equal(rec.y, rr.trace.y)
+    assert rec.results[0]["settling_time_s"] == pytest.approx(rr.metrics[rr.rep]["settling_time_s"])
+    md = (out / "report.md").read_text()
+    assert "## Seed vs simulation" in md and "## Calibration" in md and "44 ms" in md
+
+
+def test_table_4_2_findings(t42):
+    # reproduced: FI settles faster at 5 um, and has the larger RMS in-position error at both sizes
+    for fid in ("fi_settles_faster_5um", "fi_rms_larger_5mm", "fi_rms_larger_5um"):
+        assert _same_direction(_finding(t42, fid)), fid
+    assert _finding(t42, "fi_settles_faster_5um")["agrees"]          # and clearly (|z| >= 2)
+    # NOT reproduced (see the finding's note): at 5 mm the calibrated PID's integral recovery of the
+    # end-of-move error sets the settling time in both cases, so FI is no faster than No FI
+    f = _finding(t42, "fi_settles_faster_5mm")
+    assert not _same_direction(f) and not f["agrees"] and f["sim_change"] > -0.1 and f["explanation"]
+    # the No FI 5 um settling time is a prediction and lands near the seed's 62 ms
+    assert t42.stat("nofi", "5um", "settling_time_s").mean == pytest.approx(0.062, rel=0.15)
+
+
+def test_table_5_2_findings(t52):
+    reproduced = ["fi_settles_faster_5um", "fi_rms_larger_5mm", "fi_rms_larger_5um", "sai_settles_faster_5um",
+                  "sai_rms_as_baseline_5mm", "sai_rms_as_baseline_5um", "sai_rms_below_fi_5mm",
+                  "sai_rms_below_fi_5um", "sai_slower_than_fi_5um"]
+    for fid in reproduced:
+        assert _same_direction(_finding(t52, fid)), fid
+    for fid in ("fi_settles_faster_5um", "sai_settles_faster_5um", "sai_slower_than_fi_5um", "sai_rms_below_fi_5mm"):
+        assert _finding(t52, fid)["agrees"], fid                      # and clearly (|z| >= 2)
+    # NOT reproduced: at 5 mm neither FI nor SAI settles faster than the Baseline, and FI is the slowest
+    for fid in ("fi_settles_faster_5mm", "sai_settles_faster_5mm"):
+        f = _finding(t52, fid)
+        assert not _same_direction(f) and not f["agrees"] and f["sim_change"] > -0.1, fid
+    assert not _same_direction(_finding(t52, "sai_slower_than_fi_5mm"))
+    assert t52.stat("fi", "5mm", "settling_time_s").mean > t52.stat("sai", "5mm", "settling_time_s").mean
+    # Step II was learned (u_10 after 10 ILC iterations at rest) and used in the SAI trials only
+    d = t52.step_ii["sai"]
+    assert d["iterations"] == 10 and len(d["rms_history_m"]) == 11 and np.any(d["correction"] != 0)
+    assert "step_ii.png" in {p.name for p in (t52.out_dir / "plots").glob("*.png")}
+
+
+def test_table_3_3_findings(tmp_path):
+    """VAN: dither with HC settles faster and has a larger in-position error (all four directions
+    of Table 3.3 reproduced; the settling reductions are much smaller than the seed's 66% / 22%)."""
+    cr = cm.run_campaign("table_3_3", tmp_path, trials=8, calibration=_cal(CAL_3_3), progress=False,
+                         plots=False, mcap=False)
+    for f in cr.findings:
+        assert _same_direction(f), f["id"]
+    assert _finding(cr, "dither_rms_larger_5mm")["agrees"] and _finding(cr, "dither_rms_larger_5um")["agrees"]
+
+
+def test_dahl_bearings_ratchet_out_of_position(tmp_path):
+    """table_4_2_dahl: with the Table 4.3 Dahl bearings the No FI stage drifts after settling
+    (single-state Dahl drift), so its in-position error exceeds the FI's: the seed's RMS finding
+    is reversed. This is why table_4_2 uses the GMS presets."""
+    cr = cm.run_campaign("table_4_2_dahl", tmp_path, trials=4, dwell=0.5, calibration=_cal(CAL_4_2),
+                         progress=False, plots=False, mcap=False)
+    for fid in ("fi_rms_larger_5mm", "fi_rms_larger_5um"):
+        assert not _same_direction(_finding(cr, fid))
+    assert cr.stat("nofi", "5mm", "settling_time_s").n_valid < 4       # No FI leaves the window again
+
+
+# --------------------------------------------------------------------------- graph and CLI
+def test_graph_runs_reproduce_the_batch_trials(tmp_path):
+    """Representative trials through the ROS graph, incl. an SAI trial with its learned Step II
+    correction, give the batch engine's measured positions exactly."""
+    d = yaml.safe_load(open(cm.CAMPAIGN_DIR / "table_5_2.yaml"))
+    d.update(name="t52_graph", trials=2, cases=[c for c in d["cases"] if c["name"] in ("baseline", "sai")])
+    d["test"].update(steps=[5e-6], dwell=0.05)
+    d["seed"]["values"] = [v for v in d["seed"]["values"] if v["step"] == 5e-6 and v["case"] != "fi"]
+    d["seed"]["findings"] = [f for f in d["seed"]["findings"] if f["id"] == "sai_settles_faster_5um"]
+    d["calibration"] = None
+    d["cases"][1]["step_ii"]["iterations"] = 2
+    cr = cm.run_campaign(_write(tmp_path, d), tmp_path / "out", graph=True, progress=False, plots=False)
+    for key in (("baseline", "5um"), ("sai", "5um")):
+        g = cr.runs[key].graph
+        assert g["done"] and not g["aborted"], g
+        assert g["max_abs_diff_m"] == 0.0 and g["samples"] == g["batch_samples"]
+        assert g["metrics"]["settling_time_s"] == g["batch_metrics"]["settling_time_s"]
+    assert (tmp_path / "out" / "recordings" / "sai_5um_graph").is_dir()
+    assert "through the ROS 2 graph" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_cli(tmp_path, capsys):
+    p = argparse.ArgumentParser()
+    cm.add_campaign_arguments(p)
+    assert cm.main_campaign(p.parse_args(["--list"])) == 0
+    assert "table_5_2" in capsys.readouterr().out
+    assert cm.main_campaign(p.parse_args(["no_such_campaign"])) == 2
+    path = _write(tmp_path, _tiny())
+    code = cm.main_campaign(p.parse_args([str(path), "--out", str(tmp_path / "o"), "--quiet", "--no-plots",
+                                          "--no-mcap"]))
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "report:" in out and "of 1 seed findings reproduced" in out
+    assert (tmp_path / "o" / "report.md").is_file()
