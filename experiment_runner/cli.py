@@ -87,6 +87,16 @@ def build_parser() -> argparse.ArgumentParser:
     add_campaign_arguments(p)
     p.set_defaults(func=_campaign)
 
+    from experiment_runner.diagnosis import (add_diagnose_arguments, add_synth_arguments, main_diagnose,
+                                             main_synth)
+    p = sub.add_parser("diagnose", help="locate, name and fit what a nominal model misses in a recording")
+    add_diagnose_arguments(p)
+    p.set_defaults(func=main_diagnose)
+
+    p = sub.add_parser("synth", help="simulate an experiment on a concealed truth into a recording")
+    add_synth_arguments(p)
+    p.set_defaults(func=main_synth)
+
     p = sub.add_parser("presets", help="list the stage presets, or show one")
     p.add_argument("name", nargs="?")
     p.set_defaults(func=_presets)

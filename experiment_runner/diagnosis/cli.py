@@ -1,0 +1,134 @@
+"""Command-line entry points: ``nanostage diagnose`` and ``nanostage synth``.
+
+Wire them into ``experiment_runner/cli.py`` with::
+
+    from experiment_runner.diagnosis import add_diagnose_arguments, add_synth_arguments
+    p = sub.add_parser("diagnose", help="locate, name and fit what a nominal model misses in a recording")
+    add_diagnose_arguments(p); p.set_defaults(func=lambda a: main_diagnose(a))
+    p = sub.add_parser("synth", help="simulate an experiment on a concealed truth model into a recording")
+    add_synth_arguments(p); p.set_defaults(func=lambda a: main_synth(a))
+
+Heavy modules are imported inside the ``main_*`` functions, so building the parser is cheap.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+__all__ = ["add_diagnose_arguments", "main_diagnose", "add_synth_arguments", "main_synth"]
+
+
+def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    parser.add_argument("recording", nargs="?", help="contract recording (MCAP file or bag directory)")
+    parser.add_argument("nominal", nargs="?", help="nominal model: preset name or YAML, or model file "
+                                                   "{preset, additive_forces}; default: the preset in the "
+                                                   "recording's /experiment/config, if any")
+    parser.add_argument("--out", default=None, help="output folder for report.json/.md, plots, improved model "
+                                                    "(default out/diagnose/<recording name>)")
+    parser.add_argument("--json", action="store_true", help="print the report (or the self-test summary) as JSON")
+    parser.add_argument("--list-effects", action="store_true", help="print the library of hypotheses and exit")
+    parser.add_argument("--selftest", action="store_true",
+                        help="concealed-data self-test: synthesise recordings with known effects and diagnose them")
+    parser.add_argument("--only", nargs="*", default=None, help="self-test: run only cases whose name starts so")
+    parser.add_argument("--keep", default=None, help="self-test: keep recordings and reports in this folder")
+    parser.add_argument("--effects", default=None, help="comma-separated effect keys to consider (default all)")
+    parser.add_argument("--bandwidth", type=float, default=None, help="force-observer bandwidth [Hz] (default rate/25)")
+    parser.add_argument("--max-fit-seconds", type=float, default=3.0, help="cap of the fit set [s of data]")
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    parser.add_argument("--verbose", action="store_true", help="progress on stdout")
+    return parser
+
+
+def _nominal_from_config(path):
+    import yaml
+
+    from experiment_runner.recording import read_recording
+    rec = read_recording(path)
+    if rec.config:
+        doc = yaml.safe_load(rec.config)
+        if isinstance(doc, dict) and isinstance(doc.get("preset"), dict):
+            return doc["preset"], rec
+    return None, rec
+
+
+def main_diagnose(args) -> int:
+    if args.list_effects:
+        from .hypotheses import describe
+        print(json.dumps(describe(as_json=True), indent=1) if args.json else describe())
+        return 0
+    if args.selftest:
+        from .selftest import run_selftest
+        s = run_selftest(only=args.only, as_json=args.json, keep=args.keep, verbose=args.verbose)
+        if args.json:
+            print(json.dumps(_clean(s), indent=1))
+        else:
+            print(f"self-test: {s['passed']}/{s['cases']} passed, {s['false_positives']} false positive(s), "
+                  f"{s['negative_controls']} negative controls")
+        return 0 if s["passed"] == s["cases"] else 1
+    if not args.recording:
+        raise SystemExit("nanostage diagnose: give RECORDING [NOMINAL], or --list-effects, or --selftest")
+    from pathlib import Path
+
+    from .data import load_data
+    from .pipeline import Options, diagnose
+    from .report import jsonable
+    nominal = args.nominal
+    data = None
+    if nominal is None:
+        nominal, rec = _nominal_from_config(args.recording)
+        if nominal is None:
+            raise SystemExit("nanostage diagnose: the recording carries no preset in /experiment/config; "
+                             "give the NOMINAL model")
+        data = load_data(rec)
+    out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
+    opt = Options(bandwidth=args.bandwidth, max_fit_seconds=args.max_fit_seconds,
+                  effects=[e.strip() for e in args.effects.split(",")] if args.effects else None,
+                  plots=not args.no_plots, verbose=args.verbose)
+    rep = diagnose(args.recording, nominal, out=out, options=opt, data=data)
+    if args.json:
+        print(json.dumps(jsonable(rep), indent=1))
+        return 0
+    print(f"verdict: {rep['verdict']}")
+    for i, f in enumerate(rep["found"], 1):
+        ps = ", ".join(f"{p['name']} = {p['value']:.4g}" + (f" ± {p['sigma']:.2g}" if p.get("sigma") else "")
+                       + f" {p['unit']}" + (f" (nominal {p['nominal']:.4g})" if isinstance(p.get("nominal"), (int, float)) else "")
+                       for p in f["params"])
+        conf = f"  [confounded with {', '.join(f['confounded_with'])}]" if f.get("confounded_with") else ""
+        print(f"  {i}. {f['title']}: {ps}{conf}")
+    v = rep["validation"]["force_residual_rms_N"]
+    if v["fall"] is not None:
+        print(f"held-out force residual RMS: {v['nominal']:.4g} N -> {v['improved']:.4g} N "
+              f"({100 * v['fall']:.1f} % lower; floor {v['floor']:.3g} N)")
+    print(f"report: {out / 'report.md'}   improved preset: {out / 'improved_preset.yaml'}   "
+          f"({rep['timing_s']['total_s']:.1f} s)")
+    return 0
+
+
+def _clean(o):
+    from .report import jsonable
+    return jsonable(o)
+
+
+def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    from .synth import add_synth_arguments as _add
+    return _add(parser)
+
+
+def main_synth(args) -> int:
+    from .synth import main_synth as _main
+    return _main(args)
+
+
+def main(argv=None) -> int:
+    """Stand-alone entry (``python -m experiment_runner.diagnosis diagnose|synth ...``)."""
+    parser = argparse.ArgumentParser(prog="python -m experiment_runner.diagnosis")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_diagnose_arguments(sub.add_parser("diagnose", help="diagnose a recording"))
+    add_synth_arguments(sub.add_parser("synth", help="synthesise a concealed-truth recording"))
+    args = parser.parse_args(argv)
+    return main_diagnose(args) if args.command == "diagnose" else main_synth(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,136 @@
+"""The recording as the diagnosis sees it: the three contract topics, cut into trials.
+
+:func:`load_data` reads a contract recording (or takes a :class:`Recording`), keeps only
+what a hardware rig gives -- ``/stage/reference`` (x_ref, v_ref), ``/stage/command`` (u)
+and ``/stage/measured`` (y) -- cuts it into trials (``/experiment/events``, else the
+whole record is one trial) and stacks them as (T, B) arrays, trial axis last, padded with
+the last sample and masked. It splits the samples into a *fit* set and a *held-out* set:
+whole trials when there are two or more (every third trial held out, at least one),
+otherwise contiguous blocks of the single trial (every third of six blocks held out).
+The first ``burn_in`` seconds of each trial are in neither set (the model starts relaxed).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import signal
+
+__all__ = ["DiagData", "load_data", "smooth"]
+
+
+@dataclass
+class DiagData:
+    rate: float                   # control rate [Hz]
+    t0: np.ndarray                # (B,) start time of each trial [s]
+    x_ref: np.ndarray             # (T, B) [m]
+    v_ref: np.ndarray             # (T, B) [m/s]
+    u: np.ndarray                 # (T, B) command [N]
+    y: np.ndarray                 # (T, B) measured position [m]
+    valid: np.ndarray             # (T, B) bool: a real sample (not padding)
+    fit: np.ndarray               # (T, B) bool: used for fitting
+    held: np.ndarray              # (T, B) bool: held out
+    lengths: np.ndarray           # (B,) samples per trial
+    trial_ids: list               # trial numbers of the recording
+    source: str = ""
+    split: str = ""
+    ys: np.ndarray = None         # smoothed y (zero phase)
+    vs: np.ndarray = None         # its velocity
+    smooth_hz: float = 0.0
+    notes: list = field(default_factory=list)
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate
+
+    @property
+    def shape(self):
+        return self.u.shape
+
+    def subset(self, cols) -> "DiagData":
+        """The same data restricted to trials ``cols`` (indices into the batch axis)."""
+        cols = np.asarray(cols, int)
+        kw = {k: getattr(self, k)[:, cols] for k in ("x_ref", "v_ref", "u", "y", "valid", "fit", "held", "ys", "vs")}
+        return DiagData(rate=self.rate, t0=self.t0[cols], lengths=self.lengths[cols],
+                        trial_ids=[self.trial_ids[c] for c in cols], source=self.source, split=self.split,
+                        smooth_hz=self.smooth_hz, notes=list(self.notes), **kw)
+
+
+def smooth(y: np.ndarray, rate: float, cutoff: float, lengths=None):
+    """Zero-phase 2nd-order Butterworth low-pass of each column; returns (ys, vs)."""
+    wn = min(0.95, 2.0 * cutoff / rate)
+    sos = signal.butter(2, wn, output="sos")
+    ys = np.empty_like(y)
+    vs = np.empty_like(y)
+    T, B = y.shape
+    for b in range(B):
+        n = T if lengths is None else int(lengths[b])
+        col = y[:n, b]
+        if n > 12:
+            s = signal.sosfiltfilt(sos, col, padtype="constant" if n < 60 else "odd",
+                                   padlen=min(n - 1, 3 * int(rate / cutoff) + 6))
+        else:
+            s = col.copy()
+        ys[:n, b] = s
+        vs[:n, b] = np.gradient(s) * rate if n > 1 else 0.0
+        ys[n:, b] = s[-1] if n else 0.0
+        vs[n:, b] = 0.0
+    return ys, vs
+
+
+def _stack(cols, T):
+    out = np.empty((T, len(cols)))
+    for b, c in enumerate(cols):
+        out[:len(c), b] = c
+        out[len(c):, b] = c[-1] if len(c) else 0.0
+    return out
+
+
+def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trials: int | None = None) -> DiagData:
+    """Read ``source`` (path or :class:`~experiment_runner.recording.Recording`) into :class:`DiagData`."""
+    from experiment_runner.recording import Recording, read_recording
+    rec = source if isinstance(source, Recording) else read_recording(source)
+    n = len(rec)
+    if n < 10:
+        raise ValueError(f"{rec.path}: only {n} control samples")
+    dts = np.diff(rec.stamp_ns)
+    dt = float(np.median(dts)) * 1e-9
+    rate = 1.0 / dt
+    notes = []
+    if np.any(np.abs(dts * 1e-9 - dt) > 0.01 * dt):
+        notes.append(f"{int(np.sum(np.abs(dts * 1e-9 - dt) > 0.01 * dt))} irregular sample interval(s)")
+    v_ref = rec.v_ref
+    if np.all(np.isnan(v_ref)):
+        v_ref = np.gradient(rec.x_ref) * rate
+        notes.append("reference velocity absent: differentiated from the reference position")
+    v_ref = np.nan_to_num(v_ref)
+    slices = [(tr.trial, tr.start, tr.stop) for tr in rec.trials() if tr.stop - tr.start >= max(10, min_trial * rate)]
+    if not slices:
+        slices = [(0, 0, n)]
+        notes.append("no trial events: the whole record is one trial")
+    if max_trials is not None:
+        slices = slices[:max_trials]
+    T = max(s1 - s0 for _, s0, s1 in slices)
+    B = len(slices)
+    pick = lambda a: _stack([a[s0:s1] for _, s0, s1 in slices], T)  # noqa: E731
+    lengths = np.array([s1 - s0 for _, s0, s1 in slices])
+    valid = np.arange(T)[:, None] < lengths[None, :]
+    burn = int(round(burn_in * rate))
+    usable = valid & (np.arange(T)[:, None] >= burn)
+    fit = np.zeros_like(valid)
+    held = np.zeros_like(valid)
+    if B >= 2:
+        hold_cols = [b for b in range(B) if b % 3 == 2] or [B - 1]
+        for b in range(B):
+            (held if b in hold_cols else fit)[:, b] = usable[:, b]
+        split = f"by trial: held out {', '.join(str(slices[b][0]) for b in hold_cols)} of {B}"
+    else:
+        blocks = np.minimum((np.arange(T) * 6) // max(1, lengths[0]), 5)
+        h = (blocks % 3 == 2)[:, None]
+        held = usable & h
+        fit = usable & ~h
+        split = "one trial: blocks 3 and 6 of 6 held out"
+    return DiagData(rate=rate, t0=np.array([rec.t[s0] for _, s0, _ in slices]), x_ref=pick(rec.x_ref),
+                    v_ref=pick(v_ref), u=pick(rec.u), y=pick(rec.y), valid=valid, fit=fit, held=held,
+                    lengths=lengths, trial_ids=[s[0] for s in slices], source=str(rec.path), split=split,
+                    notes=notes)

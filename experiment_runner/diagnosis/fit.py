@@ -1,0 +1,489 @@
+"""Fit and choose: each hypothesis added to the model, fitted, and judged on held-out data.
+
+Cost
+    The whitened force residual (:class:`.predict.NoiseFloor`): its mean square ``J`` is 1
+    when the model leaves only what a perfect model leaves (noise and quantization seen
+    through the observer). Parameters are fitted by a bounded Gauss-Newton /
+    Levenberg-Marquardt (:func:`gauss_newton`, forward-difference Jacobians) on the
+    whitened residual of the *fit* samples; every residual evaluation is one run of the
+    compiled force observer (a few ms per second of data), so fits are fast, and the
+    problem is nearly linear in most parameters (the observer follows the measurement,
+    so friction and joint states are those of the measured trajectory): linear ones
+    converge in one or two iterations.
+Uncertainty
+    From the Jacobian at the optimum: ``cov = s^2 (J^T J)^-1`` with ``s^2`` the residual
+    mean square, inflated by the residual's correlation time (effective sample count).
+Choice (:mod:`.pipeline`)
+    Forward selection on *held-out* samples: every candidate is fitted on top of the current
+    model and judged by its held-out ``J`` against its *own* noise floor (a candidate that
+    changes the drive or the dynamics changes what noise leaves). Candidates within
+    run-to-run noise of the best (``J`` difference below ``6 sqrt(J/n_eff)``) are
+    statistically equivalent: the simplest (fewest parameters, then ``J (1 + 0.02 p)``) is
+    named, the others are reported as its confounded set. It is accepted if it improves the
+    held-out ``J`` by more than run-to-run noise and, after the first effect, explains at
+    least a quarter of the remaining excess ``J - 1``; repeat until the model is adequate
+    (``J_held <= 1 + tol``) or nothing improves. The selected effects are then fitted
+    jointly; parameters correlating above 0.95 across effects are reported as confounded.
+    Quantization is judged first, directly from the lattice of the measured positions;
+    drive noise last, from the residual spectrum where drive noise dominates the floor.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize
+
+from .data import DiagData
+from .hypotheses import LIBRARY, Effect, Param
+from .model import ModelSpec
+from .predict import NoiseFloor, Observer, sim_data
+
+__all__ = ["Evaluator", "FitResult", "fit_effect", "select", "estimate_lattice", "fit_noise_level", "sparse_regression"]
+
+
+# --------------------------------------------------------------------------- evaluation
+class Evaluator:
+    """Whitened residuals of a model on the fit and held-out samples."""
+
+    def __init__(self, obs: Observer, floor: NoiseFloor, max_fit_seconds: float = 3.0):
+        self.obs = obs
+        self.floor = floor
+        d = obs.data
+        self.data = d
+        B = d.shape[1]
+        fit_cols = [b for b in range(B) if d.fit[:, b].any()]
+        held_cols = [b for b in range(B) if d.held[:, b].any()]
+        # cap the fit set (speed): whole trials, in order, up to max_fit_seconds
+        if len(fit_cols) > 1:
+            keep, tot = [], 0.0
+            for b in fit_cols:
+                if keep and tot >= max_fit_seconds:
+                    break
+                keep.append(b)
+                tot += d.fit[:, b].sum() / d.rate
+            fit_cols = keep
+        self.fit_cols = np.array(fit_cols, int)
+        self.held_cols = np.array(held_cols, int)
+        self.same = set(fit_cols) == set(held_cols)
+        self.evals = 0
+        self.seconds = 0.0
+        self._lock = threading.Lock()
+
+    def _run(self, spec, cols):
+        t = time.perf_counter()
+        res = self.obs.run(spec, cols=cols)
+        with self._lock:
+            self.evals += 1
+            self.seconds += time.perf_counter() - t
+        return res
+
+    def fit_vector(self, spec: ModelSpec) -> np.ndarray:
+        """Whitened residual on the fit samples (the least-squares vector)."""
+        res = self._run(spec, self.fit_cols)
+        m = self.data.fit[:, self.fit_cols]
+        w = self.floor.whiten(res.r, m)
+        if res.bad:
+            return np.full(int(m.sum()), 1e3)
+        return w[m]
+
+    def J(self, spec: ModelSpec, which: str = "held", floor: NoiseFloor | None = None) -> float:
+        cols = self.held_cols if which == "held" else self.fit_cols
+        mask = (self.data.held if which == "held" else self.data.fit)[:, cols]
+        res = self._run(spec, cols)
+        if res.bad:
+            return float("inf")
+        return (floor or self.floor).ms(res.r, mask)
+
+    def both(self, spec: ModelSpec, floor: NoiseFloor | None = None) -> tuple[float, float, float]:
+        """(J_fit, J_held, n_eff_held) in one or two observer runs."""
+        fl = floor or self.floor
+        cols = np.union1d(self.fit_cols, self.held_cols)
+        res = self._run(spec, cols)
+        if res.bad:
+            return float("inf"), float("inf"), 1.0
+        idx = {c: i for i, c in enumerate(cols)}
+        mf = np.zeros(res.r.shape, bool)
+        mh = np.zeros(res.r.shape, bool)
+        for c in self.fit_cols:
+            mf[:, idx[c]] = self.data.fit[:, c]
+        for c in self.held_cols:
+            mh[:, idx[c]] = self.data.held[:, c]
+        wh = fl.whiten(res.r, mh)
+        return fl.ms(res.r, mf), float(np.sum(wh[mh] ** 2) / max(1, mh.sum())), n_eff(wh, mh)
+
+
+def n_eff(w: np.ndarray, mask: np.ndarray, max_lag: int = 200) -> float:
+    """Effective number of independent samples of a (whitened) residual over ``mask``."""
+    n = int(mask.sum())
+    if n < 10:
+        return float(max(n, 1))
+    rho_sum = 0.0
+    x = np.where(mask, w, 0.0)
+    c0 = np.sum(x * x)
+    if c0 <= 0:
+        return float(n)
+    for lag in range(1, min(max_lag, x.shape[0] - 1)):
+        c = np.sum(x[lag:] * x[:-lag]) / c0
+        if c < 0.02:
+            break
+        rho_sum += c
+    return float(n / (1.0 + 2.0 * rho_sum))
+
+
+# --------------------------------------------------------------------------- one effect
+@dataclass
+class FitResult:
+    key: str
+    title: str
+    names: list
+    units: list
+    theta: np.ndarray
+    sigma: np.ndarray
+    corr: np.ndarray | None
+    spec: ModelSpec
+    J_fit: float
+    J_held: float
+    n_eff_held: float
+    evals: int
+    seconds: float
+    nominal: dict
+    derived: dict = field(default_factory=dict)
+    expressible: bool = True
+    note: str = ""
+    on_bound: list = field(default_factory=list)
+
+    def params(self) -> list[dict]:
+        return [{"name": n, "unit": u, "value": float(v), "sigma": float(s) if np.isfinite(s) else None,
+                 "nominal": self.nominal.get(n)} for n, u, v, s in zip(self.names, self.units, self.theta, self.sigma)]
+
+
+def _bind(effect: Effect, ctx: dict) -> Effect:
+    if hasattr(effect, "bind"):
+        effect.bind(ctx)
+    return effect
+
+
+class _Transform:
+    """Parameter <-> optimiser variable: log for log params, linear scaled otherwise."""
+
+    def __init__(self, params: list[Param]):
+        self.p = params
+        self.scale = np.array([1.0 if p.log else max(abs(p.hi - p.lo) / 10.0, abs(p.x0), 1e-12) for p in params])
+
+    def to_z(self, theta):
+        return np.array([math.log(max(t, 1e-300)) if p.log else t / s for t, p, s in zip(theta, self.p, self.scale)])
+
+    def to_theta(self, z):
+        return np.array([math.exp(v) if p.log else v * s for v, p, s in zip(z, self.p, self.scale)])
+
+    def bounds(self):
+        lo = [math.log(max(p.lo, 1e-300)) if p.log else p.lo / s for p, s in zip(self.p, self.scale)]
+        hi = [math.log(p.hi) if p.log else p.hi / s for p, s in zip(self.p, self.scale)]
+        return np.array(lo), np.array(hi)
+
+    def dtheta_dz(self, theta):
+        return np.array([t if p.log else s for t, p, s in zip(theta, self.p, self.scale)])
+
+
+def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nfev: int | None = None,
+               starts: list | None = None) -> FitResult | None:
+    """Fit ``effect`` added to ``base`` on the fit samples; judge it on the held-out ones."""
+    if effect.applicable(base) is not None or effect.kind not in ("deterministic", "integer"):
+        return None
+    _bind(effect, ctx)
+    t0 = time.perf_counter()
+    count = [0]
+    params = effect.params(base, ctx)
+    names = [p.name for p in params]
+    units = [p.unit for p in params]
+    if effect.kind == "integer":
+        p = params[0]
+        best = None
+        for v in range(int(p.lo), int(p.hi) + 1):
+            spec = effect.apply(base, [v])
+            vec = ev.fit_vector(spec)
+            count[0] += 1
+            c = float(np.mean(vec ** 2))
+            if best is None or c < best[0]:
+                best = (c, v, spec)
+        c, v, spec = best
+        theta = np.array([float(v)])
+        sigma = np.array([0.0])
+        corr = None
+    else:
+        tr = _Transform(params)
+        lo, hi = tr.bounds()
+        best = None
+
+        def fun(z):
+            count[0] += 1
+            th = tr.to_theta(z)
+            try:
+                spec = effect.apply(base, th)
+            except Exception:          # noqa: BLE001 - an invalid parameter set is a bad fit
+                return np.full(n_res, 1e3)
+            return ev.fit_vector(spec)
+
+        n_res = int(ev.data.fit[:, ev.fit_cols].sum())
+        cand = starts or effect.starts(base, ctx)
+        iters = max_nfev or 8
+        # rank the starts by their cost, run Gauss-Newton from the best two
+        scored = []
+        for th0 in cand:
+            th0 = [p.clip(v) for p, v in zip(params, th0)]
+            z0 = np.clip(tr.to_z(th0), lo, hi)
+            r0 = fun(z0)
+            scored.append((float(r0 @ r0), z0, r0))
+        scored.sort(key=lambda s: s[0])
+        for c0, z0, r0 in scored[:2 if len(params) <= 4 else 1]:
+            sol = gauss_newton(fun, z0, lo, hi, r0=r0, max_iter=iters)
+            if best is None or sol["cost"] < best["cost"]:
+                best = sol
+        if best is None:
+            return None
+        theta = tr.to_theta(best["x"])
+        spec = effect.apply(base, theta)
+        Jm = best["jac"]
+        npts = max(1, len(best["fun"]))
+        s2 = best["cost"] / max(1, npts - len(theta))
+        # correlation of the whitened residual inflates the variance
+        infl = npts / max(1.0, n_eff(best["fun"][:, None], np.ones((npts, 1), bool)))
+        try:
+            cov_z = np.linalg.pinv(Jm.T @ Jm) * s2 * infl
+            dz = tr.dtheta_dz(theta)
+            cov = cov_z * np.outer(dz, dz)
+            sigma = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            dd = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+            corr = cov / np.outer(dd, dd)
+        except np.linalg.LinAlgError:
+            sigma = np.full(len(theta), np.nan)
+            corr = None
+    on_bound = [p.name for p, v in zip(params, theta) if effect.kind != "integer"
+                and (abs(v - p.lo) <= 1e-6 * max(abs(p.hi - p.lo), 1e-300) or abs(v - p.hi) <= 1e-6 * abs(p.hi - p.lo))]
+    J_fit, J_held, ne = ev.both(spec)
+    return FitResult(key=effect.key, title=effect.title, names=names, units=units, theta=np.asarray(theta, float),
+                     sigma=np.asarray(sigma, float), corr=corr, spec=spec, J_fit=J_fit, J_held=J_held, n_eff_held=ne,
+                     evals=count[0] + 1, seconds=time.perf_counter() - t0, nominal=effect.nominal(base),
+                     derived=effect.derived(base, theta), expressible=effect.expressible, on_bound=on_bound)
+
+
+def gauss_newton(fun, z0, lo, hi, r0=None, max_iter: int = 8, h: float = 1e-3, rtol: float = 1e-4) -> dict:
+    """Bounded Levenberg-Marquardt on ``||fun(z)||^2`` with forward-difference Jacobians.
+
+    Each iteration costs ``len(z) + 1`` residual evaluations (plus one per rejected step);
+    a problem linear in ``z`` converges in one or two iterations. Returns dict with ``x``,
+    ``fun``, ``cost`` (sum of squares), ``jac``, ``nfev``.
+    """
+    z = np.array(z0, float)
+    p = len(z)
+    r = fun(z) if r0 is None else r0
+    c = float(r @ r)
+    nfev = 0 if r0 is not None else 1
+    lam = 1e-4
+    J = np.zeros((len(r), p))
+    for _ in range(max_iter):
+        for i in range(p):
+            step = h if z[i] + h <= hi[i] else -h
+            zi = z.copy()
+            zi[i] += step
+            J[:, i] = (fun(zi) - r) / step
+            nfev += 1
+        Q, R = np.linalg.qr(J)
+        g = Q.T @ r
+        D = np.sqrt(np.maximum(np.sum(J * J, axis=0), 1e-300))
+        improved = False
+        for _try in range(6):
+            A = np.vstack([R, np.sqrt(lam) * np.diag(D)])
+            b = np.concatenate([-g, np.zeros(p)])
+            lb, ub = lo - z, hi - z
+            sol = optimize.lsq_linear(A, b, bounds=(np.minimum(lb, 0.0), np.maximum(ub, 0.0)), method="bvls")
+            dz = sol.x
+            zn = np.clip(z + dz, lo, hi)
+            rn = fun(zn)
+            nfev += 1
+            cn = float(rn @ rn)
+            if cn < c:
+                improved = True
+                lam = max(lam * 0.1, 1e-9)
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        gain = (c - cn) / max(c, 1e-300)
+        z, r, c = zn, rn, cn
+        if gain < rtol or np.max(np.abs(dz)) < 1e-9:
+            break
+    return {"x": z, "fun": r, "cost": c, "jac": J, "nfev": nfev}
+
+
+# --------------------------------------------------------------------------- joint fit
+class _Joint(Effect):
+    """Several fitted effects applied in sequence, all parameters free."""
+
+    def __init__(self, parts: list[tuple[Effect, int]]):
+        super().__init__("+".join(e.key for e, _ in parts), " + ".join(e.title for e, _ in parts),
+                         "deterministic", "", "")
+        self.parts = parts
+
+    def params(self, spec, ctx):
+        out = []
+        s = spec
+        for e, _ in self.parts:
+            ps = e.params(s, ctx)
+            out += [Param(f"{e.key}.{p.name}", p.unit, p.lo, p.hi, p.x0, p.log) for p in ps]
+        return out
+
+    def apply(self, spec, theta):
+        i = 0
+        s = spec
+        for e, n in self.parts:
+            s = e.apply(s, theta[i:i + n])
+            i += n
+        return s
+
+
+def joint_fit(fits: list[FitResult], base: ModelSpec, ev: Evaluator, ctx: dict) -> FitResult | None:
+    """Re-fit all selected deterministic effects together (integer ones held at their value)."""
+    cont = [f for f in fits if LIBRARY[f.key].kind == "deterministic"]
+    fixed = [f for f in fits if LIBRARY[f.key].kind != "deterministic"]
+    if len(cont) < 2:
+        return None
+    spec0 = base
+    for f in fixed:
+        spec0 = LIBRARY[f.key].apply(spec0, f.theta)
+    joint = _Joint([(_bind(LIBRARY[f.key], ctx), len(f.theta)) for f in cont])
+    x0 = np.concatenate([f.theta for f in cont])
+    # bounds of each part relative to the model it is applied to
+    r = fit_effect(joint, spec0, ev, ctx, starts=[list(x0)], max_nfev=4)
+    return r
+
+
+# --------------------------------------------------------------------------- stochastic
+def estimate_lattice(y: np.ndarray, min_frac: float = 0.995):
+    """Quantization step of measured positions, or None if they are not on a lattice.
+
+    The smallest spacing between distinct values is the candidate; it is accepted if
+    (nearly) every value is an integer multiple of it from the first value, then refined
+    by least squares.
+    """
+    y = np.asarray(y, float).ravel()
+    y = y[np.isfinite(y)]
+    if len(y) < 50:
+        return None
+    u = np.unique(y)
+    if len(u) < 3:
+        return None
+    scale = max(np.max(np.abs(u)), 1e-300)
+    du = np.diff(u)
+    du = du[du > 1e-12 * scale]
+    if not len(du):
+        return None
+    q1 = float(np.min(du))
+    # the minimum could be an outlier: use the smallest spacing that many pairs share
+    small = du[du < 1.5 * q1]
+    q1 = float(np.median(small))
+    n = np.round((u - u[0]) / q1)
+    frac = np.abs((u - u[0]) / q1 - n)
+    ok = frac < 0.02
+    if ok.mean() < min_frac:
+        return None
+    q = float(np.sum((u - u[0])[ok] * n[ok]) / max(np.sum(n[ok] ** 2), 1e-300))
+    return q
+
+
+def noise_components(spec: ModelSpec, data: DiagData, obs_factory, seeds=(7001,), sigma_ref=None):
+    """Force-residual spectra of simulated recordings: quantization-only and drive-noise parts.
+
+    Returns (f, S_q, S_n, sigma_ref): with drive noise sigma, S(f) ~ S_q + (sigma/sigma_ref)^2 S_n.
+    """
+    from scipy import signal
+    s0 = spec.preset.stage.drive.noise_current_rms
+    sigma_ref = sigma_ref or (s0 if s0 > 0 else 1e-3)
+    out = []
+    for sig in (0.0, sigma_ref):
+        sp = spec.with_changes({"stage.drive.noise_current_rms": sig})
+        psd = []
+        for sd in seeds:
+            dd = sim_data(sp, data, sd)
+            ob = obs_factory(dd)
+            r = ob.run(sp).r
+            for b in range(r.shape[1]):
+                m = dd.held[:, b] | dd.fit[:, b]
+                if m.sum() < 256:
+                    continue
+                f, p = signal.welch(r[m, b], data.rate, nperseg=min(1024, int(m.sum())))
+                psd.append(np.interp(np.linspace(0, data.rate / 2, 513), f, p))
+        out.append(np.mean(psd, axis=0))
+    f = np.linspace(0, data.rate / 2, 513)
+    return f, out[0], np.maximum(out[1] - out[0], 0.0), sigma_ref
+
+
+def fit_noise_level(r_meas: np.ndarray, mask: np.ndarray, rate: float, comps, f_max: float | None = None) -> dict:
+    """Drive-noise RMS current implied by the measured residual spectrum (robust median over
+    the bands where drive noise dominates the floor)."""
+    from scipy import signal
+    f, S_q, S_n, sigma_ref = comps
+    psd = []
+    for b in range(r_meas.shape[1]):
+        m = mask[:, b]
+        if m.sum() < 256:
+            continue
+        ff, p = signal.welch(r_meas[m, b], rate, nperseg=min(1024, int(m.sum())))
+        psd.append(np.interp(f, ff, p))
+    if not psd:
+        return {"ok": False, "why": "not enough samples"}
+    S_m = np.mean(psd, axis=0)
+    inband = (np.arange(len(f)) >= 4) & (f <= (f_max or f[-1]))
+    dom = (S_n > 1.0 * S_q) & inband
+    if dom.sum() < 6:
+        dom = (S_n > 0.3 * S_q) & inband
+    if dom.sum() < 3:
+        return {"ok": False, "why": "drive noise is nowhere above the quantization part of the floor"}
+    # ratio of summed power in groups of bins (unbiased, unlike a median of per-bin ratios),
+    # median over the groups (robust to a group holding a deterministic remnant)
+    idx = np.flatnonzero(dom)
+    groups = np.array_split(idx, min(8, max(1, len(idx) // 4)))
+    k2s = np.array([(S_m[g] - S_q[g]).sum() / max(S_n[g].sum(), 1e-300) for g in groups])
+    k2 = float(np.median(k2s))
+    sigma = sigma_ref * math.sqrt(max(k2, 0.0))
+    sig_k2 = float(np.std(k2s) / math.sqrt(len(k2s))) if len(k2s) > 1 else abs(k2)
+    # a deterministic remnant makes the low groups stand out: the group ratios disagree
+    spread = float(np.std(k2s) / max(abs(np.mean(k2s)), 1e-300)) if len(k2s) > 1 else 1.0
+    return {"ok": True, "group_ratios": [float(v) for v in k2s], "spread": spread, "sigma": sigma, "sigma_unc": sigma_ref * 0.5 * sig_k2 / max(math.sqrt(max(k2, 1e-12)), 1e-12),
+            "bands": int(dom.sum()), "groups": len(groups), "f_lo": float(f[dom].min()), "f_hi": float(f[dom].max())}
+
+
+# --------------------------------------------------------------------------- sparse regression
+def sparse_regression(features: dict, target: np.ndarray, threshold: float = 0.05, n_iter: int = 10) -> dict:
+    """Sequentially thresholded least squares (SINDy, Brunton et al. 2016) of ``target`` on
+    ``features`` (name -> vector). Coefficients whose contribution (|c| * RMS(feature)) is
+    below ``threshold`` times the target RMS are dropped, then the rest refitted.
+    Returns {name: coef} of the surviving terms and the explained fraction."""
+    names = list(features)
+    if not names or not len(target):
+        return {"terms": {}, "explained": 0.0}
+    X = np.column_stack([features[n] for n in names])
+    sc = np.sqrt(np.mean(X ** 2, axis=0))
+    sc[sc == 0] = 1.0
+    Xs = X / sc
+    ty = float(np.sqrt(np.mean(target ** 2))) or 1.0
+    active = np.ones(len(names), bool)
+    coef = np.zeros(len(names))
+    for _ in range(n_iter):
+        if not active.any():
+            break
+        c, *_ = np.linalg.lstsq(Xs[:, active], target, rcond=None)
+        coef[:] = 0.0
+        coef[active] = c
+        small = np.abs(coef) < threshold * ty
+        new = active & ~small
+        if np.array_equal(new, active):
+            break
+        active = new
+    fitted = Xs @ coef
+    expl = 1.0 - float(np.mean((target - fitted) ** 2) / max(np.mean(target ** 2), 1e-300))
+    return {"terms": {n: float(c / s) for n, c, s, a in zip(names, coef, sc, active) if a}, "explained": expl}

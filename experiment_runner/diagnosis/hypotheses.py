@@ -1,0 +1,758 @@
+"""The library of hypotheses: each a model change with parameters, bounds and a signature.
+
+Every :class:`Effect` turns a parameter vector into a modified :class:`~.model.ModelSpec`
+(:meth:`Effect.apply`), relative to the model it is added to. ``kind`` says how it is
+fitted:
+
+``deterministic``  fitted to the force residual on the fit set (:mod:`.fit`);
+``integer``        a grid over integers (actuator delay);
+``stochastic``     compared through the noise floor (drive noise) or the measurement
+                   lattice (quantization), see :mod:`.fit`;
+``info``           documented, not fitted in this milestone (needs topics the contract
+                   does not require).
+
+``expressible`` says whether the fitted model is a preset the simulator runs as is
+(``True``), or needs additive table forces run by the diagnosis kernels (``False``: the
+improved preset YAML then omits it, ``model.yaml`` carries it; the plant feature it needs
+is named in ``needs``).
+
+``nanostage diagnose --list-effects`` prints this library (:func:`describe`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .model import AddTerm, ModelSpec, coulomb_total, friction_elements, table_mass
+
+__all__ = ["Param", "Effect", "LIBRARY", "get_effect", "describe", "virgin_x50"]
+
+
+@dataclass
+class Param:
+    name: str
+    unit: str
+    lo: float
+    hi: float
+    x0: float
+    log: bool = False
+    doc: str = ""
+
+    def clip(self, v):
+        return float(min(max(v, self.lo), self.hi))
+
+
+@dataclass
+class Effect:
+    key: str
+    title: str
+    kind: str                      # deterministic | integer | stochastic | info
+    physics: str
+    signature: str
+    expressible: bool = True
+    needs: str = ""
+    param_doc: list = field(default_factory=list)   # (name, unit, meaning) for the listing
+
+    def applicable(self, spec: ModelSpec) -> str | None:
+        """``None`` if the effect can be added to ``spec``, else the reason it cannot."""
+        return None
+
+    def params(self, spec: ModelSpec, ctx: dict) -> list[Param]:
+        return []
+
+    def apply(self, spec: ModelSpec, theta) -> ModelSpec:
+        raise NotImplementedError
+
+    def nominal(self, spec: ModelSpec) -> dict:
+        """The nominal model's values of the parameters (None where it has no such term)."""
+        return {}
+
+    def derived(self, spec: ModelSpec, theta) -> dict:
+        """Physical quantities derived from the fit (compared with a truth in the self-test)."""
+        return {}
+
+    def starts(self, spec: ModelSpec, ctx: dict) -> list:
+        """Initial parameter vectors (multi-start); default: the x0 of :meth:`params`."""
+        return [[p.x0 for p in self.params(spec, ctx)]]
+
+
+# --------------------------------------------------------------------------- helpers
+def _fric_weights(spec: ModelSpec):
+    els = friction_elements(spec.preset)
+    fcs = np.array([max(getattr(fr, "f_c", 0.0), 0.0) for _, fr in els])
+    if len(els) == 0:
+        return els, fcs
+    w = fcs / fcs.sum() if fcs.sum() > 0 else np.full(len(els), 1.0 / len(els))
+    return els, w
+
+
+def _set_path(data: dict, dotted: str, value):
+    node = data
+    keys = dotted.split(".")
+    for k in keys[:-1]:
+        node = node[int(k)] if isinstance(node, list) else node[k]
+    if isinstance(node, list):
+        node[int(keys[-1])] = value
+    else:
+        node[keys[-1]] = value
+
+
+def _pre_motion_stiffness(fr) -> float:
+    m = fr.model
+    if m == "dahl":
+        return fr.k_sigma
+    if m == "gms":
+        return float(sum(fr.k))
+    if m == "lugre":
+        return fr.sigma0
+    return 0.0
+
+
+def virgin_x50(fr_dump: list[dict]) -> float:
+    """Displacement [m] at which the summed virgin curve of friction elements reaches half
+    their total Coulomb force (pre-motion length scale; Dahl: ln2 F_C/k_sigma)."""
+    xs = np.logspace(-10, -2, 2000)
+    tot = np.zeros_like(xs)
+    fc = 0.0
+    for fr in fr_dump:
+        m = fr["model"]
+        if m == "dahl":
+            k, f, nu = fr["k_sigma"], fr["f_c"], fr.get("shape", 1.0)
+            if nu == 1.0:
+                tot += f * (1 - np.exp(-k * xs / f))
+            else:   # integrate dF/dx = k (1 - F/fc)^nu numerically
+                F = np.zeros_like(xs)
+                for i in range(1, len(xs)):
+                    F[i] = F[i - 1] + k * max(0.0, 1 - F[i - 1] / f) ** nu * (xs[i] - xs[i - 1])
+                tot += np.minimum(F, f)
+            fc += f
+        elif m == "gms":
+            for k, a in zip(fr["k"], fr["alpha"]):
+                tot += np.minimum(k * xs, a * fr["f_c"])
+            fc += fr["f_c"] * sum(fr["alpha"])
+        elif m == "lugre":
+            k, f = fr["sigma0"], fr["f_c"]
+            tot += f * (1 - np.exp(-k * xs / f))
+            fc += f
+        elif m == "coulomb":
+            tot += fr["f_c"]
+            fc += fr["f_c"]
+    if fc <= 0:
+        return float("nan")
+    i = int(np.searchsorted(tot, 0.5 * fc))
+    return float(xs[min(i, len(xs) - 1)])
+
+
+# --------------------------------------------------------------------------- friction level
+class Coulomb(Effect):
+    def params(self, spec, ctx):
+        f0 = coulomb_total(spec.preset)
+        umax = ctx.get("u_max", 10.0)
+        return [Param("F_C", "N", 0.0 if f0 == 0 else 0.02 * f0, max(3 * f0, 2 * umax), f0 if f0 > 0 else 0.1 * umax,
+                      doc="total Coulomb (sliding) friction force")]
+
+    def nominal(self, spec):
+        return {"F_C": coulomb_total(spec.preset)}
+
+    def apply(self, spec, theta):
+        fc = float(theta[0])
+        f0 = coulomb_total(spec.preset)
+        if f0 <= 0:
+            def edit(d):
+                tf = d["stage"]["table_friction"]
+                if tf is None:
+                    d["stage"]["table_friction"] = {"model": "coulomb", "f_c": fc, "f_s": None, "viscous": 0.0}
+                else:
+                    tf["f_c"] = fc
+            return spec.with_changes(edit=edit)
+        s = fc / f0
+
+        def edit(d):
+            for path, fr in friction_elements(spec.preset):
+                node = d
+                for k in path.split("."):
+                    node = node[int(k)] if isinstance(node, list) else node[k]
+                node["f_c"] = fr.f_c * s
+                if fr.model == "lugre":
+                    node["f_s"] = fr.f_s * s
+                if fr.model == "coulomb" and fr.f_s is not None:
+                    node["f_s"] = fr.f_s * s
+        return spec.with_changes(edit=edit)
+
+
+class Viscous(Effect):
+    def _c0(self, spec):
+        st = spec.preset.stage
+        c = st.table_friction.viscous if st.table_friction is not None else 0.0
+        return c + sum(b.friction.viscous for b in st.bearings if b.joint is None)
+
+    def params(self, spec, ctx):
+        c0 = self._c0(spec)
+        cmax = max(10 * c0, ctx.get("u_max", 10.0) / max(ctx.get("v_max", 1e-3), 1e-9))
+        return [Param("c", "N·s/m", 0.0, cmax, c0 if c0 > 0 else 0.01 * cmax, doc="total viscous coefficient at the table")]
+
+    def nominal(self, spec):
+        return {"c": self._c0(spec)}
+
+    def apply(self, spec, theta):
+        c = float(theta[0])
+        c0 = self._c0(spec)
+        st = spec.preset.stage
+        tf0 = st.table_friction.viscous if st.table_friction is not None else 0.0
+        target = max(0.0, tf0 + (c - c0))
+
+        def edit(d):
+            tf = d["stage"]["table_friction"]
+            if tf is None:
+                d["stage"]["table_friction"] = {"model": "coulomb", "f_c": 0.0, "f_s": None, "viscous": target}
+            else:
+                tf["viscous"] = target
+            if c < c0 - tf0:   # need to take viscous from rigid bearings
+                for b in d["stage"]["bearings"]:
+                    if b["joint"] is None:
+                        b["friction"]["viscous"] *= max(0.0, c) / max(c0 - tf0, 1e-300)
+        return spec.with_changes(edit=edit)
+
+
+# --------------------------------------------------------------------------- pre-motion friction
+class Dahl(Effect):
+    def applicable(self, spec):
+        return None if friction_elements(spec.preset) else "the model has no friction element to give pre-motion"
+
+    def _k0(self, spec):
+        return float(sum(_pre_motion_stiffness(fr) for _, fr in friction_elements(spec.preset)))
+
+    def params(self, spec, ctx):
+        k0 = self._k0(spec)
+        if k0 <= 0:
+            k0 = max(coulomb_total(spec.preset), 1e-3) / 1e-6
+        return [Param("k_sigma", "N/m", k0 * 1e-3, k0 * 1e3, k0, log=True,
+                      doc="total pre-motion (contact) stiffness of the Dahl model")]
+
+    def starts(self, spec, ctx):
+        k0 = self.params(spec, ctx)[0].x0
+        return [[k0 * s] for s in (1.0, 0.3, 3.0)] if any(
+            fr.model == "dahl" for _, fr in friction_elements(spec.preset)) else [[k0 * s] for s in (0.1, 1.0, 10.0)]
+
+    def nominal(self, spec):
+        els = friction_elements(spec.preset)
+        return {"k_sigma": self._k0(spec) if all(fr.model == "dahl" for _, fr in els) and els else None}
+
+    def derived(self, spec, theta):
+        sp = self.apply(spec, theta)
+        return {"x_50": virgin_x50([fr.model_dump() for _, fr in friction_elements(sp.preset)])}
+
+    def apply(self, spec, theta):
+        k = float(theta[0])
+        els, w = _fric_weights(spec)
+
+        def edit(d):
+            for (path, fr), we in zip(els, w):
+                new = {"model": "dahl", "k_sigma": k * we, "f_c": max(fr.f_c, 1e-9),
+                       "shape": getattr(fr, "shape", 1.0), "viscous": fr.viscous}
+                _set_path(d, path, new)
+        return spec.with_changes(edit=edit)
+
+
+class Gms(Effect):
+    """Maxwell-slip / Prandtl-Ishlinskii: fixed log-spaced slip displacements, fitted capacities."""
+    N = 12
+
+    def applicable(self, spec):
+        return None if friction_elements(spec.preset) else "the model has no friction element"
+
+    def deltas(self, ctx):
+        lo = ctx.get("delta_lo", 1e-7)
+        hi = ctx.get("delta_hi", 5e-5)
+        return np.logspace(np.log10(lo), np.log10(hi), self.N)
+
+    def params(self, spec, ctx):
+        fc = max(coulomb_total(spec.preset), 1e-3)
+        d = self.deltas(ctx)
+        return [Param(f"F_{i + 1}", "N", 1e-4 * fc, 3 * fc, fc / self.N,
+                      doc=f"capacity of the block slipping after {d[i] * 1e6:.3g} um") for i in range(self.N)]
+
+    def starts(self, spec, ctx):
+        fc = max(coulomb_total(spec.preset), 1e-3)
+        d = self.deltas(ctx)
+        out = [[fc / self.N] * self.N]
+        # the nominal model's own virgin curve sampled at the grid (if it has pre-motion)
+        els = friction_elements(spec.preset)
+        x50 = virgin_x50([fr.model_dump() for _, fr in els])
+        if np.isfinite(x50):
+            w = np.exp(-0.5 * (np.log(d / x50) / 1.0) ** 2)
+            out.append(list(fc * w / w.sum()))
+        return out
+
+    def nominal(self, spec):
+        return {f"F_{i + 1}": None for i in range(self.N)}
+
+    def derived(self, spec, theta):
+        sp = self.apply(spec, theta)
+        els = [fr.model_dump() for _, fr in friction_elements(sp.preset)]
+        return {"F_C": float(np.sum(theta)), "x_50": virgin_x50(els),
+                "k_0": float(sum(sum(fr["k"]) for fr in els if fr["model"] == "gms"))}
+
+    def apply(self, spec, theta, ctx=None):
+        F = np.maximum(np.asarray(theta, float), 1e-9)
+        d = self._d if getattr(self, "_d", None) is not None else self.deltas({})
+        fc = F.sum()
+        els, w = _fric_weights(spec)
+
+        def edit(dd):
+            for (path, fr), we in zip(els, w):
+                _set_path(dd, path, {"model": "gms", "k": list(F * we / d), "alpha": list(F / fc), "f_c": fc * we,
+                                     "viscous": fr.viscous})
+        return spec.with_changes(edit=edit)
+
+    def bind(self, ctx):
+        self._d = self.deltas(ctx)
+        return self
+
+
+class Stribeck(Effect):
+    def applicable(self, spec):
+        return None if friction_elements(spec.preset) else "the model has no friction element"
+
+    def params(self, spec, ctx):
+        fc = max(coulomb_total(spec.preset), 1e-6)
+        vmax = max(ctx.get("v_max", 1e-3), 1e-9)
+        return [Param("F_S", "N", 1.0 * fc, 6 * fc, 1.3 * fc, doc="total static (break-away) force"),
+                Param("v_s", "m/s", vmax * 1e-4, vmax, 0.05 * vmax, log=True, doc="Stribeck velocity")]
+
+    def starts(self, spec, ctx):
+        fc = max(coulomb_total(spec.preset), 1e-6)
+        vmax = max(ctx.get("v_max", 1e-3), 1e-9)
+        return [[1.5 * fc, vmax * s] for s in (0.01, 0.05, 0.2)]
+
+    def nominal(self, spec):
+        els = friction_elements(spec.preset)
+        if els and all(fr.model == "lugre" for _, fr in els):
+            return {"F_S": float(sum(fr.f_s for _, fr in els)), "v_s": els[0][1].v_s}
+        return {"F_S": None, "v_s": None}
+
+    def apply(self, spec, theta):
+        fs, vs = float(theta[0]), float(theta[1])
+        els, w = _fric_weights(spec)
+        fc = max(coulomb_total(spec.preset), 1e-9)
+
+        def edit(d):
+            for (path, fr), we in zip(els, w):
+                k = _pre_motion_stiffness(fr) or max(fr.f_c, 1e-9) / 1e-6
+                _set_path(d, path, {"model": "lugre", "sigma0": k, "sigma1": getattr(fr, "sigma1", 0.0),
+                                    "viscous": fr.viscous, "f_c": max(fr.f_c, 1e-9), "f_s": max(fs * we, fr.f_c * 1.0001, 1e-9),
+                                    "v_s": vs, "exponent": getattr(fr, "exponent", 2.0)})
+        return spec.with_changes(edit=edit)
+
+
+# --------------------------------------------------------------------------- rigid body, drive
+class Mass(Effect):
+    def params(self, spec, ctx):
+        m = spec.preset.stage.table.mass
+        return [Param("m_table", "kg", 0.2 * m, 5 * m, m, doc="table mass (stage.table.mass)")]
+
+    def nominal(self, spec):
+        return {"m_table": spec.preset.stage.table.mass}
+
+    def apply(self, spec, theta):
+        return spec.with_changes({"stage.table.mass": float(theta[0])})
+
+
+class ForceConstant(Effect):
+    def params(self, spec, ctx):
+        r = spec.preset.stage.drive.force_constant_ratio
+        return [Param("ratio", "-", 0.3 * r, 3 * r, r, doc="true / nominal motor force constant")]
+
+    def nominal(self, spec):
+        return {"ratio": spec.preset.stage.drive.force_constant_ratio}
+
+    def apply(self, spec, theta):
+        return spec.with_changes({"stage.drive.force_constant_ratio": float(theta[0])})
+
+
+class Delay(Effect):
+    MAX = 12
+
+    def params(self, spec, ctx):
+        d = spec.preset.stage.drive.delay_samples
+        return [Param("delay_samples", "samples", 0, self.MAX, d, doc="drive delay in control samples")]
+
+    def nominal(self, spec):
+        return {"delay_samples": spec.preset.stage.drive.delay_samples}
+
+    def apply(self, spec, theta):
+        return spec.with_changes({"stage.drive.delay_samples": int(round(theta[0]))})
+
+
+# --------------------------------------------------------------------------- structure
+class Mode(Effect):
+    def params(self, spec, ctx):
+        rate = spec.preset.controller.rate
+        f0 = ctx.get("peak_hz", [0.1 * rate])[0] if ctx.get("peak_hz") else 0.1 * rate
+        return [Param("f", "Hz", 2.0, 0.45 * rate, f0, log=True, doc="blocked natural frequency"),
+                Param("zeta", "-", 0.002, 0.5, 0.03, log=True, doc="damping ratio"),
+                Param("mass_ratio", "-", 1e-3, 3.0, 0.1, log=True, doc="modal mass / table mass")]
+
+    def starts(self, spec, ctx):
+        rate = spec.preset.controller.rate
+        peaks = list(ctx.get("peak_hz") or [])[:3]
+        grid = peaks + [f for f in (0.01 * rate, 0.03 * rate, 0.1 * rate) if all(abs(np.log(f / p)) > 0.3 for p in peaks)]
+        return [[f, 0.03, 0.1] for f in grid[:5]]
+
+    def nominal(self, spec):
+        return {"f": None, "zeta": None, "mass_ratio": None}
+
+    def apply(self, spec, theta):
+        f, z, mu = (float(v) for v in theta)
+
+        def edit(d):
+            d["stage"]["modes"] = list(d["stage"]["modes"]) + [{"frequency": f, "damping_ratio": min(z, 0.99),
+                                                                "mass_ratio": mu}]
+        return spec.with_changes(edit=edit)
+
+
+class FiCompliance(Effect):
+    def applicable(self, spec):
+        return None if spec.preset.stage.bearings else "the stage has no bearing carriage to put behind a joint"
+
+    @staticmethod
+    def _mt(st):
+        """Table side of the joint: the table with its structural-mode masses."""
+        return st.table.mass * (1.0 + sum(m.mass_ratio for m in st.modes))
+
+    def _m_red(self, spec):
+        st = spec.preset.stage
+        mb = st.bearings[0].mass
+        mt = self._mt(st)
+        return mb * mt / (mb + mt)
+
+    def params(self, spec, ctx):
+        st = spec.preset.stage
+        nb = len(st.bearings)
+        k0 = st.bearings[0].joint.stiffness * nb if st.bearings[0].joint is not None else None
+        mr = self._m_red(spec)
+        kg = k0 or mr * (2 * np.pi * 50.0) ** 2 * nb
+        return [Param("k_fi", "N/m", 1e-3 * kg, 1e3 * kg, kg, log=True, doc="total joint stiffness (all bearings)"),
+                Param("zeta_fi", "-", 1e-3, 1.0, 0.02, log=True, doc="joint damping ratio on the reduced mass")]
+
+    def starts(self, spec, ctx):
+        st = spec.preset.stage
+        nb = len(st.bearings)
+        mr = self._m_red(spec)
+        if st.bearings[0].joint is not None:
+            k0 = st.bearings[0].joint.stiffness * nb
+            return [[k0, 0.02], [0.3 * k0, 0.02], [3 * k0, 0.02]]
+        fr = list(ctx.get("peak_hz") or [])[:2] + [20.0, 60.0, 200.0]
+        return [[mr * (2 * np.pi * f) ** 2 * nb, 0.02] for f in fr[:4]]
+
+    def nominal(self, spec):
+        st = spec.preset.stage
+        if st.bearings and st.bearings[0].joint is not None:
+            j = st.bearings[0].joint
+            return {"k_fi": j.stiffness * len(st.bearings),
+                    "zeta_fi": j.damping / (2 * math.sqrt(j.stiffness * self._m_red(spec)))}
+        return {"k_fi": None, "zeta_fi": None}
+
+    def apply(self, spec, theta):
+        k, z = float(theta[0]), float(theta[1])
+        st = spec.preset.stage
+        nb = len(st.bearings)
+        kb = k / nb
+        mt = self._mt(st)
+
+        def edit(d):
+            for b in d["stage"]["bearings"]:
+                mb = b["mass"]
+                mr = mb * mt / (mb + mt)
+                b["joint"] = {"stiffness": kb, "damping": 2 * z * math.sqrt(kb * mr)}
+        return spec.with_changes(edit=edit)
+
+
+# --------------------------------------------------------------------------- additive (not in the preset)
+class Ripple(Effect):
+    def params(self, spec, ctx):
+        per = (ctx.get("ripple_period") or [ctx.get("x_span", 1e-3) / 4])[0]
+        amp = ctx.get("r_rms", 0.1)
+        return [Param("a_sin", "N", -10 * amp - 1, 10 * amp + 1, 0.0, doc="sine amplitude"),
+                Param("a_cos", "N", -10 * amp - 1, 10 * amp + 1, 0.0, doc="cosine amplitude"),
+                Param("period", "m", per / 3, per * 3, per, log=True, doc="spatial period")]
+
+    def starts(self, spec, ctx):
+        pers = list(ctx.get("ripple_period") or [])[:3] or [ctx.get("x_span", 1e-3) / 4]
+        return [[0.0, 0.0, p] for p in pers]
+
+    def nominal(self, spec):
+        return {"a_sin": 0.0, "a_cos": 0.0, "period": None}
+
+    def derived(self, spec, theta):
+        return {"amplitude": float(math.hypot(theta[0], theta[1])), "period": float(theta[2]),
+                "phase": float(math.atan2(theta[1], theta[0]))}
+
+    def apply(self, spec, theta):
+        a, b, per = (float(v) for v in theta)
+        amp, ph = math.hypot(a, b), math.atan2(b, a)
+        return spec.with_changes(add=[AddTerm("sin_x", amp, (per, ph), "ripple")])
+
+
+class PositionFriction(Effect):
+    """F_C(x) = F_C + dF_0 + g_1 (x - x_c) + g_2 (x - x_c)^2, x_c = centre of the recorded positions."""
+
+    def params(self, spec, ctx):
+        fc = max(coulomb_total(spec.preset), ctx.get("r_rms", 0.1))
+        hs = max(ctx.get("x_half_span", 1e-3), 1e-9)
+        return [Param("dF_0", "N", -2 * fc, 3 * fc, 0.0, doc="friction change at the centre of the recorded travel"),
+                Param("g_1", "N/m", -3 * fc / hs, 3 * fc / hs, 0.0, doc="friction slope along the travel"),
+                Param("g_2", "N/m^2", -3 * fc / hs ** 2, 3 * fc / hs ** 2, 0.0, doc="friction curvature")]
+
+    def nominal(self, spec):
+        return {"dF_0": 0.0, "g_1": 0.0, "g_2": 0.0}
+
+    def derived(self, spec, theta):
+        return {"x_center": self._c}
+
+    def apply(self, spec, theta):
+        c = self._c
+        # friction resists motion: the table feels -dF(x) * phi_f
+        return spec.with_changes(add=[
+            AddTerm("friction_x", -float(theta[0]), (c, 1.0, 0.0), "position friction (level)"),
+            AddTerm("friction_x", -float(theta[1]), (c, 1.0, 1.0), "position friction (slope)"),
+            AddTerm("friction_x", -float(theta[2]), (c, 1.0, 2.0), "position friction (curvature)")])
+
+    def bind(self, ctx):
+        self._c = float(ctx.get("x_center", 0.0))
+        return self
+
+
+class Asymmetry(Effect):
+    """Friction different in the two directions: F_C+- = F_C +- dF_C/2, c+- = c +- dc/2."""
+
+    def params(self, spec, ctx):
+        fc = max(coulomb_total(spec.preset), ctx.get("r_rms", 0.1))
+        vmax = max(ctx.get("v_max", 1e-3), 1e-9)
+        return [Param("dF_C", "N", -2 * fc, 2 * fc, 0.0, doc="Coulomb force in + minus in - direction"),
+                Param("dc", "N·s/m", -4 * fc / vmax, 4 * fc / vmax, 0.0, doc="viscous coefficient + minus -")]
+
+    def nominal(self, spec):
+        return {"dF_C": 0.0, "dc": 0.0}
+
+    def apply(self, spec, theta):
+        # moving +: extra resisting -dF_C/2 - dc/2 v ; moving -: extra +dF_C/2 ... = -dF_C/2 |phi| - dc/2 |v|
+        return spec.with_changes(add=[AddTerm("abs_friction", -0.5 * float(theta[0]), (), "friction asymmetry (Coulomb)"),
+                                      AddTerm("abs_v", -0.5 * float(theta[1]), (), "friction asymmetry (viscous)")])
+
+
+class Offset(Effect):
+    def params(self, spec, ctx):
+        um = ctx.get("u_max", 10.0)
+        return [Param("F_0", "N", -um, um, 0.0, doc="constant force on the table (+x)")]
+
+    def nominal(self, spec):
+        return {"F_0": 0.0}
+
+    def apply(self, spec, theta):
+        return spec.with_changes(add=[AddTerm("offset", float(theta[0]), (), "offset")])
+
+
+class PeriodicForce(Effect):
+    def params(self, spec, ctx):
+        f0 = (ctx.get("line_hz") or [50.0])[0]
+        amp = ctx.get("r_rms", 0.1)
+        return [Param("a_sin", "N", -10 * amp - 1, 10 * amp + 1, 0.0), Param("a_cos", "N", -10 * amp - 1, 10 * amp + 1, 0.0),
+                Param("f", "Hz", f0 * 0.98, f0 * 1.02, f0, doc="frequency of the line")]
+
+    def starts(self, spec, ctx):
+        return [[0.0, 0.0, f] for f in (ctx.get("line_hz") or [50.0])[:2]]
+
+    def applicable(self, spec):
+        return None
+
+    def nominal(self, spec):
+        return {"a_sin": 0.0, "a_cos": 0.0, "f": None}
+
+    def derived(self, spec, theta):
+        return {"amplitude": float(math.hypot(theta[0], theta[1])), "f": float(theta[2])}
+
+    def apply(self, spec, theta):
+        a, b, f = (float(v) for v in theta)
+        return spec.with_changes(add=[AddTerm("sin_t", math.hypot(a, b), (f, math.atan2(b, a)), "periodic force")])
+
+
+# --------------------------------------------------------------------------- stochastic / info
+class NoiseLevel(Effect):
+    def params(self, spec, ctx):
+        s = spec.preset.stage.drive.noise_current_rms
+        return [Param("noise_current_rms", "A", 0.0, 1.0, s, doc="drive current noise RMS")]
+
+    def nominal(self, spec):
+        return {"noise_current_rms": spec.preset.stage.drive.noise_current_rms}
+
+    def apply(self, spec, theta):
+        return spec.with_changes({"stage.drive.noise_current_rms": max(0.0, float(theta[0]))})
+
+
+class Quantization(Effect):
+    def params(self, spec, ctx):
+        q = spec.preset.stage.encoder.resolution
+        return [Param("resolution", "m", 0.0, 1e-3, q, doc="encoder quantization step")]
+
+    def nominal(self, spec):
+        return {"resolution": spec.preset.stage.encoder.resolution}
+
+    def apply(self, spec, theta):
+        return spec.with_changes({"stage.encoder.resolution": max(0.0, float(theta[0]))})
+
+
+class Info(Effect):
+    def applicable(self, spec):
+        return self.needs or "not fitted in this milestone"
+
+
+# --------------------------------------------------------------------------- the library
+def _lib():
+    return [
+        Dahl("dahl", "pre-motion friction (Dahl)", "deterministic",
+             "Friction builds up over a contact stiffness k_sigma after each reversal before gross sliding "
+             "(Dahl, Eq. 1.1/4.3); replaces the model's friction elements by Dahl elements (F_C kept).",
+             "residual concentrated just after motion reversals and in settling / in-position; vs displacement "
+             "since the last reversal it rises or falls over ~F_C/k_sigma and then vanishes",
+             param_doc=[("k_sigma", "N/m", "total pre-motion stiffness")]),
+        Gms("gms", "pre-motion friction (GMS / Maxwell-slip)", "deterministic",
+            "Generalized Maxwell-slip (Eq. 4.4): parallel elasto-slip blocks, here 12 blocks with log-spaced slip "
+            "displacements and fitted capacities (a Prandtl-Ishlinskii operator, linear in the capacities); replaces "
+            "the friction elements.",
+            "like Dahl, but the pre-motion transition has a different shape (long tail: blocks slipping after "
+            "tens of um); vs displacement since reversal it is piecewise linear",
+            param_doc=[("F_1..F_12", "N", "block capacities (sum = F_C), slip displacements log-spaced 3e-8 (or 3 encoder steps) ... 1e-4 m")]),
+        Coulomb("coulomb", "Coulomb friction level", "deterministic",
+                "The sliding friction force F_C differs (all friction elements scaled; added at the table if the "
+                "model has none).",
+                "a step of the residual with the sign of the velocity: constant while sliding, flips at reversals",
+                param_doc=[("F_C", "N", "total Coulomb force")]),
+        Viscous(
+            "viscous", "viscous friction", "deterministic",
+            "A force proportional to velocity (table_friction.viscous).",
+            "residual proportional to velocity; largest at constant velocity, zero at rest",
+            param_doc=[("c", "N·s/m", "total viscous coefficient")]),
+        Stribeck("stribeck", "Stribeck effect (LuGre)", "deterministic",
+                 "Friction higher at low sliding speed: LuGre with g(v) = F_C + (F_S - F_C) exp(-(v/v_s)^2), "
+                 "sigma0 = the model's pre-motion stiffness.",
+                 "residual with the sign of velocity, largest at low speed (just after reversals, before "
+                 "constant velocity), vanishing above a few v_s",
+                 param_doc=[("F_S", "N", "static force"), ("v_s", "m/s", "Stribeck velocity")]),
+        FiCompliance("fi_compliance", "FI compliance (bearing behind a spring-damper)", "deterministic",
+                     "The bearing carriages are not rigid with the table but behind a joint of stiffness k_fi "
+                     "and damping (friction isolator, Ch. 4): adds (or re-fits) stage.bearings[*].joint.",
+                     "an oscillatory residual at the joint mode after reversals and moves, frequency "
+                     "sqrt(k_fi/m_red)/(2 pi); residual vs acceleration and in the band of that mode",
+                     param_doc=[("k_fi", "N/m", "total joint stiffness"), ("zeta_fi", "-", "damping ratio")]),
+        PositionFriction("position_friction", "position-dependent friction", "deterministic",
+                         "Friction level varies along the travel: F_C(x) = F_C + dF_0 + g_1 (x - x_c) + g_2 (x - x_c)^2 "
+                         "(x_c: centre of the recorded positions); additive table force -phi_f dF(x), phi_f the "
+                         "model's normalised friction state (follows pre-motion).",
+                         "residual with the sign of velocity whose size depends on position (residual vs "
+                         "position, split by direction of motion)",
+                         expressible=False, needs="position-dependent friction level in the friction config "
+                                                  "(e.g. friction.f_c_profile: polynomial or table over x)",
+                         param_doc=[("dF_0", "N", "level change"), ("g_1", "N/m", "slope"), ("g_2", "N/m^2", "curvature")]),
+        Ripple("ripple", "position-periodic force ripple", "deterministic",
+               "Motor cogging / commutation ripple: F = A sin(2 pi x / period + phase) on the table.",
+               "residual periodic in position (peak in the periodogram of residual vs position), independent "
+               "of velocity sign",
+               expressible=False, needs="drive.force_ripple: [{amplitude, period, phase}] (position-periodic "
+                                        "force on the table)",
+               param_doc=[("a_sin, a_cos", "N", "amplitudes"), ("period", "m", "spatial period")]),
+        Mode("structural_mode", "structural resonance", "deterministic",
+             "An (additional) lightly damped mode: a mass on a spring-damper to the table (stage.modes).",
+             "a narrow band of the residual spectrum above the noise floor, ringing after transients",
+             param_doc=[("f", "Hz", "frequency"), ("zeta", "-", "damping ratio"), ("mass_ratio", "-", "modal mass")]),
+        Delay("delay", "actuator delay", "integer",
+              "The drive applies the command some samples late (stage.drive.delay_samples).",
+              "residual correlated with the rate of change of the command (largest where the command changes "
+              "fast: reversals, starts of moves); phase lag growing with frequency",
+              param_doc=[("delay_samples", "samples", "delay")]),
+        ForceConstant("force_constant", "force-constant error", "deterministic",
+                      "The motor force per command differs from nominal (stage.drive.force_constant_ratio).",
+                      "residual proportional to the command itself (residual vs command is a straight line)",
+                      param_doc=[("ratio", "-", "true/nominal force constant")]),
+        Mass("mass", "mass error", "deterministic",
+             "The moving mass differs (stage.table.mass).",
+             "residual proportional to acceleration (residual vs acceleration is a straight line); "
+             "zero at constant velocity and at rest",
+             param_doc=[("m_table", "kg", "table mass")]),
+        Asymmetry("friction_asymmetry", "direction-asymmetric friction", "deterministic",
+                  "Coulomb and viscous friction differ between the two directions of motion (EMPS: "
+                  "Fc+ != Fc-, Fv+ != Fv-): additive -dF_C/2 |phi_f| - dc/2 |v|.",
+                  "a residual of the same sign in both directions while moving (not flipping at reversals), "
+                  "zero at rest; residual vs velocity is V-shaped / offset between the branches",
+                  expressible=False, needs="per-direction friction parameters (f_c_pos/f_c_neg, "
+                                           "viscous_pos/viscous_neg) in the friction config",
+                  param_doc=[("dF_C", "N", "F_C+ - F_C-"), ("dc", "N·s/m", "c+ - c-")]),
+        Offset("offset", "constant force offset", "deterministic",
+               "A constant force on the table (cable drag, gravity on a tilted axis, amplifier offset).",
+               "a constant residual, independent of state",
+               expressible=False, needs="stage.table_force_offset [N]",
+               param_doc=[("F_0", "N", "force")]),
+        NoiseLevel("noise_level", "drive-noise level", "stochastic",
+                   "The drive current noise differs (stage.drive.noise_current_rms).",
+                   "the residual floor (spectrum where the model leaves only noise) is above / below the "
+                   "floor of recordings simulated from the model",
+                   param_doc=[("noise_current_rms", "A", "RMS current noise")]),
+        Quantization("quantization", "encoder quantization", "stochastic",
+                     "The encoder resolution differs (stage.encoder.resolution).",
+                     "the measured positions sit on a lattice of a different step than the model's",
+                     param_doc=[("resolution", "m", "quantization step")]),
+        PeriodicForce("dither_imbalance", "dither imbalance / periodic force", "deterministic",
+                      "A force at a fixed frequency on the table: the net force of imbalanced dither piezos "
+                      "(VAN, Ch. 3) or a periodic disturbance; additive sin(2 pi f t).",
+                      "a spectral line of the residual far above the floor at one frequency (the dither "
+                      "frequency), present in every regime",
+                      expressible=False, needs="/stage/dither topic and per-piezo amplitude (imbalance) in the "
+                                               "dither config, or stage.periodic_force",
+                      param_doc=[("a_sin, a_cos", "N", "amplitudes"), ("f", "Hz", "frequency")]),
+        Info("isolator_transient", "isolator switching transient", "info",
+             "SAI lock/unlock (Ch. 5): impact pulse and release of the stored flexure force.",
+             "residual bursts at the isolator switching instants (/stage/isolator)",
+             expressible=True, needs="the /stage/isolator topic and a stage with stage.sai; fitted in a later "
+                                     "milestone (sai.impact_impulse, cushioning, lock_capacity)",
+             param_doc=[("impact_impulse", "N·s", ""), ("cushioning", "-", "")]),
+    ]
+
+
+LIBRARY: dict[str, Effect] = {e.key: e for e in _lib()}
+
+
+def get_effect(key: str) -> Effect:
+    if key not in LIBRARY:
+        raise KeyError(f"unknown effect {key!r} (known: {', '.join(LIBRARY)})")
+    return LIBRARY[key]
+
+
+def describe(as_json: bool = False):
+    """The library as text (``--list-effects``) or a list of dicts."""
+    rows = []
+    for e in LIBRARY.values():
+        rows.append({"key": e.key, "title": e.title, "kind": e.kind, "physics": e.physics, "signature": e.signature,
+                     "parameters": [{"name": n, "unit": u, "meaning": m} for n, u, m in e.param_doc],
+                     "in_preset": e.expressible, "needs": e.needs})
+    rows.append({"key": "sparse_regression", "title": "sparse regression (SINDy-style)", "kind": "fallback",
+                 "physics": "When no effect explains a residual: sequentially thresholded least squares of the "
+                            "residual on a library of state functions (1, v, sign v, v|v|, |v|, x, x^2, a, u, "
+                            "friction state phi_f, |phi_f|, phi_f x, phi_f x^2, sin/cos of x at the periodogram "
+                            "peak).",
+                 "signature": "any residual left above the noise floor after the effects",
+                 "parameters": [], "in_preset": False, "needs": "reported as terms; not simulated"})
+    if as_json:
+        return rows
+    out = []
+    for r in rows:
+        out.append(f"{r['key']}  -  {r['title']}  [{r['kind']}{'' if r['in_preset'] else ', additive (not in preset)'}]")
+        out.append(f"    physics:   {r['physics']}")
+        out.append(f"    signature: {r['signature']}")
+        if r["parameters"]:
+            out.append("    params:    " + "; ".join(f"{p['name']} [{p['unit']}] {p['meaning']}".rstrip()
+                                                     for p in r["parameters"]))
+        if r["needs"]:
+            out.append(f"    needs:     {r['needs']}")
+    return "\n".join(out)

@@ -1,0 +1,309 @@
+"""Locate: where the model and the recording disagree.
+
+All views use the force residual ``r`` of the model (:class:`.predict.Observer`) and the
+same residual of a recording simulated from the model (the *floor*: what a perfect model
+leaves), low-passed at ``f_band`` (zero phase) unless said otherwise:
+
+* **regime** (:func:`regimes`): each sample is labelled from the reference and the
+  measured motion -- ``reversal`` (low speed around a change of direction),
+  ``acceleration``, ``constant_velocity``, ``settling`` (the first ``t_settle`` after the
+  reference stops) and ``in_position`` (at rest after that); per regime the RMS residual,
+  the RMS floor, and the share of the residual energy (and of the excess over the floor);
+* **time** (:func:`segments`): fixed blocks ranked by their excess energy;
+* **frequency** (:func:`spectrum`): residual spectrum against the floor spectrum in
+  bands, with peaks and narrow lines above the floor;
+* **state** (:func:`state_bins`): the residual binned against position, velocity,
+  acceleration, command and displacement since the last reversal; the share of residual
+  energy a function of that variable alone explains (R^2 of the bin means), and a
+  periodogram of the residual against position (ripple periods).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import signal
+
+from .predict import _taper
+
+__all__ = ["REGIMES", "regimes", "locate", "lowpass"]
+
+REGIMES = ("in_position", "settling", "reversal", "acceleration", "constant_velocity")
+
+
+def lowpass(r: np.ndarray, mask: np.ndarray, rate: float, f_hi: float) -> np.ndarray:
+    sos = signal.butter(2, min(0.95, 2 * f_hi / rate), output="sos")
+    return np.where(mask, signal.sosfiltfilt(sos, _taper(r, mask), axis=0), 0.0)
+
+
+def regimes(x_ref, v_ref, valid, rate: float, t_settle: float = 0.02) -> np.ndarray:
+    """Regime index per sample (T, B) into :data:`REGIMES` (-1 = padding).
+
+    From the reference: at rest -> ``settling`` for ``t_settle`` after motion stops, else
+    ``in_position``; below 10 % of the peak speed between motions of opposite direction
+    -> ``reversal``; otherwise ``acceleration`` if |a_ref| > 30 % of its peak, else
+    ``constant_velocity``.
+    """
+    T, B = v_ref.shape
+    lab = np.full((T, B), -1, int)
+    n_settle = int(round(t_settle * rate))
+    for b in range(B):
+        n = int(valid[:, b].sum())
+        if n == 0:
+            continue
+        v = v_ref[:n, b]
+        a = np.gradient(v) * rate if n > 1 else np.zeros(n)
+        vmax = float(np.max(np.abs(v)))
+        amax = float(np.max(np.abs(a)))
+        if vmax <= 0:
+            lab[:n, b] = 0
+            continue
+        rest = np.abs(v) <= 1e-9 * vmax
+        out = np.where(np.abs(a) > 0.3 * amax, 3, 4)
+        low = (np.abs(v) < 0.1 * vmax) & ~rest
+        k = 0
+        while k < n:                      # low-speed runs between opposite directions
+            if not low[k]:
+                k += 1
+                continue
+            j = k
+            while j < n and low[j]:
+                j += 1
+            before = np.sign(v[k - 1]) if k > 0 and not rest[k - 1] else 0.0
+            after = np.sign(v[j]) if j < n and not rest[j] else 0.0
+            if before != 0 and after != 0 and before != after:
+                out[k:j] = 2
+            k = j
+        last_move = -10 ** 9
+        for k in range(n):
+            if not rest[k]:
+                last_move = k
+            else:
+                out[k] = 1 if k - last_move <= n_settle else 0
+        lab[:n, b] = out
+    return lab
+
+
+def _share(e, tot):
+    return float(e / tot) if tot > 0 else 0.0
+
+
+def segments(rl, fl, mask, rate, block: float = 0.05, top: int = 8, lab=None, t0=None, trial_ids=None):
+    """Time blocks ranked by excess residual energy (measured minus floor)."""
+    T, B = rl.shape
+    nb = max(1, int(round(block * rate)))
+    rows = []
+    tot_ex = 0.0
+    for b in range(B):
+        for s in range(0, T, nb):
+            m = mask[s:s + nb, b]
+            if m.sum() < nb // 4:
+                continue
+            e = float(np.sum(rl[s:s + nb, b][m] ** 2))
+            f = float(np.sum(fl[s:s + nb, b][m] ** 2)) if fl is not None else 0.0
+            ex = max(0.0, e - f)
+            tot_ex += ex
+            dom = None
+            if lab is not None:
+                ll = lab[s:s + nb, b][m]
+                if len(ll):
+                    dom = REGIMES[int(np.bincount(ll[ll >= 0], minlength=len(REGIMES)).argmax())]
+            rows.append({"trial": int(trial_ids[b]) if trial_ids is not None else b,
+                         "t_start_s": float((t0[b] if t0 is not None else 0.0) + s / rate),
+                         "t_end_s": float((t0[b] if t0 is not None else 0.0) + min(s + nb, T) / rate),
+                         "rms_N": float(np.sqrt(e / m.sum())), "floor_rms_N": float(np.sqrt(f / m.sum())),
+                         "excess_energy": ex, "regime": dom})
+    rows.sort(key=lambda r: -r["excess_energy"])
+    for r in rows:
+        r["excess_share"] = _share(r.pop("excess_energy"), tot_ex)
+    return rows[:top], len(rows)
+
+
+def spectrum(r, r_floor, mask, mask_floor, rate, f_obs, nperseg: int = 1024):
+    """Residual PSD vs floor PSD: bands, peaks and narrow lines."""
+    def psd(x, m):
+        out = []
+        for b in range(x.shape[1]):
+            mm = m[:, b]
+            if mm.sum() < 64:
+                continue
+            f, p = signal.welch(x[mm, b], rate, nperseg=min(nperseg, int(mm.sum())))
+            out.append(np.interp(np.linspace(0, rate / 2, nperseg // 2 + 1), f, p))
+        return np.mean(out, axis=0) if out else np.zeros(nperseg // 2 + 1)
+    f = np.linspace(0, rate / 2, nperseg // 2 + 1)
+    pm, pf = psd(r, mask), psd(r_floor, mask_floor)
+    df = f[1] - f[0]
+    edges = [e for e in (0, 1, 3, 10, 30, 100, 300, 1000, 3000, 10000, 30000) if e < rate / 2] + [rate / 2]
+    bands = []
+    tot_ex = float(np.sum(np.maximum(pm - pf, 0)) * df)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (f >= lo) & (f < hi) if hi < rate / 2 else (f >= lo)
+        if not sel.any():
+            continue
+        Pm, Pf = float(np.sum(pm[sel]) * df), float(np.sum(pf[sel]) * df)
+        bands.append({"f_lo_hz": float(lo), "f_hi_hz": float(hi), "rms_N": float(np.sqrt(Pm)),
+                      "floor_rms_N": float(np.sqrt(Pf)), "ratio": float(Pm / Pf) if Pf > 0 else None,
+                      "excess_share": _share(max(0.0, Pm - Pf), tot_ex), "above_observer_bandwidth": bool(lo >= f_obs)})
+    ratio = pm / np.maximum(pf, 1e-300)
+    peaks = []
+    lines = []
+    for i in range(2, len(f) - 1):
+        if f[i] > f_obs:
+            break
+        if ratio[i] > 10 and pm[i] >= pm[i - 1] and pm[i] >= pm[i + 1]:
+            # width: neighbouring bins above half the peak level
+            j0 = i
+            while j0 > 0 and pm[j0 - 1] > 0.5 * pm[i]:
+                j0 -= 1
+            j1 = i
+            while j1 < len(f) - 1 and pm[j1 + 1] > 0.5 * pm[i]:
+                j1 += 1
+            # parabolic interpolation of the peak frequency
+            a, b_, c = np.log(pm[i - 1] + 1e-300), np.log(pm[i] + 1e-300), np.log(pm[i + 1] + 1e-300)
+            den = a - 2 * b_ + c
+            off = 0.5 * (a - c) / den if den < 0 else 0.0
+            fpk = float(f[i] + off * df)
+            peaks.append({"f_hz": fpk, "ratio": float(ratio[i]), "excess_N2": float((pm[i] - pf[i]) * df),
+                          "width_bins": int(j1 - j0 + 1)})
+    peaks.sort(key=lambda p: -p["excess_N2"])
+    for p in peaks:
+        if p["width_bins"] <= 3 and p["ratio"] > 30:
+            lines.append(p["f_hz"])
+    return {"f_hz": f, "psd": pm, "psd_floor": pf, "bands": bands, "peaks": peaks[:8], "lines_hz": lines[:4]}
+
+
+def _reversal_displacement(x, v, valid, v_dead):
+    """Displacement since the last change of direction, signed positive along the motion."""
+    s = np.zeros_like(x)
+    for b in range(x.shape[1]):
+        n = int(valid[:, b].sum())
+        d = 0.0
+        xr = x[0, b]
+        for k in range(n):
+            vk = v[k, b]
+            if vk > v_dead and d <= 0:
+                d, xr = 1.0, x[k, b] if d < 0 else xr
+            elif vk < -v_dead and d >= 0:
+                d, xr = -1.0, x[k, b] if d > 0 else xr
+            s[k, b] = (x[k, b] - xr) * (d if d != 0 else 1.0)
+    return s
+
+
+def state_bins(rl, mask, variables: dict, n_bins: int = 16):
+    """Per variable: bin centres, mean residual per bin, counts, explained share (R^2)."""
+    out = {}
+    r = rl[mask]
+    tot = float(np.sum(r ** 2)) or 1e-300
+    for name, x in variables.items():
+        xv = x[mask]
+        if len(xv) < 4 * n_bins or np.ptp(xv) <= 0:
+            continue
+        edges = np.unique(np.quantile(xv, np.linspace(0, 1, n_bins + 1)))
+        if len(edges) < 3:
+            continue
+        idx = np.clip(np.searchsorted(edges, xv, "right") - 1, 0, len(edges) - 2)
+        cnt = np.bincount(idx, minlength=len(edges) - 1)
+        sm = np.bincount(idx, weights=r, minlength=len(edges) - 1)
+        mean = sm / np.maximum(cnt, 1)
+        centres = np.bincount(idx, weights=xv, minlength=len(edges) - 1) / np.maximum(cnt, 1)
+        expl = float(np.sum(cnt * mean ** 2) / tot)
+        out[name] = {"explained_share": expl, "centres": centres, "mean_N": mean, "count": cnt}
+    return out
+
+
+def ripple_periods(x, rl, v, mask, lam_min, lam_max, n: int = 300, top: int = 3):
+    """Periods [m] of the strongest periodicity of the residual against position (moving
+    samples, after removing the part that only depends on the direction of motion)."""
+    if not (lam_max > lam_min > 0):
+        return [], None
+    vm = np.max(np.abs(v[mask])) if mask.any() else 0.0
+    sel = mask & (np.abs(v) > 0.05 * vm)
+    if sel.sum() < 200:
+        return [], None
+    xs, rs, ss = x[sel], rl[sel], np.sign(v[sel])
+    for s in (-1.0, 1.0):
+        m = ss == s
+        if m.any():
+            rs = rs.copy()
+            rs[m] -= np.mean(rs[m])
+    step = max(1, len(xs) // 6000)
+    xs, rs = xs[::step], rs[::step]
+    lam = np.logspace(np.log10(lam_min), np.log10(lam_max), n)
+    w = 2 * np.pi / lam
+    p = signal.lombscargle(xs - xs.mean(), rs, w, normalize=True)
+    order = []
+    for i in np.argsort(-p):
+        if all(abs(np.log(lam[i] / lam[j])) > 0.15 for j in order):
+            order.append(i)
+        if len(order) >= top:
+            break
+    return [float(lam[i]) for i in order], {"period_m": lam, "power": p}
+
+
+def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None = None) -> tuple[dict, dict, dict]:
+    """All views; returns (summary for the report, arrays for plots, ctx for the hypotheses)."""
+    rate = data.rate
+    f_band = f_band or f_obs / 2
+    mask = data.valid.copy()
+    burn = (data.fit | data.held)
+    mask &= burn
+    rl = lowpass(res.r, mask, rate, f_band)
+    mfl = floor_data.fit | floor_data.held
+    fl = lowpass(res_floor.r, mfl, rate, f_band)
+    lab = regimes(data.x_ref, data.v_ref, data.valid, rate)
+    tot = float(np.sum(rl[mask] ** 2)) or 1e-300
+    tot_f = float(np.sum(fl[mfl] ** 2))
+    reg = []
+    tot_ex = 0.0
+    tmp = []
+    for i, name in enumerate(REGIMES):
+        m = mask & (lab == i)
+        mf = mfl & (lab == i)
+        if not m.any():
+            continue
+        e = float(np.sum(rl[m] ** 2))
+        ef = float(np.sum(fl[mf] ** 2)) * m.sum() / max(1, mf.sum())
+        tmp.append((name, m.sum(), e, ef))
+        tot_ex += max(0.0, e - ef)
+    for name, n, e, ef in tmp:
+        reg.append({"regime": name, "samples": int(n), "time_share": _share(n, mask.sum()),
+                    "rms_N": float(np.sqrt(e / n)), "floor_rms_N": float(np.sqrt(ef / n)),
+                    "energy_share": _share(e, tot), "excess_share": _share(max(0.0, e - ef), tot_ex)})
+    segs, n_blocks = segments(rl, fl, mask, rate, lab=lab, t0=data.t0, trial_ids=data.trial_ids)
+    n_typ = int(np.median(mask.sum(axis=0))) if mask.any() else 1024
+    nper = int(2 ** np.clip(np.floor(np.log2(max(n_typ, 256))), 8, 14))
+    spec = spectrum(res.r, res_floor.r, mask, mfl, rate, f_obs, nperseg=nper)
+    spec["nperseg"] = nper
+    # state variables (observer trajectory ~ measured)
+    acc = np.gradient(data.vs, axis=0) * rate
+    acc = lowpass(acc, data.valid, rate, f_band)
+    vmax = float(np.max(np.abs(data.vs[mask]))) if mask.any() else 0.0
+    disp = _reversal_displacement(res.x, data.vs, data.valid, 0.01 * vmax)
+    variables = {"position": res.x, "velocity": data.vs, "acceleration": acc, "command": data.u,
+                 "displacement_since_reversal": disp}
+    st = state_bins(rl, mask, variables)
+    # per-trial strokes, for the ripple search range and the pre-motion scale
+    strokes = [float(np.ptp(data.y[data.valid[:, b], b])) for b in range(data.shape[1])]
+    lam_max = 0.5 * float(np.median(strokes)) if strokes else 0.0
+    lam_min = max(2 * vmax / max(f_band, 1e-9), 1e-7)
+    periods, pgram = ripple_periods(res.x, rl, data.vs, mask, lam_min, lam_max)
+    xs = res.x[mask]
+    ctx = {"u_max": float(np.max(np.abs(data.u[data.valid]))), "v_max": vmax,
+           "x_span": float(np.ptp(xs)) if len(xs) else 1e-3,
+           "x_center": float(0.5 * (xs.max() + xs.min())) if len(xs) else 0.0,
+           "x_half_span": float(0.5 * np.ptp(xs)) if len(xs) else 1e-3,
+           "r_rms": float(np.sqrt(tot / max(1, mask.sum()))),
+           "peak_hz": [p["f_hz"] for p in spec["peaks"] if p["f_hz"] > 2.0],
+           "line_hz": spec["lines_hz"], "ripple_period": periods,
+           "stroke": float(np.median(strokes)) if strokes else 0.0}
+    summary = {
+        "f_band_hz": f_band,
+        "residual_rms_N": ctx["r_rms"],
+        "floor_rms_N": float(np.sqrt(tot_f / max(1, mfl.sum()))),
+        "regimes": reg,
+        "segments": segs, "segments_total": n_blocks,
+        "bands": spec["bands"], "peaks": spec["peaks"], "lines_hz": spec["lines_hz"],
+        "state": {k: {"explained_share": v["explained_share"]} for k, v in st.items()},
+        "ripple_periods_m": periods,
+    }
+    arrays = {"rl": rl, "fl": fl, "mask": mask, "labels": lab, "spectrum": spec, "state": st,
+              "periodogram": pgram, "variables": variables}
+    return summary, arrays, ctx

@@ -1,0 +1,276 @@
+"""Predict: what the nominal model says about a recording, and where it is short.
+
+Three views, all from the three contract topics alone:
+
+1. **Closed-loop replay** (:func:`replay`): the recorded reference through the model and
+   its controller in closed loop (``batch.simulate``; with additive forces, the
+   equivalent kernel :func:`.engine.closed_loop`). Compared with the recording: command
+   error ``u_meas - u_sim`` (within the servo bandwidth, the force the model is missing)
+   and position error ``y_meas - y_sim``.
+2. **Force residual** (:func:`observe`): the force observer of :mod:`.engine` -- the
+   model, driven by the recorded command, follows the measured position; the tracking
+   force ``r[k]`` is the force the model is missing at each sample (zero up to noise
+   when the model is right). This is what the hypotheses are fitted to.
+3. **Open-loop windows** (:func:`open_loop_windows`): the recorded command through the
+   model in open loop over short windows, each re-initialised from the observer state
+   (which follows the measurement); the position drift at the window end, and the
+   constant force that would explain it (``2 m e / T_w^2``).
+
+The *noise floor* (:class:`NoiseFloor`) is the force residual of recordings simulated from
+the model itself on the recorded reference (closed-loop replays with other noise seeds,
+quantized like the sensor): what a perfect model would leave. Its spectrum defines the
+*whitening* filter: residuals are compared in units of the noise floor (a whitened
+mean square of 1 = indistinguishable from a perfect model).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from experiment_runner.batch import simulate
+from stage_control.servo import build_servo, init_servo_state
+
+from . import engine as E
+from .data import DiagData, smooth
+from .model import ModelSpec
+
+__all__ = ["Observer", "ObsResult", "replay", "sim_data", "NoiseFloor", "open_loop_windows",
+           "closed_loop", "band_rms"]
+
+
+@dataclass
+class ObsResult:
+    r: np.ndarray        # (T, B) force residual [N]
+    x: np.ndarray        # observer table position [m]
+    v: np.ndarray        # observer table velocity [m/s]
+    phi: np.ndarray      # normalised table friction state [-]
+    snaps: tuple | None = None   # (every, z, fr, th) snapshots for open-loop windows
+    bad: int = 0
+
+
+class Observer:
+    """Force observer on one :class:`DiagData` (smoothing done once, runs per model)."""
+
+    def __init__(self, data: DiagData, bandwidth: float | None = None, smooth_factor: float = 2.5,
+                 burn_out: float = 0.004):
+        self.data = data
+        self.f_o = float(bandwidth or data.rate / 25.0)
+        self.omega = 2.0 * np.pi * self.f_o
+        fs = min(smooth_factor * self.f_o, 0.45 * data.rate)
+        if data.ys is None or data.smooth_hz != fs:
+            data.ys, data.vs = smooth(data.y, data.rate, fs, data.lengths)
+            data.smooth_hz = fs
+        # the smoothed signal is unreliable near each trial's end: leave it out of the sets
+        n_out = int(round(burn_out * data.rate))
+        k = np.arange(data.shape[0])[:, None]
+        tail = k >= (data.lengths[None, :] - n_out)
+        data.fit &= ~tail
+        data.held &= ~tail
+        self.u = np.ascontiguousarray(data.u)
+        self.ys = np.ascontiguousarray(data.ys)
+        self.vs = np.ascontiguousarray(data.vs)
+        self.calls = 0
+
+    def run(self, spec: ModelSpec, cols=None, snap_every: int = 0) -> ObsResult:
+        c = spec.compiled()
+        u, ys, vs = self.u, self.ys, self.vs
+        if cols is not None:
+            u, ys, vs = (np.ascontiguousarray(a[:, cols]) for a in (u, ys, vs))
+        T, B = u.shape
+        st = E.new_state(c.pm, ys[0])
+        outs = [np.empty((T, B)) for _ in range(4)]
+        ns = (T + snap_every - 1) // snap_every if snap_every > 0 else 1
+        sz = np.zeros((ns, 2 * c.pm.n, B))
+        sf = np.zeros((ns,) + st[1].shape)
+        sth = np.zeros((ns, B))
+        bad = E.observe(c.pm, *c.drive_args(), *c.add_args(), u, ys, vs, 0.0, *st, self.omega, c.m_eff,
+                        int(snap_every), *outs, sz, sf, sth)
+        self.calls += 1
+        return ObsResult(*outs, snaps=(snap_every, sz, sf, sth) if snap_every > 0 else None, bad=int(bad))
+
+
+# --------------------------------------------------------------------------- closed loop
+def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds, use_batch: bool | None = None):
+    """Closed-loop runs of ``spec`` on references (T, B); returns (y, u, x_true) as (T, B).
+
+    Without additive forces this is :func:`experiment_runner.batch.simulate` itself."""
+    x_ref = np.asarray(x_ref, float)
+    v_ref = np.asarray(v_ref, float)
+    seeds = np.asarray(seeds, np.int64)
+    p = spec.preset
+    if use_batch is None:
+        use_batch = not spec.additive
+    if use_batch:
+        res = simulate(p, x_ref.T, v_ref.T, seeds=seeds, check=False)
+        return res.y.T.copy(), res.u.T.copy(), res.x_table.T.copy()
+    c = spec.compiled(for_sim=True)
+    T, B = x_ref.shape
+    st = E.new_state(c.pm, x_ref[0])
+    sm = build_servo(p.controller, p.stage)
+    ss = init_servo_state(sm, B)
+    out = [np.empty((T, B)) for _ in range(3)]
+    E.closed_loop(c.pm, *c.drive_args(), c.noise_std, c.noise_a, c.noise_gain, *c.add_args(), sm, ss,
+                  np.ascontiguousarray(x_ref), np.ascontiguousarray(v_ref), seeds, 0.0, *st, *out)
+    return tuple(out)
+
+
+def replay(spec: ModelSpec, data: DiagData, seed: int = 1000):
+    """Closed-loop replay of the recorded reference; returns dict of (T, B) arrays."""
+    B = data.shape[1]
+    y, u, x = closed_loop(spec, data.x_ref, data.v_ref, seed + np.arange(B))
+    return {"y": y, "u": u, "x": x}
+
+
+def sim_data(spec: ModelSpec, data: DiagData, seed: int) -> DiagData:
+    """A recording simulated from ``spec`` on the recorded reference, same masks and split."""
+    rp = replay(spec, data, seed)
+    return DiagData(rate=data.rate, t0=data.t0.copy(), x_ref=data.x_ref, v_ref=data.v_ref, u=rp["u"], y=rp["y"],
+                    valid=data.valid.copy(), fit=data.fit.copy(), held=data.held.copy(), lengths=data.lengths,
+                    trial_ids=list(data.trial_ids), source=f"simulated (seed {seed})", split=data.split)
+
+
+def compare_replay(data: DiagData, rp: dict) -> dict:
+    """RMS command and position errors of a replay against the recording (valid samples)."""
+    m = data.valid
+    du = (data.u - rp["u"])[m]
+    dy = (data.y - rp["y"])[m]
+    return {"rms_command_error_N": float(np.sqrt(np.mean(du ** 2))),
+            "rms_position_error_m": float(np.sqrt(np.mean(dy ** 2))),
+            "rms_command_N": float(np.sqrt(np.mean(data.u[m] ** 2)))}
+
+
+# --------------------------------------------------------------------------- noise floor
+def _taper(r: np.ndarray, mask: np.ndarray, n_taper: int = 16) -> np.ndarray:
+    """Residual with the masked-out samples set to zero, edges tapered (per column)."""
+    out = np.where(mask, r, 0.0)
+    if n_taper > 0:
+        w = 0.5 - 0.5 * np.cos(np.pi * np.arange(n_taper) / n_taper)
+        for b in range(r.shape[1]):
+            idx = np.flatnonzero(mask[:, b])
+            if len(idx) < 2 * n_taper:
+                continue
+            # taper at every edge of a run of valid samples
+            brk = np.flatnonzero(np.diff(idx) > 1)
+            starts = np.r_[idx[0], idx[brk + 1]]
+            stops = np.r_[idx[brk], idx[-1]] + 1
+            for s0, s1 in zip(starts, stops):
+                nt = min(n_taper, (s1 - s0) // 2)
+                if nt < 1:
+                    continue
+                ww = w[:: max(1, n_taper // nt)][:nt] if nt < n_taper else w
+                out[s0:s0 + nt, b] *= ww[:nt]
+                out[s1 - nt:s1, b] *= ww[:nt][::-1]
+    return out
+
+
+class NoiseFloor:
+    """Spectrum of the force residual a perfect model leaves, and the whitening filter.
+
+    Built from the force residual of simulated recordings (``residuals``: list of (T, B)
+    arrays with their masks). ``W(f) = 1/sqrt(S(f))`` up to ``f_max``, rolled off above;
+    :meth:`whiten` applies it (zero phase, FFT) so the floor has unit mean square.
+    """
+
+    def __init__(self, rate: float, residuals, masks, f_max: float, nperseg: int = 1024):
+        self.rate = rate
+        self.f_max = f_max
+        segs = []
+        for r, m in zip(residuals, masks):
+            rt = _taper(r, m)
+            for b in range(r.shape[1]):
+                n = int(m[:, b].sum())
+                if n < 64:
+                    continue
+                f, p = signal.welch(rt[:, b], rate, nperseg=min(nperseg, n), detrend="constant")
+                # welch on zero-filled data: scale by the valid fraction
+                segs.append(np.interp(np.linspace(0, rate / 2, nperseg // 2 + 1), f, p) * len(rt) / n)
+        if not segs:
+            raise ValueError("noise floor: no usable simulated residual")
+        self.f = np.linspace(0, rate / 2, nperseg // 2 + 1)
+        s = np.mean(segs, axis=0)
+        # smooth in log-frequency, floor it
+        s = signal.savgol_filter(np.log(np.maximum(s, 1e-300)), 9, 2, mode="interp") if len(s) > 9 else np.log(s)
+        s = np.exp(s)
+        s = np.maximum(s, 1e-6 * np.median(s))
+        self.psd = s
+        self.scale = 1.0
+        # normalise: whitened simulated residuals have unit mean square
+        ms = []
+        for r, m in zip(residuals, masks):
+            w = self.whiten(r, m)
+            ms.append(np.sum(w[m] ** 2) / max(1, m.sum()))
+        self.scale = 1.0 / np.sqrt(np.mean(ms))
+        self.sim_ms = [float(x * self.scale ** 2) for x in ms]
+
+    def gain(self, n: int) -> np.ndarray:
+        f = np.fft.rfftfreq(n, 1.0 / self.rate)
+        g = 1.0 / np.sqrt(np.interp(f, self.f, self.psd))
+        roll = 1.0 / np.sqrt(1.0 + (f / self.f_max) ** 8)
+        g = g * roll
+        g[0] = g[1] if len(g) > 1 else g[0]
+        return g * self.scale
+
+    def whiten(self, r: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """Whitened residual (same shape); masked-out samples are zero before and after."""
+        T = r.shape[0]
+        n = int(2 ** np.ceil(np.log2(2 * T)))
+        g = self.gain(n)
+        rt = _taper(r, mask)
+        w = np.fft.irfft(np.fft.rfft(rt, n=n, axis=0) * g[:, None], n=n, axis=0)[:T]
+        return np.where(mask, w, 0.0)
+
+    def ms(self, r: np.ndarray, mask: np.ndarray) -> float:
+        """Whitened mean square over ``mask`` (1 = noise floor)."""
+        w = self.whiten(r, mask)
+        return float(np.sum(w[mask] ** 2) / max(1, mask.sum()))
+
+
+def band_rms(r: np.ndarray, mask: np.ndarray, rate: float, f_hi: float) -> float:
+    """RMS [N] of the residual low-passed (zero phase, 2nd order) at ``f_hi``, over ``mask``."""
+    sos = signal.butter(2, min(0.95, 2 * f_hi / rate), output="sos")
+    rl = signal.sosfiltfilt(sos, _taper(r, mask), axis=0)
+    return float(np.sqrt(np.mean(rl[mask] ** 2))) if mask.any() else float("nan")
+
+
+# --------------------------------------------------------------------------- open-loop windows
+def open_loop_windows(spec: ModelSpec, obs: Observer, res: ObsResult, length: int):
+    """Open-loop windows from the observer snapshots (``res`` run with ``snap_every=length``).
+
+    Returns dict: ``start`` (W,), ``trial`` (W,), ``drift_m`` (W,) position error at the
+    window end, ``force_N`` (W,) constant force explaining the drift (rigid-body
+    approximation ``2 m e / T^2``), ``err`` (length, W) the position error over each window.
+    """
+    every, sz, sf, sth = res.snaps
+    data = obs.data
+    c = spec.compiled()
+    T, B = data.shape
+    starts, trials, cols = [], [], []
+    for s in range(sz.shape[0]):
+        k0 = s * every
+        for b in range(B):
+            if k0 + length <= data.lengths[b] and data.valid[k0:k0 + length, b].all():
+                starts.append(k0)
+                trials.append(b)
+                cols.append(s)
+    W = len(starts)
+    if W == 0:
+        return None
+    starts = np.array(starts, np.int64)
+    trials = np.array(trials, np.int64)
+    cols = np.array(cols)
+    z = np.ascontiguousarray(sz[cols, :, trials].T)
+    fr = np.ascontiguousarray(np.moveaxis(sf[cols, :, :, trials], 0, -1))
+    th = np.ascontiguousarray(sth[cols, trials])
+    st = list(E.new_state(c.pm, np.zeros(W)))
+    st[0][:] = z
+    st[1][:] = fr
+    out = np.empty((length, W))
+    E.open_loop(c.pm, *c.drive_args(), *c.add_args(), obs.u, trials, starts, length, np.zeros(W), *st, th, out)
+    idx = starts[None, :] + np.arange(length)[:, None]
+    err = obs.ys[idx, trials[None, :]] - out
+    Tw = (length - 1) / data.rate
+    drift = err[-1]
+    m = c.m_eff
+    return {"start": starts, "trial": trials, "drift_m": drift, "force_N": 2 * m * drift / Tw ** 2, "err": err}

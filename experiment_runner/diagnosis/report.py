@@ -1,0 +1,326 @@
+"""Show: ``report.json``, ``report.md``, plots and the improved model.
+
+Files written to the output folder ``DIR``
+-------------------------------------------
+``report.json``          the report below (SI units; ``null`` where not applicable)
+``report.md``            the same for people: verdict, effects with parameters, where the
+                         residual lives, held-out proof, candidates per step
+``improved_preset.yaml`` the improved model as a preset the simulator runs as is
+                         (``nanostage presets``-compatible; additive forces omitted, see below)
+``model.yaml``           the full improved model: ``{preset: ..., additive_forces: [...]}``
+                         (``nanostage synth`` accepts it as a truth)
+``residual_time.png``    force residual (band-limited) of nominal and improved model vs time,
+                         regimes shaded, floor band
+``residual_spectrum.png`` residual spectrum of nominal and improved model against the floor
+``residual_state.png``   residual binned against position, velocity, acceleration, command,
+                         displacement since reversal
+``heldout_replay.png``   a held-out trial: recorded command vs closed-loop replay of nominal and
+                         improved model
+
+``report.json`` fields
+----------------------
+``verdict``             "model adequate" | "effects found" | "effects found, residual remains" |
+                        "unexplained residual"
+``found``               effects in the order they were named; each: ``effect`` (library key),
+                        ``title``, ``kind``, ``step``, ``params`` [{name, unit, value, sigma (1 s.d.,
+                        from the Jacobian), nominal}], ``derived`` (physical summaries, e.g. x_50),
+                        ``expressible`` (in a preset), ``confounded_with`` (keys that explain the
+                        held-out data as well), ``params_joint`` (after the joint fit), ``held_out``
+                        (stochastic effects: their own held-out metric)
+``recording``           source, rate_hz, trials, samples, duration_s, split, fit_trials,
+                        held_out_trials, notes
+``nominal``             name and source of the nominal model
+``observer``            bandwidth_hz (force observer), smoothing_hz, band_hz (band of the reported
+                        force RMS), evaluations and evaluation_s (observer runs)
+``noise``               floor_check_J (whitened mean square of a second simulated recording, ~1),
+                        n_eff_held (effective independent held-out samples), adequacy_tolerance
+``predict``             closed_loop_replay {rms_command_error_N, rms_position_error_m, rms_command_N},
+                        force_residual {rms_N, floor_rms_N, J_fit, J_held}, open_loop_windows
+                        {window_s, windows, rms_drift_m, rms_force_N}
+``locate``              residual_rms_N, floor_rms_N, regimes [{regime, samples, time_share, rms_N,
+                        floor_rms_N, energy_share, excess_share}], segments (top time blocks by
+                        excess energy), bands [{f_lo_hz, f_hi_hz, rms_N, floor_rms_N, ratio,
+                        excess_share}], peaks, lines_hz, state {variable: {explained_share}},
+                        ripple_periods_m
+``selection``           steps [{step, J_held_before, threshold, accepted, confounded_with,
+                        candidates [{effect, J_fit, J_held, score, improvement, significant,
+                        params, derived, on_bound, evals, seconds}]}], J_held_start, J_held_final,
+                        adequate_final
+``joint_fit``           effects, J_fit, J_held, params, correlation, confounded_parameters, used
+``stochastic``          quantization {nominal_m, estimate_m, found, ...}, noise_level {nominal_A,
+                        sigma, ratio, found, ...}
+``sparse_regression``   terms {name: coefficient} and explained share, when a residual remains
+``validation``          on held-out samples: force_residual_rms_N {nominal, improved, floor, fall},
+                        J_held {nominal, improved, fall}, replay_command_rms_N and
+                        replay_position_rms_m {nominal, improved, run_to_run, fall},
+                        open_loop_drift_rms_m {nominal, improved, window_s}
+``improved_model``      name, additive_forces, not_in_preset (effects that need a plant feature),
+                        needs {effect: plant feature}
+``timing_s``            wall time per stage
+
+``J`` is the whitened mean square of the force residual: 1 means "as a perfect model would
+leave it" (noise and quantization only).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .locate import REGIMES
+
+__all__ = ["write_report", "to_markdown", "jsonable"]
+
+
+def jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): jsonable(v) for k, v in o.items() if not str(k).startswith("_")}
+    if isinstance(o, (list, tuple)):
+        return [jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return jsonable(o.tolist())
+    if isinstance(o, (np.floating,)):
+        o = float(o)
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.bool_,)):
+        return bool(o)
+    if isinstance(o, float) and not np.isfinite(o):
+        return None
+    if isinstance(o, Path):
+        return str(o)
+    return o
+
+
+def _fmt(v, unit=""):
+    if v is None:
+        return "–"
+    if isinstance(v, (int, np.integer)):
+        return f"{v}{(' ' + unit) if unit else ''}"
+    return f"{v:.4g}{(' ' + unit) if unit else ''}"
+
+
+def to_markdown(rep: dict) -> str:
+    L = []
+    rc = rep["recording"]
+    L.append(f"# Diagnosis: {Path(rc['source']).name} against `{rep['nominal']['name']}`\n")
+    L.append(f"**Verdict: {rep['verdict']}.**\n")
+    L.append(f"Recording: {rc['trials']} trial(s), {rc['duration_s']:.3g} s at {rc['rate_hz']:.6g} Hz; "
+             f"{rc['split']}. Force observer bandwidth {rep['observer']['bandwidth_hz']:.4g} Hz; "
+             f"force residuals below are band-limited to {rep['observer']['band_hz']:.4g} Hz. "
+             f"J = whitened mean square of the force residual (1 = noise floor; adequacy tolerance "
+             f"{rep['noise']['adequacy_tolerance']:.3g}).\n")
+    for n in rc.get("notes") or []:
+        L.append(f"- note: {n}")
+    L.append("\n## Effects found\n")
+    if not rep["found"]:
+        L.append("None: nothing beats the nominal model by more than run-to-run noise.\n")
+    else:
+        L.append("| # | effect | parameter | value | ± 1σ | nominal | confounded with |")
+        L.append("|---|---|---|---|---|---|---|")
+        for i, f in enumerate(rep["found"], 1):
+            for j, p in enumerate(f["params"]):
+                L.append(f"| {i if j == 0 else ''} | {f['title'] if j == 0 else ''} | {p['name']} [{p['unit']}] | "
+                         f"{_fmt(p['value'])} | {_fmt(p['sigma'])} | {_fmt(p['nominal'])} | "
+                         f"{', '.join(f.get('confounded_with') or []) if j == 0 else ''} |")
+            for k, v in (f.get("derived") or {}).items():
+                L.append(f"|  |  | {k} (derived) | {_fmt(v)} |  |  |  |")
+        L.append("")
+        im = rep["improved_model"]
+        if im["not_in_preset"]:
+            L.append("Not expressible in a preset yet (run as additive table forces, in `model.yaml`): "
+                     + "; ".join(f"**{k}** needs {v}" for k, v in im["needs"].items()) + "\n")
+    v = rep["validation"]
+    L.append("## Held-out proof\n")
+    L.append("| metric (held-out samples) | nominal | improved | fall | reference |")
+    L.append("|---|---|---|---|---|")
+    fr = v["force_residual_rms_N"]
+    L.append(f"| force residual RMS [N] | {_fmt(fr['nominal'])} | {_fmt(fr['improved'])} | "
+             f"{_fmt(None if fr['fall'] is None else 100 * fr['fall'])} % | floor {_fmt(fr['floor'])} |")
+    j = v["J_held"]
+    L.append(f"| J (whitened) | {_fmt(j['nominal'])} | {_fmt(j['improved'])} | "
+             f"{_fmt(None if j['fall'] is None else 100 * j['fall'])} % | 1 |")
+    for key, name in (("replay_command_rms_N", "closed-loop replay, command error RMS [N]"),
+                      ("replay_position_rms_m", "closed-loop replay, position error RMS [m]")):
+        x = v[key]
+        L.append(f"| {name} | {_fmt(x['nominal'])} | {_fmt(x['improved'])} | "
+                 f"{_fmt(None if x['fall'] is None else 100 * x['fall'])} % | run-to-run {_fmt(x['run_to_run'])} |")
+    o = v["open_loop_drift_rms_m"]
+    L.append(f"| open-loop {o['window_s'] * 1e3:.3g} ms window drift RMS [m] | {_fmt(o['nominal'])} | "
+             f"{_fmt(o['improved'])} |  |  |")
+    loc = rep["locate"]
+    L.append("\n## Where the nominal model disagrees\n")
+    L.append(f"Force residual RMS {_fmt(loc['residual_rms_N'], 'N')} against a floor of "
+             f"{_fmt(loc['floor_rms_N'], 'N')} (recordings simulated from the model).\n")
+    L.append("| regime | time share | RMS [N] | floor [N] | energy share | excess share |")
+    L.append("|---|---|---|---|---|---|")
+    for r in loc["regimes"]:
+        L.append(f"| {r['regime']} | {100 * r['time_share']:.1f} % | {_fmt(r['rms_N'])} | {_fmt(r['floor_rms_N'])} | "
+                 f"{100 * r['energy_share']:.1f} % | {100 * r['excess_share']:.1f} % |")
+    L.append("\n| band [Hz] | RMS [N] | floor [N] | power ratio | excess share |")
+    L.append("|---|---|---|---|---|")
+    for b in loc["bands"]:
+        L.append(f"| {b['f_lo_hz']:.4g}–{b['f_hi_hz']:.4g}{' (above observer bw)' if b['above_observer_bandwidth'] else ''} | "
+                 f"{_fmt(b['rms_N'])} | {_fmt(b['floor_rms_N'])} | {_fmt(b['ratio'])} | {100 * b['excess_share']:.1f} % |")
+    if loc["peaks"]:
+        L.append("\nSpectral peaks above the floor: " + ", ".join(f"{p['f_hz']:.4g} Hz (x{p['ratio']:.3g})" for p in loc["peaks"][:5]))
+    L.append("\nResidual energy explained by one state variable (bin means): " + ", ".join(
+        f"{k} {100 * s['explained_share']:.1f} %" for k, s in sorted(loc["state"].items(), key=lambda kv: -kv[1]["explained_share"])))
+    if loc["segments"]:
+        L.append("\nTime blocks with the largest excess: " + "; ".join(
+            f"trial {s['trial']} {s['t_start_s']:.3f}–{s['t_end_s']:.3f} s ({s['regime']}, {100 * s['excess_share']:.1f} %)"
+            for s in loc["segments"][:5]))
+    L.append("\n## Candidates\n")
+    for st in rep["selection"]["steps"]:
+        L.append(f"Step {st['step']}: J_held before {_fmt(st['J_held_before'])}, real improvement needs > "
+                 f"{_fmt(st['threshold'])}; accepted: **{st['accepted'] or 'none'}**"
+                 + (f" (confounded with {', '.join(st['confounded_with'])})" if st["confounded_with"] else "") + "\n")
+        L.append("| effect | J_fit | J_held | improvement | parameters |")
+        L.append("|---|---|---|---|---|")
+        for c in st["candidates"]:
+            ps = ", ".join(f"{p['name']}={_fmt(p['value'])}" for p in c["params"])
+            L.append(f"| {c['effect']} | {_fmt(c['J_fit'])} | {_fmt(c['J_held'])} | {_fmt(c['improvement'])}"
+                     f"{' ✓' if c['significant'] else ''} | {ps} |")
+        L.append("")
+    jf = rep.get("joint_fit")
+    if jf:
+        L.append(f"Joint fit of {jf['effects']}: J_held {_fmt(jf['J_held'])} (used: {jf['used']}).")
+        if jf.get("confounded_parameters"):
+            L.append("Confounded parameters (|correlation| > 0.95): " + "; ".join(
+                f"{a} ~ {b} ({c:+.3f})" for a, b, c in jf["confounded_parameters"]))
+        L.append("")
+    sto = rep["stochastic"]
+    q = sto["quantization"]
+    n = sto["noise_level"]
+    L.append("## Noise and quantization\n")
+    L.append(f"- encoder lattice: estimate {_fmt(q.get('estimate_m'), 'm')}, model {_fmt(q.get('nominal_m'), 'm')}"
+             f"{' — differs' if q.get('found') else ''}")
+    L.append(f"- drive noise: estimate {_fmt(n.get('sigma'), 'A')} (model {_fmt(n.get('nominal_A'), 'A')})"
+             f"{' — differs' if n.get('found') else ''}")
+    sp = rep.get("sparse_regression")
+    if sp:
+        L.append("\n## Sparse regression of the remaining residual\n")
+        L.append(f"Explained share {100 * sp['explained']:.1f} %; terms (missing table force [N] = Σ coef·term): "
+                 + (", ".join(f"{k}: {v:.4g}" for k, v in sp["terms"].items()) or "none"))
+    L.append("\n## Files\n")
+    L.append("`improved_preset.yaml` (runs as is), `model.yaml` (with additive forces), plots: "
+             + ", ".join(f"`{p}`" for p in rep.get("plots", [])))
+    L.append(f"\nWall time {rep['timing_s']['total_s']:.3g} s.")
+    return "\n".join(L) + "\n"
+
+
+def _plots(out: Path, rep: dict, data, arr: dict) -> list[str]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .locate import lowpass
+    files = []
+    rate = data.rate
+    fb = arr["f_band"]
+    mask = data.fit | data.held
+    rn = lowpass(arr["res_nom"].r, mask, rate, fb)
+    ri = lowpass(arr["res_new"].r, mask, rate, fb)
+    lab = arr["loc"]["labels"]
+    cols = list(range(min(3, data.shape[1])))
+    fig, axes = plt.subplots(len(cols), 1, figsize=(11, 2.6 * len(cols)), squeeze=False)
+    colors = {"in_position": "#dddddd", "settling": "#ffe0b0", "reversal": "#ffb0b0", "acceleration": "#c0d8ff",
+              "constant_velocity": "#d0f0d0"}
+    flr = rep["validation"]["force_residual_rms_N"]["floor"] or 0.0
+    for ax, b in zip(axes[:, 0], cols):
+        n = int(data.lengths[b])
+        t = data.t0[b] + np.arange(n) / rate
+        lb = lab[:n, b]
+        k = 0
+        while k < n:
+            j = k
+            while j < n and lb[j] == lb[k]:
+                j += 1
+            if lb[k] >= 0:
+                ax.axvspan(t[k], t[min(j, n - 1)], color=colors[REGIMES[lb[k]]], lw=0)
+            k = j
+        ax.plot(t, rn[:n, b], "C3", lw=0.8, label="nominal")
+        ax.plot(t, ri[:n, b], "C0", lw=0.8, label="improved")
+        ax.axhspan(-2 * flr, 2 * flr, color="k", alpha=0.1, label="±2 floor")
+        ax.set_ylabel(f"trial {data.trial_ids[b]}\nresidual [N]")
+    axes[0, 0].legend(loc="upper right", fontsize=7, ncol=3)
+    axes[-1, 0].set_xlabel("time [s]  (shading: " + ", ".join(f"{k}" for k in colors) + ")")
+    fig.tight_layout()
+    fig.savefig(out / "residual_time.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_time.png")
+
+    from .locate import spectrum
+    spn = arr["loc"]["spectrum"]
+    sp_new = spectrum(arr["res_new"].r, arr["floor"].resB.r, mask, arr["floor"].simB.fit | arr["floor"].simB.held,
+                      rate, 1e9, nperseg=spn.get("nperseg", 1024))
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    f = spn["f_hz"]
+    ax.loglog(f[1:], spn["psd"][1:], "C3", lw=0.8, label="nominal model residual")
+    ax.loglog(f[1:], spn["psd_floor"][1:], "k", lw=0.8, label="floor (nominal, simulated)")
+    ax.loglog(f[1:], sp_new["psd"][1:], "C0", lw=0.8, label="improved model residual")
+    ax.axvline(rep["observer"]["bandwidth_hz"], color="gray", ls=":", label="observer bandwidth")
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("force residual PSD [N²/Hz]")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "residual_spectrum.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_spectrum.png")
+
+    st = arr["loc"]["state"]
+    if st:
+        fig, axes = plt.subplots(1, len(st), figsize=(3.2 * len(st), 3.2), squeeze=False)
+        for ax, (name, s) in zip(axes[0], st.items()):
+            ax.plot(s["centres"], s["mean_N"], "o-", ms=3, color="C3")
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_title(f"{name}\nR² {100 * s['explained_share']:.1f} %", fontsize=8)
+            ax.tick_params(labelsize=7)
+        axes[0, 0].set_ylabel("mean residual [N]")
+        fig.tight_layout()
+        fig.savefig(out / "residual_state.png", dpi=90)
+        plt.close(fig)
+        files.append("residual_state.png")
+
+    held = arr["held"]
+    hc = [b for b in range(data.shape[1]) if held[:, b].any()]
+    if hc:
+        b = hc[0]
+        n = int(data.lengths[b])
+        t = data.t0[b] + np.arange(n) / rate
+        fig, axes = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
+        axes[0].plot(t, data.u[:n, b], "k", lw=0.8, label="recorded")
+        axes[0].plot(t, arr["rp_nom"]["u"][:n, b], "C3", lw=0.7, label="nominal replay")
+        axes[0].plot(t, arr["rp_new"]["u"][:n, b], "C0", lw=0.7, label="improved replay")
+        axes[0].set_ylabel("command [N]")
+        axes[0].legend(fontsize=8)
+        axes[1].plot(t, data.u[:n, b] - arr["rp_nom"]["u"][:n, b], "C3", lw=0.7, label="recorded - nominal")
+        axes[1].plot(t, data.u[:n, b] - arr["rp_new"]["u"][:n, b], "C0", lw=0.7, label="recorded - improved")
+        axes[1].set_ylabel("command error [N]")
+        axes[1].set_xlabel("time [s]")
+        axes[1].legend(fontsize=8)
+        fig.suptitle(f"held-out trial {data.trial_ids[b]}: closed-loop replay of the recorded reference", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(out / "heldout_replay.png", dpi=90)
+        plt.close(fig)
+        files.append("heldout_replay.png")
+    return files
+
+
+def write_report(out, rep: dict, improved, nominal, data, arrays: dict, plots: bool = True) -> Path:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "improved_preset.yaml").write_text(improved.preset_yaml())
+    (out / "model.yaml").write_text(improved.model_yaml())
+    rep["improved_model"]["preset_yaml"] = "improved_preset.yaml"
+    rep["improved_model"]["model_yaml"] = "model.yaml"
+    rep["plots"] = []
+    if plots:
+        try:
+            rep["plots"] = _plots(out, rep, data, arrays)
+        except Exception as err:     # noqa: BLE001 - plots must not lose the report
+            rep.setdefault("recording", {}).setdefault("notes", []).append(f"plots failed: {err!r}")
+    (out / "report.json").write_text(json.dumps(jsonable(rep), indent=1))
+    (out / "report.md").write_text(to_markdown(jsonable(rep)))
+    return out

@@ -1,0 +1,287 @@
+"""Concealed-data self-test: ``nanostage diagnose --selftest [--json]``.
+
+Each case writes a TRUTH (the nominal preset with one effect, or nothing for a negative
+control; drive noise and quantization always on), an EXPERIMENT and the NOMINAL model to a
+scratch folder as YAML files, runs ``synth`` (MCAP recording, truth concealed) and then
+``diagnose`` on the recording against the nominal -- the same path as the command line.
+
+A positive case passes when
+  * the right effect is named first (or is in the confounded set named first),
+  * its parameters are within +-20 % of the truth (parameters whose truth is 0: within
+    20 % of the largest truth parameter of the same unit, or 2 sigma),
+  * the held-out residual falls by >= 50 % (deterministic effects: RMS of the band-limited
+    force residual on held-out trials; drive noise: the floor mismatch |J - 1|;
+    quantization: the relative lattice-step error on held-out samples),
+  * and no effect the truth lacks is named.
+A negative control (truth = nominal, another noise seed / experiment) passes when the
+verdict is "model adequate". ``false_positives`` counts cases that named an effect the
+truth lacks.
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from stage_sim.config import load_preset, with_overrides
+
+from .hypotheses import virgin_x50
+from .pipeline import Options, diagnose
+from .synth import synth
+
+__all__ = ["CASES", "run_selftest", "Case"]
+
+NOMINAL = "fi_stage_nofi"
+
+EXPERIMENTS = {
+    # x-axis of a circle: reversals, acceleration, constant velocity; 6 trials at random starts
+    "circle": {"name": "diag_circle", "preset": NOMINAL,
+               "profile": {"kind": "circle", "radius": 1.0e-3, "speed": 0.02, "cycles": 1.0},
+               "trials": 6, "starts": {"margin": 0.005, "seed": 3}, "window": 25.0e-9},
+    # 5 um steps forward and back: pre-motion, settling and in-position
+    "steps": {"name": "diag_steps", "preset": NOMINAL,
+              "profile": {"kind": "step_sequence", "distance": 5.0e-6, "n_forward": 3, "n_backward": 3,
+                          "dwell": 0.03},
+              "trials": 4, "starts": {"margin": 0.005, "seed": 4}, "window": 25.0e-9},
+}
+
+
+@dataclass
+class Case:
+    name: str
+    effect: str | None                 # expected first effect (None = negative control)
+    changes: dict = field(default_factory=dict)      # dotted overrides of the nominal
+    edit: object = None                # callable(dict) on the preset mapping
+    additive: list = field(default_factory=list)     # additive forces of the truth
+    expect: dict = field(default_factory=dict)       # parameter/derived name -> truth value
+    experiment: str = "circle"
+    seed: int = 101
+    nominal: str = NOMINAL
+    nominal_edit: object = None        # callable(dict) making the nominal (and the truth's base)
+
+
+def _both(path_tail, value):
+    return {f"stage.bearings.0.{path_tail}": value, f"stage.bearings.1.{path_tail}": value}
+
+
+def _gms_edit(d):
+    g = load_preset("fi_stage_nofi_gms").model_dump(mode="json")
+    for i in (0, 1):
+        d["stage"]["bearings"][i]["friction"] = g["stage"]["bearings"][i]["friction"]
+
+
+def _gms_truth():
+    g = load_preset("fi_stage_nofi_gms")
+    els = [b.friction.model_dump() for b in g.stage.bearings]
+    return {"F_C": float(sum(e["f_c"] * sum(e["alpha"]) for e in els)), "x_50": virgin_x50(els)}
+
+
+def _stribeck_edit(d):
+    for b in d["stage"]["bearings"]:
+        f = b["friction"]
+        b["friction"] = {"model": "lugre", "sigma0": f["k_sigma"], "sigma1": 0.0, "viscous": 0.0, "f_c": f["f_c"],
+                         "f_s": 1.6 * f["f_c"], "v_s": 1.0e-3, "exponent": 2.0}
+
+
+def _mode_edit(d):
+    d["stage"]["modes"] = list(d["stage"]["modes"]) + [{"frequency": 150.0, "damping_ratio": 0.03, "mass_ratio": 0.15}]
+
+
+def _fi_edit(d):
+    for b in d["stage"]["bearings"]:
+        b["joint"] = {"stiffness": 4.135e4, "damping": 2.2691}
+
+
+def _frictionless(d):
+    """The nominal stage without friction: bearings folded into the table mass."""
+    st = d["stage"]
+    st["table"]["mass"] = st["table"]["mass"] + sum(b["mass"] for b in st["bearings"])
+    st["bearings"] = []
+    st["bearing_sensor"] = None
+
+
+def _nominal_fc():
+    return sum(b.friction.f_c for b in load_preset(NOMINAL).stage.bearings)
+
+
+CASES = [
+    Case("coulomb_+30%", "coulomb", _both("friction.f_c", 2.655 * 1.3), expect={"F_C": 5.31 * 1.3}),
+    Case("viscous_20", "viscous", _both("friction.viscous", 10.0), expect={"c": 20.0}),
+    Case("mass_+25%", "mass", {"stage.table.mass": 1.040843214756258 * 1.25},
+         expect={"m_table": 1.040843214756258 * 1.25}),
+    Case("force_constant_0.8", "force_constant", {"stage.drive.force_constant_ratio": 0.8}, expect={"ratio": 0.8}),
+    Case("delay_3", "delay", {"stage.drive.delay_samples": 3}, expect={"delay_samples": 3}),
+    Case("dahl_k_x0.4", "dahl", _both("friction.k_sigma", 1.095e6 * 0.4), expect={"k_sigma": 2.19e6 * 0.4},
+         experiment="steps"),
+    Case("gms_table_4.4", "gms", edit=_gms_edit, expect=_gms_truth()),
+    Case("stribeck", "stribeck", edit=_stribeck_edit, expect={"F_S": 1.6 * 5.31, "v_s": 1.0e-3}),
+    Case("fi_compliance", "fi_compliance", edit=_fi_edit, expect={"k_fi": 8.27e4}, experiment="steps"),
+    Case("structural_mode_150Hz", "structural_mode", edit=_mode_edit, expect={"f": 150.0, "mass_ratio": 0.15}),
+    Case("ripple", "ripple", additive=[{"kind": "sin_x", "coef": 0.2, "period": 4.0e-4, "phase": 0.3}],
+         expect={"amplitude": 0.2, "period": 4.0e-4}),
+    Case("position_friction", "position_friction",
+         additive=[{"kind": "friction_x", "coef": -60.0, "center": 0.0, "scale": 1.0, "power": 1.0}],
+         expect={"g_1": 60.0}),
+    Case("offset", "offset", additive=[{"kind": "offset", "coef": 0.3}], expect={"F_0": 0.3}),
+    Case("friction_asymmetry", "friction_asymmetry",
+         additive=[{"kind": "abs_friction", "coef": -0.4}, {"kind": "abs_v", "coef": -5.0}],
+         expect={"dF_C": 0.8, "dc": 10.0}),
+    Case("noise_x3", "noise_level", {"stage.drive.noise_current_rms": 7.1e-4 * 3}, expect={"noise_current_rms": 2.13e-3}),
+    # without friction, a mass error and a force-constant error are indistinguishable (F = m a):
+    # the diagnosis must report them as a confounded set
+    Case("mass_frictionless_confounded", "mass", {"stage.table.mass": 1.895915678524374 * 1.25},
+         expect={"m_table": 1.895915678524374 * 1.25}, nominal_edit=_frictionless),
+    Case("quantization_20nm", "quantization", {"stage.encoder.resolution": 2.0e-8}, expect={"resolution": 2.0e-8}),
+    # negative controls: the truth is the nominal
+    Case("negative_circle_a", None, seed=211),
+    Case("negative_circle_b", None, seed=212),
+    Case("negative_steps", None, experiment="steps", seed=213),
+    Case("negative_circle_c", None, seed=214),
+    Case("negative_fi_stage", None, nominal="fi_stage", seed=215),
+]
+
+
+def _nominal_doc(case: Case) -> dict:
+    data = load_preset(case.nominal).model_dump(mode="json")
+    if case.nominal_edit is not None:
+        case.nominal_edit(data)
+        data["name"] = f"{data['name']}_{case.name}_nominal"
+    return data
+
+
+def _truth_doc(case: Case) -> dict:
+    from stage_sim.config import preset_from_dict
+    nom = preset_from_dict(_nominal_doc(case))
+    p = with_overrides(nom, case.changes) if case.changes else nom
+    data = p.model_dump(mode="json")
+    if case.edit is not None:
+        case.edit(data)
+    data["name"] = f"truth_{case.name}"
+    data["simulation"]["seed"] = case.seed
+    if case.additive:
+        return {"preset": data, "additive_forces": case.additive}
+    return data
+
+
+def _value(found: dict, name: str):
+    for key in ("params_joint", "params"):
+        for p in found.get(key) or []:
+            if p["name"].split(".")[-1] == name:
+                return p["value"], p.get("sigma")
+    if name in (found.get("derived") or {}):
+        return found["derived"][name], None
+    return None, None
+
+
+def judge(case: Case, rep: dict) -> dict:
+    found = rep["found"]
+    names = [f["effect"] for f in found]
+    out = {"case": case.name, "truth_effect": case.effect, "verdict": rep["verdict"], "named": names}
+    if case.effect is None:
+        out["passed"] = rep["verdict"] == "model adequate" and not names
+        out["false_positive"] = bool(names)
+        return out
+    first = found[0] if found else None
+    conf = set(first.get("confounded_with") or []) if first else set()
+    named_first = bool(first) and (first["effect"] == case.effect or case.effect in conf)
+    allowed = {case.effect} | ({first["effect"]} | conf if named_first else set())
+    extra = [n for n in names if n not in allowed]
+    entry = next((f for f in found if f["effect"] == case.effect), None)
+    if entry is None and first is not None:
+        entry = next((a for a in first.get("alternatives") or [] if a["effect"] == case.effect), None)
+    checks = {}
+    ok_params = entry is not None
+    if entry is not None:
+        vals = {k: _value(entry, k) for k in case.expect}
+        nz = [abs(v) for v in case.expect.values() if v]
+        for k, truth in case.expect.items():
+            est, sig = vals[k]
+            if est is None:
+                checks[k] = {"truth": truth, "estimate": None, "ok": False}
+                ok_params = False
+                continue
+            if truth:
+                rel = est / truth - 1
+                ok = abs(rel) <= 0.2
+            else:
+                rel = None
+                ok = abs(est) <= 0.2 * max(nz or [1.0]) or (sig is not None and abs(est) <= 2 * sig)
+            checks[k] = {"truth": truth, "estimate": est, "rel_error": rel, "ok": bool(ok)}
+            ok_params &= ok
+    if entry is not None and entry.get("held_out"):
+        ho = entry["held_out"]
+        fall = 1 - ho["improved"] / ho["nominal"] if ho["nominal"] else None
+        metric = ho["metric"]
+    else:
+        fall = rep["validation"]["force_residual_rms_N"]["fall"]
+        metric = "held-out force residual RMS"
+    ok_fall = fall is not None and fall >= 0.5
+    out.update({"named_first": named_first, "extra_effects": extra, "params": checks, "params_ok": bool(ok_params),
+                "held_out_metric": metric, "held_out_fall": fall, "fall_ok": bool(ok_fall),
+                "false_positive": bool(extra)})
+    out["passed"] = bool(named_first and ok_params and ok_fall and not extra)
+    return out
+
+
+def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verbose: bool = False) -> dict:
+    """Run the cases (``only``: names or prefixes); returns the summary dict."""
+    cases = [c for c in CASES if not only or any(c.name.startswith(o) for o in only)]
+    tmp = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="nanostage_selftest_"))
+    tmp.mkdir(parents=True, exist_ok=True)
+    results = []
+    try:
+        for case in cases:
+            t0 = time.perf_counter()
+            d = tmp / case.name
+            d.mkdir(parents=True, exist_ok=True)
+            truth = d / "truth.yaml"
+            truth.write_text(yaml.safe_dump(_truth_doc(case), sort_keys=False))
+            exp = dict(EXPERIMENTS[case.experiment])
+            exp["preset"] = case.nominal
+            exp_path = d / "experiment.yaml"
+            exp_path.write_text(yaml.safe_dump(exp, sort_keys=False))
+            nominal = d / "nominal.yaml"
+            nominal.write_text(yaml.safe_dump(_nominal_doc(case), sort_keys=False))
+            try:
+                rec = synth(truth, exp_path, d / "rec.mcap")
+                t1 = time.perf_counter()
+                rep = diagnose(rec, nominal, out=d / "diagnosis" if keep else None,
+                               options=Options(plots=bool(keep), verbose=verbose))
+                res = judge(case, rep)
+                res["synth_s"] = round(t1 - t0, 2)
+                res["diagnose_s"] = round(rep["timing_s"]["total_s"], 2)
+            except Exception as err:   # noqa: BLE001 - a crashing case is a failed case
+                res = {"case": case.name, "truth_effect": case.effect, "passed": False, "false_positive": False,
+                       "error": repr(err)}
+            res["runtime_s"] = round(time.perf_counter() - t0, 2)
+            results.append(res)
+            if not as_json:
+                _print_row(res)
+    finally:
+        if not keep:
+            shutil.rmtree(tmp, ignore_errors=True)
+    summary = {"cases": len(results), "passed": sum(r["passed"] for r in results),
+               "false_positives": sum(bool(r.get("false_positive")) for r in results),
+               "negative_controls": sum(r["truth_effect"] is None for r in results),
+               "results": results}
+    return summary
+
+
+def _print_row(r: dict):
+    mark = "PASS" if r["passed"] else "FAIL"
+    if "error" in r:
+        print(f"{mark}  {r['case']:24s} error: {r['error']}", flush=True)
+        return
+    par = ", ".join(f"{k} {v['estimate']:.4g} (truth {v['truth']:.4g})" if v["estimate"] is not None else f"{k} missing"
+                    for k, v in (r.get("params") or {}).items())
+    fall = r.get("held_out_fall")
+    print(f"{mark}  {r['case']:24s} named {r['named'] or '-'}  {par}"
+          + (f"  held-out fall {100 * fall:.0f} %" if fall is not None else "")
+          + f"  [{r['runtime_s']:.1f} s]", flush=True)

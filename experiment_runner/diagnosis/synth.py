@@ -1,0 +1,92 @@
+"""``nanostage synth TRUTH.yaml EXPERIMENT.yaml --out REC.mcap``: a concealed-truth recording.
+
+TRUTH is a preset (name or YAML path) -- typically the nominal preset with one effect --
+or an extended model file ``{preset: ..., additive_forces: [...]}`` (see :mod:`.model`) for
+effects the preset schema cannot express yet (ripple, position-dependent friction, ...).
+EXPERIMENT is an experiment (name or YAML path, :mod:`experiment_runner.experiment`): its
+profile, trials, start positions and window are used with the TRUTH instead of the
+experiment's own ``preset`` (the experiment's ``overrides`` are applied to the truth).
+
+The recording is a contract recording written by
+:func:`experiment_runner.recording.write_run`; the truth is *concealed*: no
+``/stage/truth`` topic and an ``/experiment/config`` without the preset (only the run's
+case, rate and trial layout), so a diagnosis can only use what a rig would give.
+Drive noise and quantization are whatever the truth preset says.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from experiment_runner.batch import BatchResult, simulate
+from experiment_runner.experiment import _reference, build_trials, load_experiment
+from experiment_runner.recording import write_run
+from stage_sim.config import with_overrides
+
+from .model import ModelSpec, load_model
+from .predict import closed_loop
+
+__all__ = ["synth", "add_synth_arguments", "main_synth"]
+
+
+def _batch_result(rate, x_ref, v_ref, y, u, x):
+    B, T = x_ref.shape
+    return BatchResult(t=np.arange(T) / rate, x_ref=x_ref, x_correction=np.zeros_like(x_ref), v_ref=v_ref, y=y,
+                       y_bearing=np.full_like(y, np.nan), u=u, x_table=x, x_bearing=x.copy(),
+                       dither=np.zeros((B, T, 2)), mode=np.ones_like(y), status=np.zeros(B, np.int64),
+                       fail_step=-np.ones(B, np.int64))
+
+
+def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None = None, conceal: bool = True,
+          overwrite: bool = True) -> Path:
+    """Simulate ``experiment`` on ``truth`` and write the recording; returns the MCAP path."""
+    spec: ModelSpec = load_model(truth)
+    exp = load_experiment(experiment)
+    if trials is not None:
+        exp = exp.model_copy(update={"trials": int(trials)})
+    preset = with_overrides(spec.preset, exp.overrides) if exp.overrides else spec.preset
+    if seed is not None:
+        preset = with_overrides(preset, {"simulation.seed": int(seed)})
+    spec = ModelSpec(preset, spec.additive)
+    if preset.dither is not None or preset.stage.sai is not None:
+        raise ValueError("synth: dither and SAI stages are not supported yet by the diagnosis (no such topics "
+                         "in the contract's three hardware topics)")
+    tr = build_trials(exp, preset)
+    rate = preset.controller.rate
+    x_ref = np.stack([t.x_ref for t in tr])
+    v_ref = np.stack([t.v_ref for t in tr])
+    seeds = np.array([t.seed for t in tr])
+    if spec.additive:
+        y, u, x = closed_loop(spec, x_ref.T, v_ref.T, seeds)
+        res = _batch_result(rate, x_ref, v_ref, y.T.copy(), u.T.copy(), x.T.copy())
+    else:
+        res = simulate(preset, x_ref, v_ref, seeds=seeds, check=False)
+    ref = _reference(exp.profile, 1.0 / rate)
+    cfg = None
+    if conceal:
+        cfg = yaml.safe_dump({"recording_contract": 1, "run": {"source": "nanostage synth", "case": exp.name,
+                                                               "trials": len(tr), "rate": rate,
+                                                               "samples_per_trial": int(x_ref.shape[1]),
+                                                               "truth": "concealed"}}, sort_keys=False)
+    return write_run(out, res, preset, reference=ref if len(ref.x) == x_ref.shape[1] else None, window=exp.window,
+                     case=exp.name, config_yaml=cfg, truth=not conceal, node="synth", overwrite=overwrite)
+
+
+def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    parser.add_argument("truth", help="truth preset (name or YAML) or model file {preset, additive_forces}")
+    parser.add_argument("experiment", help="experiment (name or YAML): profile, trials, starts")
+    parser.add_argument("--out", required=True, help="recording to write (bag directory; NAME.mcap -> NAME/NAME.mcap)")
+    parser.add_argument("--seed", type=int, default=None, help="simulation.seed of the truth (noise realisation)")
+    parser.add_argument("--trials", type=int, default=None, help="override the experiment's number of trials")
+    parser.add_argument("--reveal", action="store_true", help="also record /stage/truth and the preset in "
+                                                              "/experiment/config (default: concealed)")
+    return parser
+
+
+def main_synth(args) -> int:
+    path = synth(args.truth, args.experiment, args.out, seed=args.seed, trials=args.trials, conceal=not args.reveal)
+    print(path)
+    return 0

@@ -1,0 +1,208 @@
+"""Model diagnosis (experiment_runner.diagnosis): kernels, predict, locate, fit, report, synth.
+
+The end-to-end concealed-data cases (synth -> MCAP -> diagnose) are in
+test_diagnosis_selftest.py; here the pieces, on short in-memory batches.
+"""
+import json
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from experiment_runner import profiles
+from experiment_runner.batch import simulate
+from experiment_runner.diagnosis import engine as E
+from experiment_runner.diagnosis.data import DiagData
+from experiment_runner.diagnosis.fit import (Evaluator, estimate_lattice, fit_effect, gauss_newton,
+                                             sparse_regression)
+from experiment_runner.diagnosis.hypotheses import LIBRARY, describe, get_effect, virgin_x50
+from experiment_runner.diagnosis.locate import REGIMES, regimes
+from experiment_runner.diagnosis.model import AddTerm, ModelSpec, load_model
+from experiment_runner.diagnosis.predict import NoiseFloor, Observer, closed_loop, sim_data
+from stage_sim.config import load_preset, preset_from_dict, with_overrides
+
+NOM = load_preset("fi_stage_nofi")
+
+
+def _data(preset_or_spec, n=4, seed0=100, additive=()):
+    """Circle trials simulated from a truth, as DiagData (trial 3 held out)."""
+    ref = profiles.circle_x(1e-3, 20e-3, cycles=1)
+    x0 = np.linspace(-4e-3, 4e-3, n)
+    spec = preset_or_spec if isinstance(preset_or_spec, ModelSpec) else ModelSpec(preset_or_spec, tuple(additive))
+    xr = (ref.x[:, None] + x0[None, :])
+    vr = np.repeat(ref.v[:, None], n, axis=1)
+    y, u, _ = closed_loop(spec, xr, vr, seed0 + np.arange(n))
+    T = len(ref.x)
+    valid = np.ones((T, n), bool)
+    use = np.arange(T)[:, None] >= 50
+    fit = valid & use
+    held = np.zeros_like(fit)
+    held[:, -1] = fit[:, -1]
+    fit[:, -1] = False
+    return DiagData(rate=1e4, t0=np.zeros(n), x_ref=xr, v_ref=vr, u=u, y=y, valid=valid, fit=fit, held=held,
+                    lengths=np.full(n, T), trial_ids=list(range(n)))
+
+
+# --------------------------------------------------------------------------- kernels
+def test_closed_loop_kernel_is_batch_simulate():
+    """Without additive forces, the diagnosis closed loop reproduces batch.simulate bit for bit
+    (drive delay, noise, quantization included)."""
+    p = with_overrides(NOM, {"stage.drive.delay_samples": 2})
+    ref = profiles.point_to_point(5e-6, dwell=0.02)
+    xr = np.stack([ref.x, ref.x + 1e-3], axis=1)
+    vr = np.stack([ref.v, ref.v], axis=1)
+    res = simulate(p, xr.T, vr.T, seeds=[5, 6])
+    y, u, x = closed_loop(ModelSpec(p), xr, vr, [5, 6], use_batch=False)
+    assert np.array_equal(y, res.y.T) and np.array_equal(u, res.u.T)
+
+
+def test_observer_residual_is_the_missing_force():
+    """A nominal model lacking a constant 0.3 N table force: the force residual is 0.3 N
+    (up to noise); the exact model leaves only the noise floor."""
+    truth = ModelSpec(NOM, (AddTerm("offset", 0.3),))
+    d = _data(truth)
+    ob = Observer(d)
+    r = ob.run(ModelSpec(NOM)).r
+    m = d.fit | d.held
+    assert np.mean(r[m]) == pytest.approx(0.3, abs=0.01)
+    r_exact = ob.run(truth).r
+    assert abs(np.mean(r_exact[m])) < 0.003 and np.std(r_exact[m]) < 0.05
+
+
+def test_open_loop_windows_drift_small_for_exact_model():
+    from experiment_runner.diagnosis.predict import open_loop_windows
+    d = _data(NOM)
+    ob = Observer(d)
+    spec = ModelSpec(NOM)
+    res = ob.run(spec, snap_every=100)
+    w_ok = open_loop_windows(spec, ob, res, 100)
+    wrong = get_effect("coulomb").apply(spec, [4.0])
+    res_w = ob.run(wrong, snap_every=100)
+    w_bad = open_loop_windows(wrong, ob, res_w, 100)
+    assert len(w_ok["start"]) > 50
+    assert np.sqrt(np.mean(w_bad["drift_m"] ** 2)) > 20 * np.sqrt(np.mean(w_ok["drift_m"] ** 2))
+
+
+# --------------------------------------------------------------------------- fitting
+def test_gauss_newton_solves_a_linear_problem_in_one_step():
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((200, 3))
+    x_true = np.array([0.5, -1.0, 2.0])
+    b = A @ x_true
+    sol = gauss_newton(lambda z: A @ z - b, np.zeros(3), -10 * np.ones(3), 10 * np.ones(3), max_iter=3)
+    assert np.allclose(sol["x"], x_true, atol=1e-6)
+    assert sol["nfev"] <= 3 * 4 + 4
+
+
+def test_lattice_estimate():
+    rng = np.random.default_rng(1)
+    q = 4.88e-9
+    y = q * np.floor(rng.uniform(-1e-3, 1e-3, 5000) / q + 0.5)
+    assert estimate_lattice(y) == pytest.approx(q, rel=1e-9)
+    assert estimate_lattice(rng.uniform(-1e-3, 1e-3, 5000)) is None
+
+
+def test_sparse_regression_keeps_the_true_terms():
+    rng = np.random.default_rng(2)
+    v = rng.standard_normal(3000)
+    x = rng.standard_normal(3000)
+    target = 2.0 * np.sign(v) - 0.5 * x + 0.01 * rng.standard_normal(3000)
+    out = sparse_regression({"1": np.ones(3000), "v": v, "sign(v)": np.sign(v), "x": x, "x^2": x ** 2}, target)
+    assert set(out["terms"]) == {"sign(v)", "x"}
+    assert out["terms"]["sign(v)"] == pytest.approx(2.0, rel=0.01)
+    assert out["explained"] > 0.99
+
+
+@pytest.fixture(scope="module")
+def coulomb_case():
+    truth = with_overrides(NOM, {"stage.bearings.0.friction.f_c": 2.655 * 1.3,
+                                 "stage.bearings.1.friction.f_c": 2.655 * 1.3})
+    d = _data(truth)
+    ob = Observer(d)
+    spec = ModelSpec(NOM)
+    sim = sim_data(spec, d, 999)
+    osim = Observer(sim, bandwidth=ob.f_o)
+    fl = NoiseFloor(d.rate, [osim.run(spec).r], [sim.fit | sim.held], f_max=ob.f_o)
+    return d, ob, fl, spec
+
+
+def test_fit_recovers_coulomb_and_rejects_others(coulomb_case):
+    d, ob, fl, spec = coulomb_case
+    ev = Evaluator(ob, fl)
+    J0 = ev.J(spec)
+    ctx = {"u_max": float(np.abs(d.u).max()), "v_max": 0.02, "x_center": 0.0, "x_half_span": 5e-3}
+    f = fit_effect(LIBRARY["coulomb"], spec, ev, ctx)
+    assert f.theta[0] == pytest.approx(5.31 * 1.3, rel=1e-3)
+    assert f.J_held < 2 and J0 > 1e4
+    assert 0 < f.sigma[0] < 0.01
+    fm = fit_effect(LIBRARY["mass"], spec, ev, ctx)
+    assert fm.J_held > 100 * f.J_held
+
+
+def test_noise_floor_whitening_is_unit_for_the_model_itself(coulomb_case):
+    d, ob, fl, spec = coulomb_case
+    sim2 = sim_data(spec, d, 4242)
+    r2 = Observer(sim2, bandwidth=ob.f_o).run(spec).r
+    assert fl.ms(r2, sim2.fit | sim2.held) == pytest.approx(1.0, abs=0.25)
+
+
+# --------------------------------------------------------------------------- library, model files
+@pytest.mark.parametrize("key", [k for k, e in LIBRARY.items() if e.kind != "info"])
+def test_every_effect_applies_to_the_nominal(key):
+    e = get_effect(key)
+    if hasattr(e, "bind"):
+        e.bind({"x_center": 0.0, "x_half_span": 5e-3, "delta_lo": 3e-8, "delta_hi": 1e-4})
+    spec = ModelSpec(NOM)
+    ctx = {"u_max": 8.0, "v_max": 0.02, "x_span": 1e-2, "peak_hz": [150.0], "ripple_period": [4e-4],
+           "line_hz": [120.0], "r_rms": 0.5}
+    ps = e.params(spec, ctx)
+    assert all(p.lo <= p.x0 <= p.hi for p in ps), key
+    new = e.apply(spec, [p.x0 for p in ps])
+    preset_from_dict(new.preset.model_dump())            # still a valid preset
+    assert bool(new.additive) == (not e.expressible), key
+    new.compiled()
+
+
+def test_list_effects_covers_the_issue():
+    keys = {r["key"] for r in describe(as_json=True)}
+    for k in ("dahl", "gms", "coulomb", "viscous", "stribeck", "fi_compliance", "position_friction", "ripple",
+              "structural_mode", "delay", "force_constant", "mass", "noise_level", "quantization",
+              "dither_imbalance", "isolator_transient", "sparse_regression"):
+        assert k in keys
+    text = describe()
+    assert "signature" in text and "needs" in text
+
+
+def test_model_file_round_trip(tmp_path):
+    spec = ModelSpec(NOM, (AddTerm("sin_x", 0.2, (4e-4, 0.3), "ripple"), AddTerm("offset", 0.1)))
+    path = tmp_path / "model.yaml"
+    path.write_text(spec.model_yaml())
+    back = load_model(path)
+    assert back.preset == NOM
+    assert [a.to_dict() for a in back.additive] == [a.to_dict() for a in spec.additive]
+    pre = tmp_path / "p.yaml"
+    pre.write_text(spec.preset_yaml())
+    assert load_preset(pre) == NOM
+
+
+def test_virgin_x50_of_dahl():
+    x50 = virgin_x50([{"model": "dahl", "k_sigma": 2e6, "f_c": 5.0, "shape": 1.0}])
+    assert x50 == pytest.approx(math.log(2) * 5.0 / 2e6, rel=0.01)
+
+
+# --------------------------------------------------------------------------- locate
+def test_regimes_of_steps_and_circle():
+    ref = profiles.step_sequence(5e-6, 1, 1, dwell=0.05)
+    v = ref.v[:, None]
+    lab = regimes(ref.x[:, None], v, np.ones_like(v, bool), 1e4)
+    names = {REGIMES[i] for i in np.unique(lab)}
+    assert {"in_position", "settling", "acceleration"} <= names
+    settle = ref.select("settle")[0]
+    assert REGIMES[lab[settle.start + 5, 0]] == "settling"
+    assert REGIMES[lab[settle.stop - 5, 0]] == "in_position"
+    c = profiles.circle_x(1e-3, 2e-2)
+    lab = regimes(c.x[:, None], c.v[:, None], np.ones((len(c.x), 1), bool), 1e4)
+    half = len(c.x) // 2
+    assert REGIMES[lab[half, 0]] == "reversal"
+    assert REGIMES[lab[half // 2, 0]] == "constant_velocity"
