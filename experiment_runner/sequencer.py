@@ -9,6 +9,7 @@ is marked aborted with the reason and the node responsible, and the run ends.
 """
 from __future__ import annotations
 
+import sys
 import time
 
 import numpy as np
@@ -36,9 +37,16 @@ class SequencerNode(StageNode):
         name = self.param("experiment", experiment or "fi_p2p_5um",
                           "experiment name (shipped) or YAML path", check=_check_experiment)
         self.timeout = self.param("sample_timeout", 5.0, "wall-clock time without a new sample "
-                                  "before the trial is aborted [s]", 0.01, 3600.0)
-        self.wait_nodes = self.param("wait_for_nodes", 3, "subscribers of /experiment/trajectory "
-                                     "to wait for before starting", 0, 100)
+                                  "before the trial is aborted [s]", 0.01, 3600.0, attr="timeout")
+        self.wait_nodes = self.param("wait_for_nodes", 5, "subscribers of /experiment/trajectory "
+                                     "to wait for before starting (5: plant_sim, servo_controller, "
+                                     "dither_generator, sai_manager, recorder; fewer, and the "
+                                     "recorder may miss the first events)", 0, 100, attr="wait_nodes")
+        self.start_delay = self.param("start_delay", 1.0, "wall-clock time to wait once the nodes are "
+                                      "there, so they discover each other too (what a publisher "
+                                      "sends before its subscriber matched is lost) [s]", 0.0, 60.0,
+                                      attr="start_delay")
+        self.ready_since = None
         self.exp = load_experiment(name)
         self.preset = experiment_preset(self.exp)
         self.trials = build_trials(self.exp, self.preset)
@@ -67,7 +75,12 @@ class SequencerNode(StageNode):
         if self.done:
             return
         if self.current < 0:
-            if self.pub_traj.get_subscription_count() >= self.wait_nodes:
+            if self.pub_traj.get_subscription_count() < self.wait_nodes:
+                self.ready_since = None
+                return
+            if self.ready_since is None:
+                self.ready_since = time.monotonic()
+            if time.monotonic() - self.ready_since >= self.start_delay:
                 self.pub_config.publish(convert.string_msg(None, self.config_yaml()))
                 self.event("run_start", stamp_ns=0, case=self.exp.name, window_m=self.exp.window)
                 self._next_trial()
@@ -81,7 +94,8 @@ class SequencerNode(StageNode):
     def _next_trial(self):
         self.current += 1
         if self.current >= len(self.trials):
-            self.event("run_end", stamp_ns=self.start * self.dt_ns, case=self.exp.name)
+            last = self.start + len(self.trials[-1].x_ref) - 1 if self.trials else 0
+            self.event("run_end", stamp_ns=last * self.dt_ns, case=self.exp.name)   # = last trial_end
             self.done = True
             return
         tr = self.trials[self.current]
@@ -139,11 +153,21 @@ class SequencerNode(StageNode):
         nodes = node if isinstance(node, str) else ", ".join(node or [])
         tr = self.trials[self.current] if 0 <= self.current < len(self.trials) else None
         self.aborted = {"trial": None if tr is None else tr.index, "reason": reason, "node": nodes}
-        self.event("abort", stamp_ns=self.start * self.dt_ns, trial=None if tr is None else tr.index,
+        heard = max(getattr(self, "k_meas", -1), getattr(self, "k_ref", -1), 0)
+        stamp = (self.start + heard) * self.dt_ns        # the last sample heard, so it sorts after it
+        self.event("abort", stamp_ns=stamp, trial=None if tr is None else tr.index,
                    case=self.exp.name, reason=f"{reason} (node: {nodes})", responsible=nodes)
-        self.event("run_end", stamp_ns=self.start * self.dt_ns, case=self.exp.name, reason="aborted")
+        self.event("run_end", stamp_ns=stamp, case=self.exp.name, reason="aborted")
         self.done = True
 
 
 def main(args=None):
-    run_node(SequencerNode, args, until=lambda n: n.done, on_exit=lambda n: time.sleep(0.5))
+    aborted = []
+
+    def on_exit(node):
+        time.sleep(0.5)                     # let the last events reach the recorder
+        aborted.append(node.aborted)
+
+    run_node(SequencerNode, args, until=lambda n: n.done, on_exit=on_exit)
+    if aborted and aborted[0]:
+        sys.exit(1)                         # an aborted run is a failed run (as in one process)

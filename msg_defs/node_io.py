@@ -77,14 +77,15 @@ def run_node(factory, args=None, until=None, on_exit=None):
     import sys
 
     import rclpy
-    from rclpy.exceptions import InvalidParameterValueException
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
     from rclpy.executors import ExternalShutdownException
     rclpy.init(args=args)
     node = None
     try:
         try:
             node = factory()
-        except (ValueError, InvalidParameterValueException) as err:   # bad parameter: say which
+        except (ValueError, InvalidParameterValueException,
+                InvalidParameterTypeException) as err:                 # bad parameter: say which
             print(f"error: {err}", file=sys.stderr)
             rclpy.shutdown()
             sys.exit(2)
@@ -134,8 +135,9 @@ class StageNode(Node):
             self.on_config(self.config)
 
     # ----------------------------------------------------------------- parameters
-    def param(self, name, default, description, lo=None, hi=None, check=None):
-        """Declare a parameter with a description, an optional range and a validator."""
+    def param(self, name, default, description, lo=None, hi=None, check=None, attr=None):
+        """Declare a parameter with a description, an optional range and a validator;
+        ``attr``: attribute of the node that follows the parameter when it is set at run time."""
         desc = ParameterDescriptor(description=description)
         if isinstance(default, bool) or lo is None:
             pass
@@ -145,6 +147,11 @@ class StageNode(Node):
             desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
         if check:
             self._validators[name] = check
+        if attr:
+            if not hasattr(self, "_live"):
+                self._live = {}
+                self.add_post_set_parameters_callback(self._follow)
+            self._live[name] = attr
         value = self.declare_parameter(name, default, desc).value
         if check:
             problem = check(value)
@@ -159,6 +166,11 @@ class StageNode(Node):
             if problem:
                 return SetParametersResult(successful=False, reason=f"{p.name}={p.value!r}: {problem}")
         return SetParametersResult(successful=True)
+
+    def _follow(self, params):
+        for p in params:
+            if p.name in self._live:
+                setattr(self, self._live[p.name], p.value)
 
     def event(self, kind, **fields):
         """Publish an ``/experiment/events`` record from this node."""
@@ -205,6 +217,12 @@ class JointStateOut:
     def __init__(self, node: StageNode, topic):
         self.pub = node.publisher(topic)
         self._msgs: dict[tuple, object] = {}
+        self.last = None                    # the message published last
+
+    def republish(self):
+        """Publish the last message again (an answer to a sample the plant sent again)."""
+        if self.last is not None:
+            self.pub.publish(self.last)
 
     def publish(self, stamp_ns: int, names, position=(), velocity=(), effort=()):
         key = tuple(names)
@@ -219,3 +237,4 @@ class JointStateOut:
                 raise ValueError(f"JointState {field} has {len(val)} values for {len(key)} names {list(key)}")
             setattr(msg, field, val)
         self.pub.publish(msg)
+        self.last = msg

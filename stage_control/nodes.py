@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 from msg_defs import convert
-from msg_defs.node_io import SAI_COMMAND, Lockstep, StageNode, run_node
+from msg_defs.node_io import SAI_COMMAND, JointStateOut, Lockstep, StageNode, run_node
 from stage_control.dither import build_dither, dither_step, init_dither_state
 from stage_control.sai import build_sai, ilc_update, init_sai_state, sai_step
 from stage_control.servo import build_servo, init_servo_state, servo_step
-from stage_sim.config import SaiManager, preset_from_dict
+from stage_sim.config import SaiManager, load_preset, preset_from_dict
+from stage_sim.node import check_preset
 
 
 class _TrialNode(StageNode):
@@ -24,22 +25,50 @@ class _TrialNode(StageNode):
 
     def __init__(self, name, **kwargs):
         super().__init__(name, **kwargs)
+        self._inputs, self._input_specs = [], []     # per-sample subscriptions
+        self.preset_name = self.param("preset", "", "preset name or YAML path; empty = the preset of "
+                                      "/experiment/config", check=check_preset)
         self.preset = None
         self.tr = None
         self.lock = None
         self._held = None
         self._early = []
         self.listen_config(self._configure)
+        if self.preset_name:
+            self._configure(None)
         self.subscribe("/experiment/trajectory", self._trajectory)
-        self.subscribe("/stage/measured", lambda m: self._input(m, "measured", m.position[0]))
+        self.subscribe_input("/stage/measured", "measured", "position")
+
+    def active(self, preset) -> bool:
+        """Whether the preset uses this node (an unused one drops its per-sample subscriptions)."""
+        return True
+
+    def subscribe_input(self, topic, name, field):
+        """Per-sample input ``name`` = ``msg.<field>[0]`` (not subscribed while this node is unused)."""
+        self._input_specs.append((topic, name, field))
+        if self.preset is None or self.active(self.preset):
+            self._inputs.append(self.subscribe(topic, lambda m: self._input(m, name, getattr(m, field)[0])))
+
+    def _listen_inputs(self, on: bool):
+        if on and not self._inputs:
+            self._inputs = [self.subscribe(t, lambda m, n=n, f=f: self._input(m, n, getattr(m, f)[0]))
+                            for t, n, f in self._input_specs]
+        elif not on:
+            for sub in self._inputs:
+                self.destroy_subscription(sub)
+            self._inputs = []
 
     def _configure(self, cfg):
-        self.preset = preset_from_dict(cfg["preset"], "/experiment/config")
+        if self.preset is not None and cfg is not None and self.preset_name:
+            return                          # the preset parameter wins over the run's config
+        self.preset = (load_preset(self.preset_name) if self.preset_name
+                       else preset_from_dict(cfg["preset"], "/experiment/config"))
         self.dt_ns = int(round(1e9 / self.preset.controller.rate))
         needed = list(self.inputs)
         if "sai" in needed and self.preset.sai_manager is None:
             needed.remove("sai")
         self.lock = Lockstep(tuple(needed))
+        self._listen_inputs(self.active(self.preset))   # e.g. no dither on this stage: hear no samples
         self.build(self.preset)
         if self._held is not None:
             self._trajectory(self._held)
@@ -52,6 +81,7 @@ class _TrialNode(StageNode):
         self.tr = convert.trajectory_from_msg(msg)
         self.lock.clear()
         self.one = lambda v: np.array([v], float)
+        self.last_k = -1                    # last sample computed
         self.reset()
         early, self._early = self._early, []
         for item in early:
@@ -67,10 +97,17 @@ class _TrialNode(StageNode):
         k = stamp // self.dt_ns - self.tr.start
         if k >= len(self.tr.x_ref):         # belongs to a trial not started here yet
             self._early.append((stamp, name, value))
+        elif k <= self.last_k:              # computed already: the plant sent this sample again
+            if k == self.last_k >= 0 and name == "measured":
+                self.resend(k)              # (our answer may have been lost): answer again
         elif k >= 0:
             got = self.lock.put(k, name, value)
             if got is not None:
+                self.last_k = k
                 self.sample(k, got)
+
+    def resend(self, k):
+        """Publish again what was published for sample ``k`` (nothing is recomputed)."""
 
     def stamp(self, k):
         return (self.tr.start + k) * self.dt_ns
@@ -83,8 +120,8 @@ class ServoNode(_TrialNode):
 
     def __init__(self, **kwargs):
         super().__init__("servo_controller", **kwargs)
-        self.pub_command = self.publisher("/stage/command")
-        self.pub_reference = self.publisher("/stage/reference")
+        self.pub_command = JointStateOut(self, "/stage/command")
+        self.pub_reference = JointStateOut(self, "/stage/reference")
         self.subscribe(SAI_COMMAND, lambda m: self._input(m, "sai", m.effort[0]))
 
     def build(self, preset):
@@ -99,9 +136,12 @@ class ServoNode(_TrialNode):
         vr = self.one(self.tr.v_ref[k])
         servo_step(self.model, self.state, xr, vr, self.one(got["measured"]), self.u)
         stamp = self.stamp(k)
-        self.pub_command.publish(convert.joint_state(None, stamp, ["motor"], effort=[self.u[0]]))
-        self.pub_reference.publish(convert.joint_state(None, stamp, ["table"], position=[xr[0]],
-                                                       velocity=[vr[0]]))
+        self.pub_command.publish(stamp, ["motor"], effort=self.u)
+        self.pub_reference.publish(stamp, ["table"], position=xr, velocity=vr)
+
+    def resend(self, k):
+        self.pub_command.republish()
+        self.pub_reference.republish()
 
 
 class DitherNode(_TrialNode):
@@ -111,8 +151,11 @@ class DitherNode(_TrialNode):
 
     def __init__(self, **kwargs):
         super().__init__("dither_generator", **kwargs)
-        self.pub = self.publisher("/stage/dither")
-        self.subscribe(SAI_COMMAND, lambda m: self._input(m, "sai", m.effort[0]))
+        self.pub = JointStateOut(self, "/stage/dither")
+        self.subscribe_input(SAI_COMMAND, "sai", "effort")
+
+    def active(self, preset):
+        return preset.dither is not None
 
     def build(self, preset):
         self.model = build_dither(preset.dither, preset.controller.rate) if preset.dither else None
@@ -128,8 +171,11 @@ class DitherNode(_TrialNode):
         xr = self.one(self.tr.x_ref[k] + got.get("sai", 0.0))
         dither_step(self.model, self.state, k, xr, self.one(self.tr.v_ref[k]),
                     self.one(got["measured"]), self.out)
-        self.pub.publish(convert.joint_state(None, self.stamp(k), ["piezo_1", "piezo_2"],
-                                             effort=self.out[:, 0]))
+        self.pub.publish(self.stamp(k), ["piezo_1", "piezo_2"], effort=self.out[:, 0])
+
+    def resend(self, k):
+        if self.model is not None:
+            self.pub.republish()
 
 
 class SaiNode(_TrialNode):
@@ -139,11 +185,14 @@ class SaiNode(_TrialNode):
     def __init__(self, **kwargs):
         super().__init__("sai_manager", **kwargs)
         self.learn = self.param("learn_correction", False, "update the Step II correction after "
-                                "every trial with the ILC of Eq. 5.2")
-        self.pub = self.publisher(SAI_COMMAND)
+                                "every trial with the ILC of Eq. 5.2", attr="learn")
+        self.pub = JointStateOut(self, SAI_COMMAND)
         self.pub_correction = self.publisher("/stage/correction")
         self.correction = np.zeros(0)
         self.iteration = 0
+
+    def active(self, preset):
+        return preset.sai_manager is not None
 
     def build(self, preset):
         self.manager = preset.sai_manager
@@ -154,6 +203,7 @@ class SaiNode(_TrialNode):
         self.mode, self.xc = np.zeros(1), np.zeros(1)
         self.y = np.full(len(self.tr.x_ref), np.nan)
         self.modes = np.zeros(len(self.tr.x_ref))
+        self.sent = {}
         if self.manager is not None:
             self._publish(0)
 
@@ -163,8 +213,16 @@ class SaiNode(_TrialNode):
         sai_step(self.model, self.state, self.correction, k, self.one(v[k]), self.one(v[ka]),
                  self.mode, self.xc)
         self.modes[k] = self.mode[0]
-        self.pub.publish(convert.joint_state(None, self.stamp(k), ["isolator"], position=[self.mode[0]],
-                                             effort=[self.xc[0]]))
+        self.sent = {j: v for j, v in self.sent.items() if j >= k - 1}
+        self.sent[k] = (self.mode[0], self.xc[0])
+        self.pub.publish(self.stamp(k), ["isolator"], position=self.mode, effort=self.xc)
+
+    def resend(self, k):
+        """Sample ``k``'s command (sent one sample ahead) and ``k + 1``'s, as sent."""
+        for j in (k, k + 1):
+            if j in self.sent:
+                self.pub.publish(self.stamp(j), ["isolator"], position=[self.sent[j][0]],
+                                 effort=[self.sent[j][1]])
 
     def sample(self, k, got):
         if self.manager is None:

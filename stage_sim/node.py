@@ -13,12 +13,18 @@ import time
 
 import numpy as np
 from msg_defs import convert
-from msg_defs.node_io import NODE_OF_INPUT, SAI_COMMAND, Lockstep, StageNode, run_node
+from msg_defs.node_io import NODE_OF_INPUT, SAI_COMMAND, JointStateOut, Lockstep, StageNode, run_node
 from stage_sim.config import ConfigError, load_preset, preset_from_dict
 from stage_sim.plant import PlantSim, SimulationError, build_plant
 
+RESEND_S = 0.25
+"""Wall-clock wait for a sample's inputs after which its measurement is published again:
+a message sent before its subscriber was matched (start-up) is lost even on a reliable
+topic; the controllers answer a repeated sample by repeating their answer."""
 
-def _check_preset(name):
+
+def check_preset(name):
+    """Parameter validator: None if ``name`` is empty or a loadable preset, else why not."""
     if not name:
         return None
     try:
@@ -34,13 +40,14 @@ class PlantNode(StageNode):
     def __init__(self, **kwargs):
         super().__init__("plant_sim", **kwargs)
         self.timeout = self.param("input_timeout", 5.0, "wall-clock time to wait for a sample's "
-                                  "inputs before the trial is aborted [s]", 0.01, 3600.0)
+                                  "inputs before the trial is aborted [s]", 0.01, 3600.0, attr="timeout")
         self.preset_name = self.param("preset", "", "preset name or YAML path; empty = the preset of "
-                                      "/experiment/config", check=_check_preset)
-        self.pub_measured = self.publisher("/stage/measured")
-        self.pub_truth = self.publisher("/stage/truth")
+                                      "/experiment/config", check=check_preset)
+        self.pub_measured = JointStateOut(self, "/stage/measured")
+        self.pub_truth = JointStateOut(self, "/stage/truth")
         self.pub_clock = self.publisher("/clock")
-        self.pub_isolator = self.publisher("/stage/isolator")
+        self.clock = convert.clock_msg(None, 0)
+        self.pub_isolator = JointStateOut(self, "/stage/isolator")
         self.subscribe("/experiment/trajectory", self._trajectory)
         self.subscribe("/stage/command", lambda m: self._input(m, "command", m.effort[0]))
         self.subscribe("/stage/dither", lambda m: self._input(m, "dither", (m.effort[0], m.effort[1])))
@@ -66,6 +73,9 @@ class PlantNode(StageNode):
         p = self.preset
         self.pm = build_plant(p.stage, p.controller.rate, p.simulation.max_omega_h, p.simulation.max_substeps)
         self.dt_ns = int(round(1e9 / p.controller.rate))
+        self.bodies = ["table"] + [f"body_{i}" for i in range(1, self.pm.n)]
+        if self.pm.bear_dof:
+            self.bodies[self.pm.bear_dof] = "bearing"
         needed = ["command"] + (["dither"] if p.dither else []) + (["sai"] if p.sai_manager else [])
         self.lock = Lockstep(tuple(needed))
         self.init_mode = 0.0 if p.sai_manager and p.sai_manager.rule != "always_compliant" else 1.0
@@ -97,20 +107,17 @@ class PlantNode(StageNode):
         stamp = self._stamp(self.k)
         y = self.sim.meas[:, 0]
         names, pos = (["table"], [y[0]]) if np.isnan(y[1]) else (["table", "bearing"], list(y))
-        self.pub_clock.publish(convert.clock_msg(None, stamp))
-        self.pub_measured.publish(convert.joint_state(None, stamp, names, position=pos))
-        n = self.pm.n
-        body = ["table"] + [f"body_{i}" for i in range(1, n)]
-        if self.pm.bear_dof:
-            body[self.pm.bear_dof] = "bearing"
-        self.pub_truth.publish(convert.joint_state(None, stamp, body, position=self.sim.positions[:, 0],
-                                                   velocity=self.sim.velocities[:, 0]))
+        self.clock.clock.sec, self.clock.clock.nanosec = divmod(stamp, 1_000_000_000)
+        self.pub_clock.publish(self.clock)
+        self.pub_measured.publish(stamp, names, position=pos)
+        self.pub_truth.publish(stamp, self.bodies, position=self.sim.positions[:, 0],
+                               velocity=self.sim.velocities[:, 0])
         self.waiting_since = time.monotonic()
+        self.resends = 0
 
     def _publish_isolator(self):
         if self.preset.stage.sai is not None:
-            self.pub_isolator.publish(convert.joint_state(None, self._stamp(self.k), ["isolator"],
-                                                          position=[self.mode]))
+            self.pub_isolator.publish(self._stamp(self.k), ["isolator"], position=[self.mode])
 
     def _input(self, msg, name, value):
         if self.sim is None or self.lock is None:
@@ -146,7 +153,11 @@ class PlantNode(StageNode):
     def _watchdog(self):
         if self.sim is None or self.waiting_since is None or self.k >= self.n:
             return
-        if time.monotonic() - self.waiting_since > self.timeout:
+        waited = time.monotonic() - self.waiting_since
+        if waited <= self.timeout and waited > (self.resends + 1) * RESEND_S:
+            self.resends += 1
+            self.pub_measured.republish()
+        if waited > self.timeout:
             topics = {"command": "/stage/command", "dither": "/stage/dither", "sai": SAI_COMMAND.name}
             silent = sorted({NODE_OF_INPUT[topics[m]] for m in self.lock.missing(self.k)})
             self.event("fault", stamp_ns=self._stamp(self.k), trial=self.trial,

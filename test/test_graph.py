@@ -1,0 +1,446 @@
+"""Topic-level integration tests of the ROS 2 node graph.
+
+Every node runs as its own process (the console scripts ``plant_sim``,
+``servo_controller``, ``dither_generator``, ``sai_manager``, ``recorder``,
+``experiment_sequencer``) on an isolated ROS domain: a ROS_DOMAIN_ID in 1..100 that is
+unique per graph in this session (derived from the pid and a counter, never the
+default domain) and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. What a test checks is
+what went over the topics: the MCAP recording read back with ``read_recording``, the
+``/experiment/events`` heard by a listener in this process, parameter services.
+Every wait is bounded; no timing is asserted (speed is ``nanostage bench``'s job).
+"""
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, String
+
+from experiment_runner.experiment import build_trials, experiment_preset, load_experiment, run_batch, trial_metrics
+from experiment_runner.graph import NODES, run_processes
+from experiment_runner.recording import read_recording
+from msg_defs import convert
+from msg_defs.node_io import domain_env
+from msg_defs.topics import COMMAND, EVENTS, TRAJECTORY, qos_profile
+
+BIN = Path(sys.executable).parent
+RUN_TIMEOUT = 90.0                   # s: a whole graph run, start-up included
+WITH_LISTENER = {"wait_for_nodes": 6}  # the five trajectory subscribers of the graph + the Listener
+_COUNTER = itertools.count()
+
+
+def _domain() -> int:
+    """A ROS domain in 1..100, different for every graph of this session (7 is prime to 100)."""
+    return 1 + (os.getpid() + 7 * next(_COUNTER)) % 100
+
+
+@contextlib.contextmanager
+def _ros_env(domain: int):
+    """This process's environment set to the isolated domain (restored afterwards)."""
+    saved = dict(os.environ)
+    os.environ.update(domain_env(domain))
+    try:
+        yield
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+
+
+class Graph:
+    """The node processes of one run (console scripts), stderr of each kept in a file."""
+
+    def __init__(self, experiment: str, out: Path, domain: int, params: dict | None = None, nodes=NODES,
+                 ros_args: dict | None = None):
+        self.out, self.domain = out, domain
+        out.mkdir(parents=True, exist_ok=True)
+        env = domain_env(domain)
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.codes: dict[str, int] = {}
+        for name in nodes:
+            args = [str(BIN / name), "--ros-args"]
+            if name == "experiment_sequencer":
+                args += ["-p", f"experiment:={experiment}"]
+            if name == "recorder":
+                args += ["-p", f"out:={out / 'run'}"]
+            for key, val in (params or {}).get(name, {}).items():
+                args += ["-p", f"{key}:={val}"]
+            args += (ros_args or {}).get(name, [])
+            err = open(out / f"{name}.stderr", "w")
+            self.procs[name] = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=err)
+            err.close()
+
+    def kill(self, name: str):
+        self.procs[name].send_signal(signal.SIGKILL)
+        self.codes[name] = self.procs[name].wait(timeout=10)
+
+    def wait_sequencer(self, timeout: float = RUN_TIMEOUT) -> int:
+        return self.procs["experiment_sequencer"].wait(timeout=timeout)
+
+    def stop(self) -> dict[str, int]:
+        """SIGINT to every node still running; each must exit within 15 s (else killed and
+        reported as ``"hung"``)."""
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for name, p in self.procs.items():
+            try:
+                self.codes.setdefault(name, p.wait(timeout=15))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+                self.codes[name] = "hung"
+        return self.codes
+
+    def stderr(self, name: str) -> str:
+        return (self.out / f"{name}.stderr").read_text()
+
+
+class Listener:
+    """An rclpy node in this process (own context) on a graph's domain: hears
+    /experiment/events and can call parameter services. It also subscribes to
+    /experiment/trajectory, so a sequencer told to wait for one more subscriber
+    (``wait_for_nodes`` 6) starts only once the listener is matched: no event is missed."""
+
+    def __init__(self, domain: int):
+        with _ros_env(domain):
+            self.ctx = Context()
+            rclpy.init(context=self.ctx, domain_id=domain)
+            self.node = Node("test_graph_listener", context=self.ctx)
+        self.events: list[dict] = []
+        self.node.create_subscription(String, EVENTS.name,
+                                      lambda m: self.events.append(convert.parse_event(m.data)), qos_profile(EVENTS))
+        self.node.create_subscription(Float64MultiArray, TRAJECTORY.name, lambda m: None, qos_profile(TRAJECTORY))
+        self.commands = 0                                    # /stage/command messages heard
+        self.node.create_subscription(JointState, COMMAND.name, self._command, qos_profile(COMMAND))
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+
+    def _command(self, msg):
+        self.commands += 1
+
+    def wait_for(self, predicate, timeout: float, alive=None) -> bool:
+        """Spin until ``predicate(events)`` (True) or ``timeout`` or ``alive()`` is False."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate(self.events):
+                return True
+            if alive is not None and not alive():
+                return predicate(self.events)
+            self.ex.spin_once(timeout_sec=0.02)
+        return predicate(self.events)
+
+    def call(self, future, timeout: float = 20.0):
+        self.ex.spin_until_future_complete(future, timeout_sec=timeout)
+        assert future.done(), "parameter service did not answer"
+        return future.result()
+
+    def close(self):
+        self.ex.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+
+
+@pytest.fixture
+def listener_factory():
+    made = []
+
+    def make(domain):
+        made.append(Listener(domain))
+        return made[-1]
+    yield make
+    for lst in made:
+        lst.close()
+
+
+def _graph_run(tmp_path_factory, experiment: str) -> dict:
+    """A whole experiment, one process per node, through ``run_processes``."""
+    out = tmp_path_factory.mktemp(experiment)
+    domain = _domain()
+    with _ros_env(domain):                       # run_processes sets the domain in os.environ
+        code = run_processes(experiment, out / "run", timeout=RUN_TIMEOUT, domain_id=domain)
+    return {"code": code, "rec": read_recording(out / "run"), "out": out}
+
+
+def _batch(name):
+    exp = load_experiment(name)
+    trials, res = run_batch(exp)
+    return exp, trials, res
+
+
+# =========================================================================== 1. FI point-to-point
+@pytest.fixture(scope="module")
+def fi_run(tmp_path_factory):
+    return _graph_run(tmp_path_factory, "fi_p2p_5um")
+
+
+def test_fi_point_to_point_settles_and_publishes_its_settling_time(fi_run):
+    rec = fi_run["rec"]
+    assert fi_run["code"] == 0
+    assert rec.salvaged is None and not rec.warnings
+    exp = load_experiment("fi_p2p_5um")
+    trials = rec.trials()
+    assert [t.trial for t in trials] == list(range(exp.trials)) and all(t.complete for t in trials)
+    assert [r["trial"] for r in rec.results] == list(range(exp.trials))
+    for r in rec.results:
+        assert r["node"] == "experiment_sequencer" and r["case"] == "fi_p2p_5um"
+        ts = r["settling_time_s"]
+        assert isinstance(ts, float) and 0.0 < ts < exp.profile.dwell, r
+        assert r["rms_in_position_m"] is not None and r["rms_in_position_m"] < exp.window
+    ev = [e["event"] for e in rec.events]
+    assert ev[0] == "run_start" and ev[-1] == "run_end" and "abort" not in ev and "fault" not in ev
+
+
+def test_fi_trajectories_equal_the_batch_engine_bit_for_bit(fi_run):
+    rec = fi_run["rec"]
+    exp, trials, res = _batch("fi_p2p_5um")
+    rate = experiment_preset(exp).controller.rate
+    got = rec.trials()
+    assert len(got) == len(trials)
+    for t, tr in zip(got, trials):
+        n = len(tr.x_ref)
+        assert t.stop - t.start == n
+        assert np.array_equal(rec.x_ref[t.slice], tr.x_ref)
+        assert np.array_equal(rec.y[t.slice], res.y[tr.index]), f"trial {tr.index}: y differs from the batch"
+        assert np.array_equal(rec.u[t.slice], res.u[tr.index])
+        # the published settling time is the batch trajectory's
+        want = trial_metrics(tr, res.y[tr.index], tr.x_ref, rate)["settling_time_s"]
+        assert rec.results[tr.index]["settling_time_s"] == want
+
+
+# =========================================================================== 2. SAI switching
+@pytest.fixture(scope="module")
+def sai_run(tmp_path_factory):
+    return _graph_run(tmp_path_factory, "sai_p2p_5um")
+
+
+def test_sai_goes_compliant_before_the_move_and_stiff_at_the_target(sai_run):
+    rec = sai_run["rec"]
+    assert sai_run["code"] == 0
+    exp = load_experiment("sai_p2p_5um")
+    trials = build_trials(exp)
+    dt_ns = int(round(1e9 / experiment_preset(exp).controller.rate))
+    iso = rec.isolator
+    assert iso is not None and iso.names == ["isolator"]
+    stamps, mode = iso.stamp_ns, iso.joint("isolator")
+    assert set(np.unique(mode)) <= {0.0, 1.0}
+    got = rec.trials()
+    assert [t.trial for t in got] == list(range(exp.trials)) and all(t.complete for t in got)
+    for t, tr in zip(got, trials):
+        move = next(s for s in tr.segments if s.kind == "move")
+        move_ns = t.start_ns + move.start * dt_ns                   # the reference starts moving
+        assert t.settle_start_ns is not None and t.settle_start_ns > move_ns
+        x = rec.x_ref[t.slice]
+        k_settle = (t.settle_start_ns - t.start_ns) // dt_ns
+        assert np.all(x[:move.start] == x[0]) and x[move.start + 1] != x[0]   # at rest until move_ns
+        assert x[k_settle] == t.target_m and np.all(x[k_settle:] == t.target_m)
+        mine = (stamps >= t.start_ns) & (stamps <= t.end_ns)
+        s, m = stamps[mine], mode[mine]
+        compliant = s[m == 1.0]
+        assert compliant.size, f"trial {t.trial}: the SAI never went compliant"
+        assert compliant[0] < move_ns, f"trial {t.trial}: compliant at {compliant[0]} ns, move at {move_ns} ns"
+        stiff_after = s[(m == 0.0) & (s > compliant[0])]
+        assert stiff_after.size, f"trial {t.trial}: the SAI never went stiff again"
+        assert stiff_after[0] >= t.settle_start_ns, (
+            f"trial {t.trial}: stiff at {stiff_after[0]} ns before the reference reached its target "
+            f"({t.settle_start_ns} ns)")
+        assert m[-1] == 0.0                                          # and stays stiff
+    # the graph's trajectories are the batch engine's here too
+    _, _, res = _batch("sai_p2p_5um")
+    for t, tr in zip(got, trials):
+        assert np.array_equal(rec.y[t.slice], res.y[tr.index])
+    assert all(r["settling_time_s"] is not None for r in rec.results)
+
+
+# =========================================================================== 3. VAN harmonic cancelling
+@pytest.fixture(scope="module")
+def van_runs(tmp_path_factory):
+    return {name: _graph_run(tmp_path_factory, name) for name in ("van_asym_no_hc", "van_asym_hc")}
+
+
+def _tail_pp(rec, seconds=0.05):
+    """Peak-to-peak of the true table position over the last ``seconds`` [m]."""
+    n = int(round(seconds / (rec.t[1] - rec.t[0])))
+    table = rec.truth.joint("table")
+    assert len(table) == len(rec) and not np.isnan(table[-n:]).any()
+    return float(np.ptp(table[-n:])), float(np.ptp(rec.y[-n:]))
+
+
+def test_dither_hc_removes_the_parasitic_vibration_of_an_asymmetric_van_stage(van_runs):
+    no_hc, hc = van_runs["van_asym_no_hc"], van_runs["van_asym_hc"]
+    assert no_hc["code"] == 0 and hc["code"] == 0
+    for run in (no_hc, hc):
+        assert run["rec"].dither is not None and len(run["rec"].dither) == len(run["rec"])
+        assert np.abs(run["rec"].dither.effort).max() > 0.0           # the dither is on in both
+    pp_no, pp_no_meas = _tail_pp(no_hc["rec"])
+    pp_hc, pp_hc_meas = _tail_pp(hc["rec"])
+    assert pp_no > 10.0 * pp_hc, f"p-p last 50 ms: without HC {pp_no:.3g} m, with HC {pp_hc:.3g} m"
+    assert pp_no_meas > 10.0 * pp_hc_meas
+    assert no_hc["rec"].results[0]["settling_time_s"] is None          # never settles without HC
+    assert hc["rec"].results[0]["settling_time_s"] is not None
+
+
+# =========================================================================== 4. killed nodes
+def test_servo_killed_mid_trial_aborts_the_trial_naming_it(tmp_path, listener_factory):
+    domain = _domain()
+    lst = listener_factory(domain)
+    g = Graph("fi_p2p_5um", tmp_path, domain, params={"plant_sim": {"input_timeout": 3.0},
+                                                      "experiment_sequencer": WITH_LISTENER})
+    try:
+        seq = g.procs["experiment_sequencer"]
+        # into the first trial: it started and the servo has sent 200 commands
+        heard = lst.wait_for(lambda ev: any(e["event"] == "trial_start" for e in ev) and lst.commands >= 200,
+                             RUN_TIMEOUT, alive=lambda: seq.poll() is None)
+        assert heard, f"no trial_start and 200 servo commands within the timeout ({lst.commands} heard)"
+        g.kill("servo_controller")
+        t_kill = time.monotonic()
+        code = g.wait_sequencer(timeout=30)                        # the run stops by itself
+        lst.wait_for(lambda ev: any(e["event"] == "run_end" for e in ev), 5.0)
+    finally:
+        codes = g.stop()
+    assert code == 1, "an aborted run exits non-zero"
+    assert time.monotonic() - t_kill < 30
+    assert all(c != "hung" for c in codes.values()), codes
+    assert codes["servo_controller"] == -signal.SIGKILL
+    # what the test heard live
+    aborts = [e for e in lst.events if e["event"] == "abort"]
+    faults = [e for e in lst.events if e["event"] == "fault"]
+    assert len(aborts) == 1 and "servo_controller" in aborts[0]["reason"]
+    assert faults and faults[0]["node"] == "plant_sim" and faults[0]["silent"] == ["servo_controller"]
+    assert "servo_controller" in faults[0]["reason"]
+    killed = aborts[0]["trial"]
+    assert killed is not None and faults[0]["trial"] == killed
+    assert not any(e["event"] == "trial_end" and e["trial"] == killed for e in lst.events)
+    # what the recorder wrote reads back, with the abort in it
+    rec = read_recording(tmp_path / "run")
+    assert any(e["event"] == "abort" and e["trial"] == killed and "servo_controller" in e["reason"]
+               for e in rec.events)
+    tr = next(t for t in rec.trials() if t.trial == killed)
+    assert not tr.complete and tr.end_ns is None
+    assert tr.stop > tr.start                                      # killed mid-trial: samples were taken
+    assert len(rec.results) == killed                              # no result for the aborted trial
+    _, trials, res = _batch("fi_p2p_5um")
+    assert np.array_equal(rec.y[tr.slice], res.y[killed][:tr.stop - tr.start])
+
+
+def test_recorder_killed_mid_run_leaves_a_salvageable_file(tmp_path, listener_factory):
+    domain = _domain()
+    lst = listener_factory(domain)
+    g = Graph("fi_p2p_5um", tmp_path, domain, params={"experiment_sequencer": WITH_LISTENER})
+    try:
+        seq = g.procs["experiment_sequencer"]
+        # trial 2 starts after 2454 samples: two 0.1 s chunks are closed by then
+        heard = lst.wait_for(lambda ev: any(e["event"] == "trial_start" and e["trial"] == 2 for e in ev),
+                             RUN_TIMEOUT, alive=lambda: seq.poll() is None)
+        assert heard, "trial 2 did not start within the timeout"
+        g.kill("recorder")
+        code = g.wait_sequencer(timeout=RUN_TIMEOUT)               # the recorder is not in the loop
+    finally:
+        codes = g.stop()
+    assert code == 0 and all(c != "hung" for c in codes.values()), codes
+    rec = read_recording(tmp_path / "run")
+    assert isinstance(rec.salvaged, str) and rec.salvaged, "a cut file says what was salvaged"
+    _, trials, res = _batch("fi_p2p_5um")
+    n0 = len(trials[0].x_ref)
+    assert n0 <= len(rec) < sum(len(t.x_ref) for t in trials)    # trial 0 at least, not the whole run
+    want = np.concatenate([res.y[t.index] for t in trials])[:len(rec)]
+    assert np.array_equal(rec.y, want)                             # what was salvaged is right
+    assert rec.config is not None and rec.results[0]["trial"] == 0
+
+
+def test_a_controller_that_joins_late_gets_the_sample_again_and_nothing_is_lost(tmp_path, listener_factory):
+    """A sample published before its subscriber was matched is lost even on a reliable
+    topic (what a slow start-up does at random): here the servo starts only after the
+    trial did. The plant sends the waiting sample again, the servo answers, and the run
+    is the batch engine's, sample for sample (nothing computed twice, nothing recorded twice)."""
+    import yaml
+    from experiment_runner.experiment import EXPERIMENT_DIR
+    doc = yaml.safe_load((EXPERIMENT_DIR / "fi_p2p_5um.yaml").read_text())
+    doc.update(name="late_servo", trials=1)
+    exp_file = tmp_path / "late_servo.yaml"
+    exp_file.write_text(yaml.safe_dump(doc))
+    domain = _domain()
+    lst = listener_factory(domain)
+    params = {"plant_sim": {"input_timeout": 60.0},
+              "experiment_sequencer": {"wait_for_nodes": 3, "sample_timeout": 60.0}}   # plant, recorder, listener
+    g = Graph(str(exp_file), tmp_path, domain, params=params,
+              nodes=("plant_sim", "recorder", "experiment_sequencer"))
+    try:
+        seq = g.procs["experiment_sequencer"]
+        assert lst.wait_for(lambda ev: any(e["event"] == "trial_start" for e in ev), RUN_TIMEOUT,
+                            alive=lambda: seq.poll() is None), "the trial did not start"
+        late = Graph(str(exp_file), tmp_path, domain, nodes=("servo_controller",))
+        g.procs.update(late.procs)
+        code = g.wait_sequencer()
+    finally:
+        codes = g.stop()
+    assert code == 0 and all(c != "hung" for c in codes.values()), codes
+    rec = read_recording(tmp_path / "run")
+    assert not rec.warnings and rec.results[0]["settling_time_s"] is not None
+    _, trials, res = _batch("fi_p2p_5um")
+    assert len(rec) == len(trials[0].x_ref) and np.array_equal(rec.y, res.y[0])
+    assert rec.counts["/stage/measured"] == rec.counts["/stage/command"] == len(rec)
+
+
+# =========================================================================== 5. parameters
+def _params_file(path: Path, node: str, **values) -> Path:
+    import yaml
+    path.write_text(yaml.safe_dump({node: {"ros__parameters": values}}))
+    return path
+
+
+def _run_refused(args, domain, timeout=60.0):
+    proc = subprocess.run(args, env=domain_env(domain), capture_output=True, text=True, timeout=timeout)
+    return proc.returncode, proc.stderr
+
+
+def test_params_file_sets_a_node_parameter_and_bad_values_are_refused_at_run_time(tmp_path, listener_factory):
+    domain = _domain()
+    lst = listener_factory(domain)
+    pfile = _params_file(tmp_path / "plant.yaml", "plant_sim", input_timeout=0.75)
+    g = Graph("fi_p2p_5um", tmp_path, domain, nodes=("plant_sim",),
+              ros_args={"plant_sim": ["--params-file", str(pfile)]})
+    try:
+        client = AsyncParameterClient(lst.node, "plant_sim")
+        assert client.wait_for_services(timeout_sec=RUN_TIMEOUT), "plant_sim parameter services"
+        got = lst.call(client.get_parameters(["input_timeout"]))
+        assert got.values[0].double_value == 0.75
+        bad = lst.call(client.set_parameters([Parameter("input_timeout", value=-1.0)])).results[0]
+        assert not bad.successful and "input_timeout" in bad.reason
+        bad = lst.call(client.set_parameters([Parameter("preset", value="no_such_preset")])).results[0]
+        assert not bad.successful and "preset" in bad.reason and "no_such_preset" in bad.reason
+        good = lst.call(client.set_parameters([Parameter("input_timeout", value=2.5)])).results[0]
+        assert good.successful
+        got = lst.call(client.get_parameters(["input_timeout", "preset"]))
+        assert got.values[0].double_value == 2.5 and got.values[1].string_value == ""
+        assert g.procs["plant_sim"].poll() is None                     # refusing did not end the node
+    finally:
+        codes = g.stop()
+    assert codes["plant_sim"] == 0, g.stderr("plant_sim")
+
+
+@pytest.mark.parametrize("node,values,name", [
+    ("plant_sim", {"input_timeout": -1.0}, "input_timeout"),
+    ("plant_sim", {"input_timeout": -1}, "input_timeout"),
+    ("experiment_sequencer", {"experiment": "does_not_exist"}, "experiment"),
+])
+def test_bad_parameter_in_a_params_file_is_refused_naming_it(tmp_path, node, values, name):
+    pfile = _params_file(tmp_path / "bad.yaml", node, **values)
+    code, err = _run_refused([str(BIN / node), "--ros-args", "--params-file", str(pfile)], _domain())
+    assert code != 0
+    assert name in err and str(values[name]) in err, err
+    assert "Traceback" not in err, err
