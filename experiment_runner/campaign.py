@@ -59,7 +59,7 @@ from pydantic import Field, ValidationError, model_validator
 from experiment_runner import profiles
 from experiment_runner.experiment import Trial, trial_metrics
 from stage_sim.config import (ConfigError, Finite, Fraction, NonNeg, Pos, Preset, _Strict,
-                              load_preset, with_overrides)
+                              load_preset, read_yaml_file, with_overrides)
 
 __all__ = ["Campaign", "load_campaign", "list_campaigns", "conditions", "run_campaign", "main_job",
            "add_campaign_arguments", "main_campaign", "graph_experiment", "CAMPAIGN_DIR", "MAIN_JOB"]
@@ -387,17 +387,7 @@ def load_campaign(name_or_path, check_presets: bool = True) -> Campaign:
     case's overrides, and every calibrated or swept path is resolved, so a campaign
     that loads also runs.
     """
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = CAMPAIGN_DIR / f"{name_or_path}.yaml"
-    if not path.is_file():
-        raise ConfigError(f"{name_or_path}: no such campaign (shipped: {', '.join(list_campaigns())})")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML: {err}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: top level must be a mapping")
+    data, path = read_yaml_file(name_or_path, CAMPAIGN_DIR, "campaign")
     try:
         camp = Campaign.model_validate(data)
     except ValidationError as err:

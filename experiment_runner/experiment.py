@@ -19,12 +19,11 @@ from pathlib import Path
 from typing import Literal, Optional, Union
 
 import numpy as np
-import yaml
 from pydantic import Field, ValidationError
 
 from experiment_runner import metrics, profiles
 from stage_sim.config import (ConfigError, Finite, NonNeg, Pos, Preset, _format, _Strict,
-                              load_preset, with_overrides)
+                              load_preset, read_yaml_file, with_overrides)
 
 EXPERIMENT_DIR = Path(__file__).with_name("experiments")
 
@@ -88,15 +87,7 @@ class Trial:
 
 def load_experiment(name_or_path) -> Experiment:
     """Load and validate an experiment file by name (shipped) or path; no code is executed."""
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = EXPERIMENT_DIR / f"{name_or_path}.yaml"
-    if not path.is_file():
-        raise ConfigError(f"{name_or_path}: no such experiment (shipped: {', '.join(list_experiments())})")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    data, path = read_yaml_file(name_or_path, EXPERIMENT_DIR, "experiment")
     try:
         return Experiment.model_validate(data)
     except ValidationError as err:

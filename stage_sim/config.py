@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Annotated, Literal, Optional, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 PRESET_DIR = Path(__file__).with_name("presets")
 
@@ -289,20 +289,31 @@ def preset_from_dict(data: dict, source: str = "<dict>") -> Preset:
         raise ConfigError(_format(err, source)) from None
 
 
-def load_preset(name_or_path: str | Path) -> Preset:
-    """Load a preset by name (``stage_sim/presets/<name>.yaml``) or path, safely (no code)."""
+def read_yaml_file(name_or_path: str | Path, directory: Path, kind: str) -> tuple[dict, Path]:
+    """Safely read a YAML mapping given by name (``directory/<name>.yaml``) or path.
+
+    Returns ``(data, path)``; a missing file, invalid YAML or a non-mapping top level
+    raise :class:`ConfigError` naming the file (and the shipped names of this ``kind``).
+    No code is ever executed (``yaml.safe_load``).
+    """
     path = Path(name_or_path)
     if not path.suffix:
-        path = PRESET_DIR / f"{name_or_path}.yaml"
+        path = directory / f"{name_or_path}.yaml"
     if not path.is_file():
-        known = ", ".join(sorted(p.stem for p in PRESET_DIR.glob("*.yaml")))
-        raise ConfigError(f"{name_or_path}: no such preset file (known presets: {known})")
+        known = ", ".join(sorted(p.stem for p in directory.glob("*.yaml")))
+        raise ConfigError(f"{name_or_path}: no such {kind} file (shipped {kind}s: {known})")
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: not valid YAML: {err}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: top level must be a mapping, got {type(data).__name__}")
+    return data, path
+
+
+def load_preset(name_or_path: str | Path) -> Preset:
+    """Load a preset by name (``stage_sim/presets/<name>.yaml``) or path, safely (no code)."""
+    data, path = read_yaml_file(name_or_path, PRESET_DIR, "preset")
     return preset_from_dict(data, str(path))
 
 
