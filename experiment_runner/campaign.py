@@ -1001,7 +1001,6 @@ def run_campaign(campaign, out_dir, *, trials: Optional[int] = None, dwell: Opti
                 stats = {m: Stat.of([x.get(m) for x in mets]) for m in _metric_names(camp)}
                 rep = _representative(camp, mets)
                 tr = trs[rep]
-                rate = preset.controller.rate
                 if camp.test.kind == "point_to_point":
                     s = ref.select("settle")[0]
                     e = res.y[rep] - tr.x_ref[s.stop - 1]

@@ -26,10 +26,8 @@ Reading
 from __future__ import annotations
 
 import io
-import math
 import shutil
 import struct
-import tempfile
 from collections import Counter
 from dataclasses import dataclass, field
 from functools import lru_cache

@@ -19,7 +19,6 @@ import json
 import math
 import time
 
-import numpy as np
 
 from experiment_runner.metrics import METRICS, trial_metrics
 from experiment_runner.recording import Recording, _load, read_recording

@@ -322,18 +322,23 @@ def list_presets() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
 
 
+def set_dotted(data: dict, dotted: str, value) -> None:
+    """Set ``value`` at a dotted path of a nested mapping, list items by index
+    (``"stage.bearings.0.mass"``), in place."""
+    node = data
+    keys = dotted.split(".")
+    for k in keys[:-1]:
+        node = node[int(k)] if isinstance(node, list) else node[k]
+    if isinstance(node, list):
+        node[int(keys[-1])] = value
+    else:
+        node[keys[-1]] = value
+
+
 def with_overrides(preset: Preset, changes: dict) -> Preset:
     """Return a copy with dotted-path overrides, re-validated, e.g. ``{"stage.table.mass": 2}``."""
     data = preset.model_dump()
     for dotted, value in changes.items():
-        node = data
-        keys = dotted.split(".")
-        for k in keys[:-1]:
-            node = node[int(k)] if isinstance(node, list) else node[k]
-        last = keys[-1]
-        if isinstance(node, list):
-            node[int(last)] = value
-        else:
-            node[last] = value
+        set_dotted(data, dotted, value)
     return preset_from_dict(data, f"{preset.name} (overridden)")
 

@@ -42,7 +42,7 @@ from .hypotheses import LIBRARY, Effect, Param
 from .model import ModelSpec
 from .predict import NoiseFloor, Observer, sim_data
 
-__all__ = ["Evaluator", "FitResult", "fit_effect", "select", "estimate_lattice", "fit_noise_level", "sparse_regression"]
+__all__ = ["Evaluator", "FitResult", "fit_effect", "estimate_lattice", "fit_noise_level", "sparse_regression"]
 
 
 # --------------------------------------------------------------------------- evaluation

@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import AddTerm, ModelSpec, coulomb_total, friction_elements, table_mass
+from .model import AddTerm, ModelSpec, coulomb_total, friction_elements
+from stage_sim.config import set_dotted
 
 __all__ = ["Param", "Effect", "LIBRARY", "get_effect", "describe", "virgin_x50"]
 
@@ -86,17 +87,6 @@ def _fric_weights(spec: ModelSpec):
         return els, fcs
     w = fcs / fcs.sum() if fcs.sum() > 0 else np.full(len(els), 1.0 / len(els))
     return els, w
-
-
-def _set_path(data: dict, dotted: str, value):
-    node = data
-    keys = dotted.split(".")
-    for k in keys[:-1]:
-        node = node[int(k)] if isinstance(node, list) else node[k]
-    if isinstance(node, list):
-        node[int(keys[-1])] = value
-    else:
-        node[keys[-1]] = value
 
 
 def _pre_motion_stiffness(fr) -> float:
@@ -252,7 +242,7 @@ class Dahl(Effect):
             for (path, fr), we in zip(els, w):
                 new = {"model": "dahl", "k_sigma": k * we, "f_c": max(fr.f_c, 1e-9),
                        "shape": getattr(fr, "shape", 1.0), "viscous": fr.viscous}
-                _set_path(d, path, new)
+                set_dotted(d, path, new)
         return spec.with_changes(edit=edit)
 
 
@@ -303,7 +293,7 @@ class Gms(Effect):
 
         def edit(dd):
             for (path, fr), we in zip(els, w):
-                _set_path(dd, path, {"model": "gms", "k": list(F * we / d), "alpha": list(F / fc), "f_c": fc * we,
+                set_dotted(dd, path, {"model": "gms", "k": list(F * we / d), "alpha": list(F / fc), "f_c": fc * we,
                                      "viscous": fr.viscous})
         return spec.with_changes(edit=edit)
 
@@ -336,12 +326,11 @@ class Stribeck(Effect):
     def apply(self, spec, theta):
         fs, vs = float(theta[0]), float(theta[1])
         els, w = _fric_weights(spec)
-        fc = max(coulomb_total(spec.preset), 1e-9)
 
         def edit(d):
             for (path, fr), we in zip(els, w):
                 k = _pre_motion_stiffness(fr) or max(fr.f_c, 1e-9) / 1e-6
-                _set_path(d, path, {"model": "lugre", "sigma0": k, "sigma1": getattr(fr, "sigma1", 0.0),
+                set_dotted(d, path, {"model": "lugre", "sigma0": k, "sigma1": getattr(fr, "sigma1", 0.0),
                                     "viscous": fr.viscous, "f_c": max(fr.f_c, 1e-9), "f_s": max(fs * we, fr.f_c * 1.0001, 1e-9),
                                     "v_s": vs, "exponent": getattr(fr, "exponent", 2.0)})
         return spec.with_changes(edit=edit)

@@ -24,15 +24,13 @@ Additive force kinds (force on the table [N], ``+`` = in the +x direction)
 """
 from __future__ import annotations
 
-import copy
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from stage_sim.config import (ConfigError, Preset, load_preset, preset_from_dict)
+from stage_sim.config import ConfigError, Preset, load_preset, preset_from_dict, set_dotted
 from stage_sim.plant import build_plant
 
 from .engine import ADD_KINDS, N_ADD_PAR, mechanical
@@ -142,14 +140,7 @@ class ModelSpec:
         plus additive terms ``add``."""
         data = self.preset.model_dump()
         for dotted, value in (changes or {}).items():
-            node = data
-            keys = dotted.split(".")
-            for k in keys[:-1]:
-                node = node[int(k)] if isinstance(node, list) else node[k]
-            if isinstance(node, list):
-                node[int(keys[-1])] = value
-            else:
-                node[keys[-1]] = value
+            set_dotted(data, dotted, value)
         if edit is not None:
             edit(data)
         preset = preset_from_dict(data, f"{self.preset.name} (diagnosis)")

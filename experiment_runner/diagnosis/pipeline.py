@@ -19,7 +19,7 @@ from .fit import (Evaluator, FitResult, estimate_lattice, fit_effect, fit_noise_
 from .hypotheses import LIBRARY, get_effect
 from .locate import locate, lowpass
 from .model import ModelSpec, load_model
-from .predict import (NoiseFloor, Observer, band_rms, closed_loop, compare_replay, open_loop_windows, replay,
+from .predict import (NoiseFloor, Observer, band_rms, compare_replay, open_loop_windows, replay,
                       sim_data)
 
 __all__ = ["Options", "diagnose"]

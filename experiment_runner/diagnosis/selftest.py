@@ -19,15 +19,12 @@ truth lacks.
 """
 from __future__ import annotations
 
-import json
-import math
 import shutil
 import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import yaml
 
 from stage_sim.config import load_preset, with_overrides
