@@ -264,7 +264,6 @@ def claims(out: Path) -> list[Claim]:
     t_start = time.perf_counter()
     base = load_preset("van_sim")
     rate = base.controller.rate
-    n_kn = base.stage.bearings[0].friction.k_sigma
 
     # ---- benchmark: App. A rigid stage without friction, K_I = 0 (Fig. A.2 / Fig. 3.5)
     bench_p = with_overrides(load_preset("als130h"), {"stage.table_friction": None,
@@ -491,7 +490,7 @@ def claims(out: Path) -> list[Claim]:
              "overshoots reduce over three steps (K_HC = 4e3 N/µm)",
         ours=(f"{1e9 * pp0:.1f} nm p-p, {'no settling' if not np.isfinite(hc[0.0]['settling']) else 'settles'}"
               f" at K_HC = 0; settling " + "/".join(ms(hc[K]['settling']) for K in HC_GAINS[1:])
-              + f" ms at K_HC = " + "/".join(f"{K / 1e6:g}" for K in HC_GAINS[1:])
+              + " ms at K_HC = " + "/".join(f"{K / 1e6:g}" for K in HC_GAINS[1:])
               + " N/µm; overshoots " + "/".join(f"{1e9 * o:.1f}" for o in os_steps) + " nm"),
         agrees=bool(c3_ok),
         numbers=dict(hc={f"{K:g}": v for K, v in hc.items()}, overshoot_steps=os_steps,
