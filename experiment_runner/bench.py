@@ -5,6 +5,14 @@ trajectory and for a batch of 100 such trials (on one core, and on all cores),
 at the preset's control rate with the sub-steps the integrator needs, plus the
 process's peak resident memory.
 
+``campaign_trials_per_s_1`` / ``_2``: Table 4.2 campaign trials (both cases, both step
+sizes, 1 s dwell, no calibration) per wall-clock second in this process and on two local
+worker processes (:func:`campaign_trials_per_s`).
+
+``diagnose_seconds_10s``: wall time of ``nanostage diagnose`` (reading the MCAP file
+included) on a 10 s, 10 kHz synthetic recording with one concealed effect
+(:func:`experiment_runner.diagnosis.selftest.diagnose_seconds`).
+
 With ``graph=True`` (``nanostage bench --graph``, the default) it also runs the ROS 2
 node graph on an FI-stage point-to-point experiment, once in one process and once
 with one process per node, and reports control samples per wall-clock second over
@@ -209,6 +217,31 @@ def run_graph_bench(quick: bool = False) -> dict:
     }
 
 
+def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table_4_2") -> float:
+    """Campaign trials per wall-clock second on ``workers`` local processes (1: in this process),
+    as ``nanostage campaign --workers`` runs them: chunks on the executor, metrics streamed to
+    disk (:func:`experiment_runner.stream.run_trials`); every case and condition of ``campaign``
+    with ``trials`` trials each, no calibration. The pool is started and warm (numba kernels
+    loaded, models built) before the clock starts."""
+    from experiment_runner.campaign import Campaign, case_preset, conditions, load_campaign
+    from experiment_runner.executor import make_executor
+    from experiment_runner.stream import TrialStream, code_fingerprint, run_trials
+    camp = load_campaign(campaign)
+    jobs = [(c, cond, case_preset(camp, c, None, cond)) for c in camp.cases for cond in conditions(camp)]
+    timed = Campaign.model_validate({**camp.model_dump(), "trials": trials})
+    warm = Campaign.model_validate({**camp.model_dump(), "trials": 2 * workers})
+    with make_executor(workers) as ex, tempfile.TemporaryDirectory() as tmp:
+        with TrialStream(Path(tmp) / "warm.jsonl", camp.name, "warm-up", code_fingerprint(), resume=False) as stream:
+            for case, cond, preset in jobs:
+                run_trials(warm, case, cond, preset, None, ex, stream, chunk=1)
+        with TrialStream(Path(tmp) / "timed.jsonl", camp.name, "timed", code_fingerprint(), resume=False) as stream:
+            t0 = time.perf_counter()
+            for case, cond, preset in jobs:
+                run_trials(timed, case, cond, preset, None, ex, stream)
+            wall = time.perf_counter() - t0
+    return len(jobs) * trials / wall
+
+
 def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True) -> int:
     preset = load_preset("fi_stage")
     models = Models.from_preset(preset)
@@ -233,6 +266,10 @@ def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True) ->
         "trajectory_s": round(float(ref.t[-1]), 4),
         "peak_memory_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
     }
+    for w in (1, 2):
+        result[f"campaign_trials_per_s_{w}"] = round(campaign_trials_per_s(w, 12 if quick else 40), 1)
+    from experiment_runner.diagnosis.selftest import diagnose_seconds
+    result["diagnose_seconds_10s"] = round(diagnose_seconds(10.0), 1)
     if graph:
         result.update(run_graph_bench(quick))
     if as_json:

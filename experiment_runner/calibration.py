@@ -43,6 +43,8 @@ from typing import Callable, Optional
 
 from scipy.optimize import brentq
 
+from experiment_runner.metrics import finite_or_none
+
 __all__ = ["ParamSpec", "ParamFit", "CalibrationResult", "fit"]
 
 _CLIP = 20.0      # |log ratio| used for a metric that is 0, nan or not reached
@@ -207,11 +209,7 @@ def fit(specs: list[ParamSpec], start: dict, evaluate: Callable[[dict], dict], *
         fits.append(ParamFit(
             name=spec.name, value=values[spec.name], start=start_values[spec.name], bounds=tuple(spec.bounds),
             at_bound=at_bound[spec.name], seed_value=spec.seed_value, seed_effective=_seed_effective(spec),
-            sim_start=_num(start_metrics.get(spec.name)), sim_value=_num(final.get(spec.name)),
-            sim_effective=_num(sim_eff), residual=residual(spec, values)))
+            sim_start=finite_or_none(start_metrics.get(spec.name)), sim_value=finite_or_none(final.get(spec.name)),
+            sim_effective=finite_or_none(sim_eff), residual=residual(spec, values)))
     return CalibrationResult(values=values, params=fits, evaluations=len(cache), rounds=n_rounds,
                              converged=converged, history=history)
-
-
-def _num(v):
-    return None if v is None or not math.isfinite(v) else float(v)

@@ -15,7 +15,18 @@ point-to-point, 50 trials at random positions). It is validated into a
 * ``seed`` -- the seed's numbers the simulation is compared with, and every finding the
   seed reports as a direction (lower / higher / similar) between two cases;
 * ``calibration`` -- the few physically meaningful parameters fitted on the *baseline*
-  case only (:mod:`experiment_runner.calibration`); every other case is a prediction.
+  case only (:mod:`experiment_runner.calibration`); every other case is a prediction. Or
+  ``calibration: {from: NAME}``: a campaign on the same stage and PID (e.g. the circle tests
+  of table_4_2's stage) reuses NAME's baseline fit instead of refitting (loaded from a
+  matching ``calibration.json``, else fitted once and cached there, :func:`source_calibration`).
+
+Circle tests give each radius its own speeds (``circles``); a case's ``per_speed`` sets a
+path to a factor times the condition's speed (the SAI's reversal window). A sweep may have
+per-case targets (``apply``) and ``mode: series_scale`` (a model stiffness with an error, in
+series with an FI's, Sec. 4.4.3). A finding may carry the seed's percentage (``change``) when
+the seed gives no absolute numbers (Table 6.3), compare the spread over the sweep values
+(``over: sweep_spread``, the ±1σ bands of Fig. 4.18) and, for 'similar', the reductions vs a
+third case (``relative_to``, as the seed's reduction plots do).
 
 :func:`run_campaign` calibrates, runs every case and condition on the batch engine
 (:func:`experiment_runner.batch.simulate`, the same trials and metrics as the ROS graph:
@@ -54,11 +65,13 @@ from typing import Annotated, Literal, Optional, Union
 
 import numpy as np
 import yaml
-from pydantic import Field, ValidationError, model_validator
+from pydantic import ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
 from experiment_runner import profiles
 from experiment_runner.experiment import Trial, trial_metrics
-from stage_sim.config import (ConfigError, Finite, Fraction, NonNeg, Pos, Preset, _Strict,
+from experiment_runner.metrics import finite_or_none
+from experiment_runner.frf_campaign import FRF_METRICS, FrequencyResponseTest
+from stage_sim.config import (ConfigError, Finite, Fraction, NonNeg, Pos, Preset, _format, _Strict,
                               load_preset, read_yaml_file, with_overrides)
 
 __all__ = ["Campaign", "load_campaign", "list_campaigns", "conditions", "run_campaign", "main_job",
@@ -68,7 +81,8 @@ CAMPAIGN_DIR = Path(__file__).with_name("campaigns")
 MAIN_JOB = ("table_4_2", "table_5_2")
 """Campaigns of :func:`main_job` (``nanostage campaign --main``)."""
 
-Metric = Literal["settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m"]
+Metric = Literal["settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m",
+                 "bandwidth_hz", "gain_margin_db", "phase_margin_deg"]   # the last three: frequency_response
 METRIC_INFO = {  # label, display unit, scale from SI
     "settling_time_s": ("mean settling time", "ms", 1e3),
     "rms_in_position_m": ("RMS in-position error", "nm", 1e9),
@@ -100,16 +114,44 @@ class PointToPointTest(_Strict):
         return self
 
 
-class CircleTest(_Strict):
-    """x-axis reference of circles (seed Sec. 3.4.2 / 4.4.2): one condition per radius x speed."""
-    kind: Literal["circle"]
-    radii: list[Pos] = Field(min_length=1, description="circle radii [m]")
+class Circle(_Strict):
+    """One radius and the tangential speeds run at it."""
+    radius: Pos = Field(description="circle radius [m]")
     speeds: list[Pos] = Field(min_length=1, description="tangential speeds [m/s]")
+
+
+class CircleTest(_Strict):
+    """x-axis reference of circles (seed Sec. 3.4.2 / 4.4.2): one condition per radius and speed.
+
+    Either ``radii`` x ``speeds`` (every speed at every radius) or ``circles`` (each radius
+    with its own speeds, e.g. mm/s at 5 mm and µm/s at 5 µm).
+    """
+    kind: Literal["circle"]
+    radii: Optional[list[Pos]] = Field(None, min_length=1, description="circle radii [m] (x speeds)")
+    speeds: Optional[list[Pos]] = Field(None, min_length=1, description="tangential speeds [m/s] (x radii)")
+    circles: Optional[list[Circle]] = Field(None, min_length=1, description="radii with their own speeds")
     cycles: Pos = Field(1.0, description="revolutions")
     window: Pos = Field(25e-9, description="(recorded only) [m]")
 
+    @model_validator(mode="after")
+    def _one_form(self):
+        if self.circles is None and (self.radii is None or self.speeds is None):
+            raise ValueError("give radii and speeds, or circles")
+        if self.circles is not None and (self.radii is not None or self.speeds is not None):
+            raise ValueError("give either radii and speeds, or circles (not both)")
+        pairs = self.pairs()
+        if len(set(pairs)) != len(pairs):
+            raise ValueError("radius/speed pairs must be distinct")
+        return self
 
-Test = Annotated[Union[PointToPointTest, CircleTest], Field(discriminator="kind")]
+    def pairs(self) -> list[tuple[float, float]]:
+        """Every (radius, speed) condition, in order."""
+        if self.circles is not None:
+            return [(float(c.radius), float(v)) for c in self.circles for v in c.speeds]
+        return [(float(r), float(v)) for r in self.radii for v in self.speeds]
+
+
+Test = Annotated[Union[PointToPointTest, CircleTest, FrequencyResponseTest], Field(discriminator="kind")]
 
 
 class Starts(_Strict):
@@ -140,18 +182,68 @@ class Case(_Strict):
     description: str = ""
     preset: str = Field(description="preset name or path")
     overrides: dict = Field(default_factory=dict, description="dotted-path preset overrides of this case")
+    per_speed: dict[str, Finite] = Field(
+        default_factory=dict, description="circle tests: dotted path -> factor; the path is set to factor x the "
+        "condition's speed [m/s] (e.g. the SAI reversal window as a fraction of the tangential speed)")
     step_ii: Optional[StepII] = None
 
 
+SweepMode = Literal["value", "scale", "series_scale"]
+
+
+class SweepTarget(_Strict):
+    """Where the sweep value goes in some of the cases (see :class:`Sweep`)."""
+    cases: list[str] = Field(min_length=1, description="cases this target applies to")
+    paths: list[str] = Field(min_length=1, description="dotted paths ('*' matches every list item)")
+    mode: SweepMode = "value"
+    series: Optional[Pos] = Field(None, description="series_scale: stiffness in series with the scaled one [N/m]")
+
+    @model_validator(mode="after")
+    def _series(self):
+        if (self.mode == "series_scale") != (self.series is not None):
+            raise ValueError("mode series_scale needs 'series' (and 'series' needs mode series_scale)")
+        return self
+
+
 class Sweep(_Strict):
-    """One more axis: a parameter set to each of ``values`` (``mode: scale`` multiplies the preset's value)."""
+    """One more axis: a parameter set to each of ``values``.
+
+    ``mode: value`` sets the paths to the value, ``scale`` multiplies the preset's value by
+    it, ``series_scale`` scales a stiffness ``k`` and puts it in series with ``series``:
+    ``1 / (1/series + 1/(value k))`` (e.g. a feedforward model's frictional stiffness with an
+    error, re-combined with the FI stiffness as in Sec. 4.4.3). Either ``paths`` (with
+    ``mode``, ``series`` and optionally ``cases``) for one target, or ``apply``: a list of
+    targets, each for its own cases (cases in no target run unchanged at every value).
+    """
     name: Name
     label: str
-    paths: list[str] = Field(min_length=1, description="dotted paths ('*' matches every list item)")
-    mode: Literal["value", "scale"] = "value"
+    paths: Optional[list[str]] = Field(None, min_length=1, description="dotted paths ('*' matches every list item)")
+    mode: SweepMode = "value"
+    series: Optional[Pos] = Field(None, description="series_scale: stiffness in series [N/m]")
     values: list[Finite] = Field(min_length=1)
     unit: str = ""
     cases: Optional[list[str]] = Field(None, description="cases it applies to (default all)")
+    apply: Optional[list[SweepTarget]] = Field(None, min_length=1, description="per-case targets (instead of paths)")
+
+    @model_validator(mode="after")
+    def _form(self):
+        if (self.paths is None) == (self.apply is None):
+            raise ValueError("give either paths (one target) or apply (per-case targets)")
+        if self.apply is not None and (self.cases is not None or self.series is not None or self.mode != "value"):
+            raise ValueError("with apply, give cases/mode/series inside each target")
+        if self.paths is not None and (self.mode == "series_scale") != (self.series is not None):
+            raise ValueError("mode series_scale needs 'series' (and 'series' needs mode series_scale)")
+        if len(set(self.values)) != len(self.values):
+            raise ValueError("values must be distinct")
+        return self
+
+    def target(self, case: str) -> Optional[SweepTarget]:
+        """The target applying to ``case`` (None: the case does not depend on the sweep)."""
+        if self.apply is not None:
+            return next((t for t in self.apply if case in t.cases), None)
+        if self.cases and case not in self.cases:
+            return None
+        return SweepTarget(cases=[case], paths=self.paths, mode=self.mode, series=self.series)
 
 
 class _At(_Strict):
@@ -160,9 +252,11 @@ class _At(_Strict):
     radius: Optional[Pos] = None
     speed: Optional[Pos] = None
     sweep: Optional[Finite] = None
+    amplitude: Optional[Pos] = Field(None, description="frequency_response: force amplitude [N]")
 
     def at(self) -> dict:
-        return {k: getattr(self, k) for k in ("step", "radius", "speed", "sweep") if getattr(self, k) is not None}
+        return {k: getattr(self, k) for k in ("step", "radius", "speed", "sweep", "amplitude")
+                if getattr(self, k) is not None}
 
 
 class SeedValue(_At):
@@ -170,6 +264,8 @@ class SeedValue(_At):
     metric: Metric
     value: Finite = Field(description="the seed's number, SI (s, m)")
     source: str = ""
+    bound: Literal["value", "upper", "lower"] = Field(
+        "value", description="frequency_response: the seed states a limit ('less than 10 Hz': upper)")
 
 
 class Finding(_At):
@@ -178,10 +274,33 @@ class Finding(_At):
     claim: str = Field(description="the seed's statement")
     case: str
     versus: str
+    versus_amplitude: Optional[Pos] = Field(
+        None, description="frequency_response: versus at this amplitude [N] (default: the same; case may equal versus)")
     metric: Metric
     direction: Literal["lower", "higher", "similar"]
     tolerance: Fraction = Field(0.2, description="'similar': largest relative difference")
+    change: Optional[Finite] = Field(None, description="the seed's relative change (case - versus) / versus, "
+                                     "when it gives a percentage only (e.g. Table 6.3); else from seed.values")
+    relative_to: Optional[str] = Field(
+        None, description="'similar' only: compare the reductions vs this case, 1 - metric/metric(relative_to), "
+        "as the seed's reduction plots do (Fig. 6.5, 6.6); tolerance is then in reduction points (0.1 = 10%)")
+    over: Literal["mean", "sweep_spread"] = Field(
+        "mean", description="mean: the metric's means at one condition; sweep_spread: the spread (standard "
+        "deviation) of the means over the sweep values at the condition (robustness, Fig. 4.18)")
     note: str = Field("", description="why the model is expected to differ; shown when it disagrees")
+
+    @model_validator(mode="after")
+    def _change_direction(self):
+        if self.change is not None:
+            if self.direction == "lower" and self.change >= 0 or self.direction == "higher" and self.change <= 0:
+                raise ValueError(f"change {self.change:+g} contradicts direction {self.direction!r}")
+            if self.direction == "similar" and abs(self.change) > self.tolerance:
+                raise ValueError(f"change {self.change:+g} is outside the 'similar' tolerance {self.tolerance}")
+        if self.over == "sweep_spread" and self.sweep is not None:
+            raise ValueError("over: sweep_spread compares every sweep value; do not give 'sweep'")
+        if self.relative_to is not None and self.direction != "similar":
+            raise ValueError("relative_to is for direction 'similar' (a lower/higher reduction is a lower/higher metric)")
+        return self
 
 
 class SeedData(_Strict):
@@ -221,10 +340,35 @@ class CalParameter(_Strict):
 
 
 class Calibration(_Strict):
+    """Fit ``parameters`` on this campaign's baseline (:mod:`experiment_runner.calibration`)."""
     trials: int = Field(16, ge=1, le=1000, description="baseline trials per evaluation (the first of the campaign's)")
     rounds: int = Field(3, ge=1, le=10, description="Gauss-Seidel rounds at most")
     rtol: Annotated[float, Field(gt=0, lt=1)] = 0.01
     parameters: list[CalParameter] = Field(min_length=1, max_length=3)
+
+
+class CalibrationFrom(_Strict):
+    """Reuse the baseline calibration of another campaign on the same stage and PID.
+
+    ``from: table_4_2`` applies that campaign's calibrated parameters (its paths and modes)
+    to every case here instead of refitting. :func:`run_campaign` loads the values from
+    ``calibration.json`` in the output folder or in ``<output folder>/../<from>/`` when it
+    was fitted with the same campaign, baseline preset and trial count (a fingerprint),
+    else fits that campaign's baseline and caches the result as ``calibration.json``.
+    """
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    from_: Name = Field(alias="from", description="campaign whose baseline calibration is reused")
+    trials: Optional[int] = Field(None, ge=1, le=1000, description="its fit's trials (default: its calibration.trials)")
+
+
+def _calibration_kind(v) -> str:
+    if isinstance(v, dict):
+        return "from" if ("from" in v or "from_" in v) else "fit"
+    return "from" if isinstance(v, CalibrationFrom) else "fit"
+
+
+CalibrationSpec = Annotated[Union[Annotated[Calibration, Tag("fit")], Annotated[CalibrationFrom, Tag("from")]],
+                            Discriminator(_calibration_kind)]
 
 
 class Campaign(_Strict):
@@ -238,7 +382,7 @@ class Campaign(_Strict):
     cases: list[Case] = Field(min_length=1)
     baseline: str
     sweep: Optional[Sweep] = None
-    calibration: Optional[Calibration] = None
+    calibration: Optional[CalibrationSpec] = None
     seed: SeedData
 
     @model_validator(mode="after")
@@ -250,21 +394,27 @@ class Campaign(_Strict):
             raise ValueError(f"baseline {self.baseline!r} is not a case ({names})")
         if self.case(self.baseline).step_ii is not None:
             raise ValueError("the baseline case cannot use step_ii (it is the conventional stage)")
+        for i, c in enumerate(self.cases):
+            if c.per_speed and self.test.kind != "circle":
+                raise ValueError(f"cases.{i} ({c.name}).per_speed: only for circle tests (a speed per condition)")
         conds = conditions(self)
-        metrics = P2P_METRICS if self.test.kind == "point_to_point" else TRACK_METRICS
+        metrics = _metric_names(self)
 
-        def check_at(where, sel: _At, metric=None):
+        def check_at(where, sel: _At, metric=None, spread=False):
             if metric is not None and metric not in metrics:
                 raise ValueError(f"{where}: metric {metric} is not measured by a {self.test.kind} test "
                                  f"({', '.join(metrics)})")
-            if self.sweep is not None and sel.sweep is None:
+            if spread and self.sweep is None:
+                raise ValueError(f"{where}: over: sweep_spread needs a campaign sweep")
+            if self.sweep is not None and sel.sweep is None and not spread:
                 raise ValueError(f"{where}: give 'sweep' (the campaign sweeps {self.sweep.name})")
             if not [c for c in conds if c.matches(**sel.at())]:
                 raise ValueError(f"{where}: no condition matches {sel.at()} "
                                  f"(conditions: {', '.join(c.label for c in conds)})")
             n = len([c for c in conds if c.matches(**sel.at())])
-            if n > 1:
-                raise ValueError(f"{where}: {sel.at()} matches {n} conditions; give all of step/radius/speed/sweep")
+            if n > (len(self.sweep.values) if spread else 1):
+                raise ValueError(f"{where}: {sel.at()} matches {n} conditions; give all of step/radius/speed"
+                                 + ("" if spread else "/sweep"))
 
         for i, v in enumerate(self.seed.values):
             if v.case not in names:
@@ -274,17 +424,27 @@ class Campaign(_Strict):
         if len(set(ids)) != len(ids):
             raise ValueError("seed.findings: ids must be unique")
         for i, f in enumerate(self.seed.findings):
-            for who in (f.case, f.versus):
+            for who in (f.case, f.versus) + ((f.relative_to,) if f.relative_to else ()):
                 if who not in names:
                     raise ValueError(f"seed.findings.{i} ({f.id}): case {who!r} is not a case ({names})")
-            if f.case == f.versus:
+            if f.case == f.versus and f.versus_amplitude is None:
                 raise ValueError(f"seed.findings.{i} ({f.id}): case and versus are the same")
-            check_at(f"seed.findings.{i} ({f.id})", f, f.metric)
-        if self.sweep is not None and self.sweep.cases:
-            for c in self.sweep.cases:
-                if c not in names:
-                    raise ValueError(f"sweep.cases: {c!r} is not a case ({names})")
-        if self.calibration is not None:
+            if f.versus_amplitude is not None and not [c for c in conds if c.matches(amplitude=f.versus_amplitude)]:
+                raise ValueError(f"seed.findings.{i} ({f.id}): versus_amplitude {f.versus_amplitude} matches no "
+                                 f"condition ({', '.join(c.label for c in conds)})")
+            check_at(f"seed.findings.{i} ({f.id})", f, f.metric, spread=f.over == "sweep_spread")
+        if self.sweep is not None:
+            groups = [("sweep.cases", self.sweep.cases or [])] + [
+                (f"sweep.apply.{j}.cases", t.cases) for j, t in enumerate(self.sweep.apply or [])]
+            seen = set()
+            for where, cs in groups:
+                for c in cs:
+                    if c not in names:
+                        raise ValueError(f"{where}: {c!r} is not a case ({names})")
+                    if c in seen:
+                        raise ValueError(f"{where}: case {c!r} is in more than one sweep target")
+                    seen.add(c)
+        if isinstance(self.calibration, Calibration):
             pnames = [p.name for p in self.calibration.parameters]
             if len(set(pnames)) != len(pnames):
                 raise ValueError("calibration.parameters: names must be unique")
@@ -340,15 +500,18 @@ class Condition:
     radius: Optional[float] = None
     speed: Optional[float] = None
     sweep: Optional[float] = None
+    amplitude: Optional[float] = None          # frequency_response: force amplitude [N]
 
-    def matches(self, step=None, radius=None, speed=None, sweep=None) -> bool:
-        for mine, want in ((self.step, step), (self.radius, radius), (self.speed, speed), (self.sweep, sweep)):
+    def matches(self, step=None, radius=None, speed=None, sweep=None, amplitude=None) -> bool:
+        for mine, want in ((self.step, step), (self.radius, radius), (self.speed, speed), (self.sweep, sweep),
+                           (self.amplitude, amplitude)):
             if want is not None and (mine is None or not math.isclose(mine, want, rel_tol=1e-9, abs_tol=0.0)):
                 return False
         return True
 
     def at(self) -> dict:
-        return {k: getattr(self, k) for k in ("step", "radius", "speed", "sweep") if getattr(self, k) is not None}
+        return {k: getattr(self, k) for k in ("step", "radius", "speed", "sweep", "amplitude")
+                if getattr(self, k) is not None}
 
 
 def conditions(c: Campaign) -> list[Condition]:
@@ -358,11 +521,13 @@ def conditions(c: Campaign) -> list[Condition]:
     if t.kind == "point_to_point":
         for s in t.steps:
             base.append(Condition(_slug(fmt_length(s)), fmt_length(s), step=float(s)))
+    elif t.kind == "frequency_response":
+        for a in t.amplitudes:
+            base.append(Condition(f"{a:g}N".replace(".", "p").replace("+", ""), f"{a:g} N", amplitude=float(a)))
     else:
-        for r in t.radii:
-            for v in t.speeds:
-                lab = f"R {fmt_length(r)}, {fmt_length(v)}/s"
-                base.append(Condition(_slug(f"r{fmt_length(r)}_v{fmt_length(v)}s"), lab, radius=float(r), speed=float(v)))
+        for r, v in t.pairs():
+            lab = f"R {fmt_length(r)}, {fmt_length(v)}/s"
+            base.append(Condition(_slug(f"r{fmt_length(r)}_v{fmt_length(v)}s"), lab, radius=r, speed=v))
     if c.sweep is None:
         return base
     out = []
@@ -391,27 +556,10 @@ def load_campaign(name_or_path, check_presets: bool = True) -> Campaign:
     try:
         camp = Campaign.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_format_errors(err, str(path))) from None
+        raise ConfigError(_format(err, str(path), "campaign")) from None
     if check_presets:
         check_campaign(camp, str(path))
     return camp
-
-
-def _format_errors(err: ValidationError, source: str) -> str:
-    """As :func:`stage_sim.config._format`, without echoing the whole file for cross-field errors
-    (their message names the field)."""
-    lines = [f"{source}: invalid campaign"]
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"])
-        msg = e["msg"].removeprefix("Value error, ")
-        if e["type"] == "extra_forbidden":
-            msg = "unknown key"
-        elif e["type"] == "missing":
-            msg = "required field is missing"
-        shown = "" if e["type"] == "missing" or not loc or isinstance(e.get("input"), dict) \
-            else f" (got {e.get('input')!r})"
-        lines.append(f"  {loc + ': ' if loc else ''}{msg}{shown}")
-    return "\n".join(lines)
 
 
 def check_campaign(camp: Campaign, source: str = "<campaign>") -> None:
@@ -420,21 +568,29 @@ def check_campaign(camp: Campaign, source: str = "<campaign>") -> None:
         where = f"{source}: cases.{i} ({case.name})"
         try:
             preset = case_preset(camp, case)
+            if case.per_speed:
+                case_preset(camp, case, None, conditions(camp)[0])
         except (ConfigError, KeyError, IndexError, ValueError, TypeError) as err:
             raise ConfigError(f"{where}: preset {case.preset!r} with overrides: {err}") from None
-        if camp.calibration is not None:
-            for j, p in enumerate(camp.calibration.parameters):
-                try:
-                    resolve(preset, p.paths, p.mode, p.bounds[0])
-                except (ConfigError, KeyError, IndexError, ValueError, TypeError) as err:
-                    raise ConfigError(f"{source}: calibration.parameters.{j} ({p.name}).paths in case "
-                                      f"{case.name!r}: {err}") from None
-        if camp.sweep is not None and (not camp.sweep.cases or case.name in camp.sweep.cases):
+        src = calibration_source(camp, source)
+        where_cal = f"calibration (from {src.name})" if src is not None else "calibration"
+        for j, p in enumerate(cal_parameters(camp)):
+            try:
+                resolve(preset, p.paths, p.mode, p.bounds[0])
+            except (ConfigError, KeyError, IndexError, ValueError, TypeError) as err:
+                raise ConfigError(f"{source}: {where_cal}.parameters.{j} ({p.name}).paths in case "
+                                  f"{case.name!r}: {err}") from None
+            clash = [q for q in p.paths if q in case.overrides]
+            if src is not None and clash:
+                raise ConfigError(f"{source}: {where_cal}: case {case.name!r} overrides {clash}, which is "
+                                  f"calibrated in {src.name}")
+        target = camp.sweep.target(case.name) if camp.sweep is not None else None
+        if target is not None:
             for v in camp.sweep.values:
                 try:
-                    resolve(preset, camp.sweep.paths, camp.sweep.mode, v)
+                    resolve(preset, target.paths, target.mode, v, target.series)
                 except (ConfigError, KeyError, IndexError, ValueError, TypeError) as err:
-                    raise ConfigError(f"{source}: sweep.paths in case {case.name!r} (value {v}): {err}") from None
+                    raise ConfigError(f"{source}: sweep paths in case {case.name!r} (value {v}): {err}") from None
         if case.step_ii is not None and (preset.sai_manager is None or preset.sai_manager.ilc is None
                                          or preset.sai_manager.rule != "point_to_point"):
             raise ConfigError(f"{where}: step_ii needs a preset with sai_manager.rule point_to_point and an ilc")
@@ -471,27 +627,39 @@ def _expand(data, path: str) -> list[tuple[str, object]]:
     return [(".".join(pre), v) for v, pre in nodes]
 
 
-def _scaled(v, factor, path):
+def _scaled(v, factor, path, series=None):
     if isinstance(v, list):
-        return [_scaled(x, factor, path) for x in v]
+        return [_scaled(x, factor, path, series) for x in v]
     if isinstance(v, (int, float)) and not isinstance(v, bool):
-        return float(v) * float(factor)
+        k = float(v) * float(factor)
+        if series is None:
+            return k
+        if k <= 0:
+            raise ConfigError(f"{path}: series_scale needs a positive stiffness, got {k!r}")
+        return 1.0 / (1.0 / float(series) + 1.0 / k)
     raise ConfigError(f"{path}: cannot scale {v!r}")
 
 
-def resolve(preset: Preset, paths, mode: str, value) -> dict:
-    """Absolute dotted-path overrides setting (``mode: value``) or scaling (``scale``) ``paths``.
+def resolve(preset: Preset, paths, mode: str, value, series: Optional[float] = None) -> dict:
+    """Absolute dotted-path overrides setting (``mode: value``), scaling (``scale``) or
+    scaling and combining in series with ``series`` (``series_scale``) ``paths``.
 
     >>> p = load_preset("fi_stage_gms")
     >>> o = resolve(p, ["stage.bearings.*.friction.f_c"], "scale", 2.0)
     >>> o
     {'stage.bearings.0.friction.f_c': 5.31, 'stage.bearings.1.friction.f_c': 5.31}
+    >>> k = resolve(p, ["stage.bearings.0.friction.k"], "series_scale", 1.0, series=8.27e4)
+    >>> round(k["stage.bearings.0.friction.k"][0])      # 1 / (1/8.27e4 + 1/6.7e5)
+    73614
     """
+    if mode == "series_scale" and series is None:
+        raise ConfigError(f"{paths}: mode series_scale needs a series stiffness")
     data = preset.model_dump()
     out = {}
     for path in paths:
         for concrete, old in _expand(data, path):
-            out[concrete] = _scaled(old, value, concrete) if mode == "scale" else _py(value)
+            out[concrete] = (_scaled(old, value, concrete, series if mode == "series_scale" else None)
+                             if mode in ("scale", "series_scale") else _py(value))
     return out
 
 
@@ -511,17 +679,54 @@ def case_overrides(camp: Campaign, case: Case, cal_values: Optional[dict] = None
     case, calibrated parameters, sweep value. ``with_overrides(load_preset(case.preset), o)``
     gives the case's preset (this is also what the graph experiment file holds)."""
     flat = {**copy.deepcopy(camp.overrides), **copy.deepcopy(case.overrides)}
-    preset = with_overrides(load_preset(case.preset), flat) if flat else load_preset(case.preset)
+    if cond is not None and cond.speed is not None:
+        flat.update({k: float(f) * cond.speed for k, f in case.per_speed.items()})
+    preset = (with_overrides(load_preset(case.preset), flat, f"campaign {camp.name}: case {case.name} overrides")
+              if flat else load_preset(case.preset))
     if cal_values and camp.calibration is not None:
-        for p in camp.calibration.parameters:
+        for p in cal_parameters(camp):
             if p.name in cal_values:
                 o = resolve(preset, p.paths, p.mode, cal_values[p.name])
                 flat.update(o)
         preset = with_overrides(load_preset(case.preset), flat)
-    if cond is not None and cond.sweep is not None and camp.sweep is not None \
-            and (not camp.sweep.cases or case.name in camp.sweep.cases):
-        flat.update(resolve(preset, camp.sweep.paths, camp.sweep.mode, cond.sweep))
+    target = camp.sweep.target(case.name) if camp.sweep is not None else None
+    if cond is not None and cond.sweep is not None and target is not None:
+        flat.update(resolve(preset, target.paths, target.mode, cond.sweep, target.series))
     return _py(flat)
+
+
+def calibration_source(camp: Campaign, source: str = "<campaign>") -> Optional[Campaign]:
+    """The campaign whose calibration ``calibration: {from: NAME}`` reuses (None otherwise)."""
+    if not isinstance(camp.calibration, CalibrationFrom):
+        return None
+    name = camp.calibration.from_
+    if name == camp.name:
+        raise ConfigError(f"{source}: calibration.from: {name!r} is this campaign")
+    try:
+        src = _load_source(name)
+    except ConfigError as err:
+        raise ConfigError(f"{source}: calibration.from: {name!r}: {err}") from None
+    if not isinstance(src.calibration, Calibration):
+        raise ConfigError(f"{source}: calibration.from: campaign {name!r} fits no calibration of its own")
+    return src
+
+
+def _load_source(name: str) -> Campaign:
+    key = (name, (CAMPAIGN_DIR / f"{name}.yaml").stat().st_mtime_ns if (CAMPAIGN_DIR / f"{name}.yaml").exists() else 0)
+    if key not in _SOURCES:
+        _SOURCES[key] = load_campaign(name, check_presets=False)
+    return _SOURCES[key]
+
+
+_SOURCES: dict = {}
+
+
+def cal_parameters(camp: Campaign) -> list:
+    """The calibrated parameters applied to the cases (own, or those of ``calibration.from``)."""
+    if camp.calibration is None:
+        return []
+    src = calibration_source(camp)
+    return list((src if src is not None else camp).calibration.parameters)
 
 
 def case_preset(camp: Campaign, case: Case, cal_values: Optional[dict] = None,
@@ -645,7 +850,7 @@ class CampaignRun:
 
 
 def _metric_names(camp):
-    return P2P_METRICS if camp.test.kind == "point_to_point" else TRACK_METRICS
+    return {"point_to_point": P2P_METRICS, "frequency_response": FRF_METRICS}.get(camp.test.kind, TRACK_METRICS)
 
 
 def simulate_case(camp, case, cond, preset, n, correction=None, models=None, keep=False):
@@ -789,10 +994,56 @@ def _calibrate(camp: Campaign, n_trials: int, bar=None) -> dict:
                        "log_residual": pf.residual},
             "profile": profile[p.name]})
     return {"campaign": camp.name, "baseline": camp.baseline, "trials": n_trials,
+            "fingerprint": calibration_fingerprint(camp, n_trials),
             "method": "paired bounded 1-D root finding (brentq on log(sim/seed)), Gauss-Seidel rounds",
             "rounds": res.rounds, "converged": res.converged, "evaluations": res.evaluations,
             "wall_s": time.monotonic() - t0, "values": res.values, "parameters": params,
             "history": [{"values": v, "metrics": m} for v, m in res.history]}
+
+
+def calibration_fingerprint(camp: Campaign, n_trials: int) -> str:
+    """Hash of everything a baseline calibration depends on: the test, starts, the baseline
+    case and its resolved preset, the calibration spec and its seed targets, the trial count."""
+    import hashlib
+    base = camp.case(camp.baseline)
+    doc = {"test": camp.test.model_dump(mode="json"), "starts": camp.starts.model_dump(mode="json"),
+           "baseline": base.model_dump(mode="json"), "preset": case_preset(camp, base).model_dump(mode="json"),
+           "calibration": camp.calibration.model_dump(mode="json", exclude={"trials"}),
+           "targets": [camp.seed_value(camp.baseline, p.target.metric, **p.target.at())
+                       for p in camp.calibration.parameters], "trials": int(n_trials)}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def source_calibration(camp: Campaign, out_dir: Path, n_trials: Optional[int] = None, bar=None) -> dict:
+    """The calibration of ``calibration: {from: NAME}``: loaded from a matching ``calibration.json``
+    (this output folder, then ``out_dir/../NAME/``), else fitted on NAME's baseline.
+
+    The result's ``applied`` overrides are those of this campaign's cases; ``source`` tells
+    where the values come from (``loaded_from`` is None when fitted in this run).
+    """
+    src = calibration_source(camp)
+    n = int(n_trials or camp.calibration.trials or src.calibration.trials)
+    fp = calibration_fingerprint(src, n)
+    doc, loaded = None, None
+    for path in (out_dir / "calibration.json", out_dir.parent / src.name / "calibration.json"):
+        try:
+            got = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if got.get("fingerprint") == fp and got.get("campaign") == src.name:
+            doc, loaded = got, path
+            break
+    if doc is None:
+        doc = _calibrate(src, n, bar)
+    doc = dict(doc)
+    doc["reused"] = loaded is not None
+    doc["source"] = {"campaign": src.name, "title": src.title, "baseline": src.baseline,
+                     "baseline_label": src.case(src.baseline).label,
+                     "loaded_from": str(loaded) if loaded is not None else None}
+    for p in doc["parameters"]:
+        spec = next(q for q in src.calibration.parameters if q.name == p["name"])
+        p["applied"] = {c.name: resolve(case_preset(camp, c), spec.paths, spec.mode, p["value"]) for c in camp.cases}
+    return doc
 
 
 def evaluate_findings(camp: Campaign, runs: dict) -> list[dict]:
@@ -800,23 +1051,29 @@ def evaluate_findings(camp: Campaign, runs: dict) -> list[dict]:
     out = []
     conds = conditions(camp)
     for f in camp.seed.findings:
+        if f.over == "sweep_spread":
+            out.append(_spread_finding(camp, f, runs, [c for c in conds if c.matches(**f.at())]))
+            continue
         cond = next(c for c in conds if c.matches(**f.at()))
         a = runs[(f.case, cond.key)].stats[f.metric]
         b = runs[(f.versus, cond.key)].stats[f.metric]
         sa = camp.seed_value(f.case, f.metric, **cond.at())
         sb = camp.seed_value(f.versus, f.metric, **cond.at())
-        seed_rel = (sa - sb) / sb if sa is not None and sb not in (None, 0) else None
+        seed_rel = (sa - sb) / sb if sa is not None and sb not in (None, 0) else f.change
         rel = (a.mean - b.mean) / b.mean if b.mean and math.isfinite(a.mean) and math.isfinite(b.mean) else math.nan
         se = math.sqrt((a.std ** 2 / a.n_valid if a.n_valid > 1 else 0.0)
                        + (b.std ** 2 / b.n_valid if b.n_valid > 1 else 0.0))
         diff = a.mean - b.mean
         z = diff / se if se > 0 else (math.copysign(math.inf, diff) if diff else 0.0)
         reasons = []
+        if f.relative_to is not None:       # difference of the reductions vs relative_to
+            ref = runs[(f.relative_to, cond.key)].stats[f.metric].mean
+            rel = (b.mean - a.mean) / ref if ref and math.isfinite(ref) and math.isfinite(rel) else math.nan
+            z = math.nan
         if not math.isfinite(rel):
             agrees, status = False, "undefined (no settled trials)"
         elif f.direction == "similar":
-            agrees = abs(rel) <= f.tolerance
-            status = f"within ±{f.tolerance:.0%}" if agrees else f"differs by {rel:+.0%} (> ±{f.tolerance:.0%})"
+            agrees, status = _similar(rel, f.tolerance, f"reductions vs {f.relative_to} " if f.relative_to else "")
         else:
             want = -1 if f.direction == "lower" else 1
             same_sign = np.sign(diff) == want
@@ -833,9 +1090,51 @@ def evaluate_findings(camp: Campaign, runs: dict) -> list[dict]:
                     "seed_case": sa, "seed_versus": sb, "seed_change": seed_rel,
                     "sim_case": a.mean, "sim_versus": b.mean, "sim_change": rel if math.isfinite(rel) else None,
                     "z": z if math.isfinite(z) else (None if z != z else (1e9 if z > 0 else -1e9)),
-                    "agrees": bool(agrees), "status": status, "notes": reasons,
+                    "agrees": bool(agrees), "status": status, "notes": reasons, "over": "mean",
+                    "relative_to": f.relative_to,
                     "explanation": f.note if not agrees else ""})
     return out
+
+
+def _similar(rel: float, tolerance: float, what: str = "") -> tuple[bool, str]:
+    """A 'similar' finding: agrees when ``|rel| <= tolerance``; the status text."""
+    agrees = abs(rel) <= tolerance
+    return agrees, (f"{what}within ±{tolerance:.0%}" if agrees
+                    else f"{what}differ by {rel:+.0%} (> ±{tolerance:.0%})")
+
+
+def _spread_finding(camp: Campaign, f: Finding, runs: dict, conds: list) -> dict:
+    """A ``sweep_spread`` finding: the standard deviation over the sweep values of each case's
+    mean metric (e.g. the ±1σ band of Fig. 4.18 over the seven stiffness errors), case vs versus.
+    Agrees when the sign matches ('lower'/'higher'; there is no trial-level z) or the relative
+    difference is within the tolerance ('similar')."""
+    spreads = []
+    for who in (f.case, f.versus):
+        means = np.array([runs[(who, c.key)].stats[f.metric].mean for c in conds], float)
+        spreads.append(float(np.std(means, ddof=1)) if means.size > 1 and np.all(np.isfinite(means)) else math.nan)
+    a, b = spreads
+    rel = (a - b) / b if math.isfinite(a) and math.isfinite(b) and b > 0 else math.nan
+    if f.relative_to is not None:          # spreads of the reductions vs relative_to, in reduction points
+        ref = np.mean([runs[(f.relative_to, c.key)].stats[f.metric].mean for c in conds])
+        rel = (a - b) / ref if math.isfinite(a) and math.isfinite(b) and ref > 0 else math.nan
+    if not math.isfinite(rel):
+        agrees, status = False, "undefined (unsettled trials or no spread)"
+    elif f.direction == "similar":
+        agrees, status = _similar(rel, f.tolerance,
+                                  f"spreads of the reductions vs {f.relative_to} " if f.relative_to else "")
+    else:
+        agrees = bool(np.sign(rel) == (-1 if f.direction == "lower" else 1))
+        status = "agrees" if agrees else "opposite direction"
+    at = {k: v for k, v in conds[0].at().items() if k != "sweep"}
+    label = conds[0].label.split(f", {camp.sweep.label} =")[0] + f", spread over {camp.sweep.label}"
+    return {"id": f.id, "claim": f.claim, "case": f.case, "versus": f.versus, "condition": label,
+            "condition_key": conds[0].key.split("__")[0] + "__spread", **at, "metric": f.metric,
+            "direction": f.direction, "tolerance": f.tolerance if f.direction == "similar" else None,
+            "seed_case": None, "seed_versus": None, "seed_change": f.change,
+            "sim_case": a if math.isfinite(a) else None, "sim_versus": b if math.isfinite(b) else None,
+            "sim_change": rel if math.isfinite(rel) else None, "z": None, "agrees": bool(agrees), "status": status,
+            "notes": [], "over": "sweep_spread", "relative_to": f.relative_to,
+            "explanation": f.note if not agrees else ""}
 
 
 # =========================================================================== graph
@@ -916,7 +1215,8 @@ def run_campaign(campaign, out_dir, *, trials: Optional[int] = None, dwell: Opti
                  calibrate: bool = True, calibration: Optional[dict] = None,
                  calibration_trials: Optional[int] = None, graph: bool = False, graph_workers: int = 2,
                  plots: bool = True, mcap: bool = True, progress: bool = True, report: bool = True,
-                 graph_timeout: float = 600.0) -> CampaignRun:
+                 graph_timeout: float = 600.0, workers: Optional[int] = None, cluster=None,
+                 resume: bool = True) -> CampaignRun:
     """Calibrate (baseline only), run every case and condition, write the outputs.
 
     Parameters
@@ -936,23 +1236,31 @@ def run_campaign(campaign, out_dir, *, trials: Optional[int] = None, dwell: Opti
         Override ``calibration.trials``.
     graph : bool
         Also run the representative trial of every case and condition through the ROS graph.
+    workers, cluster
+        Where the trials run (:func:`experiment_runner.executor.make_executor`): ``workers``
+        local processes (default 1: this process) or the Dask scheduler at ``cluster``.
+    resume : bool
+        Keep the trials already in ``out_dir/trials.jsonl`` from an interrupted run of the same
+        campaign and settings (:mod:`experiment_runner.stream`); False discards them.
     """
     from tqdm import tqdm
 
-    from experiment_runner.batch import Models
     t_start = time.monotonic()
     camp = campaign if isinstance(campaign, Campaign) else load_campaign(campaign)
     if trials is not None or dwell is not None:
         data = camp.model_dump()
         if trials is not None:
             data["trials"] = int(trials)
-            if data.get("calibration"):
+            if isinstance(camp.calibration, Calibration):
                 data["calibration"]["trials"] = min(data["calibration"]["trials"], int(trials))
         if dwell is not None:
             if camp.test.kind != "point_to_point":
                 raise ConfigError("--dwell applies to point-to-point campaigns only")
             data["test"]["dwell"] = float(dwell)
         camp = Campaign.model_validate(data)
+    if camp.test.kind == "frequency_response":
+        from experiment_runner.frf_campaign import run_frf_campaign
+        return run_frf_campaign(camp, out_dir, progress=progress, report=report, plots=plots, graph=graph)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     conds = conditions(camp)
@@ -965,6 +1273,11 @@ def run_campaign(campaign, out_dir, *, trials: Optional[int] = None, dwell: Opti
     if calibration is not None:
         cal = dict(calibration)
         cal["reused"] = True
+        cal_values = dict(cal["values"])
+    elif calibrate and isinstance(camp.calibration, CalibrationFrom):
+        with tqdm(desc=f"{camp.name}: calibration of {camp.calibration.from_}", unit="eval", file=sys.stderr,
+                  disable=disable, leave=False, mininterval=0.5) as bar:
+            cal = source_calibration(camp, out_dir, calibration_trials, bar)
         cal_values = dict(cal["values"])
     elif calibrate and camp.calibration is not None:
         n_cal = min(calibration_trials or camp.calibration.trials, camp.trials)
@@ -979,11 +1292,18 @@ def run_campaign(campaign, out_dir, *, trials: Optional[int] = None, dwell: Opti
     t1 = time.monotonic()
     step_ii = {}
     runs = {}
+    unswept = {}
     n_units = len(camp.cases) * len(conds) + sum(
         ((c.step_ii.iterations if c.step_ii.iterations is not None else
           case_preset(camp, c).sai_manager.ilc.iterations) + 1) for c in camp.cases if c.step_ii)
+    from experiment_runner.executor import make_executor
+    from experiment_runner.stream import (STREAM_NAME, TrialStream, campaign_key, code_fingerprint,
+                                          representative_trial, run_trials)
+    stream_key = campaign_key(camp, {(c.name, cond.key): case_preset(camp, c, cal_values, cond)
+                                     for c in camp.cases for cond in conds})
     with tqdm(total=n_units, desc=f"{camp.name}: simulate", unit="run", file=sys.stderr, disable=disable,
-              leave=False, mininterval=0.5) as bar:
+              leave=False, mininterval=0.5) as bar, make_executor(workers, cluster) as ex, \
+            TrialStream(out_dir / STREAM_NAME, camp.name, stream_key, code_fingerprint(), resume) as stream:
         for case in camp.cases:
             corr_cache = {}
             for cond in conds:
@@ -995,35 +1315,39 @@ def run_campaign(campaign, out_dir, *, trials: Optional[int] = None, dwell: Opti
                         corr_cache[key] = learn_step_ii(camp, case, preset, progress=lambda: bar.update(1))
                         step_ii.setdefault(case.name, corr_cache[key])
                     corr = corr_cache[key]["correction"]
+                # a case the sweep leaves unchanged is run once per test condition and reused
+                same = (case.name, preset.model_dump_json(), tuple(v for k, v in cond.at().items() if k != "sweep"))
+                if cond.sweep is not None and same in unswept:
+                    runs[(case.name, cond.key)] = replace(unswept[same], cond=cond, wall_s=0.0)
+                    bar.update(1)
+                    continue
                 tc = time.monotonic()
-                ref, trs, res, mets = simulate_case(camp, case, cond, preset, camp.trials, correction=corr,
-                                                    models=Models.from_preset(preset))
+                mets, x0 = run_trials(
+                    camp, case, cond, preset, corr, ex, stream,
+                    on_chunk=lambda d, n: bar.set_postfix_str(f"{case.name} {cond.label}: {d}/{n} trials"))
                 stats = {m: Stat.of([x.get(m) for x in mets]) for m in _metric_names(camp)}
                 rep = _representative(camp, mets)
-                tr = trs[rep]
+                ref, tr, res = representative_trial(camp, case, cond, preset, rep, corr, mets[rep])
                 if camp.test.kind == "point_to_point":
                     s = ref.select("settle")[0]
-                    e = res.y[rep] - tr.x_ref[s.stop - 1]
+                    e = res.y[0] - tr.x_ref[s.stop - 1]
                     trace = Trace(rep, res.t.copy(), e, float(res.t[s.start]),
-                                  mets[rep].get("settling_time_s"), camp.test.window, res.y[rep].copy(),
-                                  res.x_ref[rep].copy())
+                                  mets[rep].get("settling_time_s"), camp.test.window, res.y[0].copy(),
+                                  res.x_ref[0].copy())
                 else:
-                    trace = Trace(rep, res.t.copy(), res.x_ref[rep] - res.y[rep], None, None, camp.test.window,
-                                  res.y[rep].copy(), res.x_ref[rep].copy())
+                    trace = Trace(rep, res.t.copy(), res.x_ref[0] - res.y[0], None, None, camp.test.window,
+                                  res.y[0].copy(), res.x_ref[0].copy())
                 rr = RunResult(case=case.name, cond=cond, preset=preset,
                                overrides=case_overrides(camp, case, cal_values, cond), metrics=mets, stats=stats,
-                               rep=rep, trace=trace, wall_s=time.monotonic() - tc,
-                               x0=[float(t.x_ref[0] - ref.x[0]) for t in trs])
+                               rep=rep, trace=trace, wall_s=time.monotonic() - tc, x0=x0)
                 if mcap:
-                    from experiment_runner.batch import BatchResult
-                    one = BatchResult(**{k: (getattr(res, k)[rep:rep + 1] if k != "t" else res.t)
-                                         for k in BatchResult.__dataclass_fields__})
                     bag = out_dir / "recordings" / f"{case.name}_{cond.key}_batch"
                     from experiment_runner.recording import write_run
-                    p = write_run(bag, one, preset, reference=ref, window=camp.test.window,
+                    p = write_run(bag, res, preset, reference=ref, window=camp.test.window,
                                   case=f"{camp.name}/{case.name}/{cond.key}/trial{rep}", overwrite=True, node="batch")
                     rr.recording = str(p)
                 runs[(case.name, cond.key)] = rr
+                unswept[same] = rr
                 del res
                 bar.update(1)
     timing["simulation_s"] = time.monotonic() - t1
@@ -1061,18 +1385,24 @@ def run_campaign(campaign, out_dir, *, trials: Optional[int] = None, dwell: Opti
                 "graph": graph}
     cr = CampaignRun(campaign=camp, out_dir=out_dir, conditions=conds, runs=runs, findings=findings,
                      calibration=cal, step_ii=step_ii, settings=settings, timing=timing)
+    write_outputs(cr, write_results, report=report, plots=plots, t_start=t_start)
+    return cr
+
+
+def write_outputs(cr: CampaignRun, write_results_fn, *, report: bool, plots: bool, t_start: float) -> None:
+    """Results files (``write_results_fn(cr)``), PNG plots and ``report.md``; the results are
+    written first (kept if a plot fails) and again with the final timing."""
+    from experiment_runner import report as rep_mod
     t3 = time.monotonic()
-    write_results(cr)
+    write_results_fn(cr)
     if report:
-        from experiment_runner import report as rep_mod
         if plots:
             cr.files["plots"] = rep_mod.write_plots(cr)
-        timing["total_s"] = time.monotonic() - t_start
+        cr.timing["total_s"] = time.monotonic() - t_start
         cr.files["report"] = rep_mod.write_report(cr)
-    timing["output_s"] = time.monotonic() - t3
-    timing["total_s"] = time.monotonic() - t_start
-    write_results(cr)          # again, with the final timing
-    return cr
+    cr.timing["output_s"] = time.monotonic() - t3
+    cr.timing["total_s"] = time.monotonic() - t_start
+    write_results_fn(cr)
 
 
 def _compare_graph(g: dict, rr: RunResult) -> dict:
@@ -1098,13 +1428,6 @@ def _compare_graph(g: dict, rr: RunResult) -> dict:
 
 
 # =========================================================================== outputs
-def _num(v):
-    if v is None:
-        return None
-    v = float(v)
-    return v if math.isfinite(v) else None
-
-
 def write_results(cr: CampaignRun) -> None:
     """``results.csv``, ``results.json`` and ``calibration.json`` (SI units)."""
     camp = cr.campaign
@@ -1119,9 +1442,9 @@ def write_results(cr: CampaignRun) -> None:
                     "campaign": camp.name, "case": case.name, "case_label": case.label, "condition": cond.key,
                     "condition_label": cond.label, "step_m": cond.step, "radius_m": cond.radius,
                     "speed_m_s": cond.speed, "sweep_name": camp.sweep.name if camp.sweep else None,
-                    "sweep_value": cond.sweep, "metric": m, "mean": _num(st.mean), "std": _num(st.std),
+                    "sweep_value": cond.sweep, "metric": m, "mean": finite_or_none(st.mean), "std": finite_or_none(st.std),
                     "n_trials": st.n, "n_valid": st.n_valid, "seed": seed,
-                    "sim_over_seed": _num(st.mean / seed) if seed and math.isfinite(st.mean) else None,
+                    "sim_over_seed": finite_or_none(st.mean / seed) if seed and math.isfinite(st.mean) else None,
                     "baseline": case.name == camp.baseline})
     with open(cr.out_dir / "results.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -1171,14 +1494,15 @@ def _clean(o):
 
 
 # =========================================================================== main job + CLI
-def main_job(out_dir="out/campaigns", progress: bool = True, graph: bool = True) -> Path:
+def main_job(out_dir="out/campaigns", progress: bool = True, graph: bool = True, **run_kw) -> Path:
     """Tables 4.2 and 5.2 end to end: calibration, all trials on the batch engine, one
     representative trial per case and step size through the ROS graph; writes
-    ``out_dir/<campaign>/...`` and the summary ``out_dir/report.md``; returns its path."""
+    ``out_dir/<campaign>/...`` and the summary ``out_dir/report.md``; returns its path.
+    ``run_kw`` (``workers``, ``cluster``, ``resume``) go to :func:`run_campaign`."""
     from experiment_runner import report as rep_mod
     t0 = time.monotonic()
     out_dir = Path(out_dir)
-    runs = [run_campaign(name, out_dir / name, graph=graph, progress=progress) for name in MAIN_JOB]
+    runs = [run_campaign(name, out_dir / name, graph=graph, progress=progress, **run_kw) for name in MAIN_JOB]
     path = rep_mod.write_index(runs, out_dir, time.monotonic() - t0)
     print(f"report: {path}")
     return path
@@ -1189,7 +1513,7 @@ def add_campaign_arguments(parser):
     parser.add_argument("campaign", nargs="?", help="campaign name (see --list) or YAML path")
     parser.add_argument("--list", action="store_true", help="list the shipped campaigns")
     parser.add_argument("--main", action="store_true",
-                        help=f"the main job: {' and '.join(MAIN_JOB)} end to end with --graph")
+                        help=f"the main job: {' and '.join(MAIN_JOB)} end to end with --graph (always starts anew)")
     parser.add_argument("--out", default=None, help="output folder (default out/campaigns[/NAME])")
     parser.add_argument("--trials", type=int, default=None, help="trials per case and condition (override)")
     parser.add_argument("--dwell", type=float, default=None, help="point-to-point dwell [s] (override)")
@@ -1203,6 +1527,13 @@ def add_campaign_arguments(parser):
     parser.add_argument("--no-mcap", action="store_true", help="skip the MCAP recordings of batch trials")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--json", action="store_true", help="print results.json's findings and calibration")
+    from experiment_runner.executor import cpu_count
+    parser.add_argument("--workers", type=int, default=cpu_count(),
+                        help="local worker processes for the trials (default: one per core; 1 = this process)")
+    parser.add_argument("--cluster", default=None, metavar="ADDRESS",
+                        help="run the trials on the Dask distributed scheduler at ADDRESS (tcp://host:8786)")
+    parser.add_argument("--restart", action="store_true",
+                        help="discard the trials of an interrupted run in --out (default: resume them)")
     return parser
 
 
@@ -1215,7 +1546,10 @@ def main_campaign(args) -> int:
                 print(f"{name:18s} {c.title}")
             return 0
         if args.main:
-            main_job(args.out or "out/campaigns", progress=not args.quiet)
+            # the main job always starts anew: its trials are regenerated in ~2 min, and a stream
+            # left by other settings or code must not stop the README's first command
+            main_job(args.out or "out/campaigns", progress=not args.quiet, workers=args.workers,
+                     cluster=args.cluster, resume=False)
             return 0
         if not args.campaign:
             print("nanostage campaign: give a CAMPAIGN (name or YAML path), --list or --main", file=sys.stderr)
@@ -1225,10 +1559,15 @@ def main_campaign(args) -> int:
         out = Path(args.out or f"out/campaigns/{camp.name}")
         cr = run_campaign(camp, out, trials=args.trials, dwell=args.dwell, calibrate=not args.no_calibrate,
                           calibration=cal, calibration_trials=args.calibration_trials, graph=args.graph,
-                          plots=not args.no_plots, mcap=not args.no_mcap, progress=not args.quiet)
+                          plots=not args.no_plots, mcap=not args.no_mcap, progress=not args.quiet,
+                          workers=args.workers, cluster=args.cluster, resume=not args.restart)
     except ConfigError as err:
         print(str(err), file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("nanostage campaign: interrupted; the same command resumes from the trials done "
+              "(trials.jsonl in the output folder)", file=sys.stderr)
+        return 130
     if args.json:
         print(json.dumps(_clean({"findings": cr.findings, "calibration": {
             k: v for k, v in (cr.calibration or {}).items() if k != "history"}})))

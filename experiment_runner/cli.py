@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 
 
@@ -30,16 +31,6 @@ def _graph(args):
                      timeout=args.timeout)
 
 
-def _replay(args):
-    from experiment_runner.replay import main_replay
-    return main_replay(args)
-
-
-def _campaign(args):
-    from experiment_runner.campaign import main_campaign
-    return main_campaign(args)
-
-
 def _presets(args):
     from stage_sim.config import list_presets, load_preset
     if args.name:
@@ -48,6 +39,26 @@ def _presets(args):
         for name in list_presets():
             print(f"{name:24s} {load_preset(name).description.splitlines()[0] if load_preset(name).description else ''}")
     return 0
+
+
+MODULE_COMMANDS = [
+    # subcommands whose arguments and entry point live in their module:
+    # (name, help, module, add-arguments function, entry function)
+    ("replay", "republish a recording on its topics with /clock (like ros2 bag play)",
+     "experiment_runner.replay", "add_replay_arguments", "main_replay"),
+    ("campaign", "the seed's experiments as campaigns: calibrate, simulate, report",
+     "experiment_runner.campaign", "add_campaign_arguments", "main_campaign"),
+    ("diagnose", "locate, name and fit what a nominal model misses in a recording",
+     "experiment_runner.diagnosis.cli", "add_diagnose_arguments", "main_diagnose"),
+    ("synth", "simulate an experiment on a concealed truth into a recording",
+     "experiment_runner.diagnosis.synth", "add_synth_arguments", "main_synth"),
+    ("convert", "convert a real data file (EMPS benchmark) into a contract recording",
+     "experiment_runner.diagnosis.realdata", "add_convert_arguments", "main_convert"),
+    ("realdata", "run the diagnosis on the real data sets of ../shared/data; report",
+     "experiment_runner.diagnosis.realdata", "add_realdata_arguments", "main_realdata"),
+    ("design", "FI design advisor (Ch. 6) or VAN piezo power / flexure fatigue check (Sec. 3.3)",
+     "experiment_runner.design", "add_design_arguments", "main_design"),
+]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -77,25 +88,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--list", action="store_true", help="list the shipped experiments")
     p.set_defaults(func=_graph)
 
-    from experiment_runner.replay import add_replay_arguments
-    p = sub.add_parser("replay", help="republish a recording on its topics with /clock (like ros2 bag play)")
-    add_replay_arguments(p)
-    p.set_defaults(func=_replay)
-
-    from experiment_runner.campaign import add_campaign_arguments
-    p = sub.add_parser("campaign", help="the seed's experiment tables as campaigns: calibrate, simulate, report")
-    add_campaign_arguments(p)
-    p.set_defaults(func=_campaign)
-
-    from experiment_runner.diagnosis import (add_diagnose_arguments, add_synth_arguments, main_diagnose,
-                                             main_synth)
-    p = sub.add_parser("diagnose", help="locate, name and fit what a nominal model misses in a recording")
-    add_diagnose_arguments(p)
-    p.set_defaults(func=main_diagnose)
-
-    p = sub.add_parser("synth", help="simulate an experiment on a concealed truth into a recording")
-    add_synth_arguments(p)
-    p.set_defaults(func=main_synth)
+    for name, help_, module, add_arguments, entry in MODULE_COMMANDS:
+        mod = importlib.import_module(module)
+        p = sub.add_parser(name, help=help_)
+        getattr(mod, add_arguments)(p)
+        p.set_defaults(func=getattr(mod, entry))
 
     p = sub.add_parser("presets", help="list the stage presets, or show one")
     p.add_argument("name", nargs="?")
@@ -104,8 +101,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run one ``nanostage`` subcommand; a bad input file or recording prints its error (exit 2)."""
+    from experiment_runner.recording import RecordingError
+    from stage_sim.config import ConfigError
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except (ConfigError, RecordingError) as err:
+        print(f"nanostage {args.command}: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

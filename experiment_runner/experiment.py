@@ -53,7 +53,17 @@ class Circle(_Strict):
     cycles: Pos = 1.0
 
 
-Profile = Union[PointToPoint, StepSequence, Circle]
+class SineSweep(_Strict):
+    """Stepped sine (:func:`experiment_runner.profiles.sine_sweep`): one constant-amplitude
+    position sine per frequency, phase continuous."""
+    kind: Literal["sine_sweep"]
+    frequencies: list[Pos] = Field(min_length=1, description="excitation frequencies [Hz], in order")
+    amplitude: Pos = Field(description="position amplitude [m]")
+    periods: int = Field(10, ge=1, description="steady-state periods per frequency")
+    settle_periods: int = Field(5, ge=0, description="periods before the steady-state window")
+
+
+Profile = Union[PointToPoint, StepSequence, Circle, SineSweep]
 
 
 class Starts(_Strict):
@@ -105,20 +115,24 @@ def experiment_preset(exp: Experiment) -> Preset:
     return with_overrides(preset, exp.overrides) if exp.overrides else preset
 
 
-def _reference(profile, dt):
+def reference(profile: Profile, dt: float) -> profiles.Reference:
+    """The reference of an experiment profile at sample time ``dt`` [s] (starting at 0)."""
     if profile.kind == "point_to_point":
         return profiles.point_to_point(profile.distance, duration=profile.duration, dwell=profile.dwell,
                                        dt=dt, pre=profile.pre, shape=profile.shape)
     if profile.kind == "step_sequence":
         return profiles.step_sequence(profile.distance, profile.n_forward, profile.n_backward,
                                       dwell=profile.dwell, dt=dt, duration=profile.duration)
+    if profile.kind == "sine_sweep":
+        return profiles.sine_sweep(profile.frequencies, profile.amplitude, periods=profile.periods,
+                                   settle_periods=profile.settle_periods, dt=dt)
     return profiles.circle_x(profile.radius, profile.speed, cycles=profile.cycles, dt=dt)
 
 
 def build_trials(exp: Experiment, preset: Preset | None = None) -> list[Trial]:
     """The trials of an experiment (seed of trial i = ``simulation.seed + i``, as the batch engine)."""
     preset = preset or experiment_preset(exp)
-    ref = _reference(exp.profile, 1.0 / preset.controller.rate)
+    ref = reference(exp.profile, 1.0 / preset.controller.rate)
     travel = preset.stage.travel
     if exp.starts is None:
         x0 = np.zeros(exp.trials)

@@ -15,6 +15,18 @@ import numpy as np
 from scipy import signal
 
 
+def finite_or_none(v):
+    """``float(v)``, or None for None, NaN and ±inf (JSON has no NaN).
+
+    >>> finite_or_none(2), finite_or_none(float("nan")), finite_or_none(None)
+    (2.0, None, None)
+    """
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
 def _window_mask(t, t_from, t_to):
     """Boolean mask ``t_from <= t <= t_to`` broadcast over a batch axis."""
     t_from = np.asarray(t_from, dtype=float)[..., None]

@@ -4,13 +4,21 @@ Log time = stage time: the header stamp where the message has one, else the last
 stage time heard on ``/clock``. Messages heard before ``/experiment/config`` are held
 back so the configuration is written first. Chunks are closed every 0.1 s of stage
 time, so a recorder that is killed leaves a file readable up to its last chunk.
+
+A recorder stopped (SIGINT) while the run is still open (configuration heard, no
+``run_end``: the sequencer is gone) writes an ``abort`` and a ``run_end`` event itself,
+naming the sequencer, before it closes the file. An existing recording is never
+replaced unless ``overwrite`` is set: a recorder restarted mid-run writes the next free
+``<out>_<i>`` bag, and the part its predecessor wrote stays as it was.
 """
 from __future__ import annotations
+
+from pathlib import Path
 
 from msg_defs import convert
 from msg_defs.node_io import StageNode, run_node
 from msg_defs.topics import CLOCK, COMMAND, CONFIG, DITHER, MEASURED, REFERENCE, TOPICS, TRUTH, qos_profile
-from experiment_runner.recording import McapRecorder
+from experiment_runner.recording import McapRecorder, bag_layout
 
 RECORDED = tuple(name for name in TOPICS if name != CONFIG.name)
 RAW = (REFERENCE.name, COMMAND.name, MEASURED.name, TRUTH.name, DITHER.name, CLOCK.name)
@@ -19,11 +27,15 @@ objects: about half the recorder's cost per sample)."""
 
 
 class RecorderNode(StageNode):
-    def __init__(self, out: str | None = None, **kwargs):
+    def __init__(self, out: str | None = None, overwrite: bool = False, **kwargs):
         super().__init__("recorder", **kwargs)
         self.out = self.param("out", out or "run.mcap", "recording path (bag directory or .mcap)",
                               check=lambda v: None if v else "must not be empty")
+        self.overwrite = self.param("overwrite", overwrite, "replace an existing recording at `out` "
+                                    "(false: write the next free <out>_<i> instead)")
         self.rec = None
+        self.open_run = False               # config heard, no run_end yet
+        self.trial = None                   # trial of the last trial_start heard
         self.held = []
         self.now_ns = 0
         self.last_ns = {}                   # per-sample topic -> stamp written last
@@ -53,17 +65,35 @@ class RecorderNode(StageNode):
 
     def _config_in(self, msg):
         if self.rec is None:
-            self.rec = McapRecorder(self.out, msg.data, overwrite=True)
+            self.open_run = True
+            self.rec = McapRecorder(self._free_path(), msg.data, overwrite=self.overwrite)
             for name, stamp, m in self.held:
                 self.rec.write(name, stamp, m)
             self.held.clear()
+
+    def _free_path(self) -> Path:
+        """``out``, or (an existing recording, no ``overwrite``) the first free ``<out>_<i>``."""
+        bag, _ = bag_layout(self.out)
+        if self.overwrite or not bag.exists():
+            return bag
+        i = 2
+        while bag.with_name(f"{bag.name}_{i}").exists():
+            i += 1
+        free = bag.with_name(f"{bag.name}_{i}")
+        self.get_logger().warning(f"{bag} exists (a recorder before me?): recording to {free}")
+        return free
 
     def _write(self, name, msg):
         if hasattr(msg, "header") or name == "/clock":
             stamp = convert.stamp_ns(msg)
             self.now_ns = max(self.now_ns, stamp)
         elif name == "/experiment/events":
-            stamp = convert.parse_event(msg.data)["stamp_ns"]
+            ev = convert.parse_event(msg.data)
+            stamp = ev["stamp_ns"]
+            if ev["event"] == "run_end":
+                self.open_run = False
+            elif ev["event"] == "trial_start":
+                self.trial = ev["trial"]
         else:
             stamp = self.now_ns
         if self.rec is None:
@@ -72,8 +102,20 @@ class RecorderNode(StageNode):
             self.rec.write(name, stamp, msg)
 
     def close(self):
-        if self.rec is not None:
-            self.rec.close()
+        """Close the recording; a run still open is marked aborted in it first."""
+        if self.rec is None:
+            return
+        if self.open_run:
+            reason = ("recording stopped before run_end was heard: experiment_sequencer stopped or "
+                      "was killed (or this recorder started after the run ended)")
+            self.get_logger().error(reason)
+            for kind, extra in (("abort", {"trial": self.trial, "responsible": "experiment_sequencer"}),
+                                ("run_end", {})):
+                self.rec.write("/experiment/events", self.now_ns, convert.event_msg(
+                    None, kind, stamp_ns=self.now_ns, reason=reason if kind == "abort" else "aborted",
+                    node=self.get_name(), **extra))
+            self.open_run = False
+        self.rec.close()
 
 
 def main(args=None):

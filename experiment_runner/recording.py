@@ -19,16 +19,23 @@ Reading
     ours, a rig's or any tool that follows the contract, into numpy arrays
     (:class:`Recording`). It reads through the MCAP index; if the file was cut short (a
     killed recorder) it falls back to reading record by record up to the last complete
-    chunk and says what it salvaged in ``Recording.salvaged``. Anything else that keeps
-    the file from being a contract recording raises :class:`RecordingError` naming the
-    problem.
+    chunk and says what it salvaged in ``Recording.salvaged`` (messages, of how many
+    recorded when the bag's ``metadata.yaml`` tells, and the stage time span). A damaged
+    file -- a chunk failing its CRC (every chunk we write carries one), a corrupt length
+    or record in a file written to its end, a message on an undeclared channel -- is
+    refused: a :class:`RecordingError` names the problem and its byte offset, as for
+    anything else that keeps the file from being a contract recording (not MCAP, profile
+    not ``ros2``, contract topics missing or of the wrong type, messages that do not
+    decode). The reader never loops on its input: every step advances through the file.
 """
 from __future__ import annotations
 
 import io
 import shutil
 import struct
+import zlib
 from collections import Counter
+from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -46,6 +53,22 @@ __all__ = ["RecordingError", "McapRecorder", "Recording", "JointSeries", "Trial"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"
 _NS = 1_000_000_000
+_CHUNK_CRC_OFFSET = 9 + 8 + 8 + 8
+"""Byte offset of ``uncompressed_crc`` in a chunk record (opcode, length, start, end, size)."""
+_COMPRESSIONS = ("", "zstd", "lz4")
+_MAX_CHUNK = 1 << 32
+"""Largest uncompressed chunk a reader accepts [bytes] (the mcap library's record limit)."""
+_MAX_RATIO = 1024
+"""A compressed chunk may claim at most this many times its size uncompressed (or 64 MiB):
+a corrupt size field must not make the reader allocate gigabytes."""
+
+
+def _size_problem(compression: str, compressed: int, uncompressed: int) -> str | None:
+    """Why a chunk's claimed sizes cannot be right (None if they can)."""
+    limit = _MAX_CHUNK if not compression else min(_MAX_CHUNK, max(64 << 20, _MAX_RATIO * compressed))
+    if uncompressed > limit or (not compression and uncompressed != compressed):
+        return f"claiming {uncompressed} bytes uncompressed from {compressed} bytes ({compression or 'none'})"
+    return None
 
 
 class RecordingError(ValueError):
@@ -83,7 +106,15 @@ def _writer_classes():
                 self.close_chunk()
 
         def close_chunk(self):
+            # rosbags leaves the chunk CRC 0 ("not computed"): write the CRC-32 of the
+            # uncompressed records into the chunk record, so readers detect damage
+            crc = zlib.crc32(self.chunk.bio.getbuffer())
+            start = self.bio.tell()
             super().close_chunk()
+            end = self.bio.tell()
+            self.bio.seek(start + _CHUNK_CRC_OFFSET)
+            self.bio.write(struct.pack("<I", crc))
+            self.bio.seek(end)
             self.bio.flush()          # a killed process keeps every closed chunk
 
     class ChunkedWriter(Writer):
@@ -366,18 +397,27 @@ def mcap_file(path) -> Path:
             raise RecordingError(f"{p}: directory holds {len(files)} .mcap files "
                                  f"({', '.join(f.name for f in files)}); a recording is one MCAP file")
         return files[0]
-    if p.exists():
+    if p.is_file():
         return p
+    if p.exists():
+        raise RecordingError(f"{p}: not a regular file (a device, pipe or socket is never read)")
     bag, inner = bag_layout(p)
     if p.suffix == ".mcap" and inner.is_file():
         return inner
     raise RecordingError(f"{p}: no such file or directory")
 
 
+class _IndexMismatch(Exception):
+    """The index and the summary statistics of a file disagree."""
+
+
 class _Damage(Exception):
-    def __init__(self, offset: int, why: str):
+    """Where and why reading record by record stops; ``cut``: the file merely ends early
+    (truncated, salvageable), else its bytes are wrong (damaged)."""
+
+    def __init__(self, offset: int, why: str, cut: bool):
         super().__init__(why)
-        self.offset, self.why = offset, why
+        self.offset, self.why, self.cut = offset, why, cut
 
 
 def _opname(opcode: int) -> str:
@@ -388,20 +428,33 @@ def _opname(opcode: int) -> str:
         return f"opcode 0x{opcode:02x}"
 
 
+def _has_closing_magic(f, size: int) -> bool:
+    """True if the file ends with the MCAP magic (it was written to its end)."""
+    f.seek(max(0, size - len(MCAP_MAGIC)))
+    return size >= 2 * len(MCAP_MAGIC) and f.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+
+
 def _walk(f, size: int):
     """Yield ``(offset, opcode, body)`` for each whole record after the magic, up to the
-    footer; raise :class:`_Damage` where the file stops making sense."""
+    footer; raise :class:`_Damage` where the file stops making sense.
+
+    A file that ends with the closing magic was written to its end: a record running
+    past it is damage (a corrupt length), not a cut.
+    """
     from mcap.opcode import Opcode
+    cut = not _has_closing_magic(f, size)
+    end = size if cut else size - len(MCAP_MAGIC)
+    what = "the file ends" if cut else "the data ends (the file has its closing magic: a length field is wrong)"
     pos = len(MCAP_MAGIC)
     f.seek(pos)
     while True:
-        head = f.read(9)
+        head = f.read(9) if pos + 9 <= end else f.read(max(0, end - pos))
         if len(head) < 9:
-            raise _Damage(pos, "the file ends without a footer" if not head
-                          else "the file ends inside a record header")
+            raise _Damage(pos, f"{what} without a footer" if not head else f"{what} inside a record header", cut)
         opcode, length = struct.unpack("<BQ", head)
-        if length > size - pos - 9:
-            raise _Damage(pos, f"a {_opname(opcode)} record of {length} bytes runs past the end of the file")
+        if length > end - pos - 9:
+            raise _Damage(pos, f"a {_opname(opcode)} record of {length} bytes runs past the end of the "
+                          f"{'file' if cut else 'data (the file has its closing magic: the length is wrong)'}", cut)
         body = f.read(length)
         yield pos, opcode, body
         pos += 9 + length
@@ -412,7 +465,7 @@ def _walk(f, size: int):
 def _parse(opcode: int, body: bytes):
     from mcap.data_stream import ReadDataStream
     from mcap.opcode import Opcode
-    from mcap.records import Channel, Chunk, Header, Message, Schema
+    from mcap.records import Channel, Chunk, Header, Message, Schema, Statistics
     stream = ReadDataStream(io.BytesIO(body))
     if opcode == Opcode.CHUNK:
         return Chunk.read(stream)
@@ -424,6 +477,8 @@ def _parse(opcode: int, body: bytes):
         return Message.read(stream, len(body))
     if opcode == Opcode.HEADER:
         return Header.read(stream)
+    if opcode == Opcode.STATISTICS:
+        return Statistics.read(stream)
     return None
 
 
@@ -450,7 +505,8 @@ def _header(path: Path, f, size: int):
         raise RecordingError(f"{path}: MCAP file cut short before the end of its header record "
                              "(nothing was recorded)") from None
     except Exception as err:      # noqa: BLE001 - parse errors
-        raise RecordingError(f"{path}: MCAP file without a readable header record ({err})") from None
+        raise RecordingError(f"{path}: MCAP file without a readable header record "
+                             f"({type(err).__name__}: {err})") from None
     from mcap.records import Header
     if not isinstance(header, Header):
         raise RecordingError(f"{path}: MCAP file does not start with a header record "
@@ -458,21 +514,53 @@ def _header(path: Path, f, size: int):
     return header
 
 
+def _chunk_records(off: int, chunk) -> list:
+    """The records of a chunk, CRC checked; :class:`_Damage` (not a cut) if it is wrong."""
+    from mcap.stream_reader import CRCValidationError, breakup_chunk
+    when = (f"a chunk (stage time {chunk.message_start_time * 1e-9:.6f} s to "
+            f"{chunk.message_end_time * 1e-9:.6f} s)")
+    if chunk.compression not in _COMPRESSIONS:
+        raise _Damage(off, f"{when} with unknown compression {chunk.compression!r}", cut=False)
+    problem = _size_problem(chunk.compression, len(chunk.data), chunk.uncompressed_size)
+    if problem:
+        raise _Damage(off, f"{when} {problem}", cut=False)
+    try:
+        return breakup_chunk(chunk, validate_crc=True)
+    except CRCValidationError:
+        raise _Damage(off, f"{when} fails its CRC check", cut=False) from None
+    except Exception as err:      # noqa: BLE001 - a damaged chunk fails in many ways
+        raise _Damage(off, f"{when} does not decode ({type(err).__name__}: {err})", cut=False) from None
+
+
+def _recorded_count(path: Path) -> int | None:
+    """Messages the bag's ``metadata.yaml`` says the file holds (None if unknown)."""
+    import yaml
+    try:
+        info = yaml.safe_load((path.parent / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        for entry in info.get("files") or []:
+            if Path(entry["path"]).name == path.name:
+                return int(entry["message_count"])
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, ValueError, AttributeError):
+        return None
+    return None
+
+
 def _salvage(path: Path, f, size: int, indexed_error: Exception) -> _Raw:
-    """Read record by record up to the damage; keep whole chunks only."""
+    """Read record by record up to a cut; keep whole chunks only. A damaged record (bad
+    CRC, does not parse) raises :class:`RecordingError`: its data cannot be trusted."""
     from mcap.opcode import Opcode
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import breakup_chunk
+    from mcap.records import Channel, Message, Schema, Statistics
     schemas, channels, messages = {}, {}, []
     n_chunks = 0
+    counted = None                # message count of the summary statistics, if read
     damage = None
     try:
         for off, opcode, body in _walk(f, size):
             try:
                 rec = _parse(opcode, body)
-                inner = breakup_chunk(rec, validate_crc=True) if opcode == Opcode.CHUNK else [rec]
             except Exception as err:      # noqa: BLE001 - any parse failure is damage here
-                raise _Damage(off, f"a {_opname(opcode)} record does not parse ({err})") from None
+                raise _Damage(off, f"a {_opname(opcode)} record does not parse ({err})", cut=False) from None
+            inner = _chunk_records(off, rec) if opcode == Opcode.CHUNK else [rec]
             n_chunks += opcode == Opcode.CHUNK
             for r in inner:
                 if isinstance(r, Schema):
@@ -481,17 +569,31 @@ def _salvage(path: Path, f, size: int, indexed_error: Exception) -> _Raw:
                     channels[r.id] = r
                 elif isinstance(r, Message):
                     messages.append(r)
+                elif isinstance(r, Statistics):
+                    counted = r.message_count
     except _Damage as d:
         damage = d
     messages.sort(key=lambda m: m.log_time)
+    recorded = counted if counted is not None else _recorded_count(path)
+    span = f"{len(messages)} message{'' if len(messages) == 1 else 's'}" + (
+        f" of {recorded} recorded" if recorded is not None else "")
     if messages:
-        span = (f"{len(messages)} messages, stage time {messages[0].log_time * 1e-9:.6f} s to "
-                f"{messages[-1].log_time * 1e-9:.6f} s")
-    else:
-        span = "no messages"
-    if damage is not None:
+        span += (f", stage time {messages[0].log_time * 1e-9:.6f} s to "
+                 f"{messages[-1].log_time * 1e-9:.6f} s")
+    if damage is None and counted is not None and counted != len(messages):
+        raise RecordingError(f"{path}: damaged: it holds {len(messages)} whole messages in {n_chunks} chunk(s), "
+                             f"its summary counts {counted}; a damaged recording is not read")
+    if damage is not None and not damage.cut:
+        raise RecordingError(f"{path}: damaged: {damage.why} at byte {damage.offset} of {size}; the "
+                             f"{n_chunks} chunk(s) before it ({span}) are intact, but a damaged recording "
+                             f"is not read (re-record; or salvage them from a copy cut there: head -c {damage.offset} "
+                             f"{path.name} > cut.mcap)")
+    if damage is None and not _has_closing_magic(f, size):
+        note = f"file cut short after its footer; salvaged {span}: all of its data"
+    elif damage is not None:
         note = (f"file cut short: {damage.why} at byte {damage.offset} of {size}; salvaged {span} "
-                f"from {n_chunks} complete chunk(s); anything after the last complete chunk is lost")
+                f"from {n_chunks} complete chunk(s); anything after the last complete chunk is lost"
+                + ("" if recorded is not None else " (how much was recorded is unknown: the file has no summary)"))
     else:
         why = f"{type(indexed_error).__name__}: {indexed_error}" if str(indexed_error) else type(indexed_error).__name__
         note = (f"index unreadable ({why}); read the whole "
@@ -511,17 +613,25 @@ def _load(path) -> _Raw:
                                  f"(written by {header.library!r})")
         try:
             f.seek(0)
-            reader = SeekingReader(f)
+            reader = SeekingReader(f, validate_crcs=True)
+            summary = reader.get_summary()
+            for ci in summary.chunk_indexes if summary is not None else ():
+                problem = _size_problem(ci.compression, ci.compressed_size, ci.uncompressed_size)
+                if problem:
+                    raise _IndexMismatch(f"the index has a chunk {problem}")
             schemas, channels, messages = {}, {}, []
             for schema, channel, message in reader.iter_messages(log_time_order=True):
                 if schema is not None:
                     schemas[schema.id] = schema
                 channels[channel.id] = channel
                 messages.append(message)
-            summary = reader.get_summary()
             if summary is not None:
                 schemas.update(summary.schemas)
                 channels.update(summary.channels)
+                stats = summary.statistics
+                if stats is not None and stats.message_count != len(messages):
+                    raise _IndexMismatch(f"the summary counts {stats.message_count} messages, "
+                                         f"the index leads to {len(messages)}")
             raw = _Raw(path, header.profile, schemas, channels, messages, None)
         except Exception as err:          # noqa: BLE001 - truncated files fail in many ways
             f.seek(0)
@@ -586,12 +696,19 @@ def read_recording(path) -> Recording:
     from mcap_ros2.decoder import DecoderFactory
     raw = _load(path)
     where = f"{raw.path}" + (f" ({raw.salvaged})" if raw.salvaged else "")
+    for c in raw.channels.values():
+        if not c.topic or not c.topic.isprintable():
+            raise RecordingError(f"{where}: damaged: channel {c.id} has the topic name {c.topic!r}")
     topics = {c.topic: (raw.schemas[c.schema_id].name if c.schema_id in raw.schemas else "?")
               for c in raw.channels.values()}
     missing = [t for t in CONTRACT_TOPICS if t not in topics]
     if missing:
         raise RecordingError(f"{where}: missing contract topic(s) {', '.join(missing)}; "
                              f"topics present: {sorted(topics) or 'none'}")
+    for c in raw.channels.values():
+        if c.topic in TOPICS and c.schema_id not in raw.schemas:
+            raise RecordingError(f"{where}: {c.topic} (channel {c.id}) refers to schema {c.schema_id}, which "
+                                 "the file does not hold")
     for name, typ in topics.items():
         if name in TOPICS and typ != TOPICS[name].msg_type:
             raise RecordingError(f"{raw.path}: {name} has type {typ}, the contract says {TOPICS[name].msg_type}")
@@ -601,17 +718,24 @@ def read_recording(path) -> Recording:
     counts: Counter = Counter()
     decoders = {}
     for m in raw.messages:
-        ch = raw.channels[m.channel_id]
+        ch = raw.channels.get(m.channel_id)
+        if ch is None:
+            raise RecordingError(f"{where}: a message at {m.log_time} ns is on channel {m.channel_id}, which the "
+                                 "file does not declare")
         counts[ch.topic] += 1
         if ch.topic not in TOPICS:
             continue                       # a reader ignores topics it does not know
         dec = decoders.get(ch.id)
         if dec is None:
             schema = raw.schemas.get(ch.schema_id)
+            said = io.StringIO()
             try:
-                dec = factory.decoder_for(ch.message_encoding, schema)
+                with redirect_stdout(said), redirect_stderr(said):   # the ros2msg parser prints what it dislikes
+                    dec = factory.decoder_for(ch.message_encoding, schema)
             except Exception as err:      # noqa: BLE001
-                raise RecordingError(f"{raw.path}: {ch.topic}: schema does not parse ({err})") from None
+                printed = said.getvalue().strip().splitlines()
+                detail = printed[-1].strip() if printed else f"{type(err).__name__}: {err}"
+                raise RecordingError(f"{raw.path}: {ch.topic}: schema does not parse ({detail})") from None
             if dec is None:
                 raise RecordingError(
                     f"{raw.path}: {ch.topic}: cannot decode message encoding {ch.message_encoding!r} with "
@@ -626,6 +750,17 @@ def read_recording(path) -> Recording:
     empty = [t for t in CONTRACT_TOPICS if not by_topic[t]]
     if empty:
         raise RecordingError(f"{where}: contract topic(s) {', '.join(empty)} hold no messages")
+    try:
+        return _assemble(raw, where, topics, by_topic, counts)
+    except RecordingError:
+        raise
+    except (AttributeError, TypeError, ValueError, IndexError, KeyError) as err:
+        raise RecordingError(f"{where}: messages lack the fields of their contract type ({type(err).__name__}: "
+                             f"{err}); the schema was altered or the file is damaged") from None
+
+
+def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Counter) -> Recording:
+    """Decoded messages -> :class:`Recording` (control samples on all contract topics)."""
     warnings = []
     series = {t: _joint_series(t, by_topic[t]) for t in (*CONTRACT_TOPICS, TRUTH.name, DITHER.name, ISOLATOR.name)
               if by_topic[t]}

@@ -24,6 +24,9 @@ _INFO = {  # label, unit, scale
     "rms_in_position_m": ("RMS in-position error", "nm", 1e9),
     "peak_tracking_error_m": ("peak tracking error", "µm", 1e6),
     "rms_tracking_error_m": ("RMS tracking error", "µm", 1e6),
+    "bandwidth_hz": ("-3 dB closed-loop bandwidth", "Hz", 1.0),    # frequency_response (frf_campaign)
+    "gain_margin_db": ("gain margin", "dB", 1.0),
+    "phase_margin_deg": ("phase margin", "°", 1.0),
 }
 
 
@@ -51,6 +54,8 @@ def fmt_change(r) -> str:
 
 
 def _metrics(cr):
+    if cr.campaign.test.kind == "frequency_response":
+        return ("bandwidth_hz", "gain_margin_db", "phase_margin_deg")
     return ("settling_time_s", "rms_in_position_m") if cr.campaign.test.kind == "point_to_point" \
         else ("peak_tracking_error_m", "rms_tracking_error_m")
 
@@ -69,6 +74,9 @@ def _colors(n):
 # =========================================================================== plots
 def write_plots(cr) -> list:
     """Write the PNG plots of a campaign run into ``out_dir/plots``; returns their paths."""
+    if cr.campaign.test.kind == "frequency_response":      # Bode plots, bandwidth/margins vs amplitude
+        from experiment_runner.frf_campaign import write_frf_plots
+        return write_frf_plots(cr)
     plt = _plt()
     out = cr.out_dir / "plots"
     out.mkdir(exist_ok=True)
@@ -82,6 +90,10 @@ def write_plots(cr) -> list:
             files.append(_plot_spectrum(plt, cr, cond, cases, cols, out))
         else:
             files.append(_plot_tracking(plt, cr, cond, cases, cols, out))
+    if camp.test.kind == "circle":
+        files.append(_plot_reduction(plt, cr, cases, cols, out))
+    if camp.test.kind == "point_to_point" and len(camp.test.steps) > 2 and camp.sweep is None:
+        files.append(_plot_vs_step(plt, cr, cases, cols, out))
     for metric in _metrics(cr):
         files.append(_plot_distribution(plt, cr, metric, cases, cols, out))
     if cr.step_ii:
@@ -180,6 +192,86 @@ def _plot_tracking(plt, cr, cond, cases, cols, out):
     ax.legend(fontsize=8)
     fig.tight_layout()
     path = out / f"tracking_{cond.key}.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _plot_reduction(plt, cr, cases, cols, out):
+    """Reduction of the peak and RMS tracking errors vs the baseline over the speed, one row per
+    radius (Fig. 3.21/3.22, 4.13/4.14); with a sweep, the mean over its values and a ±1σ band
+    (Fig. 4.18/4.19)."""
+    camp = cr.campaign
+    others = [(c, col) for c, col in zip(cases, cols) if c.name != camp.baseline]
+    radii = sorted({c.radius for c in cr.conditions}, reverse=True)
+    if not others or not radii:
+        return None
+    fig, axs = plt.subplots(len(radii), 2, figsize=(11, 3.6 * len(radii)), squeeze=False)
+    from matplotlib.ticker import NullFormatter
+
+    from experiment_runner.campaign import fmt_length
+    for row, r in zip(axs, radii):
+        speeds = sorted({c.speed for c in cr.conditions if c.radius == r})
+        for ax, metric in zip(row, ("peak_tracking_error_m", "rms_tracking_error_m")):
+            for case, col in others:
+                mean, lo, hi = [], [], []
+                for v in speeds:
+                    red = []
+                    for cond in (c for c in cr.conditions if c.radius == r and c.speed == v):
+                        a = cr.runs[(case.name, cond.key)].stats[metric].mean
+                        b = cr.runs[(camp.baseline, cond.key)].stats[metric].mean
+                        if b and math.isfinite(a) and math.isfinite(b):
+                            red.append(100.0 * (1.0 - a / b))
+                    m = float(np.mean(red)) if red else math.nan
+                    sd = float(np.std(red)) if len(red) > 1 else 0.0
+                    mean.append(m)
+                    lo.append(m - sd)
+                    hi.append(m + sd)
+                x = np.array(speeds) * (1e3 if r >= 1e-4 else 1e6)
+                ax.plot(x, mean, "o-", color=col, label=case.label)
+                if camp.sweep is not None:
+                    ax.fill_between(x, lo, hi, color=col, alpha=0.15, lw=0)
+            ax.axhline(0.0, color="k", lw=0.8)
+            ax.set_xscale("log")
+            ax.set_xticks(x)
+            ax.set_xticklabels([f"{v:g}" for v in x])
+            ax.xaxis.set_minor_formatter(NullFormatter())
+            ax.set_xlabel(f"tangential speed [{'mm/s' if r >= 1e-4 else 'µm/s'}]")
+            ax.set_ylabel(f"{_INFO[metric][0]} reduction vs {camp.case(camp.baseline).label} [%]")
+            ax.set_title(f"R {fmt_length(r)}" + (f" (mean and ±1σ over {camp.sweep.label})" if camp.sweep else ""),
+                         fontsize=9)
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(fontsize=7)
+    fig.suptitle(camp.title, fontsize=10)
+    fig.tight_layout()
+    path = out / "reduction_vs_speed.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _plot_vs_step(plt, cr, cases, cols, out):
+    """Mean settling time and RMS in-position error vs step size with ±1σ bands (Fig. C.1, C.12)."""
+    fig, axs = plt.subplots(1, 2, figsize=(11, 4.2))
+    conds = sorted(cr.conditions, key=lambda c: abs(c.step))
+    x = np.array([abs(c.step) for c in conds])
+    for ax, metric in zip(axs, ("settling_time_s", "rms_in_position_m")):
+        label, unit, scale = _INFO[metric]
+        for case, col in zip(cases, cols):
+            st = [cr.runs[(case.name, c.key)].stats[metric] for c in conds]
+            m = np.array([s.mean for s in st]) * scale
+            sd = np.array([s.std for s in st]) * scale
+            unsettled = sum(s.n - s.n_valid for s in st)
+            ax.plot(x, m, "o-", color=col, label=case.label + (f" ({unsettled} unsettled trials)" if unsettled else ""))
+            ax.fill_between(x, m - sd, m + sd, color=col, alpha=0.15, lw=0)
+        ax.set_xscale("log")
+        ax.set_xlabel("step size [m]")
+        ax.set_ylabel(f"{label} [{unit}]")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    fig.suptitle(f"{cr.campaign.title}: mean and ±1σ over {cr.campaign.trials} trials", fontsize=10)
+    fig.tight_layout()
+    path = out / "vs_step.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -317,7 +409,7 @@ def comparison_table(cr) -> list[str]:
     """Markdown rows: condition x metric, per case seed | simulation (mean ± std)."""
     camp = cr.campaign
     cal_targets = set()
-    if cr.calibration:
+    if cr.calibration and not cr.calibration.get("source"):
         for p in cr.calibration["parameters"]:
             t = p["target"]
             cal_targets.add((t["metric"], tuple(sorted((k, t[k]) for k in ("step", "radius", "speed", "sweep")
@@ -341,7 +433,7 @@ def excess_notes(cr) -> list[str]:
     """Explain calibration targets fitted in the quadrature-excess form (the total cannot match)."""
     out = []
     cal = cr.calibration or {}
-    for p in cal.get("parameters", []):
+    for p in ([] if cal.get("source") else cal.get("parameters", [])):
         t = p.get("target", {})
         if t.get("form") != "quadrature_excess" or t.get("sim_after") is None or t.get("sim_effective") is None:
             continue
@@ -360,8 +452,11 @@ def findings_table(cr) -> list[str]:
     lines = ["| finding (seed) | condition | seed change | simulation change | z | agrees |", "|---|---|---|---|---|---|"]
     for f in cr.findings:
         sim = fmt_change(f["sim_change"])
+        if f.get("relative_to"):
+            sim += f" (Δ reduction vs {cr.campaign.case(f['relative_to']).label})"
         if f["sim_case"] is not None and f["sim_versus"] is not None:
-            sim += f" ({fmt_metric(f['sim_versus'], f['metric'])} → {fmt_metric(f['sim_case'], f['metric'])})"
+            sim += (f" ({'σ over the sweep ' if f.get('over') == 'sweep_spread' else ''}"
+                    f"{fmt_metric(f['sim_versus'], f['metric'])} → {fmt_metric(f['sim_case'], f['metric'])})")
         seedc = fmt_change(f["seed_change"]) if f["seed_change"] is not None else "–"
         if f["direction"] == "similar":
             seedc += f" (similar, ±{f['tolerance']:.0%})"
@@ -388,11 +483,23 @@ def calibration_lines(cr) -> list[str]:
     if cal is None:
         return ["No calibration: the presets' values were used for every case."]
     lines = []
-    if cal.get("reused"):
+    src = cal.get("source")
+    if src:
+        where = (f"loaded from `{src['loaded_from']}` (a calibration.json with the same fingerprint: campaign, "
+                 f"baseline preset, trials)" if src.get("loaded_from") else "fitted in this run")
+        lines += [f"`calibration: {{from: {src['campaign']}}}`: the values calibrated on the baseline "
+                  f"({src['baseline_label']}) of campaign `{src['campaign']}` ({src['title']}) on the same stage and "
+                  f"PID are applied to every case here, not refitted ({where}; cached as `calibration.json` in this "
+                  f"folder, reused by the next run). Every number of this campaign is a prediction.", ""]
+    elif cal.get("reused"):
         lines.append("Values reused from a previous calibration.json (not fitted in this run).")
         lines.append("")
-    base = camp.case(camp.baseline)
-    lines += [f"Fitted on the **baseline case only ({base.label})**, {cal['trials']} trials per evaluation "
+    if not cal.get("parameters"):
+        vals = ", ".join(f"`{k}` = {v:.4g}" for k, v in cal.get("values", {}).items())
+        return lines + [f"Values: {vals}."]
+    base_label = src["baseline_label"] if src else camp.case(camp.baseline).label
+    lines += [f"Fitted on the **baseline case only ({base_label})**"
+              + (f" of `{src['campaign']}`" if src else "") + f", {cal['trials']} trials per evaluation "
               f"(the first trials of the campaign: same start positions and noise seeds every evaluation); "
               f"{cal.get('method', '')}; {cal.get('evaluations', '?')} evaluations, {cal.get('rounds', '?')} round(s), "
               f"{'converged' if cal.get('converged') else 'NOT converged'}. Every other case runs with the same "
@@ -410,7 +517,7 @@ def calibration_lines(cr) -> list[str]:
             val = f"×{p['value']:.4g}"
         else:
             val = f"{p['value']:.4g}{unit}"
-        fitted = f"{base.label} {_cond_label(t)}, {_INFO[m][0]}"
+        fitted = f"{base_label} {_cond_label(t)}, {_INFO[m][0]}"
         seed = fmt_metric(t["seed"], m)
         note = []
         if t["form"] == "quadrature_excess":
@@ -441,6 +548,9 @@ def _short(v):
 
 def write_report(cr) -> Path:
     """``out_dir/report.md``."""
+    if cr.campaign.test.kind == "frequency_response":      # bandwidth/margins per amplitude table
+        from experiment_runner.frf_campaign import write_frf_report
+        return write_frf_report(cr)
     camp = cr.campaign
     L = [f"# {camp.title}", ""]
     if camp.description:
@@ -516,21 +626,12 @@ def write_report(cr) -> Path:
                      f"{'–' if d is None else f'{d * 1e9:.3g} nm'} | {g.get('wall_s', 0):.1f} s | "
                      f"{'yes' if ok else 'no: ' + str(g.get('aborted') or g.get('read_error'))} |")
         L.append("")
-    plots = cr.files.get("plots") or []
-    if plots:
-        L += ["## Plots", ""]
-        for p in plots:
-            rel = Path(p).relative_to(cr.out_dir)
-            L += [f"![{rel.stem}]({rel.as_posix()})", ""]
+    L += plots_md(cr)
     L += ["## Settings", "",
           f"* Test: `{camp.test.model_dump()}`",
           f"* Starts: trial i at `random_starts(1, travel, {camp.starts.margin}, {camp.starts.seed} + i)`, noise seed "
           f"`simulation.seed + i` (the same in every case).", "* Cases:"]
-    for case in camp.cases:
-        ov = cr.runs[(case.name, cr.conditions[0].key)].overrides
-        L.append(f"  * **{case.label}** (`{case.name}`): preset `{case.preset}`"
-                 + (f", overrides {', '.join(f'`{k}` = {_short(v)}' for k, v in ov.items())}" if ov else "")
-                 + (f". {case.description}" if case.description else ""))
+    L += cases_md(cr)
     L += ["", "Files: `results.csv`, `results.json` (per-trial metrics too), `calibration.json`, `plots/`, "
           "`recordings/` (MCAP, rosbag2 layout).", ""]
     path = cr.out_dir / "report.md"
@@ -572,3 +673,23 @@ def write_index(runs, out_dir, runtime_s: float) -> Path:
     path = out_dir / "report.md"
     path.write_text("\n".join(L))
     return path
+
+
+def plots_md(cr) -> list[str]:
+    """Markdown lines embedding the campaign's PNG plots (paths relative to the report)."""
+    L = []
+    for p in cr.files.get("plots") or []:
+        rel = Path(p).relative_to(cr.out_dir)
+        L += [f"![{rel.stem}]({rel.as_posix()})", ""]
+    return ["## Plots", ""] + L if L else []
+
+
+def cases_md(cr) -> list[str]:
+    """Markdown list items: every case with its preset, overrides and description."""
+    L = []
+    for case in cr.campaign.cases:
+        ov = cr.runs[(case.name, cr.conditions[0].key)].overrides
+        L.append(f"  * **{case.label}** (`{case.name}`): preset `{case.preset}`"
+                 + (f", overrides {', '.join(f'`{k}` = {_short(v)}' for k, v in ov.items())}" if ov else "")
+                 + (f". {case.description}" if case.description else ""))
+    return L

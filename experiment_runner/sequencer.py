@@ -4,8 +4,11 @@ It publishes the run configuration, then each trial's trajectory (the same
 :func:`experiment_runner.experiment.build_trials` the batch engine uses), cuts the
 run into trials with ``/experiment/events``, computes each trial's metrics from
 what it hears on the contract topics and publishes them on ``/experiment/results``.
-If samples stop coming (a node died or hangs) or a node reports a fault, the trial
-is marked aborted with the reason and the node responsible, and the run ends.
+If samples stop coming (a node died or hangs), the plant goes back to an earlier
+sample (it restarted), the nodes are not all there within ``start_timeout``, another
+sequencer is on the domain, or a node reports a ``fault``, the trial is marked aborted
+with the reason and the node responsible (``abort`` event), the run ends (``run_end``)
+and the executable exits 1.
 """
 from __future__ import annotations
 
@@ -29,6 +32,10 @@ def _check_experiment(name):
     return None
 
 
+WAITED_NODES = ("plant_sim", "servo_controller", "dither_generator", "sai_manager", "recorder")
+"""The subscribers of ``/experiment/trajectory`` the sequencer waits for (``wait_for_nodes``)."""
+
+
 class SequencerNode(StageNode):
     """Publishes trials one after the other and judges each one."""
 
@@ -46,6 +53,9 @@ class SequencerNode(StageNode):
                                       "there, so they discover each other too (what a publisher "
                                       "sends before its subscriber matched is lost) [s]", 0.0, 60.0,
                                       attr="start_delay")
+        self.start_timeout = self.param("start_timeout", 60.0, "wall-clock time to wait for the nodes "
+                                        "before the run is aborted naming the missing ones [s]",
+                                        0.1, 3600.0, attr="start_timeout")
         self.ready_since = None
         self.exp = load_experiment(name)
         self.preset = experiment_preset(self.exp)
@@ -63,7 +73,8 @@ class SequencerNode(StageNode):
         self.aborted = None
         self.current = -1
         self.start = 0
-        self.last_progress = time.monotonic()
+        self.k_meas = self.k_ref = -1
+        self.last_progress = self.t_created = time.monotonic()
         self.create_timer(0.05, self._tick)
 
     def config_yaml(self) -> str:
@@ -75,21 +86,39 @@ class SequencerNode(StageNode):
         if self.done:
             return
         if self.current < 0:
-            if self.pub_traj.get_subscription_count() < self.wait_nodes:
-                self.ready_since = None
-                return
-            if self.ready_since is None:
-                self.ready_since = time.monotonic()
-            if time.monotonic() - self.ready_since >= self.start_delay:
-                self.pub_config.publish(convert.string_msg(None, self.config_yaml()))
-                self.event("run_start", stamp_ns=0, case=self.exp.name, window_m=self.exp.window)
-                self._next_trial()
+            self._wait_for_nodes()
             return
         if time.monotonic() - self.last_progress > self.timeout:
-            stale = "measured" if self.k_meas < self.k_ref else "reference"
+            # lockstep order per sample: measured k (plant), then reference k (servo)
+            stale = "measured" if self.k_meas <= self.k_ref else "reference"
             node = NODE_OF_INPUT["/stage/measured" if stale == "measured" else "/stage/reference"]
-            self._abort(f"no {stale} sample after sample {min(self.k_meas, self.k_ref)} within "
+            self._abort(f"no {stale} sample after sample {max(self.k_meas, self.k_ref)} within "
                         f"{self.timeout} s", node)
+
+    def _wait_for_nodes(self):
+        """Start once ``wait_nodes`` subscribers are matched (and ``start_delay`` passed);
+        abort if another sequencer publishes trajectories on this domain, or if the nodes
+        are not all there within ``start_timeout``."""
+        now = time.monotonic()
+        if self.count_publishers("/experiment/trajectory") > 1:
+            self._abort("another experiment_sequencer publishes /experiment/trajectory on ROS domain "
+                        f"{self.context.get_domain_id()}: its latched trajectories would mix into this run",
+                        "experiment_sequencer")
+            return
+        if self.pub_traj.get_subscription_count() < self.wait_nodes:
+            self.ready_since = None
+            if now - self.t_created > self.start_timeout:
+                present = set(self.get_node_names())
+                missing = [n for n in WAITED_NODES if n not in present]
+                self._abort(f"only {self.pub_traj.get_subscription_count()} of {self.wait_nodes} nodes "
+                            f"after {self.start_timeout} s; missing: {', '.join(missing) or '?'}", missing)
+            return
+        if self.ready_since is None:
+            self.ready_since = now
+        if now - self.ready_since >= self.start_delay:
+            self.pub_config.publish(convert.string_msg(None, self.config_yaml()))
+            self.event("run_start", stamp_ns=0, case=self.exp.name, window_m=self.exp.window)
+            self._next_trial()
 
     def _next_trial(self):
         self.current += 1
@@ -124,6 +153,10 @@ class SequencerNode(StageNode):
         if not 0 <= k < n:
             return
         if name == "measured":
+            if k < self.k_meas:             # not a resend (that is k_meas): a plant started afresh
+                self._abort(f"plant_sim published sample {k} of trial {self.trials[self.current].index} "
+                            f"after sample {self.k_meas}: it restarted mid-run", "plant_sim")
+                return
             self.y[k] = value
             self.k_meas = max(self.k_meas, k)
         else:
@@ -147,7 +180,7 @@ class SequencerNode(StageNode):
     def _event_in(self, msg):
         ev = convert.parse_event(msg.data)
         if ev["event"] == "fault" and not self.done:
-            self._abort(ev.get("reason") or "fault", ev.get("silent") or ev.get("node"))
+            self._abort(ev.get("reason") or "fault", ev.get("responsible") or ev.get("silent") or ev.get("node"))
 
     def _abort(self, reason, node):
         nodes = node if isinstance(node, str) else ", ".join(node or [])
@@ -170,4 +203,6 @@ def main(args=None):
 
     run_node(SequencerNode, args, until=lambda n: n.done, on_exit=on_exit)
     if aborted and aborted[0]:
+        a = aborted[0]
+        print(f"run aborted (trial {a['trial']}): {a['reason']} (node: {a['node']})", file=sys.stderr)
         sys.exit(1)                         # an aborted run is a failed run (as in one process)

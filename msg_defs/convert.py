@@ -285,6 +285,10 @@ def from_json(text: str):
 
 
 _EVENT_KEYS = ("event", "trial", "case", "step_index", "stamp_ns", "window_m", "reason", "node")
+_EVENT_TYPES = (("stamp_ns", int, "an integer [ns]"), ("trial", int, "an integer"), ("step_index", int, "an integer"),
+                ("settle_start_ns", int, "an integer [ns]"), ("window_m", (int, float), "a number [m]"),
+                ("target_m", (int, float), "a number [m]"), ("case", str, "a string"), ("reason", str, "a string"),
+                ("node", str, "a string"))
 
 
 def event(kind: str, *, stamp_ns: int, trial: int | None = None, case: str | None = None,
@@ -331,4 +335,8 @@ def parse_event(text: str) -> dict:
                          f"and stamp_ns, got {text[:120]!r}")
     for key in _EVENT_KEYS:
         rec.setdefault(key, None)
+    for key, kinds, what in _EVENT_TYPES:
+        val = rec.get(key)
+        if val is not None and (isinstance(val, bool) or not isinstance(val, kinds)):
+            raise ValueError(f"/experiment/events: {key} {val!r} is not {what}")
     return rec

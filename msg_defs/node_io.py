@@ -3,15 +3,21 @@ contract, validated parameters, the run configuration, and lockstep sample bookk
 
 Nodes are thin adapters: they convert messages to the arrays the compiled core
 steps take (``msg_defs.convert``) and back; no algorithm lives here.
+
+Faults: :meth:`StageNode.fault_event` is how a node reports one (``cause``, ``reason``,
+``responsible``); the test-only ``fault.*`` parameters of every node drop, delay or
+NaN-fill the messages it publishes on one topic (:class:`FaultyPublisher`; off by default).
 """
 from __future__ import annotations
 
 import array
+import math
 import os
 
 import numpy as np
 import yaml
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 
 from msg_defs import convert
@@ -30,6 +36,10 @@ NODE_OF_INPUT = {"/stage/command": "servo_controller", "/stage/dither": "dither_
 """Which node publishes each lockstep input (to name a silent node)."""
 
 
+FAULT_MODES = ("drop", "delay", "nan")
+"""What the test-only ``fault.*`` parameters can do to the messages of one topic."""
+
+
 def domain_env(domain_id: int | None = None) -> dict:
     """Environment for an isolated graph: explicit domain, localhost-only discovery."""
     env = dict(os.environ)
@@ -39,6 +49,29 @@ def domain_env(domain_id: int | None = None) -> dict:
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env.pop("ROS_LOCALHOST_ONLY", None)
     return env
+
+
+GRAPH_DEFAULTS = {"ROS_DOMAIN_ID": "42", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+"""What a node started by hand gets unless its environment says otherwise: an explicit
+domain and localhost-only discovery (``docs/security.md`` tells how to open the graph)."""
+
+
+def apply_graph_defaults(environ=os.environ) -> dict:
+    """Set :data:`GRAPH_DEFAULTS` in ``environ`` where it names neither (``ROS_LOCALHOST_ONLY``
+    counts as a discovery choice); return what was set."""
+    chosen = {}
+    if "ROS_DOMAIN_ID" not in environ:
+        chosen["ROS_DOMAIN_ID"] = GRAPH_DEFAULTS["ROS_DOMAIN_ID"]
+    if "ROS_AUTOMATIC_DISCOVERY_RANGE" not in environ and "ROS_LOCALHOST_ONLY" not in environ:
+        chosen["ROS_AUTOMATIC_DISCOVERY_RANGE"] = GRAPH_DEFAULTS["ROS_AUTOMATIC_DISCOVERY_RANGE"]
+    environ.update(chosen)
+    return chosen
+
+
+def _params_source(argv) -> str:
+    """Where a node's parameters come from, for error messages."""
+    files = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
+    return f"params file {', '.join(files)}" if files else "command line / defaults"
 
 
 def executor_kind(kind: str | None = None) -> str:
@@ -77,18 +110,24 @@ def run_node(factory, args=None, until=None, on_exit=None):
     import sys
 
     import rclpy
-    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
     from rclpy.executors import ExternalShutdownException
+    chosen = apply_graph_defaults()
     rclpy.init(args=args)
     node = None
     try:
         try:
             node = factory()
+            _refuse_unknown_parameters(node)
         except (ValueError, InvalidParameterValueException,
                 InvalidParameterTypeException) as err:                 # bad parameter: say which
             print(f"error: {err}", file=sys.stderr)
+            if node is not None:
+                node.destroy_node()
+                node = None
             rclpy.shutdown()
             sys.exit(2)
+        if chosen:
+            node.get_logger().info(f"graph defaults {chosen} (set them to open the graph: docs/security.md)")
         ex = make_executor()
         ex.add_node(node)
         while rclpy.ok() and not (until and until(node)):
@@ -104,6 +143,19 @@ def run_node(factory, args=None, until=None, on_exit=None):
             rclpy.shutdown()
 
 
+def _refuse_unknown_parameters(node) -> None:
+    """``ValueError`` if a params file or ``-p`` sets a parameter the node does not have (a typo
+    would otherwise be ignored silently)."""
+    import sys
+    unknown = sorted(n for n in node._parameter_overrides
+                     if not node.has_parameter(n) and not n.startswith("qos_overrides."))
+    if unknown:
+        known = ", ".join(sorted(node._parameters))
+        lines = [f"  {n}: unknown parameter (got {node._parameter_overrides[n].value!r}); allowed: {known}"
+                 for n in unknown]
+        raise ValueError(f"{node.get_name()} ({_params_source(sys.argv)}): invalid parameters\n" + "\n".join(lines))
+
+
 class StageNode(Node):
     """Base class: contract publishers/subscriptions, validated parameters, run config."""
 
@@ -113,11 +165,39 @@ class StageNode(Node):
         self.add_on_set_parameters_callback(self._validate)
         self.config = None            # the run's configuration (dict) once received
         self.on_config = None
+        self.fault = self._fault_params()
+        self._events = self.publisher("/experiment/events")    # made early: matched before a fault
+
+    # ----------------------------------------------------------------- fault injection (tests)
+    def _fault_params(self) -> dict | None:
+        """The test-only fault injection of this node (``None``: off, the default).
+
+        ``fault.topic`` names one topic this node publishes; its first ``fault.after``
+        messages go out as usual, the ``fault.count`` messages after them (-1: all) are
+        dropped (``fault.mode`` "drop"), published ``fault.delay_ms`` later ("delay") or
+        published with every float field NaN ("nan"). Read once at start; the normal
+        path is untouched when ``fault.topic`` is empty (a plain publisher is returned).
+        """
+        topic = self.param("fault.topic", "", "TEST ONLY: topic whose messages this node corrupts "
+                           "(empty = off)")
+        mode = self.param("fault.mode", "drop", "TEST ONLY: drop | delay | nan",
+                          check=lambda v: None if v in FAULT_MODES else f"expected one of {FAULT_MODES}")
+        after = self.param("fault.after", 0, "TEST ONLY: messages published normally first", 0, 2**31 - 1)
+        count = self.param("fault.count", -1, "TEST ONLY: messages affected then (-1 = all)", -1, 2**31 - 1)
+        delay = self.param("fault.delay_ms", 0.0, "TEST ONLY: delay of mode 'delay' [ms]", 0.0, 3.6e6)
+        if not topic:
+            return None
+        self.get_logger().warning(f"TEST FAULT INJECTION on {topic}: {mode} {'all' if count < 0 else count} "
+                                  f"messages after the first {after}" + (f", {delay} ms" if mode == "delay" else ""))
+        return {"topic": topic, "mode": mode, "after": after, "count": count, "delay_s": delay * 1e-3}
 
     # ----------------------------------------------------------------- topics
     def publisher(self, topic):
         t = topic if isinstance(topic, Topic) else get_topic(topic)
-        return self.create_publisher(convert.message_class(None, t.msg_type), t.name, qos_profile(t.qos))
+        pub = self.create_publisher(convert.message_class(None, t.msg_type), t.name, qos_profile(t.qos))
+        if self.fault is not None and self.fault["topic"] == t.name:
+            return FaultyPublisher(self, pub, **{k: v for k, v in self.fault.items() if k != "topic"})
+        return pub
 
     def subscribe(self, topic, callback):
         t = topic if isinstance(topic, Topic) else get_topic(topic)
@@ -152,19 +232,37 @@ class StageNode(Node):
                 self._live = {}
                 self.add_post_set_parameters_callback(self._follow)
             self._live[name] = attr
-        value = self.declare_parameter(name, default, desc).value
+        try:
+            value = self.declare_parameter(name, default, desc).value
+        except (InvalidParameterValueException, InvalidParameterTypeException):
+            given = self._parameter_overrides.get(name)
+            kind = {bool: "true/false", int: "an integer", float: "a number", str: "a string"}.get(
+                type(default), type(default).__name__)
+            allowed = f"{kind} from {lo} to {hi}" if lo is not None else kind
+            value = given.value if given else default
+            problem = check(value) if check and isinstance(value, type(default)) else None
+            message = self._param_error(name, value, problem or f"expected {allowed} -- {description}")
+            raise ValueError(message) from None
         if check:
             problem = check(value)
             if problem:
-                raise ValueError(f"{self.get_name()}: parameter {name}={value!r}: {problem}")
+                raise ValueError(self._param_error(name, value, problem))
         return value
+
+    def _param_error(self, name, value, problem: str) -> str:
+        """The one input-error format (:func:`stage_sim.validation.field_line`): source, then the line."""
+        import sys
+
+        from stage_sim.validation import field_line
+        return (f"{self.get_name()} ({_params_source(sys.argv)}): invalid parameters\n"
+                + field_line(name, value, problem))
 
     def _validate(self, params):
         for p in params:
             check = self._validators.get(p.name)
             problem = check(p.value) if check else None
             if problem:
-                return SetParametersResult(successful=False, reason=f"{p.name}={p.value!r}: {problem}")
+                return SetParametersResult(successful=False, reason=f"{p.name}: got {p.value!r}; {problem}")
         return SetParametersResult(successful=True)
 
     def _follow(self, params):
@@ -174,9 +272,80 @@ class StageNode(Node):
 
     def event(self, kind, **fields):
         """Publish an ``/experiment/events`` record from this node."""
-        if not hasattr(self, "_events"):
-            self._events = self.publisher("/experiment/events")
         self._events.publish(convert.event_msg(None, kind, node=self.get_name(), **fields))
+
+    def fault_event(self, cause: str, reason: str, responsible, **fields):
+        """Publish a ``fault`` event: ``cause`` (one of :data:`FAULT_CAUSES`), a readable
+        ``reason`` and the node(s) ``responsible`` (the sequencer aborts the run naming them)."""
+        if cause not in FAULT_CAUSES:
+            raise ValueError(f"fault cause {cause!r}: expected one of {FAULT_CAUSES}")
+        nodes = [responsible] if isinstance(responsible, str) else sorted(responsible)
+        self.get_logger().error(f"{cause}: {reason}")
+        self.event("fault", reason=f"{cause}: {reason}", cause=cause, responsible=nodes, **fields)
+
+
+FAULT_CAUSES = ("watchdog", "non_finite_input", "diverged", "out_of_travel", "reference_out_of_travel",
+                "joined_mid_trial", "restarted")
+"""``cause`` of a ``fault`` event: no input within the timeout (the plant holds zero force),
+a NaN/inf input, a non-finite or runaway state, the table outside its travel, a reference
+outside the travel (refused), a node that joined a trial after its first sample, a node
+that restarted mid-run."""
+
+
+def finite(*values) -> bool:
+    """Whether every value (floats or arrays) is finite."""
+    for v in values:
+        if isinstance(v, float):
+            if not math.isfinite(v):
+                return False
+        elif not np.isfinite(v).all():
+            return False
+    return True
+
+
+class FaultyPublisher:
+    """TEST ONLY: a publisher that drops, delays or NaN-fills some of its messages (see
+    :meth:`StageNode._fault_params`); everything else is passed to the wrapped publisher."""
+
+    def __init__(self, node, pub, mode: str, after: int, count: int, delay_s: float):
+        self._node, self._pub = node, pub
+        self.mode, self.after, self.count, self.delay_s = mode, after, count, delay_s
+        self.seen = 0
+        self._fired = []                    # one-shot timers of delayed messages, to destroy
+
+    def __getattr__(self, name):
+        return getattr(self._pub, name)
+
+    def publish(self, msg):
+        while self._fired:                  # (not from inside their own callbacks)
+            self._node.destroy_timer(self._fired.pop())
+        n, self.seen = self.seen, self.seen + 1
+        if n < self.after or (self.count >= 0 and n >= self.after + self.count):
+            self._pub.publish(msg)
+        elif self.mode == "nan":
+            self._pub.publish(_nan_copy(msg))
+        elif self.mode == "delay":
+            from rclpy.serialization import serialize_message
+            data = serialize_message(msg)       # the message object may be refilled before it goes
+            timer = None
+
+            def later():
+                timer.cancel()
+                self._fired.append(timer)
+                self._pub.publish(data)
+            timer = self._node.create_timer(self.delay_s, later)
+        # mode "drop": nothing goes out
+
+
+def _nan_copy(msg):
+    """A copy of ``msg`` with every float array field (position, velocity, effort, data) NaN."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    out = deserialize_message(serialize_message(msg), type(msg))
+    for name in ("position", "velocity", "effort", "data"):
+        val = getattr(out, name, None)
+        if val is not None and len(val):
+            setattr(out, name, array.array("d", [math.nan] * len(val)))
+    return out
 
 
 class Lockstep:

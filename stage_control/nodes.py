@@ -5,15 +5,23 @@ Thin adapters around the compiled step functions of :mod:`stage_control.servo`,
 arrays in the same order as the batch engine, so the graph reproduces the batch
 engine's trajectories. Each trial starts from ``/experiment/trajectory`` (state
 reset); each sample is computed once its inputs (measurement, SAI command) are in.
+
+Safety: a node stops computing a trial and publishes a ``fault`` event (see
+:meth:`msg_defs.node_io.StageNode.fault_event`) when an input is NaN or infinite (naming
+the node that sent it), when its own state or output stops being finite (naming itself),
+when it would join a trial after the trial's first sample (its state would start from
+rest in mid-motion: a node restarted mid-run), and -- the servo -- when a reference lies
+outside the stage's travel (refused before the trial starts). The servo's command is
+saturated at the drive's peak force (:func:`stage_control.servo.build_servo`).
 """
 from __future__ import annotations
 
 import numpy as np
 from msg_defs import convert
-from msg_defs.node_io import SAI_COMMAND, JointStateOut, Lockstep, StageNode, run_node
+from msg_defs.node_io import NODE_OF_INPUT, SAI_COMMAND, JointStateOut, Lockstep, StageNode, finite, run_node
 from stage_control.dither import build_dither, dither_step, init_dither_state
 from stage_control.sai import build_sai, ilc_update, init_sai_state, sai_step
-from stage_control.servo import build_servo, init_servo_state, servo_step
+from stage_control.servo import build_servo, check_reference, init_servo_state, servo_step
 from stage_sim.config import SaiManager, load_preset, preset_from_dict
 from stage_sim.node import check_preset
 
@@ -26,6 +34,8 @@ class _TrialNode(StageNode):
     def __init__(self, name, **kwargs):
         super().__init__(name, **kwargs)
         self._inputs, self._input_specs = [], []     # per-sample subscriptions
+        self._sender = {"sai": "sai_manager"}        # input name -> node that publishes it
+        self.stopped = False                         # this trial stopped on a fault
         self.preset_name = self.param("preset", "", "preset name or YAML path; empty = the preset of "
                                       "/experiment/config", check=check_preset)
         self.preset = None
@@ -45,6 +55,7 @@ class _TrialNode(StageNode):
 
     def subscribe_input(self, topic, name, field):
         """Per-sample input ``name`` = ``msg.<field>[0]`` (not subscribed while this node is unused)."""
+        self._sender[name] = NODE_OF_INPUT.get(getattr(topic, "name", topic), "?")
         self._input_specs.append((topic, name, field))
         if self.preset is None or self.active(self.preset):
             self._inputs.append(self.subscribe(topic, lambda m: self._input(m, name, getattr(m, field)[0])))
@@ -82,6 +93,11 @@ class _TrialNode(StageNode):
         self.lock.clear()
         self.one = lambda v: np.array([v], float)
         self.last_k = -1                    # last sample computed
+        self.stopped = False
+        problem = self.refuse(self.tr)
+        if problem:
+            self._stop(*problem, 0)
+            return
         self.reset()
         early, self._early = self._early, []
         for item in early:
@@ -97,14 +113,42 @@ class _TrialNode(StageNode):
         k = stamp // self.dt_ns - self.tr.start
         if k >= len(self.tr.x_ref):         # belongs to a trial not started here yet
             self._early.append((stamp, name, value))
+        elif self.stopped:
+            return
         elif k <= self.last_k:              # computed already: the plant sent this sample again
             if k == self.last_k >= 0 and name == "measured":
                 self.resend(k)              # (our answer may have been lost): answer again
         elif k >= 0:
+            if not finite(value):
+                self._stop("non_finite_input", f"{name} {value} for sample {k} from {self._sender[name]}",
+                           self._sender[name], k)
+                return
             got = self.lock.put(k, name, value)
             if got is not None:
+                if self.last_k < 0 and k > 0:
+                    self._stop("joined_mid_trial", f"{self.get_name()} got its first inputs of trial "
+                               f"{self.tr.trial} at sample {k}, not 0 (restarted mid-run?): its state "
+                               "would start from rest in mid-motion", self.get_name(), k)
+                    return
                 self.last_k = k
                 self.sample(k, got)
+                if not self.healthy():
+                    self._stop("diverged", f"{self.get_name()} state or output not finite at sample {k}",
+                               self.get_name(), k)
+
+    def _stop(self, cause, reason, responsible, k):
+        """Stop computing this trial (until the next trajectory) and publish a ``fault`` event."""
+        self.stopped = True
+        self.lock.clear()
+        self.fault_event(cause, reason, responsible, stamp_ns=self.stamp(k), trial=self.tr.trial)
+
+    def refuse(self, tr) -> tuple[str, str, str] | None:
+        """``(cause, reason, responsible)`` if this node refuses trial ``tr``, else None."""
+        return None
+
+    def healthy(self) -> bool:
+        """Whether the state and the last output are finite (checked after every sample)."""
+        return True
 
     def resend(self, k):
         """Publish again what was published for sample ``k`` (nothing is recomputed)."""
@@ -130,6 +174,14 @@ class ServoNode(_TrialNode):
     def reset(self):
         self.state = init_servo_state(self.model, 1)
         self.u = np.zeros(1)
+
+    def refuse(self, tr):
+        problem = check_reference(tr.x_ref, self.preset.stage.travel)
+        return problem and ("reference_out_of_travel", f"trial {tr.trial} refused: {problem}",
+                            "experiment_sequencer")
+
+    def healthy(self):
+        return finite(self.u, self.state)
 
     def sample(self, k, got):
         xr = self.one(self.tr.x_ref[k] + got.get("sai", 0.0))
@@ -164,6 +216,9 @@ class DitherNode(_TrialNode):
         if self.model is not None:
             self.state = init_dither_state(self.model, 1)
             self.out = np.zeros((2, 1))
+
+    def healthy(self):
+        return self.model is None or finite(self.out, self.state)
 
     def sample(self, k, got):
         if self.model is None:
@@ -206,6 +261,9 @@ class SaiNode(_TrialNode):
         self.sent = {}
         if self.manager is not None:
             self._publish(0)
+
+    def healthy(self):
+        return finite(self.mode, self.xc)
 
     def _publish(self, k):
         v = self.tr.v_ref

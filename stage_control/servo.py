@@ -48,7 +48,7 @@ from stage_control.filters import dc_state, discretize, realize, ss_coefficients
 from stage_sim.config import Controller, DahlFriction, GmsFriction, Stage
 from stage_sim.friction import dahl_update
 
-__all__ = ["ServoModel", "build_servo", "init_servo_state", "servo_step"]
+__all__ = ["ServoModel", "build_servo", "check_reference", "init_servo_state", "servo_step"]
 
 SERVO_STARTED, SERVO_INT, SERVO_DER = 0, 1, 2
 SERVO_DOB_X, SERVO_DOB_U = 3, 5          # two slots each
@@ -125,7 +125,9 @@ def build_servo(controller: Controller, stage: Stage) -> ServoModel:
     controller : Controller
         PID gains, optional DOB, feedforward and NIASA, control ``rate`` [Hz].
     stage : Stage
-        Used for ``drive.peak_force`` [N] when ``pid.output_limit`` is not set.
+        Its ``drive.peak_force`` [N] bounds the command saturation: the limit is
+        ``min(pid.output_limit, drive.peak_force)`` (the peak force alone when
+        ``output_limit`` is not set), so the servo never asks for more than the drive gives.
 
     Returns
     -------
@@ -165,7 +167,8 @@ def build_servo(controller: Controller, stage: Stage) -> ServoModel:
 
     ni = controller.niasa
     qg_x = dc_state(qg[0], qg[1])
-    limit = pid.output_limit if pid.output_limit is not None else stage.drive.peak_force
+    peak = stage.drive.peak_force
+    limit = peak if pid.output_limit is None else min(pid.output_limit, peak)
     return ServoModel(
         dt=dt, kp=float(pid.kp), ki=float(pid.ki), limit=float(limit),
         **ss_coefficients("d", d_A, d_B, d_C, d_D), d_x0=float(dc_state(d_A, d_B)[0]),
@@ -178,6 +181,32 @@ def build_servo(controller: Controller, stage: Stage) -> ServoModel:
         ni_tau=float(ni.tau_d) if ni else 1.0, ni_ksigma=float(ni.k_sigma) if ni else 0.0,
         ni_fc=float(ni.f_c) if ni else 1.0,
         n_state=SERVO_FF + n_ff)
+
+
+def check_reference(x_ref, travel) -> str | None:
+    """Why a reference is refused (a position outside the stage's travel), or None.
+
+    Parameters
+    ----------
+    x_ref : array_like
+        Reference positions [m] (rad on a rotary stage).
+    travel : stage_sim.config.Travel
+        The stage's travel ``min``/``max`` [m].
+
+    Examples
+    --------
+    >>> from stage_sim.config import Travel
+    >>> check_reference([0.0, 0.01], Travel(min=-0.02, max=0.02)) is None
+    True
+    >>> check_reference([0.0, 0.03], Travel(min=-0.02, max=0.02))
+    'reference x_ref[1] = 0.03 m is outside the travel [-0.02, 0.02] m'
+    """
+    x = np.asarray(x_ref, float)
+    bad = np.flatnonzero(~((x >= travel.min) & (x <= travel.max)))     # NaN is outside too
+    if bad.size == 0:
+        return None
+    i = int(bad[0])
+    return f"reference x_ref[{i}] = {x[i]:.6g} m is outside the travel [{travel.min:g}, {travel.max:g}] m"
 
 
 def init_servo_state(model: ServoModel, n_trials: int) -> np.ndarray:

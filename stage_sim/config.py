@@ -3,9 +3,12 @@
 A *preset* is one YAML file (see ``stage_sim/presets/``) holding a :class:`Preset`:
 the stage (:class:`Stage`), the servo controller (:class:`Controller`), and optionally
 the dither generator (:class:`Dither`) and SAI switch manager (:class:`SaiManager`).
-All values are SI (m, kg, s, N, rad, N·m, A). Unknown keys, missing fields, NaN and
-out-of-range values are refused with a :class:`ConfigError` that names the file,
-the field, the bad value and what is allowed.
+All values are SI (m, kg, s, N, rad, N·m, A). Unknown keys, missing fields, NaN,
+true/false for a number and out-of-range values are refused with a :class:`ConfigError`
+that names the file, the field, the bad value and what is allowed. Dimensional fields
+carry their unit and a plausible range (``json_schema_extra=unit(...)``): a preset file
+value outside it -- most likely a wrong unit, e.g. N/µm for N/m -- is refused too, unless
+the file sets ``plausibility: warn`` or ``off`` (see :mod:`stage_sim.validation`).
 
 Examples
 --------
@@ -19,42 +22,92 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal, Optional, Union
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
+
+from stage_sim.validation import (ConfigError, check_plausible, format_validation_error, is_number_type, load_yaml,
+                                  unit)
 
 PRESET_DIR = Path(__file__).with_name("presets")
 
-Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
 
 
-class ConfigError(ValueError):
-    """A configuration file or mapping failed validation; the message says where and why."""
+def _not_bool(value):
+    if isinstance(value, bool):
+        raise ValueError("expected a number, not true/false")
+    return value
+
+
+_Number = BeforeValidator(_not_bool)
+"""Refuses true/false where a number is due (pydantic would read them as 1 and 0); every
+number field of a :class:`_Strict` model gets it, these aliases also inside lists."""
+Pos = Annotated[float, _Number, Field(gt=0, allow_inf_nan=False)]
+NonNeg = Annotated[float, _Number, Field(ge=0, allow_inf_nan=False)]
+Finite = Annotated[float, _Number, Field(allow_inf_nan=False)]
+Fraction = Annotated[float, _Number, Field(ge=0, le=1, allow_inf_nan=False)]
 
 
 class _Strict(BaseModel):
+    """Base of every input schema (presets, experiments, campaigns): unknown keys are
+    refused, and so is true/false in any number field (pydantic alone reads them as 1/0)."""
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs):
+        super().__pydantic_init_subclass__(**kwargs)
+        numbers = [info for info in cls.model_fields.values()
+                   if is_number_type(info.annotation) and _Number not in info.metadata]
+        for info in numbers:
+            info.metadata.append(_Number)
+        if numbers:
+            cls.model_rebuild(force=True)
 
 
 # --------------------------------------------------------------------------- friction
-class DahlFriction(_Strict):
+class _FrictionVariation(_Strict):
+    """Optional variations of a friction element's force (all default off = exactly the base model).
+
+    The element's force (pre-motion and sliding alike) is multiplied by
+    ``s(x) (1 +- f_c_difference / (2 f_c))`` (``+`` while the element's force resists motion
+    in +x, i.e. moving +), and a direction-dependent viscous force ``-(viscous_difference/2) |v|``
+    is added; ``x``, ``v`` are the position and velocity of the body the element acts on and
+    ``s(x) = max(0, 1 + (f_c_gradient (x - position_center) + f_c_curvature (x - position_center)^2) / f_c)``.
+    So the Coulomb force is ``F_C(x) = f_c s(x)``, ``F_C+ - F_C- = f_c_difference`` and
+    ``c+ - c- = viscous_difference``.
+    """
+    f_c_difference: Finite = Field(0.0, description="Coulomb force moving + minus moving - [N]; |.| < 2 f_c")
+    viscous_difference: Finite = Field(0.0, description="viscous coefficient moving + minus moving - [N·s/m]")
+    f_c_gradient: Finite = Field(0.0, description="slope of the Coulomb force along the travel [N/m]")
+    f_c_curvature: Finite = Field(0.0, description="curvature of the Coulomb force along the travel [N/m²]")
+    position_center: Finite = Field(0.0, description="position about which f_c_gradient/f_c_curvature apply [m]")
+
+    @model_validator(mode="after")
+    def _variation(self):
+        if abs(self.f_c_difference) >= 2 * self.f_c and self.f_c_difference != 0.0:
+            raise ValueError(f"f_c_difference={self.f_c_difference} must be smaller in size than 2 f_c = {2 * self.f_c}")
+        if self.f_c == 0 and (self.f_c_gradient or self.f_c_curvature):
+            raise ValueError("f_c_gradient/f_c_curvature need f_c > 0")
+        return self
+
+
+class DahlFriction(_FrictionVariation):
     """Dahl model, Eq. 1.1 (shape factor ``shape``) / Eq. 4.3 (shape = 1)."""
     model: Literal["dahl"]
-    k_sigma: Pos = Field(description="initial contact stiffness [N/m]")
-    f_c: Pos = Field(description="Coulomb force [N]")
+    k_sigma: Pos = Field(description="initial contact stiffness [N/m]", json_schema_extra=unit("N/m", 1e2, 1e10))
+    f_c: Pos = Field(description="Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
     shape: Pos = Field(1.0, description="shape factor nu [-]")
-    viscous: NonNeg = Field(0.0, description="viscous coefficient to ground [N·s/m]")
+    viscous: NonNeg = Field(0.0, description="viscous coefficient to ground [N·s/m]",
+                            json_schema_extra=unit("N·s/m", 1e-3, 1e5))
 
 
-class GmsFriction(_Strict):
+class GmsFriction(_FrictionVariation):
     """Generalized Maxwell-slip model with Coulomb slip, Eq. 4.4."""
     model: Literal["gms"]
-    k: list[Pos] = Field(min_length=1, description="block stiffnesses k_i [N/m]")
+    k: list[Pos] = Field(min_length=1, description="block stiffnesses k_i [N/m]",
+                         json_schema_extra=unit("N/m", 1.0, 1e10))
     alpha: list[Pos] = Field(min_length=1, description="block saturation fractions alpha_i [-]")
-    f_c: Pos = Field(description="Coulomb force [N]")
-    viscous: NonNeg = Field(0.0, description="viscous coefficient to ground [N·s/m]")
+    f_c: Pos = Field(description="Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
+    viscous: NonNeg = Field(0.0, description="viscous coefficient to ground [N·s/m]",
+                            json_schema_extra=unit("N·s/m", 1e-3, 1e5))
 
     @model_validator(mode="after")
     def _same_length(self):
@@ -63,24 +116,27 @@ class GmsFriction(_Strict):
         return self
 
 
-class LugreFriction(_Strict):
+class LugreFriction(_FrictionVariation):
     """LuGre model with Stribeck curve g(v) = F_C + (F_S - F_C) exp(-|v/v_s|^exponent)."""
     model: Literal["lugre"]
-    sigma0: Pos = Field(description="bristle stiffness [N/m]")
-    sigma1: NonNeg = Field(0.0, description="bristle damping [N·s/m]")
-    viscous: NonNeg = Field(0.0, description="viscous coefficient sigma2 [N·s/m]")
-    f_c: Pos = Field(description="Coulomb force [N]")
-    f_s: Pos = Field(description="static (break-away) force [N]")
-    v_s: Pos = Field(description="Stribeck velocity [m/s]")
+    sigma0: Pos = Field(description="bristle stiffness [N/m]", json_schema_extra=unit("N/m", 1e2, 1e10))
+    sigma1: NonNeg = Field(0.0, description="bristle damping [N·s/m]", json_schema_extra=unit("N·s/m", 1e-3, 1e6))
+    viscous: NonNeg = Field(0.0, description="viscous coefficient sigma2 [N·s/m]",
+                            json_schema_extra=unit("N·s/m", 1e-3, 1e5))
+    f_c: Pos = Field(description="Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
+    f_s: Pos = Field(description="static (break-away) force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
+    v_s: Pos = Field(description="Stribeck velocity [m/s]", json_schema_extra=unit("m/s", 1e-8, 1.0))
     exponent: Pos = Field(2.0, description="Stribeck exponent [-]")
 
 
-class CoulombFriction(_Strict):
+class CoulombFriction(_FrictionVariation):
     """Coulomb + viscous friction with stiction (stick while |force| <= f_s)."""
     model: Literal["coulomb"]
-    f_c: NonNeg = Field(description="Coulomb force [N]")
-    f_s: Optional[NonNeg] = Field(None, description="static force [N]; default f_c")
-    viscous: NonNeg = Field(0.0, description="viscous coefficient [N·s/m]")
+    f_c: NonNeg = Field(description="Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
+    f_s: Optional[NonNeg] = Field(None, description="static force [N]; default f_c",
+                                  json_schema_extra=unit("N", 1e-3, 1e3))
+    viscous: NonNeg = Field(0.0, description="viscous coefficient [N·s/m]",
+                            json_schema_extra=unit("N·s/m", 1e-3, 1e5))
 
 
 Friction = Annotated[Union[DahlFriction, GmsFriction, LugreFriction, CoulombFriction],
@@ -89,40 +145,47 @@ Friction = Annotated[Union[DahlFriction, GmsFriction, LugreFriction, CoulombFric
 
 # --------------------------------------------------------------------------- stage
 class Table(_Strict):
-    mass: Pos = Field(description="moving table mass [kg] (rotary: inertia [kg·m²])")
+    mass: Pos = Field(description="moving table mass [kg] (rotary: inertia [kg·m²])",
+                      json_schema_extra=unit("kg", 1e-4, 1e3))
 
 
 class Joint(_Strict):
     """Compliant joint (FI flexure, VAN flexure, SAI flexure) between table and bearing."""
-    stiffness: Pos = Field(description="axial stiffness [N/m]")
-    damping: NonNeg = Field(0.0, description="axial damping [N·s/m]")
+    stiffness: Pos = Field(description="axial stiffness [N/m]", json_schema_extra=unit("N/m", 1.0, 1e10))
+    damping: NonNeg = Field(0.0, description="axial damping [N·s/m]", json_schema_extra=unit("N·s/m", 1e-3, 1e5))
 
 
 class Bearing(_Strict):
     """A bearing carriage. Without ``joint`` it is rigidly bolted to the table (No FI)."""
-    mass: Pos = Field(description="bearing (carriage + joint outer platform) mass [kg]")
+    mass: Pos = Field(description="bearing (carriage + joint outer platform) mass [kg]",
+                      json_schema_extra=unit("kg", 1e-4, 1e3))
     joint: Optional[Joint] = None
     friction: Friction
-    dither_channel: Optional[Literal[0, 1]] = Field(None, description="piezo driving it (VAN)")
-    force_noise_rms: NonNeg = Field(0.0, description="random friction force, per control sample [N]")
+    dither_channel: Optional[Annotated[Literal[0, 1], _Number]] = Field(None, description="piezo driving it (VAN)")
+    force_noise_rms: NonNeg = Field(0.0, description="random friction force, per control sample [N]",
+                                    json_schema_extra=unit("N", 1e-6, 1e2))
 
 
 class StructuralMode(_Strict):
     """Lightly damped mode: a mass ``mass_ratio*m_table`` on a spring-damper to the table."""
-    frequency: Pos = Field(description="blocked natural frequency [Hz]")
-    damping_ratio: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)]
+    frequency: Pos = Field(description="blocked natural frequency [Hz]", json_schema_extra=unit("Hz", 1.0, 1e5))
+    damping_ratio: Annotated[float, _Number, Field(gt=0, lt=1, allow_inf_nan=False)]
     mass_ratio: Pos = Field(description="modal mass / table mass [-]")
 
 
 class Drive(_Strict):
-    force_constant: Pos = Field(description="motor force constant [N/A]")
+    force_constant: Pos = Field(description="motor force constant [N/A]", json_schema_extra=unit("N/A", 1e-2, 1e3))
     force_constant_ratio: Pos = Field(1.0, description="true / nominal force constant [-]")
-    peak_force: Pos = Field(description="peak force limit [N]")
-    continuous_force: Pos = Field(description="continuous (thermal, RMS) force limit [N]")
-    thermal_time_constant: Pos = Field(5.0, description="I²t averaging time [s]")
-    noise_current_rms: NonNeg = Field(0.0, description="drive current noise, RMS [A]")
-    noise_cutoff: Optional[Pos] = Field(None, description="noise low-pass corner [Hz]; None = white at the control rate")
-    delay_samples: Annotated[int, Field(ge=0, le=100)] = 0
+    peak_force: Pos = Field(description="peak force limit [N]", json_schema_extra=unit("N", 1e-2, 1e5))
+    continuous_force: Pos = Field(description="continuous (thermal, RMS) force limit [N]",
+                                  json_schema_extra=unit("N", 1e-2, 1e5))
+    thermal_time_constant: Pos = Field(5.0, description="I²t averaging time [s]",
+                                       json_schema_extra=unit("s", 1e-2, 1e4))
+    noise_current_rms: NonNeg = Field(0.0, description="drive current noise, RMS [A]",
+                                      json_schema_extra=unit("A", 1e-7, 1e1))
+    noise_cutoff: Optional[Pos] = Field(None, description="noise low-pass corner [Hz]; None = white at the control rate",
+                                        json_schema_extra=unit("Hz", 1e-1, 1e6))
+    delay_samples: Annotated[int, _Number, Field(ge=0, le=100)] = 0
 
     @model_validator(mode="after")
     def _limits(self):
@@ -132,7 +195,8 @@ class Drive(_Strict):
 
 
 class Sensor(_Strict):
-    resolution: NonNeg = Field(description="quantization step [m]; 0 = ideal")
+    resolution: NonNeg = Field(description="quantization step [m]; 0 = ideal",
+                               json_schema_extra=unit("m", 1e-12, 1e-3))
 
 
 class Travel(_Strict):
@@ -153,14 +217,37 @@ class SaiJoint(_Strict):
     stick-slip element of stiffness ``lock_stiffness`` holds the flexure deflection
     present at locking; on unlocking the stored flexure force is released.
     """
-    lock_stiffness: Pos = Field(description="stiffness of the friction lock [N/m]")
-    lock_damping: NonNeg = Field(0.0, description="damping of the lock contact [N·s/m]")
-    lock_capacity: Pos = Field(description="force the lock holds before slipping [N]")
-    rc_cutoff: Optional[Pos] = Field(None, description="RC filter on the solenoid voltage [Hz]; None = no filter")
-    switch_delay: NonNeg = Field(0.0, description="armature travel time after the filtered voltage crosses the threshold [s]")
-    impact_impulse: NonNeg = Field(description="impulse of the armature impact on locking [N·s]")
-    impact_duration: Pos = Field(description="duration of the impact force pulse [s]")
+    lock_stiffness: Pos = Field(description="stiffness of the friction lock [N/m]",
+                                json_schema_extra=unit("N/m", 1e2, 1e10))
+    lock_damping: NonNeg = Field(0.0, description="damping of the lock contact [N·s/m]",
+                                 json_schema_extra=unit("N·s/m", 1e-3, 1e6))
+    lock_capacity: Pos = Field(description="force the lock holds before slipping [N]",
+                               json_schema_extra=unit("N", 1e-3, 1e4))
+    rc_cutoff: Optional[Pos] = Field(None, description="RC filter on the solenoid voltage [Hz]; None = no filter",
+                                     json_schema_extra=unit("Hz", 1e-1, 1e6))
+    switch_delay: NonNeg = Field(0.0, description="armature travel time after the filtered voltage crosses the threshold [s]",
+                                 json_schema_extra=unit("s", 1e-7, 1.0))
+    impact_impulse: NonNeg = Field(description="impulse of the armature impact on locking [N·s]",
+                                   json_schema_extra=unit("N·s", 1e-9, 1e1))
+    impact_duration: Pos = Field(description="duration of the impact force pulse [s]",
+                                 json_schema_extra=unit("s", 1e-7, 1.0))
     cushioning: Fraction = Field(0.0, description="fraction of the impact removed by the rubber sheets [-]")
+
+
+class ForceRipple(_Strict):
+    """Position-periodic force on the table (motor cogging / commutation ripple):
+    ``F = amplitude sin(2 pi x / period + phase)``."""
+    amplitude: Finite = Field(description="force amplitude [N]")
+    period: Pos = Field(description="spatial period [m]")
+    phase: Finite = Field(0.0, description="phase at x = 0 [rad]")
+
+
+class PeriodicForce(_Strict):
+    """Force on the table at a fixed frequency (e.g. net force of imbalanced dither piezos, a
+    disturbance): ``F = amplitude sin(2 pi frequency t + phase)``, ``t`` = time since the trial start."""
+    amplitude: Finite = Field(description="force amplitude [N]")
+    frequency: Pos = Field(description="frequency [Hz]")
+    phase: Finite = Field(0.0, description="phase at t = 0 [rad]")
 
 
 class Stage(_Strict):
@@ -174,6 +261,9 @@ class Stage(_Strict):
     bearing_sensor: Optional[Sensor] = None
     travel: Travel
     sai: Optional[SaiJoint] = None
+    force_offset: Finite = Field(0.0, description="constant force on the table, +x (cable drag, tilt, amplifier offset) [N]")
+    force_ripple: list[ForceRipple] = Field(default_factory=list, description="position-periodic table forces")
+    periodic_force: list[PeriodicForce] = Field(default_factory=list, description="fixed-frequency table forces")
 
     @model_validator(mode="after")
     def _consistency(self):
@@ -187,35 +277,47 @@ class Stage(_Strict):
 # --------------------------------------------------------------------------- control
 class Pid(_Strict):
     """PID with filtered derivative and clamping anti-windup, C = kp + ki/s + kd s/(s/wd + 1)."""
-    kp: NonNeg = Field(description="proportional gain [N/m]")
-    ki: NonNeg = Field(0.0, description="integral gain [N/(m·s)]")
-    kd: NonNeg = Field(0.0, description="derivative gain [N·s/m]")
-    derivative_cutoff: Optional[Pos] = Field(None, description="derivative filter corner [Hz]; None = unfiltered")
-    output_limit: Optional[Pos] = Field(None, description="command saturation [N]; None = drive peak force")
+    kp: NonNeg = Field(description="proportional gain [N/m]", json_schema_extra=unit("N/m", 1.0, 1e10))
+    ki: NonNeg = Field(0.0, description="integral gain [N/(m·s)]", json_schema_extra=unit("N/(m·s)", 1e-2, 1e14))
+    kd: NonNeg = Field(0.0, description="derivative gain [N·s/m]", json_schema_extra=unit("N·s/m", 1e-3, 1e7))
+    derivative_cutoff: Optional[Pos] = Field(None, description="derivative filter corner [Hz]; None = unfiltered",
+                                             json_schema_extra=unit("Hz", 1e-1, 1e6))
+    output_limit: Optional[Pos] = Field(None, description="command saturation [N]; None = drive peak force",
+                                        json_schema_extra=unit("N", 1e-3, 1e5))
 
 
 class Dob(_Strict):
     """Inverse-model disturbance observer (Eq. C.1-C.5): G_n = gain / (s (s + pole))."""
-    pole: NonNeg = Field(description="P of Eq. C.1 [1/s]")
-    gain: Pos = Field(description="Z of Eq. C.1 for a force input [1/kg] (= Z[N/(A·kg)] / K_f)")
-    q_cutoff: Pos = Field(description="Q filter bandwidth f_Q [Hz] (Eq. C.2)")
+    pole: NonNeg = Field(description="P of Eq. C.1 [1/s]", json_schema_extra=unit("1/s", 1e-3, 1e6))
+    gain: Pos = Field(description="Z of Eq. C.1 for a force input [1/kg] (= Z[N/(A·kg)] / K_f)",
+                      json_schema_extra=unit("1/kg", 1e-3, 1e4))
+    q_cutoff: Pos = Field(description="Q filter bandwidth f_Q [Hz] (Eq. C.2)",
+                          json_schema_extra=unit("Hz", 1e-1, 1e6))
 
 
 class Feedforward(_Strict):
     """Feedforward friction compensation from the reference (Fig. 4.15)."""
     friction: Friction
-    stiffness_error: Annotated[float, Field(gt=-1, allow_inf_nan=False)] = 0.0
+    stiffness_error: Annotated[float, _Number, Field(gt=-1, allow_inf_nan=False)] = 0.0
+
+    @model_validator(mode="after")
+    def _no_variation(self):
+        fr = self.friction
+        if fr.f_c_difference or fr.viscous_difference or fr.f_c_gradient or fr.f_c_curvature:
+            raise ValueError("feedforward friction models no friction variation: f_c_difference, "
+                             "viscous_difference, f_c_gradient and f_c_curvature must be 0")
+        return self
 
 
 class Niasa(_Strict):
     """NIASA (Eq. A.1): nonlinear integral gain following a nominal Dahl model."""
-    tau_d: Pos = Field(description="design time constant [s]")
-    k_sigma: Pos = Field(description="nominal Dahl stiffness [N/m]")
-    f_c: Pos = Field(description="nominal Coulomb force [N]")
+    tau_d: Pos = Field(description="design time constant [s]", json_schema_extra=unit("s", 1e-6, 1e1))
+    k_sigma: Pos = Field(description="nominal Dahl stiffness [N/m]", json_schema_extra=unit("N/m", 1e2, 1e10))
+    f_c: Pos = Field(description="nominal Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
 
 
 class Controller(_Strict):
-    rate: Pos = Field(10_000.0, description="control rate [Hz]")
+    rate: Pos = Field(10_000.0, description="control rate [Hz]", json_schema_extra=unit("Hz", 1e1, 1e6))
     pid: Pid
     dob: Optional[Dob] = None
     feedforward: Optional[Feedforward] = None
@@ -224,35 +326,42 @@ class Controller(_Strict):
 
 class Dither(_Strict):
     """Dither generator and harmonic-cancelling (HC) controller for a VAN stage (Ch. 3)."""
-    amplitude: NonNeg = Field(description="dither force amplitude A per piezo [N]")
-    frequency: Pos = Field(description="dither frequency f [Hz]")
-    hc_gain: NonNeg = Field(0.0, description="K_HC of Eq. 3.3 [N/m]; 0 disables HC")
+    amplitude: NonNeg = Field(description="dither force amplitude A per piezo [N]",
+                              json_schema_extra=unit("N", 1e-3, 1e4))
+    frequency: Pos = Field(description="dither frequency f [Hz]", json_schema_extra=unit("Hz", 1.0, 1e6))
+    hc_gain: NonNeg = Field(0.0, description="K_HC of Eq. 3.3 [N/m]; 0 disables HC",
+                            json_schema_extra=unit("N/m", 1.0, 1e12))
     regulation: Literal["continuous", "on_off"] = "continuous"
-    off_after: NonNeg = Field(0.0, description="on-off regulation: dither off this long after the reference reaches its target [s]")
-    preemptive: NonNeg = Field(0.0, description="dither starts this long before the first move [s]")
+    off_after: NonNeg = Field(0.0, description="on-off regulation: dither off this long after the reference reaches its target [s]",
+                              json_schema_extra=unit("s", 1e-6, 1e3))
+    preemptive: NonNeg = Field(0.0, description="dither starts this long before the first move [s]",
+                               json_schema_extra=unit("s", 1e-6, 1e3))
 
 
 class Ilc(_Strict):
     """P-type ILC of Eq. 5.2 with a Butterworth low-pass."""
-    iterations: Annotated[int, Field(ge=0, le=100)] = 10
-    cutoff: Pos = Field(200.0, description="LPF corner [Hz]")
-    order: Annotated[int, Field(ge=1, le=8)] = 4
-    length: Pos = Field(0.1, description="length of the learned correction after a switch [s]")
+    iterations: Annotated[int, _Number, Field(ge=0, le=100)] = 10
+    cutoff: Pos = Field(200.0, description="LPF corner [Hz]", json_schema_extra=unit("Hz", 1e-1, 1e6))
+    order: Annotated[int, _Number, Field(ge=1, le=8)] = 4
+    length: Pos = Field(0.1, description="length of the learned correction after a switch [s]",
+                        json_schema_extra=unit("s", 1e-5, 1e2))
 
 
 class SaiManager(_Strict):
     """SAI switching rules (Ch. 5) and two-step error mitigation."""
     rule: Literal["point_to_point", "tracking", "always_compliant", "always_stiff"] = "point_to_point"
-    release_lead: NonNeg = Field(0.005, description="p2p: go compliant this long before a move [s]")
-    reversal_window: NonNeg = Field(0.0, description="tracking: compliant while |v_ref| below this [m/s]")
+    release_lead: NonNeg = Field(0.005, description="p2p: go compliant this long before a move [s]",
+                                 json_schema_extra=unit("s", 1e-6, 1e1))
+    reversal_window: NonNeg = Field(0.0, description="tracking: compliant while |v_ref| below this [m/s]",
+                                    json_schema_extra=unit("m/s", 1e-9, 1e1))
     ilc: Optional[Ilc] = None
 
 
 class Simulation(_Strict):
-    max_omega_h: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
+    max_omega_h: Annotated[float, _Number, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
         0.25, description="largest (stiffest-mode angular frequency x sub-step) allowed [-]")
-    max_substeps: Annotated[int, Field(ge=1, le=1000)] = 200
-    seed: Annotated[int, Field(ge=0)] = 0
+    max_substeps: Annotated[int, _Number, Field(ge=1, le=1000)] = 200
+    seed: Annotated[int, _Number, Field(ge=0)] = 0
 
 
 class Preset(_Strict):
@@ -263,22 +372,27 @@ class Preset(_Strict):
     dither: Optional[Dither] = None
     sai_manager: Optional[SaiManager] = None
     simulation: Simulation = Simulation()
+    plausibility: Literal["error", "warn", "off"] = Field(
+        "error", description="a value outside its field's plausible range (a wrong unit?) is an error, "
+        "a warning, or not checked (see stage_sim.validation)")
 
 
 # --------------------------------------------------------------------------- loading
-def _format(err: ValidationError, source: str) -> str:
-    lines = [f"{source}: invalid configuration"]
-    for e in err.errors():
-        field = ".".join(str(p) for p in e["loc"]) or "(top level)"
-        msg = e["msg"]
-        if e["type"] == "extra_forbidden":
-            msg = "unknown key"
-        elif e["type"] == "missing":
-            msg = "required field is missing"
-        val = e.get("input")
-        shown = "" if e["type"] == "missing" else f" (got {val!r})"
-        lines.append(f"  {field}: {msg}{shown}")
-    return "\n".join(lines)
+def _model_named(name: str, cls=None):
+    for sub in (cls or _Strict).__subclasses__():
+        if sub.__name__ == name:
+            return sub
+        found = _model_named(name, sub)
+        if found is not None:
+            return found
+    return None
+
+
+def _format(err: ValidationError, source: str, kind: str = "configuration") -> str:
+    """The message of :func:`stage_sim.validation.format_validation_error` for a schema of this
+    package or one built on :class:`_Strict` (experiments, campaigns), found by name."""
+    return str(format_validation_error(err, source, kind if kind != "configuration" else err.title.lower(),
+                                       _model_named(err.title)))
 
 
 def preset_from_dict(data: dict, source: str = "<dict>") -> Preset:
@@ -286,7 +400,7 @@ def preset_from_dict(data: dict, source: str = "<dict>") -> Preset:
     try:
         return Preset.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_format(err, source)) from None
+        raise format_validation_error(err, source, "preset", Preset) from None
 
 
 def read_yaml_file(name_or_path: str | Path, directory: Path, kind: str) -> tuple[dict, Path]:
@@ -294,7 +408,8 @@ def read_yaml_file(name_or_path: str | Path, directory: Path, kind: str) -> tupl
 
     Returns ``(data, path)``; a missing file, invalid YAML or a non-mapping top level
     raise :class:`ConfigError` naming the file (and the shipped names of this ``kind``).
-    No code is ever executed (``yaml.safe_load``).
+    No code is ever executed (:func:`stage_sim.validation.load_yaml`: YAML's safe loader, which
+    also refuses duplicate keys).
     """
     path = Path(name_or_path)
     if not path.suffix:
@@ -303,18 +418,25 @@ def read_yaml_file(name_or_path: str | Path, directory: Path, kind: str) -> tupl
         known = ", ".join(sorted(p.stem for p in directory.glob("*.yaml")))
         raise ConfigError(f"{name_or_path}: no such {kind} file (shipped {kind}s: {known})")
     try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML: {err}") from None
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path}: cannot read the {kind} file ({err})") from None
+    data = load_yaml(text, str(path))
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: top level must be a mapping, got {type(data).__name__}")
     return data, path
 
 
 def load_preset(name_or_path: str | Path) -> Preset:
-    """Load a preset by name (``stage_sim/presets/<name>.yaml``) or path, safely (no code)."""
+    """Load a preset by name (``stage_sim/presets/<name>.yaml``) or path, safely (no code).
+
+    Values outside their field's plausible range (a wrong unit?) are refused, unless
+    the file sets ``plausibility: warn`` or ``off`` (see :mod:`stage_sim.validation`).
+    """
     data, path = read_yaml_file(name_or_path, PRESET_DIR, "preset")
-    return preset_from_dict(data, str(path))
+    preset = preset_from_dict(data, str(path))
+    check_plausible(preset, str(path), preset.plausibility)
+    return preset
 
 
 def list_presets() -> list[str]:
@@ -335,10 +457,42 @@ def set_dotted(data: dict, dotted: str, value) -> None:
         node[keys[-1]] = value
 
 
-def with_overrides(preset: Preset, changes: dict) -> Preset:
-    """Return a copy with dotted-path overrides, re-validated, e.g. ``{"stage.table.mass": 2}``."""
+def _no_such(data, dotted: str) -> str:
+    """Why ``dotted`` names nothing in ``data`` (the first key or index that is not there)."""
+    node, done = data, []
+    for part in dotted.split(".")[:-1]:
+        if isinstance(node, list):
+            if not (part.lstrip("-").isdigit() and -len(node) <= int(part) < len(node)):
+                return f"{'.'.join(done)} has {len(node)} item(s), no item {part!r}"
+            node = node[int(part)]
+        elif isinstance(node, dict):
+            if part not in node:
+                return f"{'.'.join(done) or 'the preset'} has no field {part!r} (fields: {', '.join(node)})"
+            node = node[part]
+        else:
+            return f"{'.'.join(done)} is {node!r}, not a mapping"
+        done.append(part)
+    return "not a settable field"
+
+
+def with_overrides(preset: Preset, changes: dict, source: str | None = None) -> Preset:
+    """Return a copy with dotted-path overrides, re-validated, e.g. ``{"stage.table.mass": 2}``.
+
+    ``source`` names where the overrides come from (an experiment or campaign file, a
+    command line) in errors; with a ``source`` the values set are also checked for
+    plausibility like a preset file's (see :func:`load_preset`). Without one (code
+    choosing values on purpose, e.g. a test driving a stage to divergence) they are not.
+    """
+    checked = source is not None
+    source = source or f"{preset.name} (overridden)"
     data = preset.model_dump()
     for dotted, value in changes.items():
-        set_dotted(data, dotted, value)
-    return preset_from_dict(data, f"{preset.name} (overridden)")
+        try:
+            set_dotted(data, dotted, value)
+        except (KeyError, IndexError, ValueError, TypeError):
+            raise ConfigError(f"{source}: override {dotted!r}: {_no_such(data, dotted)}") from None
+    new = preset_from_dict(data, source)
+    if checked:
+        check_plausible(new, source, new.plausibility, paths=list(changes))
+    return new
 

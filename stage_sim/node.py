@@ -3,9 +3,18 @@
 A thin adapter around :class:`stage_sim.plant.PlantSim`: for every control sample it
 publishes ``/stage/measured``, ``/stage/truth`` and ``/clock``, waits until the
 servo command (and, where the stage has them, the dither forces and the SAI mode)
-for that sample has arrived, then advances one period. A missing input beyond
-``input_timeout`` (wall clock) ends the trial with a ``fault`` event naming the
-silent node -- never a hang.
+for that sample has arrived, then advances one period.
+
+Safety: the drive saturates at its peak force and thermal (I²t) limit inside the plant
+(:func:`stage_sim.plant.plant_step`). The plant stops a trial with a ``fault`` event
+(``cause``, ``reason``, ``responsible`` node) and latches the drive at zero force
+(inputs arriving later for that trial are not applied; the next trajectory re-arms it)
+when
+
+* no input arrives for a sample within ``input_timeout`` (wall clock): the watchdog,
+  naming the silent node -- never a hang;
+* an input is NaN or infinite, naming the node that sent it;
+* the simulated state diverges (non-finite or runaway) or the table leaves its travel.
 """
 from __future__ import annotations
 
@@ -13,9 +22,12 @@ import time
 
 import numpy as np
 from msg_defs import convert
-from msg_defs.node_io import NODE_OF_INPUT, SAI_COMMAND, JointStateOut, Lockstep, StageNode, run_node
+from msg_defs.node_io import NODE_OF_INPUT, SAI_COMMAND, JointStateOut, Lockstep, StageNode, finite, run_node
 from stage_sim.config import ConfigError, load_preset, preset_from_dict
-from stage_sim.plant import PlantSim, SimulationError, build_plant
+from stage_sim.plant import DIVERGED, OUT_OF_TRAVEL, PlantSim, SimulationError, build_plant
+
+INPUT_TOPIC = {"command": "/stage/command", "dither": "/stage/dither", "sai": SAI_COMMAND.name}
+"""Topic of each lockstep input of the plant."""
 
 RESEND_S = 0.25
 """Wall-clock wait for a sample's inputs after which its measurement is published again:
@@ -49,6 +61,7 @@ class PlantNode(StageNode):
         self.clock = convert.clock_msg(None, 0)
         self.pub_isolator = JointStateOut(self, "/stage/isolator")
         self.subscribe("/experiment/trajectory", self._trajectory)
+        self.subscribe("/experiment/events", self._event_in)
         self.subscribe("/stage/command", lambda m: self._input(m, "command", m.effort[0]))
         self.subscribe("/stage/dither", lambda m: self._input(m, "dither", (m.effort[0], m.effort[1])))
         self.subscribe(SAI_COMMAND, lambda m: self._input(m, "sai", m.position[0]))
@@ -100,6 +113,12 @@ class PlantNode(StageNode):
         self._publish_isolator()
         self._publish_sample()
 
+    def _event_in(self, msg):
+        """An aborted run: stop the trial, the drive held at zero force (no event of our own)."""
+        if self.sim is not None and convert.parse_event(msg.data)["event"] == "abort":
+            self.sim = None
+            self.waiting_since = None
+
     def _stamp(self, k):
         return (self.start + k) * self.dt_ns
 
@@ -125,6 +144,10 @@ class PlantNode(StageNode):
         key = convert.stamp_ns(msg) // self.dt_ns - self.start
         if key < self.k or key >= self.n:
             return
+        if not finite(*(value if isinstance(value, tuple) else (value,))):
+            node = NODE_OF_INPUT[INPUT_TOPIC[name]]
+            self._stop("non_finite_input", f"{name} {value} for sample {key} from {node}", node, key)
+            return
         got = self.lock.put(key, name, value)
         if got is not None:
             self.ready[key] = got
@@ -138,8 +161,9 @@ class PlantNode(StageNode):
             try:
                 self.sim.step(got["command"], d0, d1, mode)
             except SimulationError as err:
-                self.event("fault", stamp_ns=self._stamp(self.k), trial=self.trial, reason=str(err))
-                self.sim = None
+                status = int(self.sim.status[0])
+                cause = {DIVERGED: "diverged", OUT_OF_TRAVEL: "out_of_travel"}[status]
+                self._stop(cause, f"{err} (sample {self.k})", self.get_name(), self.k)
                 return
             self.k += 1
             if mode != self.mode:
@@ -158,12 +182,18 @@ class PlantNode(StageNode):
             self.resends += 1
             self.pub_measured.republish()
         if waited > self.timeout:
-            topics = {"command": "/stage/command", "dither": "/stage/dither", "sai": SAI_COMMAND.name}
-            silent = sorted({NODE_OF_INPUT[topics[m]] for m in self.lock.missing(self.k)})
-            self.event("fault", stamp_ns=self._stamp(self.k), trial=self.trial,
-                       reason=f"no input for sample {self.k} within {self.timeout} s from: "
-                              f"{', '.join(silent)}", silent=silent)
-            self.sim = None
+            silent = sorted({NODE_OF_INPUT[INPUT_TOPIC[m]] for m in self.lock.missing(self.k)})
+            self._stop("watchdog", f"no input for sample {self.k} within {self.timeout} s from: "
+                                   f"{', '.join(silent)}", silent, self.k, silent=silent)
+
+    def _stop(self, cause, reason, responsible, k, **fields):
+        """End the trial at sample ``k``: drive latched at zero force, ``fault`` event."""
+        self.sim = None                     # no further input is applied until the next trajectory
+        self.lock.clear()
+        self.ready = {}
+        self.waiting_since = None
+        self.fault_event(cause, f"{reason}; drive held at zero force", responsible,
+                         stamp_ns=self._stamp(k), trial=self.trial, **fields)
 
 
 def main(args=None):

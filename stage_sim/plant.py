@@ -14,6 +14,11 @@ Integration scheme (per control period ``dt``, ``n_sub`` sub-steps of ``h``):
   exactly in the displacement domain (Dahl, GMS) or at constant velocity (LuGre);
 * Coulomb elements are solved implicitly per sub-step (stick if the force needed
   to stop is within the static limit), so there is no chattering at rest;
+* optional force variations of each friction element (position-dependent and
+  direction-dependent level, direction-dependent viscous part: ``config._FrictionVariation``)
+  scale its held force; optional table forces (``stage.force_offset``, ``force_ripple``,
+  ``periodic_force``) and an external force input (:func:`plant_step_ext`) act on the table,
+  held over a sub-step; all are skipped when off, so results are bit-identical without them;
 * ``n_sub`` is chosen so the stiffest mode of the configuration -- including the
   tangent stiffness of pre-motion friction and the SAI lock -- satisfies
   ``omega_max * h <= max_omega_h``.
@@ -25,6 +30,7 @@ equations with rad, N·m and kg·m².
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -88,6 +94,12 @@ class PlantModel(NamedTuple):
     arm_steps: int         # armature travel time [sub-steps]
     pulse_force: float     # impact force during the pulse [N]
     pulse_steps: int       # impact duration [sub-steps]
+    fr_var: np.ndarray     # (nf, 6) force variation: on, f_c_difference/(2 f_c), viscous_difference/2,
+                           #   position_center [m], f_c_gradient/f_c [1/m], f_c_curvature/f_c [1/m²]
+    f_offset: float        # constant table force [N]
+    ripple: np.ndarray     # (nr, 3) position-periodic table force: amplitude [N], 2 pi/period [rad/m], phase
+    periodic: np.ndarray   # (np, 3) fixed-frequency table force: amplitude [N], 2 pi f [rad/s], phase
+    table_force: bool      # any of f_offset, ripple, periodic
 
 
 def _friction_params(fr):
@@ -110,9 +122,28 @@ def _friction_params(fr):
     raise TypeError(f"unknown friction config {fr!r}")
 
 
+def _variation(fr) -> np.ndarray:
+    """Row of :attr:`PlantModel.fr_var` for a friction config (all zero = no variation)."""
+    var = np.zeros(6)
+    if fr.f_c_difference or fr.viscous_difference or fr.f_c_gradient or fr.f_c_curvature:
+        fc = fr.f_c if fr.f_c > 0 else 1.0    # f_c = 0 only without gradient/curvature (validated)
+        var[:] = (1.0, fr.f_c_difference / (2.0 * fc), 0.5 * fr.viscous_difference, fr.position_center,
+                  fr.f_c_gradient / fc, fr.f_c_curvature / fc)
+    return var
+
+
 def _exact_zoh(a, b, h):
-    """Van Loan: exact ZOH discretisation of z' = a z + b f over h."""
-    nz, nu = b.shape
+    """Van Loan: exact ZOH discretisation of z' = a z + b f over h (memoised: model fits
+    rebuild plants whose linear part did not change)."""
+    phi, gam = _exact_zoh_cached(a.tobytes(), b.tobytes(), b.shape, float(h))
+    return phi.copy(), gam.copy()
+
+
+@lru_cache(maxsize=512)
+def _exact_zoh_cached(a_bytes, b_bytes, shape, h):
+    nz, nu = shape
+    a = np.frombuffer(a_bytes).reshape(nz, nz)
+    b = np.frombuffer(b_bytes).reshape(nz, nu)
     big = np.zeros((nz + nu, nz + nu))
     big[:nz, :nz] = a * h
     big[:nz, nz:] = b * h
@@ -187,14 +218,16 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
     fr_alpha = np.zeros((nf, nmax))
     fr_n = np.zeros(nf, np.int64)
     fr_noise = np.zeros(nf)
+    fr_var = np.zeros((nf, 6))
     k_tangent = np.zeros((n, n))
     c_explicit = np.zeros(n)
     for e, (fr, dof, noise) in enumerate(fr_list):
         kind, par, kb, ab, kt = _friction_params(fr)
         fr_kind[e], fr_dof[e], fr_par[e], fr_noise[e] = kind, dof, par, noise
         fr_k[e, :len(kb)], fr_alpha[e, :len(ab)], fr_n[e] = kb, ab, len(kb)
+        fr_var[e] = _variation(fr)
         cmat[dof, dof] += fr.viscous
-        k_tangent[dof, dof] += kt
+        k_tangent[dof, dof] += kt * (1.0 + abs(fr_var[e, 1]))
         if kind == LUGRE:
             c_explicit[dof] += fr.sigma1
 
@@ -260,6 +293,12 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
         x_limit=1e3 * span + abs(stage.travel.min) + abs(stage.travel.max),
         sai_dof=sai_dof, k_lock=k_lock, c_lock=c_lock, cap_lock=cap, rc_a=rc_a,
         arm_steps=arm_steps, pulse_force=pulse_force, pulse_steps=pulse_steps,
+        fr_var=fr_var, f_offset=float(stage.force_offset),
+        ripple=np.array([[r.amplitude, 2 * math.pi / r.period, r.phase] for r in stage.force_ripple],
+                        float).reshape(-1, 3),
+        periodic=np.array([[p.amplitude, 2 * math.pi * p.frequency, p.phase] for p in stage.periodic_force],
+                          float).reshape(-1, 3),
+        table_force=bool(stage.force_offset != 0.0 or stage.force_ripple or stage.periodic_force),
     )
 
 
@@ -323,6 +362,35 @@ def quantize(x, q):
 
 
 @njit(cache=True, inline="always")
+def _var_scale(pm, e, x, direction):
+    """Force scale of friction element ``e`` at position ``x`` [m] for a force resisting
+    motion in ``direction`` (+1: moving +, -1: moving -); see ``config._FrictionVariation``."""
+    var = pm.fr_var
+    d = x - var[e, 3]
+    s = 1.0 + var[e, 4] * d + var[e, 5] * d * d
+    if s < 0.0:
+        s = 0.0
+    return s * (1.0 + var[e, 1] * direction)
+
+
+@njit(cache=True, inline="always")
+def _varied(pm, e, x, v, fh):
+    """Held friction force ``fh`` of element ``e`` with its variation (position, direction)."""
+    return fh * _var_scale(pm, e, x, 1.0 if fh > 0.0 else -1.0) + pm.fr_var[e, 2] * abs(v)
+
+
+@njit(cache=True, inline="always")
+def _table_force(pm, x, t):
+    """Offset, position-periodic ripple and fixed-frequency forces on the table [N]."""
+    out = pm.f_offset
+    for i in range(pm.ripple.shape[0]):
+        out += pm.ripple[i, 0] * math.sin(pm.ripple[i, 1] * x + pm.ripple[i, 2])
+    for i in range(pm.periodic.shape[0]):
+        out += pm.periodic[i, 0] * math.sin(pm.periodic[i, 1] * t + pm.periodic[i, 2])
+    return out
+
+
+@njit(cache=True, inline="always")
 def _friction_forces(pm, z, fr, f, k, seeds):
     """Subtract every friction element's held force from ``f`` (all trials).
 
@@ -351,7 +419,10 @@ def _friction_forces(pm, z, fr, f, k, seeds):
                     kt = k0 * u
                 else:
                     kt = k0 * u ** shape
-                f[dof, b] -= fe + kt * v * hh
+                if pm.fr_var[e, 0] != 0.0:
+                    f[dof, b] -= _varied(pm, e, z[dof, b], v, fe + kt * v * hh)
+                else:
+                    f[dof, b] -= fe + kt * v * hh
         elif kind == GMS:
             fc = par[e, 0]
             for b in range(nb):
@@ -364,7 +435,10 @@ def _friction_forces(pm, z, fr, f, k, seeds):
                     fe += fi
                     if s * fi < pm.fr_alpha[e, i] * fc:
                         kt += pm.fr_k[e, i]
-                f[dof, b] -= fe + kt * v * hh
+                if pm.fr_var[e, 0] != 0.0:
+                    f[dof, b] -= _varied(pm, e, z[dof, b], v, fe + kt * v * hh)
+                else:
+                    f[dof, b] -= fe + kt * v * hh
         elif kind == LUGRE:
             s0, s1 = par[e, 0], par[e, 1]
             for b in range(nb):
@@ -374,7 +448,13 @@ def _friction_forces(pm, z, fr, f, k, seeds):
                 zb = fr[e, 0, b]
                 zdot = v - s0 * abs(v) * zb / g
                 kt = s0 * max(0.0, 1.0 - s0 * s * zb / g)
-                f[dof, b] -= s0 * zb + s1 * zdot + kt * v * hh
+                if pm.fr_var[e, 0] != 0.0:
+                    f[dof, b] -= _varied(pm, e, z[dof, b], v, s0 * zb + s1 * zdot + kt * v * hh)
+                else:
+                    f[dof, b] -= s0 * zb + s1 * zdot + kt * v * hh
+        elif kind == COULOMB and pm.fr_var[e, 2] != 0.0:
+            for b in range(nb):            # direction-dependent viscous part (the rest is implicit)
+                f[dof, b] -= pm.fr_var[e, 2] * abs(z[n + dof, b])
         if pm.fr_noise[e] > 0.0:
             for b in range(nb):
                 f[dof, b] -= pm.fr_noise[e] * gauss(seeds[b], k, 1 + e)
@@ -413,9 +493,21 @@ def _sai_forces(pm, z, ps, f, mode):
             ps[P_PULSE, b] -= 1.0
 
 
+_NO_FORCE = np.zeros(0)
+
+
 @njit(cache=True)
 def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds, meas, status):
     """Advance a batch of trials by one control period.
+
+    :func:`plant_step_ext` without an external force (see there for the parameters).
+    """
+    plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, _NO_FORCE, d0, d1, mode, k, seeds, meas, status)
+
+
+@njit(cache=True)
+def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode, k, seeds, meas, status):
+    """Advance a batch of trials by one control period, with an external table force.
 
     Parameters
     ----------
@@ -424,6 +516,10 @@ def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds,
         The fields of a :class:`PlantState` (trial axis last), updated in place.
     u_cmd : ndarray, shape (B,)
         Servo force command [N] (drive input, scaled by the nominal force constant).
+    f_ext : ndarray, shape (B,) or (0,)
+        External force on the table [N], held over the period, not through the drive
+        (delay, limits, force constant, noise); empty = none. Used by the model
+        diagnosis (force observer); the closed loop passes none.
     d0, d1 : ndarray, shape (B,)
         Piezo dither forces [N]: ``+d0`` on the channel-0 bearing, ``-d1`` on the
         channel-1 bearing (Eq. 3.2).
@@ -463,10 +559,16 @@ def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds,
             force[b] += pm.noise_std * w
     nf = pm.fr_kind.shape[0]
     j0, j1 = pm.dither_dof[0], pm.dither_dof[1]
+    ext = f_ext.shape[0] > 0
 
-    for _ in range(pm.n_sub):
+    for sub in range(pm.n_sub):
+        t_sub = k * pm.dt + (sub + 0.5) * pm.h
         for b in range(nb):
             f[0, b] = force[b]
+            if pm.table_force:
+                f[0, b] += _table_force(pm, z[0, b], t_sub)
+            if ext:
+                f[0, b] += f_ext[b]
             for i in range(1, n):
                 f[i, b] = 0.0
             if j0 >= 0:
@@ -514,8 +616,12 @@ def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds,
                     a = zn[n + dof, b]
                     f_stop = a / g
                     lim = pm.fr_par[e, 1] if z[n + dof, b] == 0.0 else pm.fr_par[e, 0]
+                    sc = 1.0
+                    if pm.fr_var[e, 0] != 0.0:
+                        sc = _var_scale(pm, e, z[dof, b], 1.0 if a > 0.0 else -1.0)
+                        lim *= sc
                     stick = abs(f_stop) <= lim
-                    fc = f_stop if stick else pm.fr_par[e, 0] * (1.0 if a > 0.0 else -1.0)
+                    fc = f_stop if stick else pm.fr_par[e, 0] * sc * (1.0 if a > 0.0 else -1.0)
                     for r in range(nz):
                         zn[r, b] -= pm.gam[r, dof] * fc
                     if stick:
@@ -584,15 +690,20 @@ class PlantSim:
         self.meas[1] = ([quantize(x, pm.q_bearing) for x in self.state.z[pm.bsens_dof]]
                         if pm.bsens_dof >= 0 else np.nan)
 
-    def step(self, u, d0=0.0, d1=0.0, mode=1.0):
-        """Apply command ``u`` [N], dither ``d0, d1`` [N] and SAI ``mode`` for one period.
+    def step(self, u, d0=0.0, d1=0.0, mode=1.0, f_ext=None):
+        """Apply command ``u`` [N], dither ``d0, d1`` [N] and SAI ``mode`` for one period,
+        and optionally an external table force ``f_ext`` [N] (:func:`plant_step_ext`).
 
         Returns the measurement (2, n_trials): table and bearing-sensor positions [m].
         Raises :class:`SimulationError` if a trial diverged or left the travel.
         """
         b = self._zeros.shape[0]
-        args = [np.broadcast_to(np.asarray(v, float), (b,)).copy() for v in (u, d0, d1, mode)]
-        plant_step(self.pm, *self.state, *args, self.k, self.seeds, self.meas, self.status)
+        u, d0, d1, mode = [np.broadcast_to(np.asarray(v, float), (b,)).copy() for v in (u, d0, d1, mode)]
+        if f_ext is None:
+            plant_step(self.pm, *self.state, u, d0, d1, mode, self.k, self.seeds, self.meas, self.status)
+        else:
+            fe = np.broadcast_to(np.asarray(f_ext, float), (b,)).copy()
+            plant_step_ext(self.pm, *self.state, u, fe, d0, d1, mode, self.k, self.seeds, self.meas, self.status)
         self.k += 1
         if self.status.any():
             i = int(np.flatnonzero(self.status)[0])

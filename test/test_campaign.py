@@ -45,9 +45,9 @@ def test_every_campaign_file_validates(name):
     for v in c.seed.values:                     # every seed number belongs to exactly one condition
         assert len([x for x in conds if x.matches(**v.at())]) == 1
     assert c.seed.findings, "every campaign states the seed's findings"
-    if c.calibration:
-        for p in c.calibration.parameters:     # fitted to a baseline number only
-            assert c.seed_value(c.baseline, p.target.metric, **p.target.at()) is not None
+    fitted = cm.calibration_source(c) or c      # calibration: {from: NAME} reuses NAME's baseline fit
+    for p in cm.cal_parameters(c):              # fitted to a baseline number only
+        assert fitted.seed_value(fitted.baseline, p.target.metric, **p.target.at()) is not None
 
 
 def test_main_job_campaigns_are_shipped():
@@ -85,7 +85,7 @@ def _tiny(**extra):
 @pytest.mark.parametrize("mutate, where", [
     (lambda d: d["cases"][0].update(bogus=1), "cases.0.bogus: unknown key"),
     (lambda d: d.update(trials=0), "trials"),
-    (lambda d: d["test"].update(steps=[]), "test.point_to_point.steps"),
+    (lambda d: d["test"].update(steps=[]), "test.steps"),
     (lambda d: d["seed"]["findings"][0].update(metric="peak_tracking_error_m"), "seed.findings.0 (f)"),
     (lambda d: d["seed"]["findings"][0].update(step=1e-3), "seed.findings.0 (f): no condition matches"),
     (lambda d: d["seed"]["values"][0].update(case="nobody"), "seed.values.0: case 'nobody'"),

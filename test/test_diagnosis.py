@@ -3,7 +3,6 @@
 The end-to-end concealed-data cases (synth -> MCAP -> diagnose) are in
 test_diagnosis_selftest.py; here the pieces, on short in-memory batches.
 """
-import json
 import math
 
 import numpy as np
@@ -12,24 +11,23 @@ import yaml
 
 from experiment_runner import profiles
 from experiment_runner.batch import simulate
-from experiment_runner.diagnosis import engine as E
 from experiment_runner.diagnosis.data import DiagData
 from experiment_runner.diagnosis.fit import (Evaluator, estimate_lattice, fit_effect, gauss_newton,
                                              sparse_regression)
 from experiment_runner.diagnosis.hypotheses import LIBRARY, describe, get_effect, virgin_x50
 from experiment_runner.diagnosis.locate import REGIMES, regimes
-from experiment_runner.diagnosis.model import AddTerm, ModelSpec, load_model
-from experiment_runner.diagnosis.predict import NoiseFloor, Observer, closed_loop, sim_data
-from stage_sim.config import load_preset, preset_from_dict, with_overrides
+from experiment_runner.diagnosis.model import ModelSpec, load_model
+from experiment_runner.diagnosis.predict import NoiseFloor, Observer, closed_loop, sim_batch, sim_data
+from stage_sim.config import ConfigError, load_preset, preset_from_dict, with_overrides
 
 NOM = load_preset("fi_stage_nofi")
 
 
-def _data(preset_or_spec, n=4, seed0=100, additive=()):
+def _data(preset_or_spec, n=4, seed0=100):
     """Circle trials simulated from a truth, as DiagData (trial 3 held out)."""
     ref = profiles.circle_x(1e-3, 20e-3, cycles=1)
     x0 = np.linspace(-4e-3, 4e-3, n)
-    spec = preset_or_spec if isinstance(preset_or_spec, ModelSpec) else ModelSpec(preset_or_spec, tuple(additive))
+    spec = preset_or_spec if isinstance(preset_or_spec, ModelSpec) else ModelSpec(preset_or_spec)
     xr = (ref.x[:, None] + x0[None, :])
     vr = np.repeat(ref.v[:, None], n, axis=1)
     y, u, _ = closed_loop(spec, xr, vr, seed0 + np.arange(n))
@@ -45,22 +43,20 @@ def _data(preset_or_spec, n=4, seed0=100, additive=()):
 
 
 # --------------------------------------------------------------------------- kernels
-def test_closed_loop_kernel_is_batch_simulate():
-    """Without additive forces, the diagnosis closed loop reproduces batch.simulate bit for bit
-    (drive delay, noise, quantization included)."""
-    p = with_overrides(NOM, {"stage.drive.delay_samples": 2})
-    ref = profiles.point_to_point(5e-6, dwell=0.02)
-    xr = np.stack([ref.x, ref.x + 1e-3], axis=1)
-    vr = np.stack([ref.v, ref.v], axis=1)
-    res = simulate(p, xr.T, vr.T, seeds=[5, 6])
-    y, u, x = closed_loop(ModelSpec(p), xr, vr, [5, 6], use_batch=False)
-    assert np.array_equal(y, res.y.T) and np.array_equal(u, res.u.T)
+def test_simulated_recordings_of_several_seeds_are_one_batch_call():
+    """sim_batch runs (trials x seeds) as one batch call; each seed's recording is the
+    batch engine's own trials with those seeds (batching changes nothing)."""
+    d = _data(NOM, n=2)
+    a, b = sim_batch(ModelSpec(NOM), d, [7, 50])
+    res = simulate(NOM, d.x_ref.T, d.v_ref.T, seeds=[50, 51])
+    assert np.array_equal(b.y, res.y.T) and np.array_equal(b.u, res.u.T)
+    assert not np.array_equal(a.y, b.y)
 
 
 def test_observer_residual_is_the_missing_force():
     """A nominal model lacking a constant 0.3 N table force: the force residual is 0.3 N
     (up to noise); the exact model leaves only the noise floor."""
-    truth = ModelSpec(NOM, (AddTerm("offset", 0.3),))
+    truth = ModelSpec(with_overrides(NOM, {"stage.force_offset": 0.3}))
     d = _data(truth)
     ob = Observer(d)
     r = ob.run(ModelSpec(NOM)).r
@@ -160,7 +156,7 @@ def test_every_effect_applies_to_the_nominal(key):
     assert all(p.lo <= p.x0 <= p.hi for p in ps), key
     new = e.apply(spec, [p.x0 for p in ps])
     preset_from_dict(new.preset.model_dump())            # still a valid preset
-    assert bool(new.additive) == (not e.expressible), key
+    assert e.expressible, key
     new.compiled()
 
 
@@ -175,15 +171,23 @@ def test_list_effects_covers_the_issue():
 
 
 def test_model_file_round_trip(tmp_path):
-    spec = ModelSpec(NOM, (AddTerm("sin_x", 0.2, (4e-4, 0.3), "ripple"), AddTerm("offset", 0.1)))
-    path = tmp_path / "model.yaml"
-    path.write_text(spec.model_yaml())
-    back = load_model(path)
-    assert back.preset == NOM
-    assert [a.to_dict() for a in back.additive] == [a.to_dict() for a in spec.additive]
+    """Every effect is a preset field: the improved preset YAML (here with ripple, offset and
+    asymmetric friction) loads back as the same preset; the old additive-force files are refused."""
+    spec = ModelSpec(NOM)
+    spec = get_effect("ripple").apply(spec, [0.1, 0.05, 4e-4])
+    spec = get_effect("offset").apply(spec, [0.2])
+    spec = get_effect("friction_asymmetry").apply(spec, [0.5, 3.0])
     pre = tmp_path / "p.yaml"
     pre.write_text(spec.preset_yaml())
-    assert load_preset(pre) == NOM
+    back = load_preset(pre)
+    assert back == spec.preset and back.stage.force_offset == 0.2
+    assert back.stage.force_ripple[0].amplitude == pytest.approx(np.hypot(0.1, 0.05))
+    assert sum(b.friction.f_c_difference for b in back.stage.bearings) == pytest.approx(0.5)
+    assert load_model({"preset": back.model_dump(mode="json")}).preset == back
+    bad = tmp_path / "m.yaml"
+    bad.write_text(yaml.safe_dump({"preset": "fi_stage_nofi", "additive_forces": [{"kind": "offset", "coef": 1}]}))
+    with pytest.raises(ConfigError, match="force_offset"):
+        load_model(bad)
 
 
 def test_virgin_x50_of_dahl():
@@ -206,3 +210,20 @@ def test_regimes_of_steps_and_circle():
     half = len(c.x) // 2
     assert REGIMES[lab[half, 0]] == "reversal"
     assert REGIMES[lab[half // 2, 0]] == "constant_velocity"
+
+
+def test_experiment_sine_sweep_profile():
+    """The experiment schema's stepped sine is profiles.sine_sweep; its trials start inside the travel."""
+    from experiment_runner.experiment import Experiment, build_trials, reference
+    exp = Experiment.model_validate({"name": "s", "preset": "fi_stage_nofi", "trials": 2,
+                                     "starts": {"margin": 0.005, "seed": 1},
+                                     "profile": {"kind": "sine_sweep", "frequencies": [8.0, 25.0],
+                                                 "amplitude": 1.5e-4, "periods": 4, "settle_periods": 1}})
+    ref = reference(exp.profile, 1e-4)
+    want = profiles.sine_sweep([8.0, 25.0], 1.5e-4, periods=4, settle_periods=1, dt=1e-4)
+    assert np.array_equal(ref.x, want.x) and [s.frequency for s in ref.segments] == [8.0, 25.0]
+    tr = build_trials(exp)
+    assert len(tr) == 2 and all(np.allclose(t.x_ref - t.x_ref[0], ref.x, rtol=0, atol=1e-15) for t in tr)
+    with pytest.raises(Exception, match="frequencies"):
+        Experiment.model_validate({**exp.model_dump(), "profile": {"kind": "sine_sweep", "frequencies": [],
+                                                                   "amplitude": 1e-4}})

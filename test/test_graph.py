@@ -337,21 +337,42 @@ def test_servo_killed_mid_trial_aborts_the_trial_naming_it(tmp_path, listener_fa
     assert np.array_equal(rec.y[tr.slice], res.y[killed][:tr.stop - tr.start])
 
 
-def test_recorder_killed_mid_run_leaves_a_salvageable_file(tmp_path, listener_factory):
+def test_recorder_killed_mid_run_leaves_a_salvageable_file_and_a_restarted_one_the_rest(
+        tmp_path, listener_factory):
     domain = _domain()
     lst = listener_factory(domain)
-    g = Graph("fi_p2p_5um", tmp_path, domain, params={"experiment_sequencer": WITH_LISTENER})
+    params = {"experiment_sequencer": {**WITH_LISTENER, "sample_timeout": 120.0},
+              "plant_sim": {"input_timeout": 120.0}}
+    g = Graph("fi_p2p_5um", tmp_path, domain, params=params)
     try:
         seq = g.procs["experiment_sequencer"]
         # trial 2 starts after 2454 samples: two 0.1 s chunks are closed by then
         heard = lst.wait_for(lambda ev: any(e["event"] == "trial_start" and e["trial"] == 2 for e in ev),
                              RUN_TIMEOUT, alive=lambda: seq.poll() is None)
         assert heard, "trial 2 did not start within the timeout"
+        g.procs["servo_controller"].send_signal(signal.SIGSTOP)   # hold the loop while the recorder restarts
         g.kill("recorder")
+        again = Graph("fi_p2p_5um", tmp_path, domain, nodes=("recorder",))
+        g.procs.update(again.procs)
+        deadline = time.monotonic() + RUN_TIMEOUT                  # until it has the run's config
+        while "recording to" not in g.stderr("recorder") and time.monotonic() < deadline:
+            time.sleep(0.2)
+        g.procs["servo_controller"].send_signal(signal.SIGCONT)
         code = g.wait_sequencer(timeout=RUN_TIMEOUT)               # the recorder is not in the loop
     finally:
+        for p in g.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGCONT)
         codes = g.stop()
     assert code == 0 and all(c != "hung" for c in codes.values()), codes
+    # the restarted recorder did not replace the first part: it wrote the next free bag, the rest of the run
+    second = read_recording(tmp_path / "run_2")
+    assert second.salvaged is None and [e["event"] for e in second.events][-1] == "run_end"
+    assert [r["trial"] for r in second.results] == [2] and not any(e["event"] == "abort" for e in second.events)
+    _, trials, res = _batch("fi_p2p_5um")
+    everything = np.concatenate([res.y[t.index] for t in trials])
+    k = second.stamp_ns // 100_000                                 # run sample index (10 kHz)
+    assert 0 < len(second) and np.array_equal(second.y, everything[k])
     rec = read_recording(tmp_path / "run")
     assert isinstance(rec.salvaged, str) and rec.salvaged, "a cut file says what was salvaged"
     _, trials, res = _batch("fi_p2p_5um")

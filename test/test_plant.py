@@ -157,3 +157,85 @@ def test_substeps_converge():
     b = simulate(fine, ref.x, ref.v, seeds=[0])
     err = np.max(np.abs(a.x_table - b.x_table))
     assert err < 0.02 * 5e-6
+
+
+# --------------------------------------------------------------------------- table forces, friction variations
+def test_variations_off_by_default():
+    pm = build_plant(load_preset("fi_stage_nofi").stage)
+    assert not pm.table_force and not pm.fr_var.any()
+    assert pm.ripple.shape == (0, 3) and pm.periodic.shape == (0, 3)
+
+
+def test_force_offset_equals_external_force_and_bypasses_the_drive():
+    """``stage.force_offset`` and the external input of plant_step_ext are the same table
+    force; neither passes through the drive (here: 3 samples of delay)."""
+    drive = dict(DRIVE, delay_samples=3)
+    a = PlantSim(build_plant(_stage(force_offset=0.5, drive=drive)))
+    b = PlantSim(build_plant(_stage(drive=drive)))
+    for _ in range(20):
+        a.step(0.0)
+        b.step(0.0, f_ext=0.5)
+    np.testing.assert_array_equal(a.state.z, b.state.z)
+    t = 20 * 1e-4
+    assert a.positions[0, 0] == pytest.approx(0.5 * 0.5 * t * t, rel=1e-9)   # no delay: F/m from t = 0
+
+
+def test_force_ripple_and_periodic_force():
+    """Frictionless table: a ripple pushes with A sin(2 pi x0/p + phase) at rest at x0; a
+    fixed-frequency force gives v(t) = A/(m w) (cos phase - cos(w t + phase))."""
+    x0, per, amp = 1.3e-4, 4e-4, 0.2
+    sim = PlantSim(build_plant(_stage(force_ripple=[dict(amplitude=amp, period=per, phase=0.3)])), x0=x0)
+    sim.step(0.0)
+    assert sim.velocities[0, 0] == pytest.approx(amp * np.sin(2 * np.pi * x0 / per + 0.3) * 1e-4, rel=1e-6)
+    f, ph = 37.0, 0.4
+    sim = PlantSim(build_plant(_stage(periodic_force=[dict(amplitude=amp, frequency=f, phase=ph)])))
+    w = 2 * np.pi * f
+    for k in range(1, 301):
+        sim.step(0.0)
+        t = k * 1e-4
+        assert sim.velocities[0, 0] == pytest.approx(amp / w * (np.cos(ph) - np.cos(w * t + ph)), abs=1e-3 * amp / w)
+
+
+def test_direction_dependent_coulomb_and_viscous_friction():
+    """Sliding at steady state: F = F_C+- + c+- |v| with F_C+- = f_c +- dF/2, c+- = c +- dc/2."""
+    fr = dict(model="coulomb", f_c=1.0, viscous=200.0, f_c_difference=0.4, viscous_difference=100.0)
+    for sign, fc, c in ((1, 1.2, 250.0), (-1, 0.8, 150.0)):
+        sim = PlantSim(build_plant(_stage(table_friction=fr)))
+        _settle(sim, sign * 3.0, 3000)
+        assert abs(sim.velocities[0, 0]) == pytest.approx((3.0 - fc) / c, rel=1e-6)
+
+
+def test_position_dependent_friction_level():
+    """F_C(x) = f_c + g (x - x_c): at x0 the stage sticks below F_C(x0) and slides above it;
+    a Dahl element's force scales the same way."""
+    fr = dict(model="coulomb", f_c=1.0, f_c_gradient=100.0, position_center=0.002)
+    x0 = 0.012                                               # F_C(x0) = 2 N
+    for force, moves in ((1.9, False), (2.1, True)):
+        sim = PlantSim(build_plant(_stage(table_friction=fr)), x0=x0)
+        _settle(sim, force, 50)
+        assert (sim.positions[0, 0] != x0) == moves
+    # Dahl: near x0 the element is a Dahl element of twice the force (F_C and k_sigma doubled)
+    x = []
+    for fr in (dict(model="dahl", k_sigma=1e6, f_c=1.0, f_c_gradient=100.0, position_center=0.002, viscous=50.0),
+               dict(model="dahl", k_sigma=2e6, f_c=2.0, viscous=50.0)):
+        sim = PlantSim(build_plant(_stage(table_friction=fr)), x0=x0)
+        _settle(sim, 1.5, 2000)                              # below 2 N: pre-motion only
+        x.append(sim.positions[0, 0] - x0)
+    assert 0 < x[0] < 1e-5 and x[0] == pytest.approx(x[1], rel=2e-3)
+
+
+def test_friction_variation_is_validated():
+    from stage_sim.config import ConfigError, preset_from_dict
+    data = load_preset("fi_stage_nofi").model_dump()
+    data["stage"]["bearings"][0]["friction"]["f_c_difference"] = 6.0     # f_c = 2.655
+    with pytest.raises(ConfigError, match=r"bearings\.0\.friction.*f_c_difference"):
+        preset_from_dict(data, "p.yaml")
+    data = load_preset("fi_stage_nofi").model_dump()
+    data["stage"]["force_ripple"] = [dict(amplitude=0.1, period=0.0)]
+    with pytest.raises(ConfigError, match=r"force_ripple\.0\.period"):
+        preset_from_dict(data, "p.yaml")
+    data = load_preset("fi_stage_nofi").model_dump()
+    data["controller"]["feedforward"] = {"friction": dict(data["stage"]["bearings"][0]["friction"],
+                                                          f_c_gradient=1.0)}
+    with pytest.raises(ConfigError, match="feedforward.*no friction variation"):
+        preset_from_dict(data, "p.yaml")

@@ -16,7 +16,7 @@ import yaml
 
 from stage_control import tuning
 from stage_control.tuning import closed_loop_bandwidth_hz, loop_shape_pid, margins
-from stage_sim.config import PRESET_DIR, ConfigError, list_presets, load_preset, preset_from_dict
+from stage_sim.config import PRESET_DIR, ConfigError, list_presets, load_preset, preset_from_dict, with_overrides
 
 EXPECTED = {
     "als130h", "als130h_niasa", "van_sim", "van_sim_asym", "van_stage",
@@ -356,3 +356,132 @@ def test_broken_preset_file_raises(tmp_path, edit, field):
     with pytest.raises(ConfigError) as err:
         load_preset(f)
     assert field in str(err.value) and str(f) in str(err.value)
+
+
+# --------------------------------------------------------------------------- error messages, units, safe YAML
+def _write(tmp_path, data, name="p.yaml"):
+    f = tmp_path / name
+    f.write_text(yaml.safe_dump(data, sort_keys=False))
+    return f
+
+
+def test_error_lines_name_file_field_value_and_what_is_allowed(tmp_path):
+    data = yaml.safe_load((PRESET_DIR / "fi_stage.yaml").read_text())
+    data["stage"]["table"]["mass"] = -1
+    data["stage"]["table"]["mas"] = 3
+    del data["stage"]["drive"]["peak_force"]
+    data["stage"]["bearings"][0]["friction"]["model"] = "dahll"
+    data["controller"]["pid"]["kp"] = True
+    f = _write(tmp_path, data)
+    with pytest.raises(ConfigError) as err:
+        load_preset(f)
+    lines = str(err.value).splitlines()
+    assert lines[0] == f"{f}: invalid preset"
+    assert set(lines[1:]) == {
+        "  stage.table.mass: got -1; expected greater than 0 -- moving table mass [kg] (rotary: inertia [kg·m²])",
+        "  stage.table.mas: unknown key (got 3); allowed keys: mass",
+        "  stage.bearings.0.friction.model: got 'dahll'; expected one of 'dahl', 'gms', 'lugre', 'coulomb'",
+        "  stage.drive.peak_force: required field is missing -- peak force limit [N]",
+        "  controller.pid.kp: expected a number, not true/false (got True)",
+    }
+    assert {p.path for p in err.value.problems} == {"stage.table.mass", "stage.table.mas", "stage.drive.peak_force",
+                                                    "stage.bearings.0.friction.model", "controller.pid.kp"}
+
+
+def test_a_stiffness_in_n_per_um_is_refused_as_likely_the_wrong_unit(tmp_path):
+    data = yaml.safe_load((PRESET_DIR / "fi_stage.yaml").read_text())
+    data["stage"]["bearings"][0]["joint"]["stiffness"] = 0.04135          # 4.135e4 N/m written in N/µm
+    data["stage"]["table"]["mass"] = 1040.8                               # 1.0408 kg written in g
+    f = _write(tmp_path, data)
+    with pytest.raises(ConfigError) as err:
+        load_preset(f)
+    msg = str(err.value)
+    assert msg.startswith(f"{f}: implausible value(s) (a wrong unit?)")
+    assert ("  stage.bearings.0.joint.stiffness: got 0.04135 N/m, outside the plausible range 1 to 1e+10 N/m; "
+            "likely given in N/mm (0.04135 N/mm = 41.35 N/m) or N/µm (0.04135 N/µm = 4.135e+04 N/m) "
+            "instead of N/m") in msg
+    assert "  stage.table.mass: got 1040.8 kg, outside the plausible range 0.0001 to 1000 kg; likely given in g" in msg
+    assert "plausibility: warn" in msg
+    # a deliberate value: the file says so, and loads with a warning naming the field
+    data["plausibility"] = "warn"
+    with pytest.warns(UserWarning, match="stage.bearings.0.joint.stiffness: got 0.04135"):
+        p = load_preset(_write(tmp_path, data, "warn.yaml"))
+    assert p.stage.bearings[0].joint.stiffness == 0.04135
+    data["plausibility"] = "off"
+    load_preset(_write(tmp_path, data, "off.yaml"))
+
+
+def test_overrides_are_checked_and_a_wrong_path_is_named():
+    p = load_preset("fi_stage")
+    with pytest.raises(ConfigError, match=r"^exp.yaml: implausible.*\n  controller.pid.kp: got 0.8 N/m.*N/µm"):
+        with_overrides(p, {"controller.pid.kp": 0.8}, "exp.yaml")
+    with pytest.raises(ConfigError, match=r"^exp.yaml: override 'stage.tabel.mass': stage has no field 'tabel' "
+                                          r"\(fields: kind, table, "):
+        with_overrides(p, {"stage.tabel.mass": 1.0}, "exp.yaml")
+    with pytest.raises(ConfigError, match=r"override 'stage.bearings.7.mass': stage.bearings has 2 item\(s\), "
+                                          r"no item '7'"):
+        with_overrides(p, {"stage.bearings.7.mass": 1.0}, "exp.yaml")
+
+
+def test_yaml_is_loaded_safely_and_duplicate_keys_are_refused(tmp_path):
+    text = (PRESET_DIR / "fi_stage.yaml").read_text()
+    f = tmp_path / "dup.yaml"
+    f.write_text(text.replace("name: fi_stage\n", "name: fi_stage\nname: other\n", 1))
+    with pytest.raises(ConfigError, match=rf"^{f}: not valid YAML at line 9, column 1: "
+                                          r"found duplicate key 'name' \(first at line 8\)"):
+        load_preset(f)
+    marker = tmp_path / "executed"
+    f.write_text(f"!!python/object/apply:os.system ['touch {marker}']\n")
+    with pytest.raises(ConfigError, match=rf"^{f}: not valid YAML at line 1, column 1: could not determine a "
+                                          "constructor for the tag 'tag:yaml.org,2002:python/object/apply:os.system'"):
+        load_preset(f)
+    assert not marker.exists()
+    f.write_text("name: [unclosed\n")
+    with pytest.raises(ConfigError, match=rf"^{f}: not valid YAML at line 2, column 1: "):
+        load_preset(f)
+    f.write_bytes(b"\xff\xfe\x00bad")
+    with pytest.raises(ConfigError, match=rf"{f}: cannot read the preset file"):
+        load_preset(f)
+
+
+# --------------------------------------------------------------------------- node parameter files
+def _run_node(node: str, pfile, values: dict):
+    """Start a node executable with a params file in its own domain; (exit code, stderr)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from msg_defs.node_io import domain_env
+    pfile.write_text(yaml.safe_dump({node: {"ros__parameters": values}}))
+    env = domain_env(101 + os.getpid() % 100)          # a domain of its own (graph tests use 1..100)
+    proc = subprocess.run([str(Path(sys.executable).parent / node), "--ros-args", "--params-file", str(pfile)],
+                          env=env, capture_output=True, text=True, timeout=120)
+    return proc.returncode, proc.stderr
+
+
+def test_node_parameter_files_are_checked_like_every_other_file(tmp_path):
+    code, err = _run_node("plant_sim", tmp_path / "typo.yaml", {"input_timeot": 2.0})
+    assert code == 2 and "Traceback" not in err
+    assert f"error: plant_sim (params file {tmp_path / 'typo.yaml'}): invalid parameters\n" in err
+    assert "  input_timeot: unknown parameter (got 2.0); allowed: " in err and "input_timeout" in err.split("allowed:")[1]
+    code, err = _run_node("plant_sim", tmp_path / "neg.yaml", {"input_timeout": -1.0})
+    assert code == 2 and ("  input_timeout: got -1.0; expected a number from 0.01 to 3600.0 -- wall-clock time "
+                          "to wait for a sample's inputs") in err
+    bad = tmp_path / "bad_preset.yaml"
+    data = yaml.safe_load((PRESET_DIR / "fi_stage.yaml").read_text())
+    data["stage"]["bearings"][0]["joint"]["stiffness"] = 0.04135
+    bad.write_text(yaml.safe_dump(data))
+    code, err = _run_node("plant_sim", tmp_path / "preset.yaml", {"preset": str(bad)})
+    assert code == 2 and f"  preset: got '{bad}'; {bad}: implausible value(s)" in err
+    assert "stage.bearings.0.joint.stiffness: got 0.04135 N/m" in err and "N/µm" in err
+
+
+def test_a_node_started_by_hand_defaults_to_a_local_graph_on_an_explicit_domain():
+    from msg_defs.node_io import GRAPH_DEFAULTS, apply_graph_defaults
+    env = {}
+    assert apply_graph_defaults(env) == GRAPH_DEFAULTS and env == GRAPH_DEFAULTS
+    env = {"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}      # opened on purpose
+    assert apply_graph_defaults(env) == {} and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+    env = {"ROS_LOCALHOST_ONLY": "0"}
+    assert apply_graph_defaults(env) == {"ROS_DOMAIN_ID": "42"}

@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import numpy as np
@@ -393,7 +392,6 @@ def _batch(preset, n, rng, failed=False):
 
 
 def test_write_run_with_dither_sai_and_a_failed_trial(tmp_path):
-    from stage_sim.config import with_overrides
     rng = np.random.default_rng(5)
     preset = load_preset("van_stage")
     assert preset.dither is not None
@@ -555,3 +553,100 @@ def test_trials_without_end_events(tmp_path):
     assert (t1.start, t1.stop, t1.complete) == (10, 30, False)
     chk = check_metrics(rec.path)
     assert [r["complete"] for r in chk["trials"]] == [False, False] and chk["ok"] is None
+
+
+# --------------------------------------------------------------------------- damage
+def test_recorder_writes_chunk_crcs_and_a_bad_crc_is_refused(synthetic, tmp_path):
+    """Every chunk we write carries the CRC-32 of its records; one flipped bit inside a
+    chunk of a complete file is a RecordingError naming the chunk, not silently wrong data."""
+    import zlib
+    from io import BytesIO
+
+    from mcap.records import Chunk
+    rec, _ = synthetic
+    data = rec.path.read_bytes()
+    chunks = [r for r in StreamReader(BytesIO(data), emit_chunks=True).records if isinstance(r, Chunk)]
+    assert len(chunks) > 3 and all(c.uncompressed_crc == zlib.crc32(c.data) != 0 for c in chunks)
+    second_chunk_end = _chunks(data)[0][1][0]
+    bad = bytearray(data)
+    bad[second_chunk_end - 50] ^= 0x10          # inside the records of the second chunk
+    path = tmp_path / "flipped.mcap"
+    path.write_bytes(bytes(bad))
+    with pytest.raises(RecordingError, match=r"damaged: a chunk \(stage time 0\.0[0-9]+ s to 0\.0[0-9]+ s\) "
+                                             r"fails its CRC check at byte \d+ .*1 chunk\(s\) before it"):
+        read_recording(path)
+
+
+def test_corrupt_length_in_a_complete_file_is_damage_not_a_cut(synthetic, tmp_path):
+    import struct
+    rec, _ = synthetic
+    data = bytearray(rec.path.read_bytes())
+    start = _chunks(bytes(data))[1].chunk_indexes[1].chunk_start_offset
+    struct.pack_into("<Q", data, start + 1, 2**40)      # the length of the second chunk record
+    assert len(read_recording(_put(tmp_path / "index.mcap", data))) == 1200   # the index has the true length
+    footer = len(data) - 8 - (1 + 8 + 8 + 8 + 4)
+    struct.pack_into("<Q", data, footer + 9, 0)         # footer: no summary -> read record by record
+    with pytest.raises(RecordingError, match="damaged: .* runs past the end of the data .*the length is wrong"):
+        read_recording(_put(tmp_path / "badlength.mcap", data))
+
+
+def _put(path, data):
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_truncated_bag_says_how_much_of_the_recording_was_salvaged(synthetic, tmp_path):
+    """Cut inside a bag directory: the note gives salvaged / recorded messages (metadata.yaml)."""
+    import shutil
+    rec, _ = synthetic
+    bag = tmp_path / "cut"
+    shutil.copytree(rec.bag_dir, bag)
+    mcap = bag / rec.path.name
+    data = mcap.read_bytes()
+    chunks, summary = _chunks(data)
+    total = summary.statistics.message_count
+    cut = chunks[2][0] + 7
+    mcap.write_bytes(data[:cut])
+    r = read_recording(bag)
+    n = sum(c[1] for c in chunks[:3])
+    assert f"salvaged {n} messages of {total} recorded, stage time 0.000000 s to " in r.salvaged
+    assert "from 3 complete chunk(s)" in r.salvaged and f"at byte {cut - 7} of {cut}" in r.salvaged
+
+
+def test_undeclared_channel_and_unreadable_events(tmp_path):
+    from mcap.writer import Writer as RawWriter
+    msgdef, _ = TS.generate_msgdef("sensor_msgs/msg/JointState", ros_version=2)
+    path = tmp_path / "undeclared.mcap"
+    with open(path, "wb") as f:
+        w = RawWriter(f)
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema("sensor_msgs/msg/JointState", "ros2msg", msgdef.encode())
+        for t in CONTRACT_TOPICS:
+            cid = w.register_channel(t, "cdr", sid)
+            w.add_message(cid, log_time=0, publish_time=0, data=TS.serialize_cdr(
+                convert.joint_state(TS, 0, ["table", "motor"], position=[0.0, 0.0], effort=[0.0, 0.0]),
+                "sensor_msgs/msg/JointState"))
+        w.add_message(77, log_time=0, publish_time=0, data=b"")
+        w.finish()
+    with pytest.raises(RecordingError, match="on channel 77, which the file does not declare"):
+        read_recording(path)
+    # events of the wrong shape are skipped with a warning, never break trials()
+    with McapRecorder(tmp_path / "events") as rec:
+        rec.write("/experiment/events", 0, convert.string_msg(TS, '{"event": "trial_start", "stamp_ns": "0"}'))
+        rec.write("/experiment/events", 0, convert.string_msg(TS, '{"event": "trial_start", "stamp_ns": 0, '
+                                                                  '"trial": true}'))
+        rec.write("/experiment/events", 0, convert.string_msg(TS, "[1, 2]"))
+        rec.write("/stage/reference", 0, convert.joint_state(TS, 0, ["table"], position=[0.0]))
+        rec.write("/stage/command", 0, convert.joint_state(TS, 0, ["motor"], effort=[0.0]))
+        rec.write("/stage/measured", 0, convert.joint_state(TS, 0, ["table"], position=[0.0]))
+    r = read_recording(rec.path)
+    assert r.events == [] and r.trials() == [] and len(r.warnings) == 3
+    assert "stamp_ns '0' is not an integer" in r.warnings[0] and "trial True is not an integer" in r.warnings[1]
+
+
+def test_a_pipe_or_device_is_refused_without_blocking(tmp_path):
+    fifo = tmp_path / "run.mcap"
+    os.mkfifo(fifo)                                   # opening it for reading would wait for a writer
+    for p in (fifo, Path("/dev/zero")):
+        with pytest.raises(RecordingError, match=f"^{p}: not a regular file"):
+            read_recording(p)

@@ -7,6 +7,7 @@ force observer, open-loop windows, noise floor) -> locate (:mod:`.locate`) -> na
 (:mod:`.report`). :mod:`.synth` makes concealed-truth recordings; :mod:`.selftest`
 proves the chain on them. Command line: :mod:`.cli`.
 """
-from .cli import add_diagnose_arguments, add_synth_arguments, main_diagnose, main_synth
+from .cli import add_diagnose_arguments, main_diagnose
+from .synth import add_synth_arguments, main_synth
 
 __all__ = ["add_diagnose_arguments", "main_diagnose", "add_synth_arguments", "main_synth"]

@@ -1,28 +1,19 @@
-"""Command-line entry points: ``nanostage diagnose`` and ``nanostage synth``.
+"""Command-line entry of ``nanostage diagnose`` (wired in :mod:`experiment_runner.cli`).
 
-Wire them into ``experiment_runner/cli.py`` with::
-
-    from experiment_runner.diagnosis import add_diagnose_arguments, add_synth_arguments
-    p = sub.add_parser("diagnose", help="locate, name and fit what a nominal model misses in a recording")
-    add_diagnose_arguments(p); p.set_defaults(func=lambda a: main_diagnose(a))
-    p = sub.add_parser("synth", help="simulate an experiment on a concealed truth model into a recording")
-    add_synth_arguments(p); p.set_defaults(func=lambda a: main_synth(a))
-
-Heavy modules are imported inside the ``main_*`` functions, so building the parser is cheap.
+Heavy modules are imported inside :func:`main_diagnose`, so building the parser is cheap.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 
-__all__ = ["add_diagnose_arguments", "main_diagnose", "add_synth_arguments", "main_synth"]
+__all__ = ["add_diagnose_arguments", "main_diagnose"]
 
 
 def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("recording", nargs="?", help="contract recording (MCAP file or bag directory)")
     parser.add_argument("nominal", nargs="?", help="nominal model: preset name or YAML, or model file "
-                                                   "{preset, additive_forces}; default: the preset in the "
+                                                   "{preset}; default: the preset in the "
                                                    "recording's /experiment/config, if any")
     parser.add_argument("--out", default=None, help="output folder for report.json/.md, plots, improved model "
                                                     "(default out/diagnose/<recording name>)")
@@ -37,6 +28,10 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
     parser.add_argument("--max-fit-seconds", type=float, default=3.0, help="cap of the fit set [s of data]")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--verbose", action="store_true", help="progress on stdout")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="local processes for the candidate fits (default: threads of this process)")
+    parser.add_argument("--cluster", default=None, metavar="ADDRESS",
+                        help="Dask scheduler address (e.g. tcp://host:8786) to run the candidate fits on")
     return parser
 
 
@@ -52,6 +47,14 @@ def _nominal_from_config(path):
     return None, rec
 
 
+def diagnose_options(args):
+    """The :class:`.pipeline.Options` of parsed ``nanostage diagnose`` arguments."""
+    from .pipeline import Options
+    return Options(bandwidth=args.bandwidth, max_fit_seconds=args.max_fit_seconds,
+                   effects=[e.strip() for e in args.effects.split(",")] if args.effects else None,
+                   plots=not args.no_plots, verbose=args.verbose, workers=args.workers, cluster=args.cluster)
+
+
 def main_diagnose(args) -> int:
     if args.list_effects:
         from .hypotheses import describe
@@ -65,13 +68,15 @@ def main_diagnose(args) -> int:
         else:
             print(f"self-test: {s['passed']}/{s['cases']} passed, {s['false_positives']} false positive(s), "
                   f"{s['negative_controls']} negative controls")
+            for kind, row in s["by_profile"].items():
+                print(f"  {kind:18s} {row['passed']}/{row['cases']} passed, {row['false_positives']} false positive(s)")
         return 0 if s["passed"] == s["cases"] else 1
     if not args.recording:
         raise SystemExit("nanostage diagnose: give RECORDING [NOMINAL], or --list-effects, or --selftest")
     from pathlib import Path
 
     from .data import load_data
-    from .pipeline import Options, diagnose
+    from .pipeline import diagnose
     from .report import jsonable
     nominal = args.nominal
     data = None
@@ -82,10 +87,7 @@ def main_diagnose(args) -> int:
                              "give the NOMINAL model")
         data = load_data(rec)
     out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
-    opt = Options(bandwidth=args.bandwidth, max_fit_seconds=args.max_fit_seconds,
-                  effects=[e.strip() for e in args.effects.split(",")] if args.effects else None,
-                  plots=not args.no_plots, verbose=args.verbose)
-    rep = diagnose(args.recording, nominal, out=out, options=opt, data=data)
+    rep = diagnose(args.recording, nominal, out=out, options=diagnose_options(args), data=data)
     if args.json:
         print(json.dumps(jsonable(rep), indent=1))
         return 0
@@ -108,27 +110,3 @@ def main_diagnose(args) -> int:
 def _clean(o):
     from .report import jsonable
     return jsonable(o)
-
-
-def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    from .synth import add_synth_arguments as _add
-    return _add(parser)
-
-
-def main_synth(args) -> int:
-    from .synth import main_synth as _main
-    return _main(args)
-
-
-def main(argv=None) -> int:
-    """Stand-alone entry (``python -m experiment_runner.diagnosis diagnose|synth ...``)."""
-    parser = argparse.ArgumentParser(prog="python -m experiment_runner.diagnosis")
-    sub = parser.add_subparsers(dest="command", required=True)
-    add_diagnose_arguments(sub.add_parser("diagnose", help="diagnose a recording"))
-    add_synth_arguments(sub.add_parser("synth", help="synthesise a concealed-truth recording"))
-    args = parser.parse_args(argv)
-    return main_diagnose(args) if args.command == "diagnose" else main_synth(args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

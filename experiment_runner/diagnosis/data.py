@@ -88,15 +88,15 @@ def _stack(cols, T):
 
 def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trials: int | None = None) -> DiagData:
     """Read ``source`` (path or :class:`~experiment_runner.recording.Recording`) into :class:`DiagData`."""
-    from experiment_runner.recording import Recording, read_recording
+    from experiment_runner.recording import Recording, RecordingError, read_recording
     rec = source if isinstance(source, Recording) else read_recording(source)
     n = len(rec)
     if n < 10:
-        raise ValueError(f"{rec.path}: only {n} control samples")
+        raise RecordingError(f"{rec.path}: only {n} control samples; the diagnosis needs at least 10")
     dts = np.diff(rec.stamp_ns)
     dt = float(np.median(dts)) * 1e-9
     rate = 1.0 / dt
-    notes = []
+    notes = [f"recording {rec.salvaged}"] if rec.salvaged else []
     if np.any(np.abs(dts * 1e-9 - dt) > 0.01 * dt):
         notes.append(f"{int(np.sum(np.abs(dts * 1e-9 - dt) > 0.01 * dt))} irregular sample interval(s)")
     v_ref = rec.v_ref

@@ -15,8 +15,12 @@ Uncertainty
     mean square, inflated by the residual's correlation time (effective sample count).
 Choice (:mod:`.pipeline`)
     Forward selection on *held-out* samples: every candidate is fitted on top of the current
-    model and judged by its held-out ``J`` against its *own* noise floor (a candidate that
-    changes the drive or the dynamics changes what noise leaves). Candidates within
+    model -- from the second step on together with the effects already selected, all their
+    parameters free again (:func:`fit_with`; after an integer effect the others are re-fitted
+    with it) -- and judged by its held-out ``J`` against its *own* noise floor (a candidate
+    that changes the drive or the dynamics changes what noise leaves); if it does not fit
+    the fit set better than the current model, the larger of its own-floor and
+    current-floor ``J`` counts (it may only look good by making its own floor noisier). Candidates within
     run-to-run noise of the best (``J`` difference below ``6 sqrt(J/n_eff)``) are
     statistically equivalent: the simplest (fewest parameters, then ``J (1 + 0.02 p)``) is
     named, the others are reported as its confounded set. It is accepted if it improves the
@@ -40,9 +44,10 @@ from scipy import optimize
 from .data import DiagData
 from .hypotheses import LIBRARY, Effect, Param
 from .model import ModelSpec
-from .predict import NoiseFloor, Observer, sim_data
+from .predict import NoiseFloor, Observer, sim_batch
 
-__all__ = ["Evaluator", "FitResult", "fit_effect", "estimate_lattice", "fit_noise_level", "sparse_regression"]
+__all__ = ["Evaluator", "FitResult", "fit_effect", "fit_with", "joint_fit", "estimate_lattice", "fit_noise_level",
+           "sparse_regression"]
 
 
 # --------------------------------------------------------------------------- evaluation
@@ -155,6 +160,7 @@ class FitResult:
     expressible: bool = True
     note: str = ""
     on_bound: list = field(default_factory=list)
+    joint: "FitResult | None" = None    # fitted together with the selected effects (fit_with)
 
     def params(self) -> list[dict]:
         return [{"name": n, "unit": u, "value": float(v), "sigma": float(s) if np.isfinite(s) else None,
@@ -324,17 +330,21 @@ def gauss_newton(fun, z0, lo, hi, r0=None, max_iter: int = 8, h: float = 1e-3, r
 class _Joint(Effect):
     """Several fitted effects applied in sequence, all parameters free."""
 
-    def __init__(self, parts: list[tuple[Effect, int]]):
+    def __init__(self, parts: list[tuple[Effect, int]], thetas: list | None = None):
         super().__init__("+".join(e.key for e, _ in parts), " + ".join(e.title for e, _ in parts),
                          "deterministic", "", "")
         self.parts = parts
+        self.thetas = thetas      # fitted values of the parts: bounds of each relative to its predecessors
 
     def params(self, spec, ctx):
         out = []
         s = spec
-        for e, _ in self.parts:
+        for k, (e, _) in enumerate(self.parts):
             ps = e.params(s, ctx)
             out += [Param(f"{e.key}.{p.name}", p.unit, p.lo, p.hi, p.x0, p.log) for p in ps]
+            if self.thetas is not None:
+                # e.g. the asymmetry's bounds scale with the Coulomb force an earlier part added
+                s = e.apply(s, self.thetas[k])
         return out
 
     def apply(self, spec, theta):
@@ -346,20 +356,62 @@ class _Joint(Effect):
         return s
 
 
-def joint_fit(fits: list[FitResult], base: ModelSpec, ev: Evaluator, ctx: dict) -> FitResult | None:
-    """Re-fit all selected deterministic effects together (integer ones held at their value)."""
+def joint_fit(fits: list[FitResult], base: ModelSpec, ev: Evaluator, ctx: dict,
+              min_effects: int = 2, max_iter: int = 4) -> FitResult | None:
+    """Re-fit all selected deterministic effects together (integer ones held at their value;
+    at most ``max_iter`` Gauss-Newton iterations); None if there are fewer than
+    ``min_effects`` of them."""
     cont = [f for f in fits if LIBRARY[f.key].kind == "deterministic"]
     fixed = [f for f in fits if LIBRARY[f.key].kind != "deterministic"]
-    if len(cont) < 2:
+    if len(cont) < max(1, min_effects):
         return None
     spec0 = base
     for f in fixed:
         spec0 = LIBRARY[f.key].apply(spec0, f.theta)
-    joint = _Joint([(_bind(LIBRARY[f.key], ctx), len(f.theta)) for f in cont])
+    joint = _Joint([(_bind(LIBRARY[f.key], ctx), len(f.theta)) for f in cont], [f.theta for f in cont])
     x0 = np.concatenate([f.theta for f in cont])
     # bounds of each part relative to the model it is applied to
-    r = fit_effect(joint, spec0, ev, ctx, starts=[list(x0)], max_nfev=4)
+    r = fit_effect(joint, spec0, ev, ctx, starts=[list(x0)], max_nfev=max_iter)
     return r
+
+
+def fit_with(effect: Effect, selected: list[FitResult], base: ModelSpec, ev: Evaluator, ctx: dict) -> FitResult | None:
+    """Fit ``effect`` together with the already ``selected`` deterministic effects (all their
+    parameters free again, started at their values; integer ones held), on top of ``base``.
+
+    Forward selection with re-fitting: a second effect is judged with the first one re-fitted
+    in its presence, so an error the first fit made while the second was missing does not
+    stay in the residual. Returns the candidate's :class:`FitResult` (its own parameters;
+    ``spec`` and ``J`` are the joint model's) with ``joint`` = the joint :class:`FitResult`.
+    """
+    cont = [f for f in selected if LIBRARY[f.key].kind == "deterministic"]
+    if effect.kind != "deterministic" or not cont:
+        return None
+    spec0 = base
+    for f in selected:
+        if LIBRARY[f.key].kind != "deterministic":
+            spec0 = LIBRARY[f.key].apply(spec0, f.theta)
+    _bind(effect, ctx)
+    n_e = len(effect.params(spec0, ctx))
+    x_sel = list(np.concatenate([f.theta for f in cont]))
+    cur = spec0
+    for f in cont:
+        cur = LIBRARY[f.key].apply(cur, f.theta)
+    starts = effect.starts(cur, ctx)
+    joint = _Joint([(_bind(LIBRARY[f.key], ctx), len(f.theta)) for f in cont] + [(effect, n_e)],
+                   [f.theta for f in cont] + [starts[0]])
+    jf = fit_effect(joint, spec0, ev, ctx, starts=[x_sel + list(st) for st in starts])
+    if jf is None:
+        return None
+    k = len(x_sel)
+    th = jf.theta[k:]
+    return FitResult(key=effect.key, title=effect.title, names=[p.name for p in effect.params(spec0, ctx)],
+                     units=jf.units[k:], theta=th, sigma=jf.sigma[k:],
+                     corr=None if jf.corr is None else jf.corr[k:, k:], spec=jf.spec, J_fit=jf.J_fit,
+                     J_held=jf.J_held, n_eff_held=jf.n_eff_held, evals=jf.evals, seconds=jf.seconds,
+                     nominal=effect.nominal(spec0), derived=effect.derived(cur, th), expressible=effect.expressible,
+                     on_bound=[n.split(".", 1)[1] for n in jf.on_bound if n.startswith(effect.key + ".")],
+                     joint=jf)
 
 
 # --------------------------------------------------------------------------- stochastic
@@ -407,8 +459,7 @@ def noise_components(spec: ModelSpec, data: DiagData, obs_factory, seeds=(7001,)
     for sig in (0.0, sigma_ref):
         sp = spec.with_changes({"stage.drive.noise_current_rms": sig})
         psd = []
-        for sd in seeds:
-            dd = sim_data(sp, data, sd)
+        for dd in sim_batch(sp, data, seeds):      # all seeds in one batch call
             ob = obs_factory(dd)
             r = ob.run(sp).r
             for b in range(r.shape[1]):

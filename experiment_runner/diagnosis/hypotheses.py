@@ -11,10 +11,10 @@ fitted:
 ``info``           documented, not fitted in this milestone (needs topics the contract
                    does not require).
 
-``expressible`` says whether the fitted model is a preset the simulator runs as is
-(``True``), or needs additive table forces run by the diagnosis kernels (``False``: the
-improved preset YAML then omits it, ``model.yaml`` carries it; the plant feature it needs
-is named in ``needs``).
+``expressible`` says whether the fitted model is a preset the simulator runs as is; every
+effect of this library is (position-dependent and asymmetric friction, ripple, offset and
+periodic force are plant features: ``stage_sim.config``), so the improved preset carries
+all of them.
 
 ``nanostage diagnose --list-effects`` prints this library (:func:`describe`).
 """
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import AddTerm, ModelSpec, coulomb_total, friction_elements
+from .model import ModelSpec, coulomb_total, friction_elements
 from stage_sim.config import set_dotted
 
 __all__ = ["Param", "Effect", "LIBRARY", "get_effect", "describe", "virgin_x50"]
@@ -87,6 +87,15 @@ def _fric_weights(spec: ModelSpec):
         return els, fcs
     w = fcs / fcs.sum() if fcs.sum() > 0 else np.full(len(els), 1.0 / len(els))
     return els, w
+
+
+def _variation(fr, f_c_new: float) -> dict:
+    """The friction variation fields of ``fr`` for an element of Coulomb force ``f_c_new``
+    (force-like fields scaled with it, so the relative variation is kept)."""
+    s = f_c_new / fr.f_c if fr.f_c > 0 else 1.0
+    return {"f_c_difference": fr.f_c_difference * s, "viscous_difference": fr.viscous_difference,
+            "f_c_gradient": fr.f_c_gradient * s, "f_c_curvature": fr.f_c_curvature * s,
+            "position_center": fr.position_center}
 
 
 def _pre_motion_stiffness(fr) -> float:
@@ -165,6 +174,7 @@ class Coulomb(Effect):
                 for k in path.split("."):
                     node = node[int(k)] if isinstance(node, list) else node[k]
                 node["f_c"] = fr.f_c * s
+                node.update(_variation(fr, fr.f_c * s))
                 if fr.model == "lugre":
                     node["f_s"] = fr.f_s * s
                 if fr.model == "coulomb" and fr.f_s is not None:
@@ -241,7 +251,7 @@ class Dahl(Effect):
         def edit(d):
             for (path, fr), we in zip(els, w):
                 new = {"model": "dahl", "k_sigma": k * we, "f_c": max(fr.f_c, 1e-9),
-                       "shape": getattr(fr, "shape", 1.0), "viscous": fr.viscous}
+                       "shape": getattr(fr, "shape", 1.0), "viscous": fr.viscous, **_variation(fr, max(fr.f_c, 1e-9))}
                 set_dotted(d, path, new)
         return spec.with_changes(edit=edit)
 
@@ -294,7 +304,7 @@ class Gms(Effect):
         def edit(dd):
             for (path, fr), we in zip(els, w):
                 set_dotted(dd, path, {"model": "gms", "k": list(F * we / d), "alpha": list(F / fc), "f_c": fc * we,
-                                     "viscous": fr.viscous})
+                                     "viscous": fr.viscous, **_variation(fr, fc * we)})
         return spec.with_changes(edit=edit)
 
     def bind(self, ctx):
@@ -332,7 +342,7 @@ class Stribeck(Effect):
                 k = _pre_motion_stiffness(fr) or max(fr.f_c, 1e-9) / 1e-6
                 set_dotted(d, path, {"model": "lugre", "sigma0": k, "sigma1": getattr(fr, "sigma1", 0.0),
                                     "viscous": fr.viscous, "f_c": max(fr.f_c, 1e-9), "f_s": max(fs * we, fr.f_c * 1.0001, 1e-9),
-                                    "v_s": vs, "exponent": getattr(fr, "exponent", 2.0)})
+                                    "v_s": vs, "exponent": getattr(fr, "exponent", 2.0), **_variation(fr, max(fr.f_c, 1e-9))})
         return spec.with_changes(edit=edit)
 
 
@@ -459,7 +469,20 @@ class FiCompliance(Effect):
         return spec.with_changes(edit=edit)
 
 
-# --------------------------------------------------------------------------- additive (not in the preset)
+# --------------------------------------------------------------------------- table forces, friction variations
+def _edit_elements(spec: ModelSpec, fn):
+    """``edit`` callable applying ``fn(node, fr, weight)`` to every friction element's mapping."""
+    els, w = _fric_weights(spec)
+
+    def edit(d):
+        for (path, fr), we in zip(els, w):
+            node = d
+            for k in path.split("."):
+                node = node[int(k)] if isinstance(node, list) else node[k]
+            fn(node, fr, float(we))
+    return edit
+
+
 class Ripple(Effect):
     def params(self, spec, ctx):
         per = (ctx.get("ripple_period") or [ctx.get("x_span", 1e-3) / 4])[0]
@@ -481,17 +504,23 @@ class Ripple(Effect):
 
     def apply(self, spec, theta):
         a, b, per = (float(v) for v in theta)
-        amp, ph = math.hypot(a, b), math.atan2(b, a)
-        return spec.with_changes(add=[AddTerm("sin_x", amp, (per, ph), "ripple")])
+
+        def edit(d):
+            d["stage"]["force_ripple"] = list(d["stage"]["force_ripple"]) + [
+                {"amplitude": math.hypot(a, b), "period": per, "phase": math.atan2(b, a)}]
+        return spec.with_changes(edit=edit)
 
 
 class PositionFriction(Effect):
     """F_C(x) = F_C + dF_0 + g_1 (x - x_c) + g_2 (x - x_c)^2, x_c = centre of the recorded positions."""
 
+    def applicable(self, spec):
+        return None if coulomb_total(spec.preset) > 0 else "the model has no friction element with F_C > 0"
+
     def params(self, spec, ctx):
         fc = max(coulomb_total(spec.preset), ctx.get("r_rms", 0.1))
         hs = max(ctx.get("x_half_span", 1e-3), 1e-9)
-        return [Param("dF_0", "N", -2 * fc, 3 * fc, 0.0, doc="friction change at the centre of the recorded travel"),
+        return [Param("dF_0", "N", -0.9 * fc, 3 * fc, 0.0, doc="friction change at the centre of the recorded travel"),
                 Param("g_1", "N/m", -3 * fc / hs, 3 * fc / hs, 0.0, doc="friction slope along the travel"),
                 Param("g_2", "N/m^2", -3 * fc / hs ** 2, 3 * fc / hs ** 2, 0.0, doc="friction curvature")]
 
@@ -503,11 +532,27 @@ class PositionFriction(Effect):
 
     def apply(self, spec, theta):
         c = self._c
-        # friction resists motion: the table feels -dF(x) * phi_f
-        return spec.with_changes(add=[
-            AddTerm("friction_x", -float(theta[0]), (c, 1.0, 0.0), "position friction (level)"),
-            AddTerm("friction_x", -float(theta[1]), (c, 1.0, 1.0), "position friction (slope)"),
-            AddTerm("friction_x", -float(theta[2]), (c, 1.0, 2.0), "position friction (curvature)")])
+        df0, g1, g2 = (float(v) for v in theta)
+
+        def fn(node, fr, w):
+            # re-centre an existing variation at c: g1' (x-c0) + g2' (x-c0)^2 about c
+            dc = c - fr.position_center
+            a1 = fr.f_c_gradient + 2 * fr.f_c_curvature * dc
+            a0 = fr.f_c_gradient * dc + fr.f_c_curvature * dc * dc
+            # the level at c scales the whole element (its force at every displacement, as the
+            # plant's position scale does), so pre-motion stiffnesses scale with F_C
+            s0 = max(fr.f_c + a0 + df0 * w, 1e-6) / fr.f_c
+            node["f_c"] = fr.f_c * s0
+            for key in ("k_sigma", "sigma0", "sigma1", "f_s"):
+                if node.get(key) is not None:
+                    node[key] = node[key] * s0
+            if fr.model == "gms":
+                node["k"] = [k * s0 for k in node["k"]]
+            node["f_c_difference"] = fr.f_c_difference * s0
+            node["f_c_gradient"] = a1 + g1 * w
+            node["f_c_curvature"] = fr.f_c_curvature + g2 * w
+            node["position_center"] = c
+        return spec.with_changes(edit=_edit_elements(spec, fn))
 
     def bind(self, ctx):
         self._c = float(ctx.get("x_center", 0.0))
@@ -517,19 +562,25 @@ class PositionFriction(Effect):
 class Asymmetry(Effect):
     """Friction different in the two directions: F_C+- = F_C +- dF_C/2, c+- = c +- dc/2."""
 
+    def applicable(self, spec):
+        return None if coulomb_total(spec.preset) > 0 else "the model has no friction element with F_C > 0"
+
     def params(self, spec, ctx):
-        fc = max(coulomb_total(spec.preset), ctx.get("r_rms", 0.1))
+        fc = coulomb_total(spec.preset)
         vmax = max(ctx.get("v_max", 1e-3), 1e-9)
-        return [Param("dF_C", "N", -2 * fc, 2 * fc, 0.0, doc="Coulomb force in + minus in - direction"),
+        return [Param("dF_C", "N", -1.9 * fc, 1.9 * fc, 0.0, doc="Coulomb force in + minus in - direction"),
                 Param("dc", "N·s/m", -4 * fc / vmax, 4 * fc / vmax, 0.0, doc="viscous coefficient + minus -")]
 
     def nominal(self, spec):
         return {"dF_C": 0.0, "dc": 0.0}
 
     def apply(self, spec, theta):
-        # moving +: extra resisting -dF_C/2 - dc/2 v ; moving -: extra +dF_C/2 ... = -dF_C/2 |phi| - dc/2 |v|
-        return spec.with_changes(add=[AddTerm("abs_friction", -0.5 * float(theta[0]), (), "friction asymmetry (Coulomb)"),
-                                      AddTerm("abs_v", -0.5 * float(theta[1]), (), "friction asymmetry (viscous)")])
+        dfc, dc = float(theta[0]), float(theta[1])
+
+        def fn(node, fr, w):
+            node["f_c_difference"] = fr.f_c_difference + dfc * w
+            node["viscous_difference"] = fr.viscous_difference + dc * w
+        return spec.with_changes(edit=_edit_elements(spec, fn))
 
 
 class Offset(Effect):
@@ -538,10 +589,10 @@ class Offset(Effect):
         return [Param("F_0", "N", -um, um, 0.0, doc="constant force on the table (+x)")]
 
     def nominal(self, spec):
-        return {"F_0": 0.0}
+        return {"F_0": spec.preset.stage.force_offset}
 
     def apply(self, spec, theta):
-        return spec.with_changes(add=[AddTerm("offset", float(theta[0]), (), "offset")])
+        return spec.with_changes({"stage.force_offset": spec.preset.stage.force_offset + float(theta[0])})
 
 
 class PeriodicForce(Effect):
@@ -554,9 +605,6 @@ class PeriodicForce(Effect):
     def starts(self, spec, ctx):
         return [[0.0, 0.0, f] for f in (ctx.get("line_hz") or [50.0])[:2]]
 
-    def applicable(self, spec):
-        return None
-
     def nominal(self, spec):
         return {"a_sin": 0.0, "a_cos": 0.0, "f": None}
 
@@ -565,7 +613,11 @@ class PeriodicForce(Effect):
 
     def apply(self, spec, theta):
         a, b, f = (float(v) for v in theta)
-        return spec.with_changes(add=[AddTerm("sin_t", math.hypot(a, b), (f, math.atan2(b, a)), "periodic force")])
+
+        def edit(d):
+            d["stage"]["periodic_force"] = list(d["stage"]["periodic_force"]) + [
+                {"amplitude": math.hypot(a, b), "frequency": f, "phase": math.atan2(b, a)}]
+        return spec.with_changes(edit=edit)
 
 
 # --------------------------------------------------------------------------- stochastic / info
@@ -638,19 +690,17 @@ def _lib():
                      param_doc=[("k_fi", "N/m", "total joint stiffness"), ("zeta_fi", "-", "damping ratio")]),
         PositionFriction("position_friction", "position-dependent friction", "deterministic",
                          "Friction level varies along the travel: F_C(x) = F_C + dF_0 + g_1 (x - x_c) + g_2 (x - x_c)^2 "
-                         "(x_c: centre of the recorded positions); additive table force -phi_f dF(x), phi_f the "
-                         "model's normalised friction state (follows pre-motion).",
+                         "(x_c: centre of the recorded positions), shared over the friction elements in proportion "
+                         "to their F_C (friction fields f_c, f_c_gradient, f_c_curvature, position_center); the element's "
+                         "whole force scales with F_C(x), pre-motion stiffness included.",
                          "residual with the sign of velocity whose size depends on position (residual vs "
                          "position, split by direction of motion)",
-                         expressible=False, needs="position-dependent friction level in the friction config "
-                                                  "(e.g. friction.f_c_profile: polynomial or table over x)",
                          param_doc=[("dF_0", "N", "level change"), ("g_1", "N/m", "slope"), ("g_2", "N/m^2", "curvature")]),
         Ripple("ripple", "position-periodic force ripple", "deterministic",
-               "Motor cogging / commutation ripple: F = A sin(2 pi x / period + phase) on the table.",
+               "Motor cogging / commutation ripple: F = A sin(2 pi x / period + phase) on the table "
+               "(stage.force_ripple).",
                "residual periodic in position (peak in the periodogram of residual vs position), independent "
                "of velocity sign",
-               expressible=False, needs="drive.force_ripple: [{amplitude, period, phase}] (position-periodic "
-                                        "force on the table)",
                param_doc=[("a_sin, a_cos", "N", "amplitudes"), ("period", "m", "spatial period")]),
         Mode("structural_mode", "structural resonance", "deterministic",
              "An (additional) lightly damped mode: a mass on a spring-damper to the table (stage.modes).",
@@ -672,16 +722,14 @@ def _lib():
              param_doc=[("m_table", "kg", "table mass")]),
         Asymmetry("friction_asymmetry", "direction-asymmetric friction", "deterministic",
                   "Coulomb and viscous friction differ between the two directions of motion (EMPS: "
-                  "Fc+ != Fc-, Fv+ != Fv-): additive -dF_C/2 |phi_f| - dc/2 |v|.",
+                  "Fc+ != Fc-, Fv+ != Fv-): friction fields f_c_difference, viscous_difference.",
                   "a residual of the same sign in both directions while moving (not flipping at reversals), "
                   "zero at rest; residual vs velocity is V-shaped / offset between the branches",
-                  expressible=False, needs="per-direction friction parameters (f_c_pos/f_c_neg, "
-                                           "viscous_pos/viscous_neg) in the friction config",
                   param_doc=[("dF_C", "N", "F_C+ - F_C-"), ("dc", "N·s/m", "c+ - c-")]),
         Offset("offset", "constant force offset", "deterministic",
-               "A constant force on the table (cable drag, gravity on a tilted axis, amplifier offset).",
+               "A constant force on the table (cable drag, gravity on a tilted axis, amplifier offset): "
+               "stage.force_offset.",
                "a constant residual, independent of state",
-               expressible=False, needs="stage.table_force_offset [N]",
                param_doc=[("F_0", "N", "force")]),
         NoiseLevel("noise_level", "drive-noise level", "stochastic",
                    "The drive current noise differs (stage.drive.noise_current_rms).",
@@ -694,11 +742,9 @@ def _lib():
                      param_doc=[("resolution", "m", "quantization step")]),
         PeriodicForce("dither_imbalance", "dither imbalance / periodic force", "deterministic",
                       "A force at a fixed frequency on the table: the net force of imbalanced dither piezos "
-                      "(VAN, Ch. 3) or a periodic disturbance; additive sin(2 pi f t).",
+                      "(VAN, Ch. 3) or a periodic disturbance: stage.periodic_force, A sin(2 pi f t + phase).",
                       "a spectral line of the residual far above the floor at one frequency (the dither "
                       "frequency), present in every regime",
-                      expressible=False, needs="/stage/dither topic and per-piezo amplitude (imbalance) in the "
-                                               "dither config, or stage.periodic_force",
                       param_doc=[("a_sin, a_cos", "N", "amplitudes"), ("f", "Hz", "frequency")]),
         Info("isolator_transient", "isolator switching transient", "info",
              "SAI lock/unlock (Ch. 5): impact pulse and release of the stored flexure force.",
@@ -736,7 +782,7 @@ def describe(as_json: bool = False):
         return rows
     out = []
     for r in rows:
-        out.append(f"{r['key']}  -  {r['title']}  [{r['kind']}{'' if r['in_preset'] else ', additive (not in preset)'}]")
+        out.append(f"{r['key']}  -  {r['title']}  [{r['kind']}{'' if r['in_preset'] else ', not in preset'}]")
         out.append(f"    physics:   {r['physics']}")
         out.append(f"    signature: {r['signature']}")
         if r["parameters"]:

@@ -3,28 +3,43 @@
 :func:`diagnose` takes a contract recording and the nominal model that was supposed to
 predict it and returns the report (a JSON-able dict, fields documented in
 :mod:`.report`); with ``out`` it also writes ``report.json``, ``report.md``, plots and the
-improved model (``improved_preset.yaml``, and ``model.yaml`` with any additive forces).
+improved model (``improved_preset.yaml``).
+
+The candidate fits of each forward-selection step are independent: by default they run on
+``Options.n_jobs`` threads of this process (the compiled kernels release the GIL); with
+``Options.workers`` or ``Options.cluster`` they are tasks (:func:`_candidate_task`) on an
+:class:`experiment_runner.executor.Executor` -- local processes or a Dask cluster. Each
+worker process rebuilds the observer from the recording once per diagnosis (cached by a
+token), and the fits come back in the order the candidates were submitted, so every path
+gives the same report (same effects, bit-identical parameters).
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import pickle
+import threading
 import time
+import uuid
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .data import DiagData, load_data
-from .fit import (Evaluator, FitResult, estimate_lattice, fit_effect, fit_noise_level, joint_fit, n_eff,
+from .fit import (Evaluator, FitResult, estimate_lattice, fit_effect, fit_noise_level, fit_with, joint_fit, n_eff,
                   noise_components, sparse_regression)
 from .hypotheses import LIBRARY, get_effect
 from .locate import locate, lowpass
 from .model import ModelSpec, load_model
 from .predict import (NoiseFloor, Observer, band_rms, compare_replay, open_loop_windows, replay,
-                      sim_data)
+                      sim_batch, sim_data)
 
 __all__ = ["Options", "diagnose"]
 
-EXCLUSIVE = ({"dahl", "gms", "stribeck"},)       # alternative friction models: at most one
+# at most one effect of each group: alternative friction models; and GMS fits the Coulomb force
+# itself (the sum of its block capacities)
+EXCLUSIVE = ({"dahl", "gms", "stribeck"}, {"gms", "coulomb"})
 
 
 @dataclass
@@ -38,7 +53,9 @@ class Options:
     plots: bool = True
     sparse: bool = True
     complexity: float = 0.02              # held-out J penalty per parameter
-    n_jobs: int = 2                       # threads for the candidate fits
+    n_jobs: int = 2                       # threads for the candidate fits (neither workers nor cluster)
+    workers: int | None = None            # candidate fits as tasks on this many local processes (1: in turn here)
+    cluster: object = None                # ... on this Dask cluster (scheduler address or cluster object)
     own_floor: bool = True                # judge each candidate against its own noise floor
     min_share: float = 0.25               # after the first effect: share of the remaining excess to explain
     verbose: bool = False
@@ -49,8 +66,7 @@ class _Floor:
     """Noise floor of a model on the recorded reference: two simulated recordings."""
 
     def __init__(self, spec: ModelSpec, data: DiagData, f_o: float, seeds):
-        self.simA = sim_data(spec, data, seeds[0])
-        self.simB = sim_data(spec, data, seeds[1])
+        self.simA, self.simB = sim_batch(spec, data, seeds[:2])
         oa = Observer(self.simA, bandwidth=f_o)
         ob = Observer(self.simB, bandwidth=f_o)
         self.resA = oa.run(spec)
@@ -70,6 +86,69 @@ def _light_floor(spec: ModelSpec, data: DiagData, f_o: float, seed: int) -> Nois
     return NoiseFloor(data.rate, [r], [sim.fit | sim.held], f_max=f_o)
 
 
+def _fit_candidate(e, current: ModelSpec, selected: list, J_fit_cur: float, ev: Evaluator, ctx: dict,
+                   base: ModelSpec, own_floor: bool, floor_seed: int) -> FitResult | None:
+    """Fit candidate effect ``e`` on ``current`` (with the ``selected`` effects re-fitted, from
+    step 2 on) and judge it on held-out data; None if it does not apply."""
+    f = fit_with(e, selected, base, ev, ctx) if selected and e.kind == "deterministic" else None
+    f = f or fit_effect(e, current, ev, ctx)
+    if f is not None and own_floor:
+        # judge the candidate against its own noise floor: a change of the drive or the
+        # dynamics also changes what noise leaves in the residual (e.g. a force-constant
+        # ratio scales the drive noise). A candidate that does not even fit the fit set
+        # better than the current model (against the current floor) may only look good
+        # by making its own floor noisier (e.g. a stiff, undamped joint): then the larger
+        # of the two counts. One that does fit better is not held back by a quieter own
+        # floor (e.g. viscous damping over a quantization-only floor): the smaller counts
+        f.J_held_base = f.J_held
+        J_own = ev.J(f.spec, "held", floor=_light_floor(f.spec, ev.data, ev.obs.f_o, floor_seed))
+        f.J_held = min(J_own, f.J_held_base) if f.J_fit < J_fit_cur else max(J_own, f.J_held_base)
+    return f
+
+
+_STATE: dict = {}                # token -> per-process state of the candidate-fit tasks
+_STATE_LOCK = threading.Lock()
+
+
+def _task_state(token: str, blob: bytes) -> dict:
+    """This process's observer and context of diagnosis ``token`` (built from ``blob`` once;
+    the last two diagnoses are kept)."""
+    with _STATE_LOCK:
+        st = _STATE.get(token)
+        if st is None:
+            st = pickle.loads(blob)
+            # the recording was smoothed and masked by the caller's observer: not redone here
+            st["obs"] = Observer(st.pop("data"), bandwidth=st.pop("f_o"))
+            while len(_STATE) >= 2:
+                _STATE.pop(next(iter(_STATE)))
+            _STATE[token] = st
+        return st
+
+
+def _candidate_task(token: str, blob: bytes, key: str, current: ModelSpec, selected: list, J_fit_cur: float,
+                    floor: NoiseFloor):
+    """Executor task: :func:`_fit_candidate` of effect ``key`` against noise ``floor``.
+
+    ``blob`` is the pickled recording (smoothed, masked), observer bandwidth, fit-set cap,
+    locate context and base model of diagnosis ``token``. BLAS runs single-threaded, as in
+    :func:`diagnose`. Returns ``(FitResult or None, error repr or None, evaluations,
+    evaluation seconds)``.
+    """
+    from threadpoolctl import threadpool_limits
+    st = _task_state(token, blob)
+    ev = Evaluator(st["obs"], floor, st["max_fit_seconds"])
+    e = get_effect(key)
+    if hasattr(e, "bind"):
+        e.bind(st["ctx"])
+    with threadpool_limits(limits=1, user_api="blas"):
+        try:
+            f, err = _fit_candidate(e, current, selected, J_fit_cur, ev, st["ctx"], st["base"], st["own_floor"],
+                                    st["floor_seed"]), None
+        except Exception as exc:     # noqa: BLE001 - one bad candidate must not stop the diagnosis
+            f, err = None, repr(exc)
+    return f, err, ev.evals, ev.seconds
+
+
 def _log(opt, *a):
     if opt.verbose:
         print("[diagnose]", *a, flush=True)
@@ -83,8 +162,48 @@ def _fit_row(f: FitResult, J_cur: float, thr: float, penalty: float) -> dict:
 
 
 def diagnose(recording, nominal, out=None, options: Options | None = None, data: DiagData | None = None) -> dict:
-    """Diagnose ``recording`` (path / Recording) against ``nominal`` (preset name/path/model file)."""
+    """Diagnose ``recording`` (path / Recording) against ``nominal`` (preset name/path/model file).
+
+    BLAS runs single-threaded meanwhile (``threadpoolctl``): the diagnosis works on small
+    matrices, many at a time on its own threads, where BLAS threads only contend (3x slower
+    on a shared 2-core machine).
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        ``options.workers`` below 1, or the Dask scheduler ``options.cluster`` cannot be
+        reached (before any work is done).
+    """
+    from threadpoolctl import threadpool_limits
     opt = options or Options()
+    with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
+        ex = None
+        if opt.workers is not None or opt.cluster is not None:
+            from experiment_runner.executor import make_executor
+            ex = stack.enter_context(make_executor(opt.workers, opt.cluster))
+            if ex.kind != "inline":
+                # start the worker processes (their imports) while this one predicts and locates
+                warm = threading.Thread(target=_warm_up, args=(ex,), daemon=True, name="nanostage-diagnose-warm-up")
+                warm.start()
+                stack.callback(warm.join)          # before the executor closes
+        return _diagnose(recording, nominal, out, opt, data, ex)
+
+
+def _started() -> int:
+    """Executor task that does nothing: its worker process has imported this module by now."""
+    return os.getpid()
+
+
+def _warm_up(ex) -> None:
+    """Run one :func:`_started` per worker of ``ex`` (a background thread of :func:`diagnose`)."""
+    try:
+        for _ in ex.map(_started, [(i, ()) for i in range(ex.workers)]):
+            pass
+    except Exception:    # noqa: BLE001 - a broken pool or a lost scheduler fails the candidate fits themselves
+        return
+
+
+def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
     T0 = time.perf_counter()
     timing = {}
     t = time.perf_counter()
@@ -159,83 +278,145 @@ def diagnose(recording, nominal, out=None, options: Options | None = None, data:
         return max(6 * math.sqrt(max(J, 1.0) / neff), 0.05 * max(J - 1, 0.0), 0.02)
 
     keys = opt.effects or [k for k, e in LIBRARY.items() if e.kind in ("deterministic", "integer")]
-    current, J_cur, floor_cur = base, Jhb, fl
-    steps = []
-    selected: list[FitResult] = []
-    for step in range(1, opt.max_steps + 1):
+
+    def candidates(current, selected):
         taken = {f.key for f in selected}
         excl = set().union(*[g for g in EXCLUSIVE if g & taken]) if taken else set()
         todo = []
         for k in keys:
-            if k in taken or k in excl:
-                continue
             e = get_effect(k)
-            if e.kind not in ("deterministic", "integer") or e.applicable(current) is not None:
+            if k in taken or k in excl or e.kind not in ("deterministic", "integer") or e.applicable(current) is not None:
                 continue
             if hasattr(e, "bind"):
                 e.bind(ctx)
             todo.append(e)
+        return todo
 
-        def _one(e, base=current):
-            try:
-                f = fit_effect(e, base, ev, ctx)
-                if f is not None and opt.own_floor:
-                    # judge the candidate against its own noise floor: a change of the drive or the
-                    # dynamics also changes what noise leaves in the residual (e.g. a force-constant
-                    # ratio scales the drive noise)
-                    f.J_held_base = f.J_held
-                    f.J_held = ev.J(f.spec, "held", floor=_light_floor(f.spec, data, obs.f_o, opt.floor_seeds[0]))
-                return f
-            except Exception as err:     # noqa: BLE001 - one bad candidate must not stop the diagnosis
-                _log(opt, f"fit {e.key} failed: {err!r}")
-                return None
-        # the compiled kernels release the GIL: candidates are fitted on parallel threads
-        current.compiled()
-        if opt.n_jobs > 1 and len(todo) > 1:
-            from concurrent.futures import ThreadPoolExecutor
-            # slow (multi-parameter, stiff) candidates first for a better balance
-            todo.sort(key=lambda e: -len(e.params(current, ctx)))
-            with ThreadPoolExecutor(opt.n_jobs) as pool:
-                fits = [f for f in pool.map(_one, todo) if f is not None]
+    def fit_all(todo, current, selected, J_fit_cur):
+        """Fit every candidate (with the selected effects re-fitted, from step 2 on)."""
+        # slow (multi-parameter, stiff) candidates first for a better balance; the fits are
+        # collected in this order on every path (ties of the score below keep it)
+        todo.sort(key=lambda e: -len(e.params(current, ctx)))
+        if ex is not None:
+            args = (current, selected, J_fit_cur, ev.floor)
+            out = [None] * len(todo)
+            for i, (f, err, n, sec) in ex.map(_candidate_task, ((i, (token, blob, e.key) + args)
+                                                                 for i, e in enumerate(todo))):
+                ev.evals += n
+                ev.seconds += sec
+                if err is not None:
+                    _log(opt, f"fit {todo[i].key} failed: {err}")
+                out[i] = f
+            fits = [f for f in out if f is not None]
         else:
-            fits = [f for f in map(_one, todo) if f is not None]
-        if not fits:
-            break
+            def _one(e):
+                try:
+                    return _fit_candidate(e, current, selected, J_fit_cur, ev, ctx, base, opt.own_floor,
+                                          opt.floor_seeds[0])
+                except Exception as err:     # noqa: BLE001 - one bad candidate must not stop the diagnosis
+                    _log(opt, f"fit {e.key} failed: {err!r}")
+                    return None
+            # the compiled kernels release the GIL: candidates are fitted on parallel threads
+            current.compiled()
+            if opt.n_jobs > 1 and len(todo) > 1:
+                from concurrent.futures import ThreadPoolExecutor
+                with ThreadPoolExecutor(opt.n_jobs) as pool:
+                    fits = [f for f in pool.map(_one, todo) if f is not None]
+            else:
+                fits = [f for f in map(_one, todo) if f is not None]
         fits.sort(key=lambda f: f.J_held * (1 + opt.complexity * len(f.theta)))
-        th = thr(J_cur)
-        # statistically equivalent candidates (held-out J within run-to-run noise of the best):
-        # name the simplest of them first (fewest parameters, then score), report the others
-        th_b = thr(fits[0].J_held)
-        equiv = [f for f in fits if f.J_held - fits[0].J_held < th_b]
-        best = min(equiv, key=lambda f: (len(f.theta), f.J_held * (1 + opt.complexity * len(f.theta))))
-        fits.remove(best)
-        fits.insert(0, best)
-        rows = [_fit_row(f, J_cur, th, opt.complexity) for f in fits]
-        # a real improvement: beyond run-to-run noise, and after the first effect a real share of
-        # what remains (so the remnant of an imperfect structural fit is not "explained" by extras)
-        share = (J_cur - best.J_held) / max(J_cur - 1.0, 1e-300)
-        accept = (J_cur > 1 + tol_ad) and (J_cur - best.J_held > th) and (step == 1 or share >= opt.min_share)
-        conf = []
-        if accept:
-            conf = [f.key for f in equiv if f is not best and (J_cur - f.J_held) > th]
-        steps.append({"step": step, "J_held_before": J_cur, "threshold": th, "adequate_before": J_cur <= 1 + tol_ad,
-                      "accepted": best.key if accept else None, "confounded_with": conf,
-                      "share_of_excess": share, "candidates": rows})
-        _log(opt, f"step {step}: J {J_cur:.4g} -> best {best.key} {best.J_held:.4g} (thr {th:.3g}) accept={accept}")
-        if not accept:
-            break
-        selected.append(best)
-        alts = [{"effect": r["effect"], "title": r["title"], "params": r["params"], "derived": r["derived"],
-                 "J_held": r["J_held"]} for r in rows if r["effect"] in conf]
-        found.append({"effect": best.key, "title": best.title, "kind": "deterministic", "step": step,
-                      "params": best.params(), "derived": best.derived, "expressible": best.expressible,
-                      "confounded_with": conf, "alternatives": alts, "J_held": best.J_held})
-        current = best.spec
-        floor_cur = _Floor(current, data, obs.f_o, opt.floor_seeds)
-        ev.floor = floor_cur.floor
-        J_cur = ev.J(current, "held")
-        if J_cur <= 1 + tol_ad:
-            break
+        return fits
+
+    def forward():
+        """Forward selection from ``base``: each step fits every candidate (re-fitting the
+        selected ones with it) and keeps the best if it is a real improvement."""
+        path = {"current": base, "J_cur": Jhb, "J_fit": Jfb, "floor": fl, "steps": [], "selected": [], "found": []}
+        selected = path["selected"]
+
+        def adopt(jf):
+            """Keep the re-fitted values of the selected deterministic effects (joint fit ``jf``)."""
+            k = 0
+            for f, fe in zip(selected, path["found"]):
+                if LIBRARY[f.key].kind != "deterministic":
+                    continue
+                n = len(f.theta)
+                f.theta, f.sigma = jf.theta[k:k + n], jf.sigma[k:k + n]
+                fe["params"] = f.params()
+                fe["derived"] = LIBRARY[f.key].derived(base, f.theta)
+                k += n
+
+        for step in range(1, opt.max_steps + 1):
+            for _ in range(3 if step > 1 else 0):
+                # continue the fit of the selected effects alone first: a candidate is credited only
+                # with what it adds to them (not with what more iterations on them would give)
+                rf = joint_fit(selected, base, ev, ctx, min_effects=1, max_iter=8)
+                if rf is None or not rf.J_held < path["J_cur"] - thr(path["J_cur"]):
+                    break
+                adopt(rf)
+                path.update(current=rf.spec, J_cur=rf.J_held, J_fit=rf.J_fit)
+            if step > 1 and path["J_cur"] <= 1 + tol_ad:
+                break
+            current, J_cur = path["current"], path["J_cur"]
+            fits = fit_all(candidates(current, selected), current, selected, path["J_fit"])
+            if not fits:
+                break
+            th = thr(J_cur)
+            # statistically equivalent candidates (held-out J within run-to-run noise of the best):
+            # name the simplest of them first (fewest parameters, then score), report the others
+            th_b = thr(fits[0].J_held)
+            equiv = [f for f in fits if f.J_held - fits[0].J_held < th_b]
+            best = min(equiv, key=lambda f: (len(f.theta), f.J_held * (1 + opt.complexity * len(f.theta))))
+            fits.remove(best)
+            fits.insert(0, best)
+            rows = [_fit_row(f, J_cur, th, opt.complexity) for f in fits]
+            # a real improvement: beyond run-to-run noise, and after the first effect a real share of
+            # what remains (so the remnant of an imperfect structural fit is not "explained" by extras)
+            share = (J_cur - best.J_held) / max(J_cur - 1.0, 1e-300)
+            accept = (J_cur > 1 + tol_ad) and (J_cur - best.J_held > th) and (step == 1 or share >= opt.min_share)
+            conf = []
+            if accept:
+                conf = [f.key for f in equiv if f is not best and (J_cur - f.J_held) > th]
+            path["steps"].append({"step": step, "J_held_before": J_cur, "threshold": th,
+                                  "adequate_before": J_cur <= 1 + tol_ad, "accepted": best.key if accept else None,
+                                  "confounded_with": conf, "share_of_excess": share, "candidates": rows})
+            _log(opt, f"step {step}: J {J_cur:.4g} -> best {best.key} {best.J_held:.4g} (thr {th:.3g}) accept={accept}")
+            if not accept:
+                break
+            if best.joint is not None:
+                adopt(best.joint)           # the selected effects were re-fitted with this one
+            refit = None
+            if best.joint is None and step > 1:
+                # an integer effect (delay) was fitted with the others held: re-fit them now
+                refit = joint_fit(selected + [best], base, ev, ctx, min_effects=1)
+                if refit is not None:
+                    adopt(refit)
+            selected.append(best)
+            alts = [{"effect": r["effect"], "title": r["title"], "params": r["params"], "derived": r["derived"],
+                     "J_held": r["J_held"]} for r in rows if r["effect"] in conf]
+            path["found"].append({"effect": best.key, "title": best.title, "kind": "deterministic", "step": step,
+                                  "params": best.params(), "derived": best.derived, "expressible": best.expressible,
+                                  "confounded_with": conf, "alternatives": alts, "J_held": best.J_held})
+            path["current"] = refit.spec if refit is not None else best.spec
+            path["floor"] = _Floor(path["current"], data, obs.f_o, opt.floor_seeds)
+            ev.floor = path["floor"].floor
+            path["J_fit"], path["J_cur"], _ = ev.both(path["current"])
+            if path["J_cur"] <= 1 + tol_ad:
+                break
+        return path
+
+    # candidate fits as executor tasks (local processes / Dask): what every task needs, once
+    token, blob = None, None
+    if ex is not None:
+        token = uuid.uuid4().hex
+        blob = pickle.dumps({"data": data, "f_o": obs.f_o, "max_fit_seconds": opt.max_fit_seconds, "ctx": ctx,
+                             "base": base, "own_floor": opt.own_floor, "floor_seed": opt.floor_seeds[0]},
+                            protocol=pickle.HIGHEST_PROTOCOL)
+    path = forward()
+    with _STATE_LOCK:
+        _STATE.pop(token, None)     # this process's copy (executor running the tasks here, workers=1)
+    current, J_cur, floor_cur = path["current"], path["J_cur"], path["floor"]
+    steps, selected = path["steps"], path["selected"]
+    found += path["found"]
 
     # joint fit of the selected deterministic effects
     joint = None
@@ -362,7 +543,6 @@ def diagnose(recording, nominal, out=None, options: Options | None = None, data:
         sparse = _sparse(data, res_new, ctx, f_band)
         timing["sparse_s"] = time.perf_counter() - t
 
-    det_found = [f for f in found if f["kind"] == "deterministic"]
     if not found:
         verdict = "model adequate" if (Jh0 <= 1 + tol_ad) else "unexplained residual"
     else:
@@ -376,8 +556,7 @@ def diagnose(recording, nominal, out=None, options: Options | None = None, data:
                       "samples": int(data.valid.sum()), "duration_s": float(data.valid.sum() / data.rate),
                       "split": data.split, "fit_trials": [int(data.trial_ids[c]) for c in ev.fit_cols],
                       "held_out_trials": [int(data.trial_ids[c]) for c in ev.held_cols], "notes": notes},
-        "nominal": {"name": spec0.preset.name, "source": str(nominal) if not isinstance(nominal, (dict,)) else "<mapping>",
-                    "additive_forces": [a.to_dict() for a in spec0.additive]},
+        "nominal": {"name": spec0.preset.name, "source": str(nominal) if not isinstance(nominal, (dict,)) else "<mapping>"},
         "observer": {"bandwidth_hz": obs.f_o, "smoothing_hz": data.smooth_hz, "band_hz": f_band,
                      "evaluations": ev.evals, "evaluation_s": ev.seconds},
         "noise": {"floor_check_J": fl.msB, "n_eff_held": neff, "adequacy_tolerance": tol_ad},
@@ -397,10 +576,7 @@ def diagnose(recording, nominal, out=None, options: Options | None = None, data:
         "stochastic": stochastic,
         "sparse_regression": sparse,
         "validation": validation,
-        "improved_model": {"name": current.preset.name,
-                           "additive_forces": [a.to_dict() for a in current.additive],
-                           "not_in_preset": sorted({f["effect"] for f in det_found if not f["expressible"]}),
-                           "needs": {f["effect"]: LIBRARY[f["effect"]].needs for f in det_found if not f["expressible"]}},
+        "improved_model": {"name": current.preset.name},
         "timing_s": timing,
     }
     if out is not None:

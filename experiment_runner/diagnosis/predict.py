@@ -3,8 +3,7 @@
 Three views, all from the three contract topics alone:
 
 1. **Closed-loop replay** (:func:`replay`): the recorded reference through the model and
-   its controller in closed loop (``batch.simulate``; with additive forces, the
-   equivalent kernel :func:`.engine.closed_loop`). Compared with the recording: command
+   its controller in closed loop (:func:`experiment_runner.batch.simulate`). Compared with the recording: command
    error ``u_meas - u_sim`` (within the servo bandwidth, the force the model is missing)
    and position error ``y_meas - y_sim``.
 2. **Force residual** (:func:`observe`): the force observer of :mod:`.engine` -- the
@@ -30,13 +29,12 @@ import numpy as np
 from scipy import signal
 
 from experiment_runner.batch import simulate
-from stage_control.servo import build_servo, init_servo_state
 
 from . import engine as E
 from .data import DiagData, smooth
 from .model import ModelSpec
 
-__all__ = ["Observer", "ObsResult", "replay", "sim_data", "NoiseFloor", "open_loop_windows",
+__all__ = ["Observer", "ObsResult", "replay", "sim_data", "sim_batch", "NoiseFloor", "open_loop_windows",
            "closed_loop", "band_rms"]
 
 
@@ -46,7 +44,7 @@ class ObsResult:
     x: np.ndarray        # observer table position [m]
     v: np.ndarray        # observer table velocity [m/s]
     phi: np.ndarray      # normalised table friction state [-]
-    snaps: tuple | None = None   # (every, z, fr, th) snapshots for open-loop windows
+    snaps: tuple | None = None   # (every, z, fr, ps, dbuf) plant-state snapshots for open-loop windows
     bad: int = 0
 
 
@@ -82,38 +80,34 @@ class Observer:
         st = E.new_state(c.pm, ys[0])
         outs = [np.empty((T, B)) for _ in range(4)]
         ns = (T + snap_every - 1) // snap_every if snap_every > 0 else 1
-        sz = np.zeros((ns, 2 * c.pm.n, B))
-        sf = np.zeros((ns,) + st[1].shape)
-        sth = np.zeros((ns, B))
-        bad = E.observe(c.pm, *c.drive_args(), *c.add_args(), u, ys, vs, 0.0, *st, self.omega, c.m_eff,
-                        int(snap_every), *outs, sz, sf, sth)
+        snaps = [np.zeros((ns,) + a.shape) for a in st[:4]]
+        bad = E.observe(c.pm, c.fc_tot, u, ys, vs, *st, self.omega, c.m_eff, int(snap_every), *outs, *snaps)
         self.calls += 1
-        return ObsResult(*outs, snaps=(snap_every, sz, sf, sth) if snap_every > 0 else None, bad=int(bad))
+        return ObsResult(*outs, snaps=(snap_every, *snaps) if snap_every > 0 else None, bad=int(bad))
 
 
 # --------------------------------------------------------------------------- closed loop
-def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds, use_batch: bool | None = None):
-    """Closed-loop runs of ``spec`` on references (T, B); returns (y, u, x_true) as (T, B).
+def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds):
+    """Closed-loop runs of ``spec`` on references (T, B) with noise ``seeds`` (B,): the batch
+    engine (:func:`experiment_runner.batch.simulate`) itself; returns (y, u, x_true) as (T, B)."""
+    res = simulate(spec.preset, np.asarray(x_ref, float).T, np.asarray(v_ref, float).T,
+                   seeds=np.asarray(seeds, np.int64), check=False)
+    return res.y.T.copy(), res.u.T.copy(), res.x_table.T.copy()
 
-    Without additive forces this is :func:`experiment_runner.batch.simulate` itself."""
-    x_ref = np.asarray(x_ref, float)
-    v_ref = np.asarray(v_ref, float)
-    seeds = np.asarray(seeds, np.int64)
-    p = spec.preset
-    if use_batch is None:
-        use_batch = not spec.additive
-    if use_batch:
-        res = simulate(p, x_ref.T, v_ref.T, seeds=seeds, check=False)
-        return res.y.T.copy(), res.u.T.copy(), res.x_table.T.copy()
-    c = spec.compiled(for_sim=True)
-    T, B = x_ref.shape
-    st = E.new_state(c.pm, x_ref[0])
-    sm = build_servo(p.controller, p.stage)
-    ss = init_servo_state(sm, B)
-    out = [np.empty((T, B)) for _ in range(3)]
-    E.closed_loop(c.pm, *c.drive_args(), c.noise_std, c.noise_a, c.noise_gain, *c.add_args(), sm, ss,
-                  np.ascontiguousarray(x_ref), np.ascontiguousarray(v_ref), seeds, 0.0, *st, *out)
-    return tuple(out)
+
+def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
+    """Recordings simulated from ``spec`` on the recorded reference, one per seed, in ONE batch
+    call (trials x seeds); each is a :class:`DiagData` with the recording's masks and split."""
+    B = data.shape[1]
+    seeds = list(seeds)
+    xr = np.tile(data.x_ref, (1, len(seeds)))
+    vr = np.tile(data.v_ref, (1, len(seeds)))
+    y, u, _ = closed_loop(spec, xr, vr, np.concatenate([s + np.arange(B) for s in seeds]))
+    return [DiagData(rate=data.rate, t0=data.t0.copy(), x_ref=data.x_ref, v_ref=data.v_ref,
+                     u=np.ascontiguousarray(u[:, i * B:(i + 1) * B]), y=np.ascontiguousarray(y[:, i * B:(i + 1) * B]),
+                     valid=data.valid.copy(), fit=data.fit.copy(), held=data.held.copy(), lengths=data.lengths,
+                     trial_ids=list(data.trial_ids), source=f"simulated (seed {s})", split=data.split)
+            for i, s in enumerate(seeds)]
 
 
 def replay(spec: ModelSpec, data: DiagData, seed: int = 1000):
@@ -125,10 +119,7 @@ def replay(spec: ModelSpec, data: DiagData, seed: int = 1000):
 
 def sim_data(spec: ModelSpec, data: DiagData, seed: int) -> DiagData:
     """A recording simulated from ``spec`` on the recorded reference, same masks and split."""
-    rp = replay(spec, data, seed)
-    return DiagData(rate=data.rate, t0=data.t0.copy(), x_ref=data.x_ref, v_ref=data.v_ref, u=rp["u"], y=rp["y"],
-                    valid=data.valid.copy(), fit=data.fit.copy(), held=data.held.copy(), lengths=data.lengths,
-                    trial_ids=list(data.trial_ids), source=f"simulated (seed {seed})", split=data.split)
+    return sim_batch(spec, data, [seed])[0]
 
 
 def compare_replay(data: DiagData, rp: dict) -> dict:
@@ -242,35 +233,30 @@ def open_loop_windows(spec: ModelSpec, obs: Observer, res: ObsResult, length: in
     window end, ``force_N`` (W,) constant force explaining the drift (rigid-body
     approximation ``2 m e / T^2``), ``err`` (length, W) the position error over each window.
     """
-    every, sz, sf, sth = res.snaps
+    every, sz, sf, sps, sdb = res.snaps
     data = obs.data
     c = spec.compiled()
     T, B = data.shape
-    starts, trials, cols = [], [], []
+    starts, trials, outs = [], [], []
     for s in range(sz.shape[0]):
         k0 = s * every
-        for b in range(B):
-            if k0 + length <= data.lengths[b] and data.valid[k0:k0 + length, b].all():
-                starts.append(k0)
-                trials.append(b)
-                cols.append(s)
-    W = len(starts)
-    if W == 0:
+        cols = [b for b in range(B) if k0 + length <= data.lengths[b] and data.valid[k0:k0 + length, b].all()]
+        if not cols:
+            continue
+        st = [np.ascontiguousarray(a[s][..., cols]) for a in (sz, sf, sps, sdb)]
+        st += [np.zeros((c.pm.n, len(cols))), np.zeros((2 * c.pm.n, len(cols))), np.zeros(len(cols))]
+        out = np.empty((length, len(cols)))
+        E.open_loop(c.pm, np.ascontiguousarray(obs.u[k0:k0 + length, cols]), k0, *st, out)
+        starts += [k0] * len(cols)
+        trials += cols
+        outs.append(out)
+    if not starts:
         return None
     starts = np.array(starts, np.int64)
     trials = np.array(trials, np.int64)
-    cols = np.array(cols)
-    z = np.ascontiguousarray(sz[cols, :, trials].T)
-    fr = np.ascontiguousarray(np.moveaxis(sf[cols, :, :, trials], 0, -1))
-    th = np.ascontiguousarray(sth[cols, trials])
-    st = list(E.new_state(c.pm, np.zeros(W)))
-    st[0][:] = z
-    st[1][:] = fr
-    out = np.empty((length, W))
-    E.open_loop(c.pm, *c.drive_args(), *c.add_args(), obs.u, trials, starts, length, np.zeros(W), *st, th, out)
+    out = np.concatenate(outs, axis=1)
     idx = starts[None, :] + np.arange(length)[:, None]
     err = obs.ys[idx, trials[None, :]] - out
     Tw = (length - 1) / data.rate
     drift = err[-1]
-    m = c.m_eff
-    return {"start": starts, "trial": trials, "drift_m": drift, "force_N": 2 * m * drift / Tw ** 2, "err": err}
+    return {"start": starts, "trial": trials, "drift_m": drift, "force_N": 2 * c.m_eff * drift / Tw ** 2, "err": err}

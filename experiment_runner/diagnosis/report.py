@@ -5,10 +5,8 @@ Files written to the output folder ``DIR``
 ``report.json``          the report below (SI units; ``null`` where not applicable)
 ``report.md``            the same for people: verdict, effects with parameters, where the
                          residual lives, held-out proof, candidates per step
-``improved_preset.yaml`` the improved model as a preset the simulator runs as is
-                         (``nanostage presets``-compatible; additive forces omitted, see below)
-``model.yaml``           the full improved model: ``{preset: ..., additive_forces: [...]}``
-                         (``nanostage synth`` accepts it as a truth)
+``improved_preset.yaml`` the improved model as a preset the simulator runs as is (every effect
+                         of the library is a preset field; ``nanostage synth`` accepts it as a truth)
 ``residual_time.png``    force residual (band-limited) of nominal and improved model vs time,
                          regimes shaded, floor band
 ``residual_spectrum.png`` residual spectrum of nominal and improved model against the floor
@@ -54,8 +52,7 @@ Files written to the output folder ``DIR``
                         J_held {nominal, improved, fall}, replay_command_rms_N and
                         replay_position_rms_m {nominal, improved, run_to_run, fall},
                         open_loop_drift_rms_m {nominal, improved, window_s}
-``improved_model``      name, additive_forces, not_in_preset (effects that need a plant feature),
-                        needs {effect: plant feature}
+``improved_model``      name, preset_yaml (file name)
 ``timing_s``            wall time per stage
 
 ``J`` is the whitened mean square of the force residual: 1 means "as a perfect model would
@@ -127,10 +124,6 @@ def to_markdown(rep: dict) -> str:
             for k, v in (f.get("derived") or {}).items():
                 L.append(f"|  |  | {k} (derived) | {_fmt(v)} |  |  |  |")
         L.append("")
-        im = rep["improved_model"]
-        if im["not_in_preset"]:
-            L.append("Not expressible in a preset yet (run as additive table forces, in `model.yaml`): "
-                     + "; ".join(f"**{k}** needs {v}" for k, v in im["needs"].items()) + "\n")
     v = rep["validation"]
     L.append("## Held-out proof\n")
     L.append("| metric (held-out samples) | nominal | improved | fall | reference |")
@@ -204,7 +197,7 @@ def to_markdown(rep: dict) -> str:
         L.append(f"Explained share {100 * sp['explained']:.1f} %; terms (missing table force [N] = Σ coef·term): "
                  + (", ".join(f"{k}: {v:.4g}" for k, v in sp["terms"].items()) or "none"))
     L.append("\n## Files\n")
-    L.append("`improved_preset.yaml` (runs as is), `model.yaml` (with additive forces), plots: "
+    L.append("`improved_preset.yaml` (runs as is), plots: "
              + ", ".join(f"`{p}`" for p in rep.get("plots", [])))
     L.append(f"\nWall time {rep['timing_s']['total_s']:.3g} s.")
     return "\n".join(L) + "\n"
@@ -312,9 +305,7 @@ def write_report(out, rep: dict, improved, nominal, data, arrays: dict, plots: b
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "improved_preset.yaml").write_text(improved.preset_yaml())
-    (out / "model.yaml").write_text(improved.model_yaml())
     rep["improved_model"]["preset_yaml"] = "improved_preset.yaml"
-    rep["improved_model"]["model_yaml"] = "model.yaml"
     rep["plots"] = []
     if plots:
         try:

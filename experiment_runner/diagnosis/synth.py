@@ -1,8 +1,7 @@
 """``nanostage synth TRUTH.yaml EXPERIMENT.yaml --out REC.mcap``: a concealed-truth recording.
 
-TRUTH is a preset (name or YAML path) -- typically the nominal preset with one effect --
-or an extended model file ``{preset: ..., additive_forces: [...]}`` (see :mod:`.model`) for
-effects the preset schema cannot express yet (ripple, position-dependent friction, ...).
+TRUTH is a preset (name or YAML path) -- typically the nominal preset with one or more
+effects (every effect of the library is a preset field) -- or a model file ``{preset: ...}``.
 EXPERIMENT is an experiment (name or YAML path, :mod:`experiment_runner.experiment`): its
 profile, trials, start positions and window are used with the TRUTH instead of the
 experiment's own ``preset`` (the experiment's ``overrides`` are applied to the truth).
@@ -21,36 +20,26 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from experiment_runner.batch import BatchResult, simulate
-from experiment_runner.experiment import _reference, build_trials, load_experiment
+from experiment_runner.batch import simulate
+from experiment_runner.experiment import build_trials, load_experiment, reference
 from experiment_runner.recording import write_run
 from stage_sim.config import with_overrides
 
-from .model import ModelSpec, load_model
-from .predict import closed_loop
+from .model import load_model
 
 __all__ = ["synth", "add_synth_arguments", "main_synth"]
-
-
-def _batch_result(rate, x_ref, v_ref, y, u, x):
-    B, T = x_ref.shape
-    return BatchResult(t=np.arange(T) / rate, x_ref=x_ref, x_correction=np.zeros_like(x_ref), v_ref=v_ref, y=y,
-                       y_bearing=np.full_like(y, np.nan), u=u, x_table=x, x_bearing=x.copy(),
-                       dither=np.zeros((B, T, 2)), mode=np.ones_like(y), status=np.zeros(B, np.int64),
-                       fail_step=-np.ones(B, np.int64))
 
 
 def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None = None, conceal: bool = True,
           overwrite: bool = True) -> Path:
     """Simulate ``experiment`` on ``truth`` and write the recording; returns the MCAP path."""
-    spec: ModelSpec = load_model(truth)
+    spec = load_model(truth)
     exp = load_experiment(experiment)
     if trials is not None:
         exp = exp.model_copy(update={"trials": int(trials)})
     preset = with_overrides(spec.preset, exp.overrides) if exp.overrides else spec.preset
     if seed is not None:
         preset = with_overrides(preset, {"simulation.seed": int(seed)})
-    spec = ModelSpec(preset, spec.additive)
     if preset.dither is not None or preset.stage.sai is not None:
         raise ValueError("synth: dither and SAI stages are not supported yet by the diagnosis (no such topics "
                          "in the contract's three hardware topics)")
@@ -59,12 +48,8 @@ def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None
     x_ref = np.stack([t.x_ref for t in tr])
     v_ref = np.stack([t.v_ref for t in tr])
     seeds = np.array([t.seed for t in tr])
-    if spec.additive:
-        y, u, x = closed_loop(spec, x_ref.T, v_ref.T, seeds)
-        res = _batch_result(rate, x_ref, v_ref, y.T.copy(), u.T.copy(), x.T.copy())
-    else:
-        res = simulate(preset, x_ref, v_ref, seeds=seeds, check=False)
-    ref = _reference(exp.profile, 1.0 / rate)
+    res = simulate(preset, x_ref, v_ref, seeds=seeds, check=False)
+    ref = reference(exp.profile, 1.0 / rate)
     cfg = None
     if conceal:
         cfg = yaml.safe_dump({"recording_contract": 1, "run": {"source": "nanostage synth", "case": exp.name,
@@ -76,7 +61,7 @@ def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None
 
 
 def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    parser.add_argument("truth", help="truth preset (name or YAML) or model file {preset, additive_forces}")
+    parser.add_argument("truth", help="truth preset (name or YAML) or model file {preset}")
     parser.add_argument("experiment", help="experiment (name or YAML): profile, trials, starts")
     parser.add_argument("--out", required=True, help="recording to write (bag directory; NAME.mcap -> NAME/NAME.mcap)")
     parser.add_argument("--seed", type=int, default=None, help="simulation.seed of the truth (noise realisation)")

@@ -270,22 +270,27 @@ def circle_x_path(radius=CIRCLE_R, n=N_CYCLE, cycles=1.0):
     return th, radius * (1.0 - np.cos(th))
 
 
-def force_pair(eta, xt, k_f=K_F, f_c=F_C):
-    """(F_Dahl, F_GMS) of the FI case for stiffness ratio eta = k_fi/k_f along path xt."""
+def force_pair(eta, xt, k_f=K_F, f_c=F_C, gms_k=GMS_K, gms_alpha=GMS_ALPHA):
+    """(F_Dahl, F_GMS) [N] of the FI case for stiffness ratio eta = k_fi/k_f along path xt [m].
+
+    Dahl: ``k_σ,FI`` = series of ``k_fi`` and ``k_f`` [N/m], Coulomb force ``f_c`` [N]; GMS:
+    blocks ``gms_k`` [N/m], ``gms_alpha`` [-] (default Table 6.5) in series with ``k_fi``.
+    """
     k_fi = eta * k_f
     k_sig = k_fi * k_f / (k_fi + k_f)
-    return _dahl_path(xt, k_sig, f_c), _series_gms(xt, k_fi, GMS_K, GMS_ALPHA, f_c)[0]
+    return (_dahl_path(xt, k_sig, f_c),
+            _series_gms(xt, k_fi, np.asarray(gms_k, float), np.asarray(gms_alpha, float), f_c)[0])
 
 
-def gamma_curve(etas=ETA_GRID):
+def gamma_curve(etas=ETA_GRID, k_f=K_F, f_c=F_C, gms_k=GMS_K, gms_alpha=GMS_ALPHA):
     """γ(η) over the first cycle from rest, its signed bias (+ = Dahl over-compensates),
-    and γ over the second (steady) cycle."""
+    and γ over the second (steady) cycle [N]; friction data default to Tables 6.4/6.5."""
     _, xt = circle_x_path(cycles=2.0)
     n = N_CYCLE
     v = np.sign(np.gradient(xt))
     gam, bias, gam2 = np.empty(len(etas)), np.empty(len(etas)), np.empty(len(etas))
     for i, eta in enumerate(etas):
-        fd, fg = force_pair(eta, xt)
+        fd, fg = force_pair(eta, xt, k_f, f_c, gms_k, gms_alpha)
         d = fd - fg
         gam[i] = math.sqrt(np.mean(d[: n + 1] ** 2))
         bias[i] = np.mean(d[: n + 1] * v[: n + 1])
@@ -479,7 +484,6 @@ def claims(out: Path) -> list[Claim]:
     kap_lim0, kap_liminf = float(kappa_simulated(1e-4)), float(kappa_simulated(1e4))
     kappa_ok = bool(kap_err < 1e-4 and kap_small and kap_lim0 < 1e-6 and kap_liminf > 0.999)
 
-    runtime = time.perf_counter() - t0
     _plots(out, m_t, m_b, pid, K_F, c_f, fis, E, D, e0, d0, ge, ETA_GRID, gam, bias, gam_blk, kap_sim)
     runtime_total = time.perf_counter() - t0
 

@@ -1,0 +1,245 @@
+"""Where independent tasks run: in this process, on a local process pool, or on Dask.
+
+Campaign trial chunks (:mod:`experiment_runner.stream`), design sweeps and diagnosis
+candidate fits are lists of independent tasks: a plain, picklable, module-level function
+called with small arguments (preset JSON, trial indices, seeds, parameter values).
+:func:`make_executor` returns one object with one method, :meth:`Executor.map`, that runs
+them
+
+* in this process, one after the other (``workers=1``, the default: the batch engine's
+  ``numba.prange`` already spreads a chunk of trials over every core);
+* on a local pool of ``workers`` spawned processes, each with ``cores // workers`` numba
+  threads;
+* on a Dask distributed cluster (``cluster`` = scheduler address such as
+  ``tcp://10.0.0.5:8786``, or a ``distributed`` cluster object such as ``LocalCluster``);
+  every worker needs this package installed (same version). Tasks sharing one worker
+  process run one at a time there (the numba kernels use the worker's threads).
+
+and yields ``(task id, result)`` pairs as the tasks complete. A cluster of several machines,
+each with this package installed in the same version (``scripts/bootstrap.sh``)::
+
+    dask scheduler                                   # on one machine: tcp://HOST:8786
+    dask worker tcp://HOST:8786 --nworkers 2 --nthreads 1   # on each machine (processes x threads)
+    nanostage campaign table_4_2 --trials 10000 --cluster tcp://HOST:8786
+
+Only a few tasks are in flight at any time (``window``), so a long task list does not hold
+all its arguments or results.
+Compiled numba kernels are loaded from the on-disk cache (``cache=True``) once per worker
+process; tasks can keep per-process caches of built models (``functools.lru_cache``).
+
+Examples
+--------
+>>> with make_executor() as ex:
+...     sorted(ex.map(pow, [("a", (2, 3)), ("b", (3, 2))]))
+[('a', 8), ('b', 9)]
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import os
+import threading
+import time
+from typing import Callable, Hashable, Iterable, Iterator, Optional
+
+from stage_sim.config import ConfigError
+
+__all__ = ["Executor", "make_executor", "cpu_count"]
+
+Task = tuple[Hashable, tuple]
+"""A task: its id (any hashable, e.g. ``(case, condition, first_trial)``) and the positional
+arguments of the function."""
+
+
+def cpu_count() -> int:
+    """Cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:      # not Linux
+        return os.cpu_count() or 1
+
+
+def _set_numba_threads(threads: int) -> None:
+    """Worker start-up: numba threads of this process (pool initializer, Dask ``client.run``)."""
+    import numba
+    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+
+
+def _pool_worker_init(threads: int, parent: int) -> None:
+    """Local pool worker start-up: numba threads, and exit when the parent process is gone
+    (killed: a pool worker would otherwise wait for tasks forever)."""
+    _set_numba_threads(threads)
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="nanostage-parent-watch").start()
+
+
+_TASK_LOCK = threading.Lock()
+
+
+def _locked_call(fn: Callable, args: tuple):
+    """Run ``fn(*args)`` holding this process's task lock (Dask workers with several threads)."""
+    with _TASK_LOCK:
+        return fn(*args)
+
+
+class Executor:
+    """Runs tasks and yields their results as they complete; use as a context manager.
+
+    Attributes
+    ----------
+    kind : str
+        ``"inline"``, ``"processes"`` or ``"dask"``.
+    workers : int
+        Worker processes (Dask: at the time of connecting), i.e. tasks that run at once.
+    address : str or None
+        Dask scheduler address.
+    """
+
+    def __init__(self, kind: str, workers: int, pool=None, client=None, own_client: bool = False):
+        self.kind = kind
+        self.workers = workers
+        self._pool = pool
+        self._client = client
+        self._own_client = own_client
+        self.address = client.scheduler_info()["address"] if client is not None else None
+
+    # ----------------------------------------------------------------- public
+    def map(self, fn: Callable, tasks: Iterable[Task], window: Optional[int] = None) -> Iterator[tuple]:
+        """Run ``fn(*args)`` for every ``(task_id, args)`` of ``tasks``; yield ``(task_id, result)``.
+
+        Parameters
+        ----------
+        fn : callable
+            A module-level (picklable) function; its arguments and result must pickle too.
+        tasks : iterable of (hashable, tuple)
+            Task ids and positional arguments; consumed lazily.
+        window : int, optional
+            Tasks in flight at most (default ``2 * workers``); bounds the memory held by
+            pending arguments and results.
+
+        Yields
+        ------
+        (task_id, result)
+            In order of completion (in order of ``tasks`` for the inline executor).
+
+        Raises
+        ------
+        Exception
+            The first exception a task raised (with a note naming its task id); the tasks
+            not yet started are cancelled.
+        """
+        if self.kind == "inline":
+            for key, args in tasks:
+                yield key, _run_noted(fn, args, key)
+            return
+        window = max(1, window or 2 * self.workers)
+        it = iter(tasks)
+        pending = {}
+        try:
+            self._fill(fn, it, pending, window)
+            while pending:
+                for fut in self._wait(list(pending)):
+                    key = pending.pop(fut)
+                    try:
+                        result = fut.result()
+                    except Exception as err:
+                        err.add_note(f"in task {key!r} ({self.kind} executor)")
+                        raise
+                    yield key, result
+                self._fill(fn, it, pending, window)
+        finally:
+            for fut in pending:
+                fut.cancel()
+
+    def close(self) -> None:
+        """Stop the pool / disconnect from Dask (a cluster passed in stays up)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        if self._client is not None and self._own_client:
+            self._client.close()
+        self._client = None
+
+    def __enter__(self) -> "Executor":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        where = f" at {self.address}" if self.address else ""
+        return f"Executor({self.kind}, workers={self.workers}{where})"
+
+    # ----------------------------------------------------------------- internals
+    def _fill(self, fn, it, pending, window):
+        while len(pending) < window:
+            try:
+                key, args = next(it)
+            except StopIteration:
+                return
+            if self.kind == "processes":
+                fut = self._pool.submit(fn, *args)
+            else:
+                fut = self._client.submit(_locked_call, fn, tuple(args), pure=False)
+            pending[fut] = key
+
+    def _wait(self, futures):
+        if self.kind == "processes":
+            done, _ = cf.wait(futures, return_when=cf.FIRST_COMPLETED)
+        else:
+            from distributed import wait
+            done, _ = wait(futures, return_when="FIRST_COMPLETED")
+        return [f for f in futures if f in done]     # submission order among the finished
+
+
+def _run_noted(fn, args, key):
+    try:
+        return fn(*args)
+    except Exception as err:
+        err.add_note(f"in task {key!r} (inline executor)")
+        raise
+
+
+def make_executor(workers: Optional[int] = None, cluster=None) -> Executor:
+    """An :class:`Executor` for ``workers`` local processes or a Dask cluster.
+
+    Parameters
+    ----------
+    workers : int, optional
+        Local worker processes (default 1 = run in this process). Ignored with ``cluster``.
+    cluster : str or distributed cluster, optional
+        Dask scheduler address (``tcp://host:8786``) or a cluster object (``LocalCluster``).
+
+    Returns
+    -------
+    Executor
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        ``workers`` below 1, or the Dask scheduler cannot be reached (message names it).
+    """
+    if cluster is not None:
+        from distributed import Client
+        try:
+            client = Client(cluster, timeout="20s")
+        except (OSError, TimeoutError) as err:
+            raise ConfigError(f"--cluster {cluster!r}: cannot connect to the Dask scheduler ({err})") from None
+        info = client.scheduler_info()["workers"]
+        for addr, w in info.items():     # numba threads = the worker's threads
+            client.run(_set_numba_threads, w.get("nthreads", 1), workers=[addr])
+        return Executor("dask", max(1, len(info)), client=client, own_client=True)
+    workers = 1 if workers is None else int(workers)
+    if workers < 1:
+        raise ConfigError(f"--workers: must be >= 1 (got {workers})")
+    if workers == 1:
+        return Executor("inline", 1)
+    import multiprocessing as mp
+    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                                  initializer=_pool_worker_init,
+                                  initargs=(max(1, cpu_count() // workers), os.getpid()))
+    return Executor("processes", workers, pool=pool)

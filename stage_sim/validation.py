@@ -1,0 +1,347 @@
+"""Uniform input errors and unit-plausibility checks for every validated file.
+
+Presets, experiments and campaigns are pydantic models; a failed validation becomes a
+:class:`ConfigError` whose message names, one line per problem (:func:`field_line`,
+also used for node parameters), the file, the field path (``stage.bearings.0.joint.stiffness``), the bad value and what
+is allowed (the constraint, the allowed keys or tags, and the field's description with
+its unit)::
+
+    fi_stage.yaml: invalid preset
+      stage.table.mass: got -1; expected greater than 0 (moving table mass [kg])
+      stage.table.mas: unknown key (got 3); allowed keys: mass
+
+Unit plausibility
+-----------------
+A dimensional field carries its SI unit and a generous *plausible* range for a
+nanopositioning stage as Field metadata (``json_schema_extra=unit("N/m", 1, 1e10)``).
+A value outside that range is reported, and when a power-of-a-thousand change of unit
+(a prefix: ×1e±3, 1e±6, 1e±9) brings it into range the message says which unit it was
+likely given in::
+
+    stage.bearings.0.joint.stiffness: got 0.04135 N/m, outside the plausible range
+      1 to 1e+10 N/m; likely given in N/µm instead of N/m (0.04135 N/µm = 4.135e+04 N/m)
+
+Zero is always plausible for a field that allows it (it means "none"/"off").
+
+Choice: an implausible value is an **error** by default. A stiffness a million times
+too small simulates nonsense without any other sign, and the ranges are wide (several
+decades around the seed's values, linear and rotary stages alike), so a real value
+outside them is rare and deliberate. Such a file opts out with the top-level key
+``plausibility: warn`` (report, go on) or ``plausibility: off``. The check applies to
+what comes from files -- a loaded preset (:func:`stage_sim.config.load_preset`), and
+overrides given with their ``source`` (:func:`stage_sim.config.with_overrides`) -- not
+to presets that code builds on purpose (a fit exploring wide bounds, a test driving a
+stage to divergence: :func:`stage_sim.config.preset_from_dict`, ``with_overrides``
+without a source).
+
+Files are read with :func:`load_yaml`: ``yaml.SafeLoader`` (no object construction, no
+code) that also refuses duplicate keys, which plain YAML silently resolves to the last.
+"""
+from __future__ import annotations
+
+import io
+import math
+import types
+import typing
+import warnings
+from dataclasses import dataclass
+from typing import Annotated, Literal, Union, get_args, get_origin
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+__all__ = ["ConfigError", "ConfigWarning", "Problem", "unit", "format_validation_error", "field_line",
+           "plausibility_problems", "check_plausible", "load_yaml", "is_number_type"]
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One bad input: the dotted field path, the value found and what is wrong / allowed."""
+    path: str
+    value: object
+    message: str
+
+
+class ConfigError(ValueError):
+    """A configuration file or mapping failed validation; the message says where and why.
+
+    ``problems`` lists each bad field (:class:`Problem`), when known.
+    """
+
+    def __init__(self, message: str, problems: list[Problem] | tuple = ()):
+        super().__init__(message)
+        self.problems = list(problems)
+
+
+class ConfigWarning(UserWarning):
+    """An implausible value accepted because its file says ``plausibility: warn``."""
+
+
+# =========================================================================== units
+UNIT_ALTERNATIVES = {
+    "N/m": (("N/mm", 1e3), ("N/µm", 1e6)),
+    "N·s/m": (("N·s/mm", 1e3), ("N·s/µm", 1e6)),
+    "N/(m·s)": (("N/(mm·s)", 1e3), ("N/(µm·s)", 1e6)),
+    "N·s": (("mN·s", 1e-3), ("µN·s", 1e-6)),
+    "N": (("mN", 1e-3), ("kN", 1e3)),
+    "kg": (("g", 1e-3),),
+    "m": (("mm", 1e-3), ("µm", 1e-6), ("nm", 1e-9)),
+    "m/s": (("mm/s", 1e-3), ("µm/s", 1e-6)),
+    "s": (("ms", 1e-3), ("µs", 1e-6)),
+    "Hz": (("kHz", 1e3), ("MHz", 1e6)),
+    "A": (("mA", 1e-3), ("µA", 1e-6)),
+}
+"""Units a value is commonly given in by mistake, with their factor to the SI unit."""
+
+_PREFIX_FACTORS = (1e3, 1e6, 1e9, 1e-3, 1e-6, 1e-9)
+
+
+def unit(name: str, lo: float, hi: float) -> dict:
+    """Field metadata: SI unit ``name`` and the plausible range ``[lo, hi]`` of the value's size.
+
+    Use as ``Field(..., json_schema_extra=unit("N/m", 1.0, 1e10))``.
+    """
+    return {"unit": name, "plausible": (float(lo), float(hi))}
+
+
+def _hint(value: float, unit_name: str, lo: float, hi: float) -> str:
+    a = abs(value)
+    named = [(alt, f) for alt, f in UNIT_ALTERNATIVES.get(unit_name, ()) if lo <= a * f <= hi]
+    if named:
+        return "; likely given in " + " or ".join(
+            f"{alt} ({value:g} {alt} = {value * f:.4g} {unit_name})" for alt, f in named) + f" instead of {unit_name}"
+    factors = [f for f in _PREFIX_FACTORS if lo <= a * f <= hi]
+    if factors:
+        return "; likely off by a unit prefix (x" + " or x".join(f"{f:g}" for f in factors) + ")"
+    return ""
+
+
+def _implausible(path: str, value: float, meta: dict) -> Problem | None:
+    lo, hi = meta["plausible"]
+    if value == 0 or lo <= abs(value) <= hi:
+        return None
+    u = meta["unit"]
+    return Problem(path, value, f"got {value:g} {u}, outside the plausible range {lo:g} to {hi:g} {u}"
+                   f"{_hint(value, u, lo, hi)}")
+
+
+def plausibility_problems(model: BaseModel, paths=None) -> list[Problem]:
+    """Fields of a validated ``model`` (recursively) whose value is outside its plausible range.
+
+    Parameters
+    ----------
+    model : pydantic.BaseModel
+    paths : iterable of str, optional
+        Check only fields at or below these dotted paths (e.g. the paths overrides set).
+    """
+    sel = None if paths is None else [p.split(".") for p in paths]
+    out: list[Problem] = []
+
+    def wanted(parts: list[str]) -> bool:
+        return sel is None or any(parts[:len(s)] == s or s[:len(parts)] == parts for s in sel)
+
+    def walk(obj, parts):
+        if isinstance(obj, BaseModel):
+            for name, info in type(obj).model_fields.items():
+                sub = parts + [name]
+                if not wanted(sub):
+                    continue
+                val = getattr(obj, name)
+                meta = info.json_schema_extra if isinstance(info.json_schema_extra, dict) else {}
+                if "plausible" in meta:
+                    vals = val if isinstance(val, list) else [val]
+                    for i, v in enumerate(vals):
+                        if isinstance(v, (int, float)) and not isinstance(v, bool):
+                            p = _implausible(".".join(sub + ([str(i)] if isinstance(val, list) else [])), v, meta)
+                            if p:
+                                out.append(p)
+                else:
+                    walk(val, sub)
+        elif isinstance(obj, list):
+            for i, v in enumerate(obj):
+                if wanted(parts + [str(i)]):
+                    walk(v, parts + [str(i)])
+
+    walk(model, [])
+    return out
+
+
+def check_plausible(model: BaseModel, source: str, mode: str = "error", paths=None) -> None:
+    """Raise :class:`ConfigError` (``mode="error"``) or warn (``"warn"``) on implausible values.
+
+    ``source`` names the file; ``paths`` restricts the check (see :func:`plausibility_problems`).
+    """
+    if mode == "off":
+        return
+    problems = plausibility_problems(model, paths)
+    if not problems:
+        return
+    text = "\n".join([f"{source}: implausible value(s) (a wrong unit?)"]
+                     + [f"  {p.path}: {p.message}" for p in problems])
+    if mode == "warn":
+        warnings.warn(text, ConfigWarning, stacklevel=3)
+        return
+    raise ConfigError(text + "\n  (a deliberate value? set 'plausibility: warn' at the top of the preset, "
+                      "or as an override)", problems)
+
+
+# =========================================================================== validation errors
+def _strip(tp):
+    """Annotated[X, ...] -> X; Optional[X] -> X."""
+    while True:
+        origin = get_origin(tp)
+        if origin is Annotated:
+            tp = get_args(tp)[0]
+        elif origin in (Union, types.UnionType):
+            args = [a for a in get_args(tp) if a is not type(None)]
+            if len(args) == 1:
+                tp = args[0]
+            else:
+                return Union[tuple(args)]
+        else:
+            return tp
+
+
+def is_number_type(annotation) -> bool:
+    """True for ``int``, ``float`` and integer ``Literal`` annotations (also ``Optional``/``Annotated``)."""
+    tp = _strip(annotation)
+    if tp in (int, float):
+        return True
+    return get_origin(tp) is Literal and all(isinstance(a, int) and not isinstance(a, bool) for a in get_args(tp))
+
+
+def _is_model(tp) -> bool:
+    return isinstance(tp, type) and issubclass(tp, BaseModel)
+
+
+def _tagged(member, tag) -> bool:
+    if member.__name__ == tag:
+        return True
+    for info in member.model_fields.values():
+        ann = _strip(info.annotation)
+        if get_origin(ann) is Literal and tag in get_args(ann):
+            return True
+    return False
+
+
+def _resolve(root, loc) -> tuple[list[str], object, object]:
+    """Walk ``loc`` through the model ``root``: (path without union tags, FieldInfo, type)."""
+    tp, info, path = root, None, []
+    for part in loc:
+        tp = _strip(tp) if tp is not None else None
+        if get_origin(tp) in (Union, types.UnionType) and isinstance(part, str):
+            member = next((m for m in get_args(tp) if _is_model(m) and _tagged(m, part)), None)
+            if member is not None:          # a union tag in the location, not a key of the file
+                tp = member
+                continue
+        if isinstance(part, int):
+            args = get_args(tp) if get_origin(tp) in (list, tuple) else ()
+            tp, info = (args[0] if args else None), None
+        elif _is_model(tp) and part in tp.model_fields:
+            info = tp.model_fields[part]
+            tp = info.annotation
+        else:
+            tp, info = None, None
+        path.append(str(part))
+    return path, info, (_strip(tp) if tp is not None else None)
+
+
+def _show(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _about(info) -> str:
+    if info is None:
+        return ""
+    desc = info.description or ""
+    meta = info.json_schema_extra if isinstance(info.json_schema_extra, dict) else {}
+    if meta.get("unit") and f"[{meta['unit']}]" not in desc:
+        desc = f"{desc} [{meta['unit']}]".strip()
+    return f" -- {desc}" if desc else ""
+
+
+def field_line(path: str, value, problem: str) -> str:
+    """One problem line, ``  path: got value; problem`` -- the format of every input error
+    (config files here, node parameters in :mod:`msg_defs.node_io`)."""
+    return f"  {path}: got {_show(value)}; {problem}"
+
+
+def format_validation_error(err: ValidationError, source: str, kind: str = "configuration",
+                            root: type[BaseModel] | None = None) -> ConfigError:
+    """A :class:`ConfigError` for a pydantic ``err``: one line per problem, naming the field
+    path, the bad value and what is allowed (``root``: the model validated, for field
+    descriptions, units and allowed keys)."""
+    lines = [f"{source}: invalid {kind}"]
+    problems = []
+    for e in err.errors():
+        kind_ = e["type"]
+        path, info, _ = _resolve(root, e["loc"]) if root else ([str(p) for p in e["loc"]], None, None)
+        where = ".".join(path) or "(top level)"
+        value = e.get("input")
+        ctx = e.get("ctx") or {}
+        if kind_ == "missing":
+            line = f"  {where}: required field is missing{_about(info)}"
+        elif kind_ == "extra_forbidden":
+            parent = _resolve(root, e["loc"][:-1])[2] if root else None
+            allowed = f"; allowed keys: {', '.join(parent.model_fields)}" if _is_model(parent) else ""
+            line = f"  {where}: unknown key (got {_show(value)}){allowed}"
+        elif kind_ == "union_tag_invalid":
+            where = f"{where}.{ctx.get('discriminator', '').strip(chr(39))}".rstrip(".")
+            value = ctx.get("tag")
+            line = field_line(where, value, f"expected one of {ctx.get('expected_tags')}")
+        elif kind_ == "union_tag_not_found":
+            where = f"{where}.{ctx.get('discriminator', '').strip(chr(39))}".rstrip(".")
+            line = f"  {where}: required field is missing (it selects the kind)"
+            value = None
+        elif kind_ in ("value_error", "assertion_error"):
+            msg = e["msg"].removeprefix("Value error, ").removeprefix("Assertion failed, ")
+            shown = "" if isinstance(value, (dict, list)) else f" (got {_show(value)})"
+            line = f"  {where}: {msg}{shown}"
+        else:
+            expected = e["msg"].removeprefix("Input should be ")
+            if isinstance(value, float) and not math.isfinite(value) and "finite" not in expected:
+                expected = f"a finite number, {expected}"
+            line = field_line(where, value, f"expected {expected}{_about(info)}")
+        lines.append(line)
+        problems.append(Problem(where, value, line.split(": ", 1)[1]))
+    return ConfigError("\n".join(lines), problems)
+
+
+# =========================================================================== YAML
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` refusing duplicate mapping keys."""
+
+
+def _mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False):
+    seen = {}
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":
+            continue                       # '<<: *anchor' entries may be overridden by explicit keys
+        key = loader.construct_object(key_node, deep=deep)
+        if isinstance(key, typing.Hashable):
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    "while constructing a mapping", node.start_mark,
+                    f"found duplicate key {key!r} (first at line {seen[key] + 1})", key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)
+
+
+def load_yaml(text: str, source: str):
+    """Parse YAML safely (``SafeLoader``: plain data only, no code) refusing duplicate keys;
+    :class:`ConfigError` naming ``source`` and the line on any error."""
+    stream = io.StringIO(text)
+    stream.name = str(source)              # named in YAML's error marks
+    try:
+        return yaml.load(stream, Loader=_UniqueKeyLoader)   # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        what = getattr(err, "problem", None) or str(err)
+        context = getattr(err, "context", None)
+        raise ConfigError(f"{source}: not valid YAML{where}: {what}" + (f" ({context})" if context else "")) from None
+
