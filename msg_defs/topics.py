@@ -19,7 +19,7 @@ Examples
 >>> TOPICS["/stage/measured"].msg_type
 'sensor_msgs/msg/JointState'
 >>> MEASURED.qos.depth, MEASURED.qos.reliability
-(10000, 'reliable')
+(1000, 'reliable')
 >>> print(offered_qos_yaml(CONFIG).splitlines()[0:4])
 ['- history: keep_last', '  depth: 1', '  reliability: reliable', '  durability: transient_local']
 """
@@ -51,10 +51,9 @@ ISOLATOR_JOINT = "isolator"
 EVENT_KINDS = ("run_start", "run_end", "trial_start", "trial_end", "abort", "fault")
 """Values of the ``event`` field of an ``/experiment/events`` message."""
 
-CONTROL_DEPTH = 10_000
-"""Keep-last depth of the per-sample (lockstep) topics: 1 s of stage time at the 10 kHz
-control rate (5–10 s of wall time at the graph's rate), so a subscriber that is not in the
-lockstep (the recorder) and stalls that long on a loaded machine still loses nothing."""
+CONTROL_DEPTH = 1000
+"""Keep-last depth of the per-sample (lockstep) topics: 0.1 s at the 10 kHz control
+rate, so a subscriber (the recorder) that falls that far behind still loses nothing."""
 
 INFINITE_DURATION = (9223372036, 854775807)
 """``(sec, nsec)`` that rosbag2 writes for an unset (infinite) QoS duration."""

@@ -357,6 +357,7 @@ def test_recorder_killed_mid_run_leaves_a_salvageable_file_and_a_restarted_one_t
         deadline = time.monotonic() + RUN_TIMEOUT                  # until it has the run's config
         while "recording to" not in g.stderr("recorder") and time.monotonic() < deadline:
             time.sleep(0.2)
+        time.sleep(2.0)     # the loop is held: let discovery match the plant's publishers with it too
         g.procs["servo_controller"].send_signal(signal.SIGCONT)
         code = g.wait_sequencer(timeout=RUN_TIMEOUT)               # the recorder is not in the loop
     finally:

@@ -46,11 +46,11 @@ def test_qos_plain_data_and_rclpy_profile():
     for t in TOPICS.values():
         assert t.qos.reliability == "reliable"                          # lockstep: nothing best-effort
     assert TOPICS["/experiment/config"].qos.durability == "transient_local"
-    assert TOPICS["/stage/measured"].qos.depth >= 10_000
+    assert TOPICS["/stage/measured"].qos.depth >= 1000
     p = qos_profile("/experiment/config")
     assert p.durability == DurabilityPolicy.TRANSIENT_LOCAL and p.reliability == ReliabilityPolicy.RELIABLE
     p = qos_profile(TOPICS["/clock"])
-    assert p.history == HistoryPolicy.KEEP_LAST and p.depth == 10_000 and p.durability == DurabilityPolicy.VOLATILE
+    assert p.history == HistoryPolicy.KEEP_LAST and p.depth == 1000 and p.durability == DurabilityPolicy.VOLATILE
     assert qos_profile(Qos("best_effort", depth=3)).reliability == ReliabilityPolicy.BEST_EFFORT
     with pytest.raises(ValueError, match="reliability"):
         Qos("sometimes")
