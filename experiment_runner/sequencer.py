@@ -89,6 +89,15 @@ class SequencerNode(StageNode):
             self._wait_for_nodes()
             return
         if time.monotonic() - self.last_progress > self.timeout:
+            n = len(self.y)
+            if self.k_meas == n - 1 and self.k_ref == n - 1:
+                # the loop reached the end, but records were lost on the way (not resent: no node waits for them)
+                stale = "reference" if np.isnan(self.xr).any() else "measured"
+                lost = int(np.isnan(self.xr if stale == "reference" else self.y).sum())
+                node = NODE_OF_INPUT[f"/stage/{stale}"]
+                self._abort(f"{lost} {stale} sample(s) of the trial never arrived (lost); its metrics "
+                            "cannot be computed", node)
+                return
             # lockstep order per sample: measured k (plant), then reference k (servo)
             stale = "measured" if self.k_meas <= self.k_ref else "reference"
             node = NODE_OF_INPUT["/stage/measured" if stale == "measured" else "/stage/reference"]

@@ -30,10 +30,10 @@ FI_NODES = ("plant_sim", "servo_controller", "recorder", "experiment_sequencer")
 """The nodes an FI-stage run needs (no dither, no SAI manager)."""
 
 FAST = {"plant_sim": {"input_timeout": 3.0},               # the watchdog
-        "experiment_sequencer": {"sample_timeout": 6.0, "wait_for_nodes": 4,   # 3 nodes + the Listener
-                                 "start_delay": 0.3}}
+        "experiment_sequencer": {"sample_timeout": 6.0, "wait_for_nodes": 4}}   # 3 nodes + the Listener
 """Short timeouts (the plant's watchdog fires before the sequencer's own), long enough for a
-loaded 2-core machine."""
+loaded 2-core machine; the sequencer's default ``start_delay`` (1 s) lets discovery match
+every publisher with every subscriber before the (short) trials start."""
 DT_NS = 100_000                       # control period of the FI stage (10 kHz) [ns]
 
 
@@ -237,6 +237,36 @@ def test_dropped_and_delayed_messages_are_recovered_and_change_nothing(tmp_path,
     rec = run.recording()
     assert rec.trials()[0].complete and len(rec.results) == 1
     assert np.array_equal(rec.y, _batch_y(exp)[0]) and len(np.unique(rec.stamp_ns)) == len(rec)
+
+
+@pytest.mark.parametrize("node, topic", [("servo_controller", "/stage/reference"), ("plant_sim", "/stage/truth"),
+                                         ("plant_sim", "/clock")])
+def test_lost_messages_outside_the_lockstep_are_recorded_as_lost(tmp_path, make_run, node, topic):
+    """Messages no node waits for (the reference record, the truth, the clock) are lost for
+    good: the loop runs on bit for bit. Without its reference record the trial's metrics
+    cannot be computed: the sequencer aborts it naming the servo and the lost samples; a lost
+    contract sample is left out of the reading of the recording with a warning naming the
+    topic, the rest is intact."""
+    exp = _experiment(tmp_path)
+    faults = {node: {"fault.topic": topic, "fault.mode": "drop", "fault.after": 100, "fault.count": 5}}
+    run = make_run(tmp_path, exp, _params(faults))
+    code, codes = run.finish(timeout=RUN_TIMEOUT)
+    aborts = run.events("abort")
+    if topic == "/stage/reference":
+        assert code == EXIT_ABORTED and len(aborts) == 1
+        assert "servo_controller" in aborts[0]["reason"] and "5 reference sample(s)" in aborts[0]["reason"]
+    else:
+        assert code == 0 and not run.events("fault") and not aborts
+    assert "TEST FAULT INJECTION" in (tmp_path / f"{node}.stderr").read_text()
+    rec = run.recording()
+    y = _batch_y(exp)[0]
+    k = (rec.stamp_ns - rec.stamp_ns[0]) // DT_NS                          # sample index of each row
+    assert np.array_equal(rec.y, y[k])
+    if topic == "/stage/reference":
+        assert len(rec) == len(y) - 5
+        assert any(w.startswith("/stage/command") and "not on every contract topic" in w for w in rec.warnings)
+    else:
+        assert len(rec) == len(y) and not rec.warnings
 
 
 def test_a_nan_command_stops_the_run_naming_the_servo(tmp_path, make_run):

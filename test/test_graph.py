@@ -144,10 +144,17 @@ class Listener:
             self.ex.spin_once(timeout_sec=0.02)
         return predicate(self.events)
 
-    def call(self, future, timeout: float = 20.0):
-        self.ex.spin_until_future_complete(future, timeout_sec=timeout)
-        assert future.done(), "parameter service did not answer"
-        return future.result()
+    def call(self, request, attempts: int = 4, timeout: float = 5.0):
+        """``request()`` (sends a service request, returns its future) until answered. A service
+        that discovery shows may not yet have matched this client's response reader (a ROS 2
+        race): the answer to the first request can be lost, so it is asked again. All calls here
+        are idempotent (get, or set to the same value)."""
+        for _ in range(attempts):
+            future = request()
+            self.ex.spin_until_future_complete(future, timeout_sec=timeout)
+            if future.done():
+                return future.result()
+        raise AssertionError(f"parameter service did not answer {attempts} requests of {timeout} s")
 
     def close(self):
         self.ex.shutdown()
@@ -446,15 +453,15 @@ def test_params_file_sets_a_node_parameter_and_bad_values_are_refused_at_run_tim
     try:
         client = AsyncParameterClient(lst.node, "plant_sim")
         assert client.wait_for_services(timeout_sec=RUN_TIMEOUT), "plant_sim parameter services"
-        got = lst.call(client.get_parameters(["input_timeout"]))
+        got = lst.call(lambda: client.get_parameters(["input_timeout"]))
         assert got.values[0].double_value == 0.75
-        bad = lst.call(client.set_parameters([Parameter("input_timeout", value=-1.0)])).results[0]
+        bad = lst.call(lambda: client.set_parameters([Parameter("input_timeout", value=-1.0)])).results[0]
         assert not bad.successful and "input_timeout" in bad.reason
-        bad = lst.call(client.set_parameters([Parameter("preset", value="no_such_preset")])).results[0]
+        bad = lst.call(lambda: client.set_parameters([Parameter("preset", value="no_such_preset")])).results[0]
         assert not bad.successful and "preset" in bad.reason and "no_such_preset" in bad.reason
-        good = lst.call(client.set_parameters([Parameter("input_timeout", value=2.5)])).results[0]
+        good = lst.call(lambda: client.set_parameters([Parameter("input_timeout", value=2.5)])).results[0]
         assert good.successful
-        got = lst.call(client.get_parameters(["input_timeout", "preset"]))
+        got = lst.call(lambda: client.get_parameters(["input_timeout", "preset"]))
         assert got.values[0].double_value == 2.5 and got.values[1].string_value == ""
         assert g.procs["plant_sim"].poll() is None                     # refusing did not end the node
     finally:
