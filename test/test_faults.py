@@ -30,10 +30,10 @@ FI_NODES = ("plant_sim", "servo_controller", "recorder", "experiment_sequencer")
 """The nodes an FI-stage run needs (no dither, no SAI manager)."""
 
 FAST = {"plant_sim": {"input_timeout": 3.0},               # the watchdog
-        "experiment_sequencer": {"sample_timeout": 6.0, "wait_for_nodes": 4}}   # 3 nodes + the Listener
+        "experiment_sequencer": {"sample_timeout": 6.0, "wait_for_nodes": 4,   # 3 nodes + the Listener
+                                 "start_delay": 0.3}}
 """Short timeouts (the plant's watchdog fires before the sequencer's own), long enough for a
-loaded 2-core machine; the sequencer's default ``start_delay`` (1 s) lets discovery match
-every publisher with every subscriber before the (short) trials start."""
+loaded 2-core machine."""
 DT_NS = 100_000                       # control period of the FI stage (10 kHz) [ns]
 
 
