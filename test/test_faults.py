@@ -63,11 +63,12 @@ class Run:
     def __init__(self, tmp_path: Path, exp: Path, params: dict):
         self.domain = _domain()
         self.tmp = tmp_path
-        self.listener = Listener(self.domain)
+        self.listener = Listener(self.domain, defer_trajectory=True)
         with _ros_env(self.domain):
             self.graph = NodeProcesses(str(exp), tmp_path / "run", nodes=FI_NODES, params=params,
                                        stderr_dir=tmp_path)
         self.seq = self.graph.procs["experiment_sequencer"]
+        self.listener.join_when_matched(event_publishers=len(FI_NODES))
 
     def events(self, kind: str) -> list[dict]:
         return [e for e in self.listener.events if e["event"] == kind]

@@ -116,19 +116,35 @@ class Listener:
     /experiment/trajectory, so a sequencer told to wait for one more subscriber
     (``wait_for_nodes`` 6) starts only once the listener is matched: no event is missed."""
 
-    def __init__(self, domain: int):
+    def __init__(self, domain: int, defer_trajectory: bool = False):
         with _ros_env(domain):
             self.ctx = Context()
             rclpy.init(context=self.ctx, domain_id=domain)
             self.node = Node("test_graph_listener", context=self.ctx)
         self.events: list[dict] = []
-        self.node.create_subscription(String, EVENTS.name,
-                                      lambda m: self.events.append(convert.parse_event(m.data)), qos_profile(EVENTS))
-        self.node.create_subscription(Float64MultiArray, TRAJECTORY.name, lambda m: None, qos_profile(TRAJECTORY))
+        self.sub_events = self.node.create_subscription(
+            String, EVENTS.name, lambda m: self.events.append(convert.parse_event(m.data)), qos_profile(EVENTS))
         self.commands = 0                                    # /stage/command messages heard
-        self.node.create_subscription(JointState, COMMAND.name, self._command, qos_profile(COMMAND))
+        self.sub_command = self.node.create_subscription(JointState, COMMAND.name, self._command,
+                                                         qos_profile(COMMAND))
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
+        if not defer_trajectory:
+            self._join()
+
+    def _join(self):
+        self.node.create_subscription(Float64MultiArray, TRAJECTORY.name, lambda m: None, qos_profile(TRAJECTORY))
+
+    def join_when_matched(self, event_publishers: int, timeout: float = 30.0) -> None:
+        """Subscribe to /experiment/trajectory (what the sequencer counts) only once this node's
+        command and event subscriptions are matched with the graph's publishers: discovery
+        matches each pair of endpoints on its own, and a short run could end before the
+        listener hears it."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and (self.sub_command.get_publisher_count() < 1
+                                                or self.sub_events.get_publisher_count() < event_publishers):
+            self.ex.spin_once(timeout_sec=0.02)
+        self._join()
 
     def _command(self, msg):
         self.commands += 1
