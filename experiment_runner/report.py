@@ -104,6 +104,14 @@ def write_plots(cr) -> list:
     return [f for f in files if f is not None]
 
 
+def _save(plt, fig, path: Path) -> Path:
+    """Lay out, write ``path`` (PNG, 110 dpi), close the figure; returns ``path``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _plot_settling(plt, cr, cond, cases, cols, out):
     w = cr.campaign.test.window
     fig, (ax0, ax1) = plt.subplots(2, 1, figsize=(9, 7.5), gridspec_kw={"height_ratios": [1, 1.6]})
@@ -141,11 +149,7 @@ def _plot_settling(plt, cr, cond, cases, cols, out):
     ax1.set_ylabel("position error [nm]")
     ax1.grid(alpha=0.3)
     ax1.legend(fontsize=8, loc="upper right")
-    fig.tight_layout()
-    path = out / f"settling_{cond.key}.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, out / f"settling_{cond.key}.png")
 
 
 def _plot_spectrum(plt, cr, cond, cases, cols, out):
@@ -173,11 +177,7 @@ def _plot_spectrum(plt, cr, cond, cases, cols, out):
     ax.set_title(f"In-position error spectrum after settling, {cond.label} (representative trials)", fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = out / f"spectrum_{cond.key}.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, out / f"spectrum_{cond.key}.png")
 
 
 def _plot_tracking(plt, cr, cond, cases, cols, out):
@@ -190,11 +190,7 @@ def _plot_tracking(plt, cr, cond, cases, cols, out):
     ax.set_title(f"{cr.campaign.title}\n{cond.label}", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = out / f"tracking_{cond.key}.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, out / f"tracking_{cond.key}.png")
 
 
 def _plot_reduction(plt, cr, cases, cols, out):
@@ -243,11 +239,7 @@ def _plot_reduction(plt, cr, cases, cols, out):
             ax.grid(alpha=0.3, which="both")
             ax.legend(fontsize=7)
     fig.suptitle(camp.title, fontsize=10)
-    fig.tight_layout()
-    path = out / "reduction_vs_speed.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, out / "reduction_vs_speed.png")
 
 
 def _plot_vs_step(plt, cr, cases, cols, out):
@@ -270,11 +262,7 @@ def _plot_vs_step(plt, cr, cases, cols, out):
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8)
     fig.suptitle(f"{cr.campaign.title}: mean and ±1σ over {cr.campaign.trials} trials", fontsize=10)
-    fig.tight_layout()
-    path = out / "vs_step.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, out / "vs_step.png")
 
 
 def _plot_distribution(plt, cr, metric, cases, cols, out):
@@ -311,11 +299,7 @@ def _plot_distribution(plt, cr, metric, cases, cols, out):
     axs[0][0].plot([], [], "D", color="crimson", label="seed (mean)")
     axs[0][0].legend(fontsize=8, loc="best")
     fig.suptitle(f"{camp.title}: {label} over {camp.trials} trials", fontsize=10)
-    fig.tight_layout()
-    path = out / f"distribution_{metric}.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, out / f"distribution_{metric}.png")
 
 
 def _plot_step_ii(plt, cr, out):
@@ -335,11 +319,7 @@ def _plot_step_ii(plt, cr, out):
     ax1.set_ylabel("reference correction [nm]")
     ax1.set_title("learned correction", fontsize=10)
     ax1.grid(alpha=0.3)
-    fig.tight_layout()
-    path = out / "step_ii.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, out / "step_ii.png")
 
 
 def _plot_calibration(plt, cr, out):
@@ -372,11 +352,7 @@ def _plot_calibration(plt, cr, out):
         ax.set_title(f"fitted to {p['target']['case']} {_cond_label(p['target'])}", fontsize=9)
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = out / "calibration.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, out / "calibration.png")
 
 
 def _cond_label(at: dict) -> str:
