@@ -17,13 +17,16 @@ from pathlib import Path
 
 from msg_defs import convert
 from msg_defs.node_io import StageNode, run_node
-from msg_defs.topics import CLOCK, COMMAND, CONFIG, DITHER, MEASURED, REFERENCE, TOPICS, TRUTH, qos_profile
+from msg_defs.topics import (CLOCK, COMMAND, CONFIG, DITHER, MEASURED, REFERENCE, TOPICS, TRAJECTORY, TRUTH,
+                             subscription_qos)
 from experiment_runner.recording import McapRecorder, bag_layout
 
 RECORDED = tuple(name for name in TOPICS if name != CONFIG.name)
 RAW = (REFERENCE.name, COMMAND.name, MEASURED.name, TRUTH.name, DITHER.name, CLOCK.name)
 """Per-sample topics taken as serialized CDR and decoded with rosbags (no rclpy message
-objects: about half the recorder's cost per sample)."""
+objects: about half the recorder's cost per sample). The recorder asks for the samples
+published before discovery matched it with their publisher (up to 0.1 s of them), and
+makes its ``/experiment/trajectory`` subscription, which the sequencer waits for, last."""
 
 
 class RecorderNode(StageNode):
@@ -46,9 +49,11 @@ class RecorderNode(StageNode):
             if name in RAW:
                 t = TOPICS[name]
                 self.create_subscription(convert.message_class(None, t.msg_type), name,
-                                         lambda b, t=t: self._write_raw(t, b), qos_profile(t.qos), raw=True)
-            else:
-                self.subscribe(name, lambda m, name=name: self._write(name, m))
+                                         lambda b, t=t: self._write_raw(t, b), subscription_qos(t, record=True),
+                                         raw=True)
+            elif name != TRAJECTORY.name:
+                self.subscribe(name, lambda m, name=name: self._write(name, m), record=True)
+        self.join_runs(lambda m: self._write(TRAJECTORY.name, m))
 
     def _write_raw(self, topic, data: bytes):
         """A per-sample message (JointState or Clock, stamp first) as a rosbags message;

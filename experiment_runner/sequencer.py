@@ -65,8 +65,9 @@ class SequencerNode(StageNode):
         self.pub_config = self.publisher("/experiment/config")
         self.pub_traj = self.publisher("/experiment/trajectory")
         self.pub_results = self.publisher("/experiment/results")
-        self.subscribe("/stage/measured", lambda m: self._sample(m, "measured", m.position[0]))
-        self.subscribe("/stage/reference", lambda m: self._sample(m, "reference", m.position[0]))
+        # every sample counts for the metrics: also those sent before discovery matched us (record)
+        self.subscribe("/stage/measured", lambda m: self._sample(m, "measured", m.position[0]), record=True)
+        self.subscribe("/stage/reference", lambda m: self._sample(m, "reference", m.position[0]), record=True)
         self.subscribe("/experiment/events", self._event_in)
         self.results: list[dict] = []
         self.done = False
@@ -204,14 +205,12 @@ class SequencerNode(StageNode):
 
 
 def main(args=None):
-    aborted = []
-
     def on_exit(node):
         time.sleep(0.5)                     # let the last events reach the recorder
-        aborted.append(node.aborted)
+        if node.aborted:
+            a = node.aborted
+            print(f"run aborted (trial {a['trial']}): {a['reason']} (node: {a['node']})", file=sys.stderr)
+            return 1                        # an aborted run is a failed run (as in one process)
+        return 0
 
     run_node(SequencerNode, args, until=lambda n: n.done, on_exit=on_exit)
-    if aborted and aborted[0]:
-        a = aborted[0]
-        print(f"run aborted (trial {a['trial']}): {a['reason']} (node: {a['node']})", file=sys.stderr)
-        sys.exit(1)                         # an aborted run is a failed run (as in one process)

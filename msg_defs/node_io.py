@@ -21,7 +21,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 
 from msg_defs import convert
-from msg_defs.topics import Qos, Topic, get_topic, qos_profile
+from msg_defs.topics import TRAJECTORY, Qos, Topic, get_topic, qos_profile, subscription_qos
 
 SAI_COMMAND = Topic(
     "/sai/command", "sensor_msgs/msg/JointState", "1, m", Qos("reliable", "volatile", 1000),
@@ -102,10 +102,18 @@ def make_executor(context=None, kind: str | None = None):
     return SingleThreadedExecutor(context=context)
 
 
+EXIT_GRACE_S = 5.0
+"""Wall-clock time a node gets, once it is told to stop (SIGINT) or its run is done, to tear
+down ROS before it ends itself: DDS teardown must never leave a node hanging. Its own
+clean-up (``on_exit``: e.g. closing a recording) always finishes first."""
+
+
 def run_node(factory, args=None, until=None, on_exit=None):
     """``main`` of a node executable: init, spin (until ``until(node)`` is true), clean up.
 
-    Ctrl-C / SIGINT ends it cleanly; ``on_exit(node)`` runs last (e.g. close a file).
+    Ctrl-C / SIGINT ends it cleanly; ``on_exit(node)`` runs last (e.g. close a file) and may
+    return the process's exit status. Whatever hangs after that, the process ends within
+    :data:`EXIT_GRACE_S` of being stopped.
     """
     import sys
 
@@ -113,6 +121,8 @@ def run_node(factory, args=None, until=None, on_exit=None):
     from rclpy.executors import ExternalShutdownException
     chosen = apply_graph_defaults()
     rclpy.init(args=args)
+    status = [0]
+    stopping, cleanup = _exit_guard(rclpy.get_default_context(), status)
     node = None
     try:
         try:
@@ -135,12 +145,37 @@ def run_node(factory, args=None, until=None, on_exit=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        stopping.set()
         if node is not None:
             if on_exit:
-                on_exit(node)
+                with cleanup:
+                    status[0] = on_exit(node) or 0
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
+    if status[0]:
+        sys.exit(status[0])
+
+
+def _exit_guard(context, status):
+    """Start a daemon thread that ends the process (with ``status[0]``) :data:`EXIT_GRACE_S`
+    after ``context`` is shut down (SIGINT) or the returned event is set, unless it ended by
+    itself; it waits while the returned lock (held by the node's own clean-up) is taken."""
+    import sys
+    import threading
+    import time
+    stopping, cleanup = threading.Event(), threading.Lock()
+
+    def guard():
+        while not stopping.wait(0.2) and context.ok():
+            pass
+        time.sleep(EXIT_GRACE_S)
+        with cleanup:
+            print(f"[run_node] ROS teardown did not finish {EXIT_GRACE_S} s after stop: exiting",
+                  file=sys.stderr, flush=True)
+            os._exit(status[0])
+    threading.Thread(target=guard, name="exit_guard", daemon=True).start()
+    return stopping, cleanup
 
 
 def _refuse_unknown_parameters(node) -> None:
@@ -199,10 +234,22 @@ class StageNode(Node):
             return FaultyPublisher(self, pub, **{k: v for k, v in self.fault.items() if k != "topic"})
         return pub
 
-    def subscribe(self, topic, callback):
-        t = topic if isinstance(topic, Topic) else get_topic(topic)
+    def subscribe(self, topic, callback, record: bool = False):
+        """Subscribe with the topic's QoS (:func:`msg_defs.topics.subscription_qos`; ``record``:
+        also get the per-sample messages sent before this subscription was matched)."""
+        t = get_topic(topic)
         return self.create_subscription(convert.message_class(None, t.msg_type), t.name, callback,
-                                        qos_profile(t.qos))
+                                        subscription_qos(t, record))
+
+    def join_runs(self, callback):
+        """Subscribe ``callback`` to ``/experiment/trajectory`` -- the subscription the sequencer
+        counts before it starts a run -- at the first spin, after every endpoint the constructor
+        made: discovery announces a node's subscriptions in the order they are made, so a
+        sequencer that has matched this one has matched the node's others too."""
+        def join():
+            timer.cancel()
+            self.subscribe(TRAJECTORY, callback)
+        timer = self.create_timer(0.0, join)
 
     def listen_config(self, callback):
         """Call ``callback(config_dict)`` when the run configuration arrives (latched)."""

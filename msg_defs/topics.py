@@ -32,7 +32,7 @@ __all__ = [
     "REFERENCE", "COMMAND", "MEASURED", "TRUTH", "DITHER", "ISOLATOR", "CORRECTION", "CLOCK",
     "CONFIG", "EVENTS", "TRAJECTORY", "RESULTS",
     "TABLE", "BEARING", "MOTOR", "PIEZOS", "ISOLATOR_JOINT", "EVENT_KINDS",
-    "get_topic", "qos_profile", "rosbag2_qos", "offered_qos_yaml", "qos_yaml", "markdown_table",
+    "get_topic", "qos_profile", "subscription_qos", "rosbag2_qos", "offered_qos_yaml", "qos_yaml", "markdown_table",
     "INFINITE_DURATION",
 ]
 
@@ -53,7 +53,10 @@ EVENT_KINDS = ("run_start", "run_end", "trial_start", "trial_end", "abort", "fau
 
 CONTROL_DEPTH = 1000
 """Keep-last depth of the per-sample (lockstep) topics: 0.1 s at the 10 kHz control
-rate, so a subscriber (the recorder) that falls that far behind still loses nothing."""
+rate, so a subscriber (the recorder) that falls that far behind still loses nothing.
+Their publishers keep these samples for late joiners too (``transient_local``): a
+recorder that discovery matches with a publisher only after the first samples went
+out still gets them (see :func:`subscription_qos`)."""
 
 INFINITE_DURATION = (9223372036, 854775807)
 """``(sec, nsec)`` that rosbag2 writes for an unset (infinite) QoS duration."""
@@ -105,11 +108,14 @@ class Topic:
     units : str
         SI units of the content.
     qos : Qos
-        QoS the publishers offer (subscribers use the same).
+        QoS the publishers offer (subscribers: :func:`subscription_qos`).
     rate : str
         When it is published.
     description : str
         Content, field by field.
+    stream : bool
+        A per-sample topic: only a recorder asks for the samples published before it
+        joined (a controller that joins late must start from the live sample).
     """
 
     name: str
@@ -118,34 +124,35 @@ class Topic:
     qos: Qos
     rate: str
     description: str
+    stream: bool = False
 
 
-_LOCKSTEP = Qos("reliable", "volatile", CONTROL_DEPTH)
+_LOCKSTEP = Qos("reliable", "transient_local", CONTROL_DEPTH)
 _LATCHED = Qos("reliable", "transient_local", 1)
 
 REFERENCE = Topic(
     "/stage/reference", "sensor_msgs/msg/JointState", "m, m/s (rad, rad/s on a rotary stage)", _LOCKSTEP,
     "every control sample",
     'name ["table"], position [x_r], velocity [v_r]: the reference the servo uses at this sample '
-    "(including the SAI correction); header.stamp = sample time")
+    "(including the SAI correction); header.stamp = sample time", stream=True)
 COMMAND = Topic(
     "/stage/command", "sensor_msgs/msg/JointState", "N (N·m on a rotary stage)", _LOCKSTEP,
     "every control sample",
-    'name ["motor"], effort [F_a]: servo force command sent to the drive for [k, k+1)')
+    'name ["motor"], effort [F_a]: servo force command sent to the drive for [k, k+1)', stream=True)
 MEASURED = Topic(
     "/stage/measured", "sensor_msgs/msg/JointState", "m (rad on a rotary stage)", _LOCKSTEP,
     "every control sample",
     'name ["table"] or ["table", "bearing"] (bearing only with a bearing displacement sensor), '
-    "position as the sensors report it (quantized) at the sample time")
+    "position as the sensors report it (quantized) at the sample time", stream=True)
 TRUTH = Topic(
     "/stage/truth", "sensor_msgs/msg/JointState", "m, m/s, N (rad, rad/s, N·m on a rotary stage)", _LOCKSTEP,
     "every control sample (simulation only)",
     'every body\'s true position and velocity, names "table", "bearing" (first jointed bearing) '
-    "and further bodies; effort = friction force on each bearing where known (may be empty)")
+    "and further bodies; effort = friction force on each bearing where known (may be empty)", stream=True)
 DITHER = Topic(
     "/stage/dither", "sensor_msgs/msg/JointState", "N", _LOCKSTEP,
     "every control sample (VAN stages)",
-    'name ["piezo_1", "piezo_2"], effort = dither forces applied over [k, k+1)')
+    'name ["piezo_1", "piezo_2"], effort = dither forces applied over [k, k+1)', stream=True)
 ISOLATOR = Topic(
     "/stage/isolator", "sensor_msgs/msg/JointState", "1 (dimensionless)", Qos("reliable", "transient_local", 10),
     "on every change (SAI stages), and once at start",
@@ -161,7 +168,7 @@ CLOCK = Topic(
     "/clock", "rosgraph_msgs/msg/Clock", "ns (builtin_interfaces/Time)", _LOCKSTEP,
     "every control sample",
     "stage time (simulated time in simulation); reliable, not the usual best-effort, so the "
-    "lockstep graph is deterministic")
+    "lockstep graph is deterministic", stream=True)
 CONFIG = Topic(
     "/experiment/config", "std_msgs/msg/String", "SI (text)", _LATCHED,
     "once, first",
@@ -224,6 +231,22 @@ def qos_profile(topic: Topic | Qos | str):
         reliability=ReliabilityPolicy.RELIABLE if q.reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT,
         durability=(DurabilityPolicy.TRANSIENT_LOCAL if q.durability == "transient_local"
                     else DurabilityPolicy.VOLATILE))
+
+
+def subscription_qos(topic: Topic | str, record: bool = False):
+    """The ``QoSProfile`` a subscriber of ``topic`` requests: the offered one, except that on
+    a per-sample topic (``stream``) only a recorder (``record``) asks for the samples sent
+    before it joined; anyone else gets live samples only.
+
+    >>> from rclpy.qos import DurabilityPolicy
+    >>> subscription_qos("/stage/measured").durability == DurabilityPolicy.VOLATILE
+    True
+    >>> subscription_qos("/stage/measured", record=True).durability == DurabilityPolicy.TRANSIENT_LOCAL
+    True
+    """
+    from dataclasses import replace
+    t = get_topic(topic)
+    return qos_profile(replace(t.qos, durability="volatile") if t.stream and not record else t.qos)
 
 
 def rosbag2_qos(topic: Topic | Qos | str) -> dict:

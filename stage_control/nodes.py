@@ -46,7 +46,7 @@ class _TrialNode(StageNode):
         self.listen_config(self._configure)
         if self.preset_name:
             self._configure(None)
-        self.subscribe("/experiment/trajectory", self._trajectory)
+        self.join_runs(self._trajectory)
         self.subscribe_input("/stage/measured", "measured", "position")
 
     def active(self, preset) -> bool:

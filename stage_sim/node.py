@@ -60,7 +60,7 @@ class PlantNode(StageNode):
         self.pub_clock = self.publisher("/clock")
         self.clock = convert.clock_msg(None, 0)
         self.pub_isolator = JointStateOut(self, "/stage/isolator")
-        self.subscribe("/experiment/trajectory", self._trajectory)
+        self.join_runs(self._trajectory)
         self.subscribe("/experiment/events", self._event_in)
         self.subscribe("/stage/command", lambda m: self._input(m, "command", m.effort[0]))
         self.subscribe("/stage/dither", lambda m: self._input(m, "dither", (m.effort[0], m.effort[1])))

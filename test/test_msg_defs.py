@@ -12,7 +12,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from msg_defs import convert
 from msg_defs.topics import (CONTRACT_TOPICS, EVENT_KINDS, TOPICS, Qos, get_topic, markdown_table,
-                             offered_qos_yaml, qos_profile)
+                             offered_qos_yaml, qos_profile, subscription_qos)
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 FAMILIES = [None, TS]
@@ -49,8 +49,15 @@ def test_qos_plain_data_and_rclpy_profile():
     assert TOPICS["/stage/measured"].qos.depth >= 1000
     p = qos_profile("/experiment/config")
     assert p.durability == DurabilityPolicy.TRANSIENT_LOCAL and p.reliability == ReliabilityPolicy.RELIABLE
-    p = qos_profile(TOPICS["/clock"])
-    assert p.history == HistoryPolicy.KEEP_LAST and p.depth == 1000 and p.durability == DurabilityPolicy.VOLATILE
+    p = qos_profile(TOPICS["/clock"])        # offered: the last 0.1 s kept for a recorder joining late
+    assert p.history == HistoryPolicy.KEEP_LAST and p.depth == 1000 and p.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    # requested: only a recorder asks for it; a controller joining late starts from the live sample
+    assert subscription_qos("/clock").durability == DurabilityPolicy.VOLATILE
+    assert subscription_qos("/clock", record=True).durability == DurabilityPolicy.TRANSIENT_LOCAL
+    assert subscription_qos("/experiment/trajectory").durability == DurabilityPolicy.TRANSIENT_LOCAL  # latched
+    streams = {n for n, t in TOPICS.items() if t.stream}
+    assert streams == {"/stage/reference", "/stage/command", "/stage/measured", "/stage/truth", "/stage/dither",
+                       "/clock"}
     assert qos_profile(Qos("best_effort", depth=3)).reliability == ReliabilityPolicy.BEST_EFFORT
     with pytest.raises(ValueError, match="reliability"):
         Qos("sometimes")
