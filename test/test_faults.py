@@ -28,6 +28,8 @@ from stage_sim.config import load_preset, with_overrides
 
 FI_NODES = ("plant_sim", "servo_controller", "recorder", "experiment_sequencer")
 """The nodes an FI-stage run needs (no dither, no SAI manager)."""
+VAN_NODES = FI_NODES + ("dither_generator",)
+SAI_NODES = FI_NODES + ("sai_manager",)
 
 FAST = {"plant_sim": {"input_timeout": 3.0},               # the watchdog
         "experiment_sequencer": {"sample_timeout": 6.0, "wait_for_nodes": 4,   # 3 nodes + the Listener
@@ -37,11 +39,11 @@ loaded 2-core machine."""
 DT_NS = 100_000                       # control period of the FI stage (10 kHz) [ns]
 
 
-def _experiment(tmp_path: Path, trials: int = 1, dwell: float = 0.03, **doc) -> Path:
-    """``fi_p2p_5um`` with ``trials`` trials, starting at 0, ``dwell`` [s] (0.03: 527 samples
-    a trial), changed by ``doc``."""
-    base = yaml.safe_load((EXPERIMENT_DIR / "fi_p2p_5um.yaml").read_text())
-    base.pop("starts")
+def _experiment(tmp_path: Path, trials: int = 1, dwell: float = 0.03, base: str = "fi_p2p_5um", **doc) -> Path:
+    """Experiment ``base`` with ``trials`` trials, starting at 0, ``dwell`` [s] (fi_p2p_5um,
+    0.03: 527 samples a trial), changed by ``doc``."""
+    base = yaml.safe_load((EXPERIMENT_DIR / f"{base}.yaml").read_text())
+    base.pop("starts", None)
     base["profile"]["dwell"] = dwell
     base.update(name="faults", trials=trials, **doc)
     path = tmp_path / "faults.yaml"
@@ -60,15 +62,15 @@ def _params(*extra: dict) -> dict:
 class Run:
     """One graph run with a live listener; ``finish()`` waits for the sequencer, stops the rest."""
 
-    def __init__(self, tmp_path: Path, exp: Path, params: dict):
+    def __init__(self, tmp_path: Path, exp: Path, params: dict, nodes=FI_NODES):
         self.domain = _domain()
         self.tmp = tmp_path
         self.listener = Listener(self.domain, defer_trajectory=True)
         with _ros_env(self.domain):
-            self.graph = NodeProcesses(str(exp), tmp_path / "run", nodes=FI_NODES, params=params,
+            self.graph = NodeProcesses(str(exp), tmp_path / "run", nodes=nodes, params=params,
                                        stderr_dir=tmp_path)
         self.seq = self.graph.procs["experiment_sequencer"]
-        self.listener.join_when_matched(event_publishers=len(FI_NODES))
+        self.listener.join_when_matched(event_publishers=len(nodes))
 
     def events(self, kind: str) -> list[dict]:
         return [e for e in self.listener.events if e["event"] == kind]
@@ -160,6 +162,30 @@ def test_a_killed_node_ends_the_run_with_the_trial_aborted_naming_it(tmp_path, m
     assert np.array_equal(rec.y[tr.slice], y[:tr.stop - tr.start])         # what was recorded is right
 
 
+@pytest.mark.parametrize("base, node, nodes", [("van_asym_hc", "dither_generator", VAN_NODES),
+                                                ("sai_p2p_5um", "sai_manager", SAI_NODES)])
+def test_a_killed_dither_generator_or_sai_manager_trips_the_watchdog_naming_it(tmp_path, make_run, base, node,
+                                                                               nodes):
+    """The plant waits for their per-sample inputs: the watchdog names the silent node (and the
+    servo too where it waits for the SAI manager's correction)."""
+    exp = _experiment(tmp_path, base=base, dwell=0.05)
+    run = make_run(tmp_path, exp, _params({"experiment_sequencer": {"wait_for_nodes": len(nodes)}}), nodes=nodes)
+    run.wait_commands()
+    assert run.graph.kill(node) == -signal.SIGKILL
+    code, codes = run.finish()
+    assert code == EXIT_ABORTED and codes[node] == -signal.SIGKILL
+    fault = run.events("fault")[0]
+    assert fault["node"] == "plant_sim" and fault["cause"] == "watchdog" and node in fault["responsible"]
+    _one_abort(run, node)
+    rec = run.recording()
+    assert rec.salvaged is None
+    _recorded_abort(rec, node)
+    y = _batch_y(exp)[0]
+    tr = rec.trials()[0]
+    assert 0 < tr.stop - tr.start < len(y)                                  # cut mid-trial
+    assert np.array_equal(rec.y[tr.slice], y[:tr.stop - tr.start])         # what was recorded is right
+
+
 def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applied(tmp_path, make_run):
     exp = _experiment(tmp_path)
     run = make_run(tmp_path, exp, _params())
@@ -181,7 +207,42 @@ def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applie
     assert rec.counts["/stage/measured"] == rec.counts["/stage/truth"] == k + 1 and len(rec) >= k
 
 
+def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
+    """Nothing comes from a SIGSTOPped plant: the sequencer's sample timeout aborts the trial."""
+    exp = _experiment(tmp_path)
+    run = make_run(tmp_path, exp, _params())
+    run.wait_commands()
+    run.graph.pause("plant_sim")
+    assert run.listener.wait_for(lambda ev: any(e["event"] == "abort" for e in ev), 30.0)
+    code, codes = run.finish()                  # SIGCONT + SIGINT: it ends normally
+    assert code == EXIT_ABORTED and codes["plant_sim"] == 0
+    abort = _one_abort(run, "plant_sim")
+    assert "no measured sample" in abort["reason"]
+    rec = run.recording()
+    _recorded_abort(rec, "plant_sim")
+    tr = rec.trials()[0]
+    assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
+
+
 # =========================================================================== restarts
+def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
+    """The new plant gets the trial's trajectory (latched) and starts it again from sample 0:
+    the sequencer sees the sample index go back and refuses the mixed trial."""
+    exp = _experiment(tmp_path)
+    slow = {"plant_sim": {"input_timeout": 60.0}, "experiment_sequencer": {"sample_timeout": 60.0}}
+    run = make_run(tmp_path, exp, _params(slow))
+    run.wait_commands()
+    run.graph.restart("plant_sim")
+    code, codes = run.finish(timeout=RUN_TIMEOUT)
+    assert code == EXIT_ABORTED
+    reason = _one_abort(run, "plant_sim")["reason"]
+    assert "restarted" in reason
+    rec = run.recording()
+    _recorded_abort(rec, "plant_sim")
+    tr = rec.trials()[0]                    # the recorder kept each sample once: the first plant's
+    assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
+
+
 def test_a_servo_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new servo gets the trial's trajectory (latched) and the plant's repeated sample k > 0:
     it refuses to start from rest in mid-motion."""
