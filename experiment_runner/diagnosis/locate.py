@@ -117,6 +117,10 @@ def segments(rl, fl, mask, rate, block: float = 0.05, top: int = 8, lab=None, t0
     return rows[:top], len(rows)
 
 
+LINE_RATIO_ABOVE_BAND = 100.0
+"""Residual / floor PSD ratio a spectral peak above the observer bandwidth needs to count."""
+
+
 def spectrum(r, r_floor, mask, mask_floor, rate, f_obs, nperseg: int = 1024):
     """Residual PSD vs floor PSD: bands, peaks and narrow lines."""
     def psd(x, m):
@@ -146,9 +150,10 @@ def spectrum(r, r_floor, mask, mask_floor, rate, f_obs, nperseg: int = 1024):
     peaks = []
     lines = []
     for i in range(2, len(f) - 1):
-        if f[i] > f_obs:
-            break
-        if ratio[i] > 10 and pm[i] >= pm[i - 1] and pm[i] >= pm[i + 1]:
+        # above the observer bandwidth the force estimate is attenuated and its floor uncertain:
+        # only lines far above the floor count there (a dither imbalance at 500 Hz)
+        above = f[i] > f_obs
+        if ratio[i] > (LINE_RATIO_ABOVE_BAND if above else 10) and pm[i] >= pm[i - 1] and pm[i] >= pm[i + 1]:
             # width: neighbouring bins above half the peak level
             j0 = i
             while j0 > 0 and pm[j0 - 1] > 0.5 * pm[i]:
