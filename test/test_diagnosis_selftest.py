@@ -1,7 +1,7 @@
 """Concealed-data proof, end to end through the command-line functions:
 ``synth TRUTH EXPERIMENT --out REC`` -> MCAP recording -> ``diagnose REC NOMINAL``.
 
-The full self-test (``nanostage diagnose --selftest``, 38 cases) takes many minutes; here a
+The full self-test (``nanostage diagnose --selftest``, 40 cases) takes minutes; here a
 positive case through the CLI with every output file, and a representative subset of the
 self-test through ``--selftest --json``: one case per recording kind (stepped sine, circle,
 point-to-point), a pair of effects and a negative control, each judged by the issue's pass
@@ -100,3 +100,43 @@ def test_list_effects_cli(capsys):
     assert main_diagnose(_args(add_diagnose_arguments, ["--list-effects", "--json"])) == 0
     rows = json.loads(capsys.readouterr().out)
     assert all({"key", "physics", "signature", "parameters", "in_preset"} <= set(r) for r in rows)
+
+
+def test_selftest_sai_and_above_band_cases(capsys):
+    """The isolator switching transient on an SAI stage (3x the nominal impact impulse), an SAI
+    negative control, and a 500 Hz dither imbalance above the observer bandwidth."""
+    argv = ["--selftest", "--json", "--only", "isolator_transient_x3", "negative_sai_stage", "dither_imbalance_500Hz"]
+    code = main_diagnose(_args(add_diagnose_arguments, argv))
+    s = json.loads(capsys.readouterr().out)
+    res = {r["case"]: r for r in s["results"]}
+    iso = res["isolator_transient_x3"]
+    assert iso["named"][0] == "isolator_transient" and iso["params_ok"] and iso["fall_ok"], iso
+    assert abs(res["dither_imbalance_500Hz"]["params"]["f"]["rel_error"]) < 0.01
+    assert res["negative_sai_stage"]["verdict"] == "model adequate"
+    assert s["passed"] == 3 and s["false_positives"] == 0 and code == 0
+
+
+def test_sai_mode_missing_from_the_recording_comes_from_the_nominal(tmp_path):
+    """Without /stage/isolator the SAI command is the nominal SAI manager's on the recorded
+    reference: the same switching as recorded."""
+    import dataclasses
+
+    from experiment_runner.diagnosis.data import load_data
+    from experiment_runner.diagnosis.model import ModelSpec
+    from experiment_runner.diagnosis.pipeline import _fill_plant_inputs
+    from experiment_runner.diagnosis.predict import replay
+    from experiment_runner.diagnosis.selftest import EXPERIMENTS
+    from experiment_runner.diagnosis.synth import synth
+    truth = load_preset("sai_stage").model_dump(mode="json")
+    truth["sai_manager"]["ilc"] = None
+    (tmp_path / "truth.yaml").write_text(yaml.safe_dump(truth))
+    (tmp_path / "exp.yaml").write_text(yaml.safe_dump(dict(EXPERIMENTS["sai_steps"], trials=2)))
+    rec = read_recording(synth(tmp_path / "truth.yaml", tmp_path / "exp.yaml", tmp_path / "rec.mcap"))
+    recorded = load_data(rec)
+    assert recorded.mode is not None and set(np.unique(recorded.mode)) == {0.0, 1.0}
+    blind = load_data(dataclasses.replace(rec, isolator=None))
+    assert blind.mode is None
+    spec = ModelSpec(load_preset(tmp_path / "truth.yaml"))
+    notes = _fill_plant_inputs(spec, blind, replay(spec, blind))
+    assert any("/stage/isolator" in n for n in notes)
+    assert np.array_equal(blind.mode[blind.valid], recorded.mode[recorded.valid])

@@ -4,7 +4,11 @@
 what a hardware rig gives -- ``/stage/reference`` (x_ref, v_ref), ``/stage/command`` (u)
 and ``/stage/measured`` (y) -- cuts it into trials (``/experiment/events``, else the
 whole record is one trial) and stacks them as (T, B) arrays, trial axis last, padded with
-the last sample and masked. It splits the samples into a *fit* set and a *held-out* set:
+the last sample and masked. The plant's other inputs -- the piezo dither forces (``/stage/dither``) and the SAI solenoid
+command (``/stage/isolator``, held from each message's stamp) -- are taken from the recording
+where it has them; otherwise the pipeline fills them from the nominal model's own dither
+generator and SAI manager on the recorded reference (:meth:`DiagData.plant_inputs`).
+It splits the samples into a *fit* set and a *held-out* set:
 whole trials when there are two or more (every third trial held out, at least one),
 otherwise contiguous blocks of the single trial (every third of six blocks held out).
 The first ``burn_in`` seconds of each trial are in neither set (the model starts relaxed).
@@ -15,6 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import signal
+
+from msg_defs.topics import ISOLATOR_JOINT, PIEZOS
 
 __all__ = ["DiagData", "load_data", "smooth"]
 
@@ -38,6 +44,15 @@ class DiagData:
     vs: np.ndarray = None         # its velocity
     smooth_hz: float = 0.0
     notes: list = field(default_factory=list)
+    d0: np.ndarray = None         # (T, B) dither force of piezo 1 [N] (None: no dither)
+    d1: np.ndarray = None         # (T, B) dither force of piezo 2 [N]
+    mode: np.ndarray = None       # (T, B) SAI solenoid command, 1 compliant, 0 stiff (None: compliant)
+
+    def plant_inputs(self) -> tuple:
+        """``(d0, d1, mode)`` as (T, B) arrays: zero dither and a compliant (no) isolator where absent."""
+        zero = np.zeros(self.shape)
+        return (zero if self.d0 is None else self.d0, zero if self.d1 is None else self.d1,
+                np.ones(self.shape) if self.mode is None else self.mode)
 
     @property
     def dt(self) -> float:
@@ -50,7 +65,8 @@ class DiagData:
     def subset(self, cols) -> "DiagData":
         """The same data restricted to trials ``cols`` (indices into the batch axis)."""
         cols = np.asarray(cols, int)
-        kw = {k: getattr(self, k)[:, cols] for k in ("x_ref", "v_ref", "u", "y", "valid", "fit", "held", "ys", "vs")}
+        kw = {k: None if getattr(self, k) is None else getattr(self, k)[:, cols]
+              for k in ("x_ref", "v_ref", "u", "y", "valid", "fit", "held", "ys", "vs", "d0", "d1", "mode")}
         return DiagData(rate=self.rate, t0=self.t0[cols], lengths=self.lengths[cols],
                         trial_ids=[self.trial_ids[c] for c in cols], source=self.source, split=self.split,
                         smooth_hz=self.smooth_hz, notes=list(self.notes), **kw)
@@ -130,7 +146,25 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
         held = usable & h
         fit = usable & ~h
         split = "one trial: blocks 3 and 6 of 6 held out"
+    d0 = d1 = mode = None
+    if rec.dither is not None and len(rec.dither):
+        d0, d1 = (pick(_at_samples(rec.dither, rec.stamp_ns, name, "effort")) for name in PIEZOS)
+        notes.append("dither forces from /stage/dither")
+    if rec.isolator is not None and len(rec.isolator):
+        mode = pick(_at_samples(rec.isolator, rec.stamp_ns, ISOLATOR_JOINT, "position", hold=True))
+        notes.append("SAI mode from /stage/isolator")
     return DiagData(rate=rate, t0=np.array([rec.t[s0] for _, s0, _ in slices]), x_ref=pick(rec.x_ref),
                     v_ref=pick(v_ref), u=pick(rec.u), y=pick(rec.y), valid=valid, fit=fit, held=held,
                     lengths=lengths, trial_ids=[s[0] for s in slices], source=str(rec.path), split=split,
-                    notes=notes)
+                    notes=notes, d0=d0, d1=d1, mode=mode)
+
+
+def _at_samples(series, stamp_ns, joint: str, field: str, hold: bool = False) -> np.ndarray:
+    """``series``' ``field`` of ``joint`` at each sample stamp: the message of that stamp (0 where
+    none), or with ``hold`` the last message at or before it (the first one before any)."""
+    values = np.nan_to_num(series.joint(joint, field))
+    i = np.searchsorted(series.stamp_ns, stamp_ns, side="right") - 1
+    if hold:
+        return values[np.clip(i, 0, None)]
+    hit = (i >= 0) & (series.stamp_ns[np.clip(i, 0, None)] == stamp_ns)
+    return np.where(hit, values[np.clip(i, 0, None)], 0.0)

@@ -66,13 +66,14 @@ def friction_norm(pm, z, fr, b, fc_tot):
 
 
 @njit(cache=True, nogil=True)
-def observe(pm, fc_tot, u, ys, vs, z, fr, ps, dbuf, f, zn, force, omega, m_eff, snap_every,
+def observe(pm, fc_tot, u, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, omega, m_eff, snap_every,
             out_d, out_x, out_v, out_phi, snap_z, snap_fr, snap_ps, snap_dbuf):
     """Force observer over a batch of trials (see module docstring).
 
     ``u, ys, vs``: (T, B) recorded command [N], smoothed measured position [m] and velocity
-    [m/s]. ``z ... force``: plant state (:class:`stage_sim.plant.PlantState` fields, at rest at
-    ``ys[0]``). Writes ``out_d`` (force residual [N]), ``out_x``, ``out_v`` (observer position
+    [m/s]; ``d0, d1, mode``: (T, B) the plant's other inputs, piezo dither forces [N] and SAI
+    solenoid command (1 compliant, 0 stiff). ``z ... force``: plant state
+    (:class:`stage_sim.plant.PlantState` fields, at rest at ``ys[0]``). Writes ``out_d`` (force residual [N]), ``out_x``, ``out_v`` (observer position
     and velocity), ``out_phi`` (normalised table friction state), and every ``snap_every``
     samples the plant state into ``snap_*`` (for :func:`open_loop`). Returns the number of
     samples at which the plant reported a non-OK status.
@@ -86,8 +87,9 @@ def observe(pm, fc_tot, u, ys, vs, z, fr, ps, dbuf, f, zn, force, omega, m_eff, 
     integ = np.zeros(B)
     d = np.zeros(B)
     uk = np.zeros(B)
-    zero = np.zeros(B)
-    one = np.ones(B)
+    d0k = np.zeros(B)
+    d1k = np.zeros(B)
+    mk = np.zeros(B)
     seeds = np.zeros(B, np.int64)
     meas = np.zeros((2, B))
     status = np.zeros(B, np.int64)
@@ -105,11 +107,14 @@ def observe(pm, fc_tot, u, ys, vs, z, fr, ps, dbuf, f, zn, force, omega, m_eff, 
             integ[b] += ki * dt * e
             d[b] = kp * e + kd * ev + integ[b]
             uk[b] = u[k, b]
+            d0k[b] = d0[k, b]
+            d1k[b] = d1[k, b]
+            mk[b] = mode[k, b]
             out_d[k, b] = d[b]
             out_x[k, b] = z[0, b]
             out_v[k, b] = z[n, b]
             out_phi[k, b] = friction_norm(pm, z, fr, b, fc_tot)
-        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, d, zero, zero, one, k, seeds, meas, status)
+        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, d, d0k, d1k, mk, k, seeds, meas, status)
         for b in range(B):
             if status[b] != OK:
                 bad += 1
@@ -118,15 +123,16 @@ def observe(pm, fc_tot, u, ys, vs, z, fr, ps, dbuf, f, zn, force, omega, m_eff, 
 
 
 @njit(cache=True, nogil=True)
-def open_loop(pm, u, k0, z, fr, ps, dbuf, f, zn, force, out_x):
+def open_loop(pm, u, d0, d1, mode, k0, z, fr, ps, dbuf, f, zn, force, out_x):
     """Open loop from sample ``k0``: column ``w`` is driven by the command ``u[:, w]``
-    (length, W) from the state ``z ... force`` (column ``w``); writes the table position
-    into ``out_x`` (length, W)."""
+    (length, W) and the inputs ``d0, d1, mode`` (length, W) (see :func:`observe`) from the
+    state ``z ... force`` (column ``w``); writes the table position into ``out_x`` (length, W)."""
     length, W = u.shape
     uk = np.zeros(W)
+    d0k = np.zeros(W)
+    d1k = np.zeros(W)
+    mk = np.zeros(W)
     none = np.zeros(0)
-    zero = np.zeros(W)
-    one = np.ones(W)
     seeds = np.zeros(W, np.int64)
     meas = np.zeros((2, W))
     status = np.zeros(W, np.int64)
@@ -134,10 +140,14 @@ def open_loop(pm, u, k0, z, fr, ps, dbuf, f, zn, force, out_x):
         for w in range(W):
             out_x[j, w] = z[0, w]
             uk[w] = u[j, w]
-        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, none, zero, zero, one, k0 + j, seeds, meas, status)
+            d0k[w] = d0[j, w]
+            d1k[w] = d1[j, w]
+            mk[w] = mode[j, w]
+        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, none, d0k, d1k, mk, k0 + j, seeds, meas, status)
 
 
-def new_state(pm: PlantModel, x0) -> tuple:
-    """Plant state arrays (z, fr, ps, dbuf, f, zn, force) at rest at ``x0`` (B,)."""
+def new_state(pm: PlantModel, x0, sai_mode: float = 1.0) -> tuple:
+    """Plant state arrays (z, fr, ps, dbuf, f, zn, force) at rest at ``x0`` (B,), the isolator
+    in ``sai_mode`` (1 compliant, 0 stiff and locked)."""
     x0 = np.atleast_1d(np.asarray(x0, float))
-    return tuple(init_plant_state(pm, len(x0), x0))
+    return tuple(init_plant_state(pm, len(x0), x0, sai_mode=sai_mode))

@@ -7,9 +7,10 @@ fitted:
 ``deterministic``  fitted to the force residual on the fit set (:mod:`.fit`);
 ``integer``        a grid over integers (actuator delay);
 ``stochastic``     compared through the noise floor (drive noise) or the measurement
-                   lattice (quantization), see :mod:`.fit`;
-``info``           documented, not fitted in this milestone (needs topics the contract
-                   does not require).
+                   lattice (quantization), see :mod:`.fit`.
+
+An effect that needs a stage feature the model lacks says why (:meth:`Effect.applicable`:
+the isolator transient needs an SAI) and is not tried.
 
 ``expressible`` says whether the fitted model is a preset the simulator runs as is; every
 effect of this library is (position-dependent and asymmetric friction, ripple, offset and
@@ -49,7 +50,7 @@ class Param:
 class Effect:
     key: str
     title: str
-    kind: str                      # deterministic | integer | stochastic | info
+    kind: str                      # deterministic | integer | stochastic
     physics: str
     signature: str
     expressible: bool = True
@@ -620,7 +621,7 @@ class PeriodicForce(Effect):
         return spec.with_changes(edit=edit)
 
 
-# --------------------------------------------------------------------------- stochastic / info
+# --------------------------------------------------------------------------- stochastic
 class NoiseLevel(Effect):
     def params(self, spec, ctx):
         s = spec.preset.stage.drive.noise_current_rms
@@ -645,9 +646,22 @@ class Quantization(Effect):
         return spec.with_changes({"stage.encoder.resolution": max(0.0, float(theta[0]))})
 
 
-class Info(Effect):
+class IsolatorTransient(Effect):
     def applicable(self, spec):
-        return self.needs or "not fitted in this milestone"
+        if spec.preset.stage.sai is None or spec.preset.sai_manager is None:
+            return "the model has no semi-active isolator (stage.sai and sai_manager)"
+        return None
+
+    def params(self, spec, ctx):
+        j = spec.preset.stage.sai.impact_impulse
+        return [Param("impact_impulse", "N·s", 0.0, max(30 * j, 1e-2), j,
+                      doc="impulse of the armature impact on locking, before cushioning")]
+
+    def nominal(self, spec):
+        return {"impact_impulse": spec.preset.stage.sai.impact_impulse}
+
+    def apply(self, spec, theta):
+        return spec.with_changes({"stage.sai.impact_impulse": max(0.0, float(theta[0]))})
 
 
 # --------------------------------------------------------------------------- the library
@@ -746,12 +760,15 @@ def _lib():
                       "a spectral line of the residual far above the floor at one frequency (the dither "
                       "frequency), present in every regime",
                       param_doc=[("a_sin, a_cos", "N", "amplitudes"), ("f", "Hz", "frequency")]),
-        Info("isolator_transient", "isolator switching transient", "info",
-             "SAI lock/unlock (Ch. 5): impact pulse and release of the stored flexure force.",
-             "residual bursts at the isolator switching instants (/stage/isolator)",
-             expressible=True, needs="the /stage/isolator topic and a stage with stage.sai; fitted in a later "
-                                     "milestone (sai.impact_impulse, cushioning, lock_capacity)",
-             param_doc=[("impact_impulse", "N·s", ""), ("cushioning", "-", "")]),
+        IsolatorTransient("isolator_transient", "isolator switching transient", "deterministic",
+                          "SAI locking (Ch. 5, Sec. 5.3): the solenoid armature strikes the lock face and a "
+                          "force pulse of impulse impact_impulse x (1 - cushioning) reaches the bearing "
+                          "(stage.sai.impact_impulse; the switching instants are the recorded /stage/isolator "
+                          "or the model's SAI manager on the recorded reference).",
+                          "residual bursts a few ms long right after each compliant -> stiff switch, in the "
+                          "settling regime, ringing at the lock mode",
+                          needs="a model with stage.sai and a sai_manager",
+                          param_doc=[("impact_impulse", "N·s", "impulse before cushioning")]),
     ]
 
 

@@ -32,7 +32,7 @@ from .fit import (Evaluator, FitResult, estimate_lattice, fit_effect, fit_noise_
 from .hypotheses import LIBRARY, get_effect
 from .locate import locate, lowpass
 from .model import ModelSpec, load_model
-from .predict import (NoiseFloor, Observer, band_rms, compare_replay, open_loop_windows, replay,
+from .predict import (NoiseFloor, Observer, band_rms, compare_replay, open_loop_windows, replay, smoothing_hz,
                       sim_batch, sim_data)
 
 __all__ = ["Options", "diagnose"]
@@ -65,10 +65,10 @@ class Options:
 class _Floor:
     """Noise floor of a model on the recorded reference: two simulated recordings."""
 
-    def __init__(self, spec: ModelSpec, data: DiagData, f_o: float, seeds):
+    def __init__(self, spec: ModelSpec, data: DiagData, f_o: float, seeds, fs: float):
         self.simA, self.simB = sim_batch(spec, data, seeds[:2])
-        oa = Observer(self.simA, bandwidth=f_o)
-        ob = Observer(self.simB, bandwidth=f_o)
+        oa = Observer(self.simA, bandwidth=f_o, smooth_hz=fs)
+        ob = Observer(self.simB, bandwidth=f_o, smooth_hz=fs)
         self.resA = oa.run(spec)
         self.resB = ob.run(spec)
         mA = self.simA.fit | self.simA.held
@@ -79,10 +79,10 @@ class _Floor:
         self.band_rms_held = None
 
 
-def _light_floor(spec: ModelSpec, data: DiagData, f_o: float, seed: int) -> NoiseFloor:
+def _light_floor(spec: ModelSpec, data: DiagData, f_o: float, seed: int, fs: float) -> NoiseFloor:
     """Noise floor of ``spec`` from one simulated recording."""
     sim = sim_data(spec, data, seed)
-    r = Observer(sim, bandwidth=f_o).run(spec).r
+    r = Observer(sim, bandwidth=f_o, smooth_hz=fs).run(spec).r
     return NoiseFloor(data.rate, [r], [sim.fit | sim.held], f_max=f_o)
 
 
@@ -101,7 +101,7 @@ def _fit_candidate(e, current: ModelSpec, selected: list, J_fit_cur: float, ev: 
         # of the two counts. One that does fit better is not held back by a quieter own
         # floor (e.g. viscous damping over a quantization-only floor): the smaller counts
         f.J_held_base = f.J_held
-        J_own = ev.J(f.spec, "held", floor=_light_floor(f.spec, ev.data, ev.obs.f_o, floor_seed))
+        J_own = ev.J(f.spec, "held", floor=_light_floor(f.spec, ev.data, ev.obs.f_o, floor_seed, ev.data.smooth_hz))
         f.J_held = min(J_own, f.J_held_base) if f.J_fit < J_fit_cur else max(J_own, f.J_held_base)
     return f
 
@@ -118,7 +118,8 @@ def _task_state(token: str, blob: bytes) -> dict:
         if st is None:
             st = pickle.loads(blob)
             # the recording was smoothed and masked by the caller's observer: not redone here
-            st["obs"] = Observer(st.pop("data"), bandwidth=st.pop("f_o"))
+            data = st.pop("data")
+            st["obs"] = Observer(data, bandwidth=st.pop("f_o"), smooth_hz=data.smooth_hz)
             while len(_STATE) >= 2:
                 _STATE.pop(next(iter(_STATE)))
             _STATE[token] = st
@@ -203,6 +204,23 @@ def _warm_up(ex) -> None:
         return
 
 
+def _fill_plant_inputs(spec: ModelSpec, data, rp: dict) -> list[str]:
+    """Give ``data`` the dither forces and SAI command it lacks but the model's plant takes,
+    from the nominal closed-loop replay ``rp`` (the model's own dither generator and SAI
+    manager on the recorded reference: the switching rule and the dither's open-loop part
+    depend on the reference only). Returns the notes for the report."""
+    p, notes = spec.preset, []
+    if p.dither is not None and data.d0 is None:
+        data.d0, data.d1 = rp["d0"], rp["d1"]
+        notes.append("dither forces not recorded (/stage/dither): the nominal model's dither generator on the "
+                     "recorded reference")
+    if p.stage.sai is not None and p.sai_manager is not None and data.mode is None:
+        data.mode = rp["mode"]
+        notes.append("SAI mode not recorded (/stage/isolator): the nominal model's SAI manager on the recorded "
+                     "reference")
+    return notes
+
+
 def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
     T0 = time.perf_counter()
     timing = {}
@@ -217,7 +235,10 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                      "the model is run at the recording's rate")
         spec0 = spec0.with_changes({"controller.rate": float(data.rate)})
     t = time.perf_counter()
-    obs = Observer(data, bandwidth=opt.bandwidth)
+    rp_nom = replay(spec0, data, seed=opt.floor_seeds[0] + 7)
+    notes += _fill_plant_inputs(spec0, data, rp_nom)
+    f_o = opt.bandwidth or data.rate / 25.0
+    obs = Observer(data, bandwidth=f_o, smooth_hz=smoothing_hz(spec0, data.rate, f_o))
     f_band = obs.f_o / 2
     W = max(8, int(round(opt.window_s * data.rate)))
 
@@ -250,11 +271,10 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
 
     # ---------------------------------------------------------------- predict (nominal)
     res_nom = obs.run(spec0, snap_every=W)
-    rp_nom = replay(spec0, data, seed=opt.floor_seeds[0] + 7)
     olw_nom = open_loop_windows(spec0, obs, res_nom, W)
     timing["predict_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    fl = _Floor(base, data, obs.f_o, opt.floor_seeds)
+    fl = _Floor(base, data, obs.f_o, opt.floor_seeds, data.smooth_hz)
     timing["floor_s"] = time.perf_counter() - t
     _log(opt, f"floor: sim B ms {fl.msB:.3f}, n_eff {fl.n_eff:.0f}")
 
@@ -397,7 +417,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                                   "params": best.params(), "derived": best.derived, "expressible": best.expressible,
                                   "confounded_with": conf, "alternatives": alts, "J_held": best.J_held})
             path["current"] = refit.spec if refit is not None else best.spec
-            path["floor"] = _Floor(path["current"], data, obs.f_o, opt.floor_seeds)
+            path["floor"] = _Floor(path["current"], data, obs.f_o, opt.floor_seeds, data.smooth_hz)
             ev.floor = path["floor"].floor
             path["J_fit"], path["J_cur"], _ = ev.both(path["current"])
             if path["J_cur"] <= 1 + tol_ad:
@@ -451,7 +471,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
     t = time.perf_counter()
     ninfo = {"nominal_A": spec0.preset.stage.drive.noise_current_rms, "found": False}
     try:
-        comps = noise_components(current, data, lambda d: Observer(d, bandwidth=obs.f_o), seeds=tuple(opt.floor_seeds[0] + 11 + i for i in range(4)))
+        comps = noise_components(current, data, lambda d: Observer(d, bandwidth=obs.f_o, smooth_hz=data.smooth_hz), seeds=tuple(opt.floor_seeds[0] + 11 + i for i in range(4)))
         r_cur = obs.run(current).r
         est = fit_noise_level(r_cur, data.fit, data.rate, comps, f_max=0.75 * obs.f_o)
         ninfo.update({k: v for k, v in est.items() if k != "ok"})
@@ -464,7 +484,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             ninfo["consistent"] = consistent
             if not (0.8 <= ratio <= 1.25) and consistent:
                 cand = get_effect("noise_level").apply(current, [sig])
-                fl2 = _Floor(cand, data, obs.f_o, opt.floor_seeds)
+                fl2 = _Floor(cand, data, obs.f_o, opt.floor_seeds, data.smooth_hz)
                 J_old = J_cur
                 J_new = fl2.floor.ms(r_cur, data.held) if data.held.any() else fl2.floor.ms(r_cur, data.fit)
                 ninfo.update({"J_held_before": J_old, "J_held_after": J_new})

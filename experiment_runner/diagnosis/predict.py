@@ -34,7 +34,7 @@ from . import engine as E
 from .data import DiagData, smooth
 from .model import ModelSpec
 
-__all__ = ["Observer", "ObsResult", "replay", "sim_data", "sim_batch", "NoiseFloor", "open_loop_windows",
+__all__ = ["Observer", "ObsResult", "smoothing_hz", "replay", "sim_data", "sim_batch", "NoiseFloor", "open_loop_windows",
            "closed_loop", "band_rms"]
 
 
@@ -48,15 +48,31 @@ class ObsResult:
     bad: int = 0
 
 
-class Observer:
-    """Force observer on one :class:`DiagData` (smoothing done once, runs per model)."""
+SMOOTH_FACTOR = 2.5
+"""Default cutoff of the zero-phase smoothing of the measured position, in observer bandwidths."""
 
-    def __init__(self, data: DiagData, bandwidth: float | None = None, smooth_factor: float = 2.5,
+
+def smoothing_hz(spec: ModelSpec, rate: float, f_o: float) -> float:
+    """Cutoff [Hz] of the smoothing of the measured position the observer follows:
+    ``SMOOTH_FACTOR * f_o``, or (nearly raw) ``0.45 * rate`` for a model with a semi-active
+    isolator: its lock mode (~2 kHz) rings after every lock, and with the ring smoothed out of
+    the measurement the observer would fight the model's own ring (the isolator transient
+    could not be fitted)."""
+    if spec.preset.stage.sai is not None:
+        return 0.45 * rate
+    return min(SMOOTH_FACTOR * f_o, 0.45 * rate)
+
+
+class Observer:
+    """Force observer on one :class:`DiagData` (smoothing done once, runs per model);
+    ``smooth_hz``: see :func:`smoothing_hz` (default ``SMOOTH_FACTOR`` x the bandwidth)."""
+
+    def __init__(self, data: DiagData, bandwidth: float | None = None, smooth_hz: float | None = None,
                  burn_out: float = 0.004):
         self.data = data
         self.f_o = float(bandwidth or data.rate / 25.0)
         self.omega = 2.0 * np.pi * self.f_o
-        fs = min(smooth_factor * self.f_o, 0.45 * data.rate)
+        fs = min(smooth_hz or SMOOTH_FACTOR * self.f_o, 0.45 * data.rate)
         if data.ys is None or data.smooth_hz != fs:
             data.ys, data.vs = smooth(data.y, data.rate, fs, data.lengths)
             data.smooth_hz = fs
@@ -69,19 +85,22 @@ class Observer:
         self.u = np.ascontiguousarray(data.u)
         self.ys = np.ascontiguousarray(data.ys)
         self.vs = np.ascontiguousarray(data.vs)
+        self.inputs = tuple(np.ascontiguousarray(a) for a in data.plant_inputs())    # d0, d1, mode
         self.calls = 0
 
     def run(self, spec: ModelSpec, cols=None, snap_every: int = 0) -> ObsResult:
         c = spec.compiled()
-        u, ys, vs = self.u, self.ys, self.vs
+        u, ys, vs, inputs = self.u, self.ys, self.vs, self.inputs
         if cols is not None:
             u, ys, vs = (np.ascontiguousarray(a[:, cols]) for a in (u, ys, vs))
+            inputs = tuple(np.ascontiguousarray(a[:, cols]) for a in inputs)
         T, B = u.shape
-        st = E.new_state(c.pm, ys[0])
+        st = E.new_state(c.pm, ys[0], sai_mode=float(inputs[2][0, 0]))
         outs = [np.empty((T, B)) for _ in range(4)]
         ns = (T + snap_every - 1) // snap_every if snap_every > 0 else 1
         snaps = [np.zeros((ns,) + a.shape) for a in st[:4]]
-        bad = E.observe(c.pm, c.fc_tot, u, ys, vs, *st, self.omega, c.m_eff, int(snap_every), *outs, *snaps)
+        bad = E.observe(c.pm, c.fc_tot, u, *inputs, ys, vs, *st, self.omega, c.m_eff, int(snap_every), *outs,
+                        *snaps)
         self.calls += 1
         return ObsResult(*outs, snaps=(snap_every, *snaps) if snap_every > 0 else None, bad=int(bad))
 
@@ -89,10 +108,12 @@ class Observer:
 # --------------------------------------------------------------------------- closed loop
 def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds):
     """Closed-loop runs of ``spec`` on references (T, B) with noise ``seeds`` (B,): the batch
-    engine (:func:`experiment_runner.batch.simulate`) itself; returns (y, u, x_true) as (T, B)."""
+    engine (:func:`experiment_runner.batch.simulate`) itself; returns (y, u, x_true, inputs),
+    each (T, B), ``inputs`` = (d0, d1, mode) the plant's dither forces and SAI command."""
     res = simulate(spec.preset, np.asarray(x_ref, float).T, np.asarray(v_ref, float).T,
                    seeds=np.asarray(seeds, np.int64), check=False)
-    return res.y.T.copy(), res.u.T.copy(), res.x_table.T.copy()
+    inputs = (res.dither[..., 0].T.copy(), res.dither[..., 1].T.copy(), res.mode.T.copy())
+    return res.y.T.copy(), res.u.T.copy(), res.x_table.T.copy(), inputs
 
 
 def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
@@ -102,19 +123,20 @@ def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
     seeds = list(seeds)
     xr = np.tile(data.x_ref, (1, len(seeds)))
     vr = np.tile(data.v_ref, (1, len(seeds)))
-    y, u, _ = closed_loop(spec, xr, vr, np.concatenate([s + np.arange(B) for s in seeds]))
+    y, u, _, inputs = closed_loop(spec, xr, vr, np.concatenate([s + np.arange(B) for s in seeds]))
+    part = lambda a, i: np.ascontiguousarray(a[:, i * B:(i + 1) * B])  # noqa: E731
     return [DiagData(rate=data.rate, t0=data.t0.copy(), x_ref=data.x_ref, v_ref=data.v_ref,
-                     u=np.ascontiguousarray(u[:, i * B:(i + 1) * B]), y=np.ascontiguousarray(y[:, i * B:(i + 1) * B]),
-                     valid=data.valid.copy(), fit=data.fit.copy(), held=data.held.copy(), lengths=data.lengths,
-                     trial_ids=list(data.trial_ids), source=f"simulated (seed {s})", split=data.split)
+                     u=part(u, i), y=part(y, i), valid=data.valid.copy(), fit=data.fit.copy(), held=data.held.copy(),
+                     lengths=data.lengths, trial_ids=list(data.trial_ids), source=f"simulated (seed {s})",
+                     split=data.split, d0=part(inputs[0], i), d1=part(inputs[1], i), mode=part(inputs[2], i))
             for i, s in enumerate(seeds)]
 
 
 def replay(spec: ModelSpec, data: DiagData, seed: int = 1000):
     """Closed-loop replay of the recorded reference; returns dict of (T, B) arrays."""
     B = data.shape[1]
-    y, u, x = closed_loop(spec, data.x_ref, data.v_ref, seed + np.arange(B))
-    return {"y": y, "u": u, "x": x}
+    y, u, x, inputs = closed_loop(spec, data.x_ref, data.v_ref, seed + np.arange(B))
+    return {"y": y, "u": u, "x": x, "d0": inputs[0], "d1": inputs[1], "mode": inputs[2]}
 
 
 def sim_data(spec: ModelSpec, data: DiagData, seed: int) -> DiagData:
@@ -246,7 +268,8 @@ def open_loop_windows(spec: ModelSpec, obs: Observer, res: ObsResult, length: in
         st = [np.ascontiguousarray(a[s][..., cols]) for a in (sz, sf, sps, sdb)]
         st += [np.zeros((c.pm.n, len(cols))), np.zeros((2 * c.pm.n, len(cols))), np.zeros(len(cols))]
         out = np.empty((length, len(cols)))
-        E.open_loop(c.pm, np.ascontiguousarray(obs.u[k0:k0 + length, cols]), k0, *st, out)
+        window = [np.ascontiguousarray(a[k0:k0 + length, cols]) for a in (obs.u,) + obs.inputs]
+        E.open_loop(c.pm, *window, k0, *st, out)
         starts += [k0] * len(cols)
         trials += cols
         outs.append(out)

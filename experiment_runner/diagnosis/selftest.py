@@ -57,6 +57,11 @@ EXPERIMENTS = {
              "profile": {"kind": "sine_sweep", "frequencies": [8.0, 25.0], "amplitude": 1.5e-4, "periods": 4,
                          "settle_periods": 1},
              "trials": 3, "starts": {"margin": 0.005, "seed": 5}, "window": 25.0e-9},
+    # SAI stage (Ch. 5), 5 um point-to-point moves: compliant before each move, stiff (locked,
+    # with the armature impact) when the reference reaches the target
+    "sai_steps": {"name": "diag_sai_steps", "preset": "sai_stage",
+                  "profile": {"kind": "point_to_point", "distance": 5.0e-6, "dwell": 0.03},
+                  "trials": 6, "starts": {"margin": 0.003, "seed": 6}, "window": 25.0e-9},
 }
 
 
@@ -130,6 +135,11 @@ def _frictionless(d):
     st["bearing_sensor"] = None
 
 
+def _no_ilc(d):
+    """The SAI stage without its iterative learning (Step II): every trial alike, as recorded."""
+    d["sai_manager"]["ilc"] = None
+
+
 def _nominal_fc():
     return sum(b.friction.f_c for b in load_preset(NOMINAL).stage.bearings)
 
@@ -165,6 +175,10 @@ CASES = [
     Case("mass_frictionless_confounded", "mass", {"stage.table.mass": 1.895915678524374 * 1.25},
          expect={"m_table": 1.895915678524374 * 1.25}, nominal_edit=_frictionless),
     Case("quantization_20nm", "quantization", {"stage.encoder.resolution": 2.0e-8}, expect={"resolution": 2.0e-8}),
+    # the SAI's armature impact on locking 3x the nominal (less cushioning than assumed)
+    Case("isolator_transient_x3", "isolator_transient", {"stage.sai.impact_impulse": 3.6e-3},
+         expect={"impact_impulse": 3.6e-3}, experiment="sai_steps", nominal="sai_stage", nominal_edit=_no_ilc,
+         seed=141),
     # negative controls: the truth is the nominal
     Case("negative_circle_a", None, seed=211),
     Case("negative_circle_b", None, seed=212),
@@ -205,6 +219,7 @@ CASES = [
     Case("negative_steps_b", None, experiment="steps", seed=223),
     Case("negative_circle_d", None, seed=224),
     Case("negative_fi_stage_sine", None, nominal="fi_stage", experiment="sine", seed=225),
+    Case("negative_sai_stage", None, nominal="sai_stage", nominal_edit=_no_ilc, experiment="sai_steps", seed=226),
 ]
 
 

@@ -9,7 +9,9 @@ experiment's own ``preset`` (the experiment's ``overrides`` are applied to the t
 The recording is a contract recording written by
 :func:`experiment_runner.recording.write_run`; the truth is *concealed*: no
 ``/stage/truth`` topic and an ``/experiment/config`` without the preset (only the run's
-case, rate and trial layout), so a diagnosis can only use what a rig would give.
+case, rate and trial layout), so a diagnosis can only use what a rig would give: besides the
+three hardware topics, ``/stage/dither`` (piezo drive forces) on dither stages and
+``/stage/isolator`` (solenoid command) on SAI stages, which a rig's controller knows too.
 Drive noise and quantization are whatever the truth preset says.
 """
 from __future__ import annotations
@@ -40,9 +42,6 @@ def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None
     preset = with_overrides(spec.preset, exp.overrides) if exp.overrides else spec.preset
     if seed is not None:
         preset = with_overrides(preset, {"simulation.seed": int(seed)})
-    if preset.dither is not None or preset.stage.sai is not None:
-        raise ValueError("synth: dither and SAI stages are not supported yet by the diagnosis (no such topics "
-                         "in the contract's three hardware topics)")
     tr = build_trials(exp, preset)
     rate = preset.controller.rate
     x_ref = np.stack([t.x_ref for t in tr])
