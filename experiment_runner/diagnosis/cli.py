@@ -62,7 +62,8 @@ def main_diagnose(args) -> int:
         return 0
     if args.selftest:
         from .selftest import run_selftest
-        s = run_selftest(only=args.only, as_json=args.json, keep=args.keep, verbose=args.verbose)
+        s = run_selftest(only=args.only, as_json=args.json, keep=args.keep, verbose=args.verbose,
+                         workers=args.workers, cluster=args.cluster)
         if args.json:
             print(json.dumps(_clean(s), indent=1))
         else:

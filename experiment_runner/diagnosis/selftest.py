@@ -316,8 +316,10 @@ def judge(case: Case, rep: dict) -> dict:
     return out
 
 
-def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verbose: bool = False) -> dict:
-    """Run the cases (``only``: names or prefixes); returns the summary dict."""
+def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verbose: bool = False,
+                 workers: int | None = None, cluster=None) -> dict:
+    """Run the cases (``only``: names or prefixes); returns the summary dict. ``workers`` /
+    ``cluster``: where each diagnosis runs its candidate fits (:class:`.pipeline.Options`)."""
     cases = [c for c in CASES if not only or any(c.name.startswith(o) for o in only)]
     tmp = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="nanostage_selftest_"))
     tmp.mkdir(parents=True, exist_ok=True)
@@ -339,7 +341,7 @@ def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verb
                 rec = synth(truth, exp_path, d / "rec.mcap")
                 t1 = time.perf_counter()
                 rep = diagnose(rec, nominal, out=d / "diagnosis" if keep else None,
-                               options=Options(plots=bool(keep), verbose=verbose))
+                               options=Options(plots=bool(keep), verbose=verbose, workers=workers, cluster=cluster))
                 res = judge(case, rep)
                 res["profile"] = case.experiment
                 res["synth_s"] = round(t1 - t0, 2)
