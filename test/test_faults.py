@@ -301,6 +301,25 @@ def test_dropped_and_delayed_messages_are_recovered_and_change_nothing(tmp_path,
     assert np.array_equal(rec.y, _batch_y(exp)[0]) and len(np.unique(rec.stamp_ns)) == len(rec)
 
 
+@pytest.mark.parametrize("base, node, topic, nodes", [
+    ("fi_p2p_5um", "plant_sim", "/stage/measured", FI_NODES),
+    ("van_asym_hc", "dither_generator", "/stage/dither", VAN_NODES),
+    ("sai_p2p_5um", "sai_manager", "/sai/command", SAI_NODES)])
+def test_dropped_lockstep_messages_of_every_node_are_recovered(tmp_path, make_run, base, node, topic, nodes):
+    """3 messages in a row lost on each lockstep topic: the plant sends its sample again, the
+    node answers again; the run is the batch engine's, bit for bit."""
+    exp = _experiment(tmp_path, base=base, dwell=0.05)
+    faults = {node: {"fault.topic": topic, "fault.mode": "drop", "fault.after": 200, "fault.count": 3},
+              "experiment_sequencer": {"wait_for_nodes": len(nodes)}}
+    run = make_run(tmp_path, exp, _params(faults), nodes=nodes)
+    code, codes = run.finish(timeout=RUN_TIMEOUT)
+    assert code == 0 and not run.events("fault") and not run.events("abort")
+    assert "TEST FAULT INJECTION" in (tmp_path / f"{node}.stderr").read_text()
+    rec = run.recording()
+    assert rec.trials()[0].complete and len(rec.results) == 1
+    assert np.array_equal(rec.y, _batch_y(exp)[0]) and len(np.unique(rec.stamp_ns)) == len(rec)
+
+
 @pytest.mark.parametrize("node, topic", [("servo_controller", "/stage/reference"), ("plant_sim", "/stage/truth"),
                                          ("plant_sim", "/clock")])
 def test_lost_messages_outside_the_lockstep_are_recorded_as_lost(tmp_path, make_run, node, topic):
