@@ -21,7 +21,8 @@ NODES = ("plant_sim", "servo_controller", "dither_generator", "sai_manager", "re
 EXIT_ABORTED, EXIT_TIMEOUT, EXIT_RECORDING_CUT = 1, 124, 3
 """Exit codes of a graph run besides 0 (every trial complete, recording intact): a trial
 was aborted; the run did not end within its timeout (every process killed); the run
-completed but the recording was cut short (its recorder died; salvaged)."""
+completed but the recording was cut short (its recorder died; salvaged) or misses samples
+(a ``recording_incomplete`` fault of the recorder)."""
 
 STOP_GRACE_S = 10.0
 """Wall-clock time a node process gets to exit after SIGINT before it is killed [s]."""
@@ -120,24 +121,32 @@ class NodeProcesses:
 
     def stop(self) -> dict:
         """End every node still running: SIGCONT (a stopped process cannot act on SIGINT),
-        SIGINT, then SIGKILL after :data:`STOP_GRACE_S` (reported as ``"hung"``).
+        SIGINT, then SIGKILL after :data:`STOP_GRACE_S` (reported as ``"hung"``). The recorder
+        goes first, while the publishers still hold what it has not taken yet.
         Returns every node's exit code."""
-        live = {n: p for n, p in self.procs.items() if p.poll() is None}
-        for p in live.values():
-            p.send_signal(signal.SIGCONT)
-            p.send_signal(signal.SIGINT)
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGCONT)
         self.stopped.clear()
-        deadline = time.monotonic() + STOP_GRACE_S
-        for name, p in self.procs.items():
-            if name not in live:
-                self.codes.setdefault(name, p.poll())
-                continue
-            try:
-                self.codes[name] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-                self.codes[name] = "hung"
+        first = [n for n in self.procs if n == "recorder"]
+        for group in (first, [n for n in self.procs if n not in first]):
+            live = {n: self.procs[n] for n in group if self.procs[n].poll() is None}
+            for p in live.values():
+                p.send_signal(signal.SIGINT)
+            deadline = time.monotonic() + STOP_GRACE_S
+            for name in group:
+                p = self.procs[name]
+                if name not in live:
+                    self.codes.setdefault(name, p.poll())
+                    continue
+                try:
+                    self.codes[name] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    p.send_signal(signal.SIGUSR1)      # its threads' stacks to its stderr
+                    time.sleep(0.5)
+                    p.kill()
+                    p.wait()
+                    self.codes[name] = "hung"
         return dict(self.codes)
 
 
@@ -262,7 +271,10 @@ def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id
                                             "peak_tracking_error_m", "rms_tracking_error_m")}))
     print(f"{len(rec)} samples in {time.monotonic() - t0:.1f} s; recording: {final}"
           + (f" (salvaged: {rec.salvaged})" if rec.salvaged else ""))
-    return EXIT_RECORDING_CUT if code == 0 and (rec.salvaged or extra) else code
+    incomplete = [e["reason"] for e in rec.events if e.get("cause") == "recording_incomplete"]
+    for reason in incomplete:
+        print(f"recording incomplete: {reason}", file=sys.stderr)
+    return EXIT_RECORDING_CUT if code == 0 and (rec.salvaged or extra or incomplete) else code
 
 
 def _clear_previous_run(out_dir: Path):

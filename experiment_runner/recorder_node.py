@@ -5,6 +5,13 @@ stage time heard on ``/clock``. Messages heard before ``/experiment/config`` are
 back so the configuration is written first. Chunks are closed every 0.1 s of stage
 time, so a recorder that is killed leaves a file readable up to its last chunk.
 
+On SIGINT / SIGTERM the recorder first takes the messages still on their way (it may be
+behind the loop) until none has come for ``DRAIN_IDLE_S`` (at most ``DRAIN_MAX_S``). It
+counts the per-sample messages that never reached it (a gap in a topic's sample stamps:
+lost on the way, or the recorder fell more than the topics' 0.1 s history behind, e.g.
+stopped) and, if any, writes a ``fault`` event (cause ``recording_incomplete``) saying how
+many of which topic before it closes the file; ``nanostage graph`` then exits 3.
+
 A recorder stopped (SIGINT) while the run is still open (configuration heard, no
 ``run_end``: the sequencer is gone) writes an ``abort`` and a ``run_end`` event itself,
 naming the sequencer, before it closes the file. An existing recording is never
@@ -13,7 +20,10 @@ replaced unless ``overwrite`` is set: a recorder restarted mid-run writes the ne
 """
 from __future__ import annotations
 
+import time
 from pathlib import Path
+
+import yaml
 
 from msg_defs import convert
 from msg_defs.node_io import StageNode, run_node
@@ -29,6 +39,10 @@ published before discovery matched it with their publisher (up to 0.1 s of them)
 makes its ``/experiment/trajectory`` subscription, which the sequencer waits for, last."""
 
 
+DRAIN_IDLE_S = 0.3
+"""On stop: the recorder closes once no message has come for this long [s]."""
+
+
 class RecorderNode(StageNode):
     def __init__(self, out: str | None = None, overwrite: bool = False, **kwargs):
         super().__init__("recorder", **kwargs)
@@ -42,6 +56,10 @@ class RecorderNode(StageNode):
         self.held = []
         self.now_ns = 0
         self.last_ns = {}                   # per-sample topic -> stamp written last
+        self.lost = {}                      # per-sample topic -> samples that never came (gaps)
+        self.dt_ns = None                   # control period of the run (from its config)
+        self.end_ns = None                  # last sample of the last trial that ended
+        self.last_heard = time.monotonic()
         self.subscribe(CONFIG.name, self._config_in)
         from rosbags.typesys import Stores, get_typestore
         self._store = get_typestore(Stores.ROS2_JAZZY)
@@ -63,12 +81,19 @@ class RecorderNode(StageNode):
         decode = md.deserialize_cdr_le if data[1] else md.deserialize_cdr_be
         msg = decode(data[4:], 0, md.cls, self._store)[0]
         stamp = convert.stamp_ns(msg)
-        if stamp <= self.last_ns.get(topic.name, -1):
+        last = self.last_ns.get(topic.name, -1)
+        if stamp <= last:
             return
+        if self.dt_ns and last >= 0 and stamp - last > self.dt_ns:
+            self.lost[topic.name] = self.lost.get(topic.name, 0) + (stamp - last) // self.dt_ns - 1
         self.last_ns[topic.name] = stamp
         self._write(topic.name, msg)
 
     def _config_in(self, msg):
+        self.last_heard = time.monotonic()
+        rate = ((yaml.safe_load(msg.data) or {}).get("preset") or {}).get("controller", {}).get("rate")
+        if rate:
+            self.dt_ns = int(round(1e9 / float(rate)))
         if self.rec is None:
             self.open_run = True
             self.rec = McapRecorder(self._free_path(), msg.data, overwrite=self.overwrite)
@@ -89,6 +114,7 @@ class RecorderNode(StageNode):
         return free
 
     def _write(self, name, msg):
+        self.last_heard = time.monotonic()
         if hasattr(msg, "header") or name == "/clock":
             stamp = convert.stamp_ns(msg)
             self.now_ns = max(self.now_ns, stamp)
@@ -99,6 +125,8 @@ class RecorderNode(StageNode):
                 self.open_run = False
             elif ev["event"] == "trial_start":
                 self.trial = ev["trial"]
+            elif ev["event"] == "trial_end":
+                self.end_ns = max(stamp, self.end_ns or 0)
         else:
             stamp = self.now_ns
         if self.rec is None:
@@ -106,10 +134,27 @@ class RecorderNode(StageNode):
         else:
             self.rec.write(name, stamp, msg)
 
+    def draining(self) -> bool:
+        """Whether messages are still coming (on stop: keep taking them)."""
+        return time.monotonic() - self.last_heard < DRAIN_IDLE_S
+
     def close(self):
-        """Close the recording; a run still open is marked aborted in it first."""
+        """Close the recording; lost samples are reported and a run still open is marked
+        aborted in it first."""
         if self.rec is None:
             return
+        if self.dt_ns and self.end_ns is not None:    # up to the last trial_end, every sample was sent
+            for topic, last in self.last_ns.items():
+                if self.end_ns > last:
+                    self.lost[topic] = self.lost.get(topic, 0) + (self.end_ns - last) // self.dt_ns
+        if self.lost:
+            lost = ", ".join(f"{n} sample(s) of {t}" for t, n in sorted(self.lost.items()))
+            reason = (f"recording_incomplete: {lost} never reached the recorder (lost on the way, or the "
+                      "recorder fell more than the topics' 0.1 s history behind: stopped or overloaded)")
+            self.get_logger().error(reason)
+            self.rec.write("/experiment/events", self.now_ns, convert.event_msg(
+                None, "fault", stamp_ns=self.now_ns, reason=reason, cause="recording_incomplete",
+                responsible=[self.get_name()], lost=dict(self.lost), node=self.get_name()))
         if self.open_run:
             reason = ("recording stopped before run_end was heard: experiment_sequencer stopped or "
                       "was killed (or this recorder started after the run ended)")
@@ -124,4 +169,4 @@ class RecorderNode(StageNode):
 
 
 def main(args=None):
-    run_node(RecorderNode, args, on_exit=lambda n: n.close())
+    run_node(RecorderNode, args, on_exit=lambda n: n.close(), drain=lambda n: n.draining())

@@ -99,8 +99,11 @@ class SequencerNode(StageNode):
                 self._abort(f"{lost} {stale} sample(s) of the trial never arrived (lost); its metrics "
                             "cannot be computed", node)
                 return
-            # lockstep order per sample: measured k (plant), then reference k (servo)
-            stale = "measured" if self.k_meas <= self.k_ref else "reference"
+            # a live plant sends its waiting sample again every 0.25 s: no measured message at all
+            # (not even a repeat) means the plant is gone or stopped, whatever the servo last sent
+            # (a plant killed mid-publish may have reached us but not the servo)
+            quiet = time.monotonic() - self.last_measured > self.timeout
+            stale = "measured" if quiet or self.k_meas <= self.k_ref else "reference"
             node = NODE_OF_INPUT["/stage/measured" if stale == "measured" else "/stage/reference"]
             self._abort(f"no {stale} sample after sample {max(self.k_meas, self.k_ref)} within "
                         f"{self.timeout} s", node)
@@ -151,7 +154,7 @@ class SequencerNode(StageNode):
                      "settle_start_ns": (self.start + settle[0].start) * self.dt_ns}
         self.event("trial_start", stamp_ns=self.start * self.dt_ns, trial=tr.index, case=tr.case,
                    step_index=0 if settle else None, window_m=tr.window, **extra)
-        self.last_progress = time.monotonic()
+        self.last_progress = self.last_measured = time.monotonic()
         self.pub_traj.publish(convert.trajectory_to_msg(None, tr.x_ref, tr.v_ref, trial=tr.index,
                                                         case=tr.case, start=self.start, rate=self.rate))
 
@@ -163,6 +166,7 @@ class SequencerNode(StageNode):
         if not 0 <= k < n:
             return
         if name == "measured":
+            self.last_measured = time.monotonic()
             if k < self.k_meas:             # not a resend (that is k_meas): a plant started afresh
                 self._abort(f"plant_sim published sample {k} of trial {self.trials[self.current].index} "
                             f"after sample {self.k_meas}: it restarted mid-run", "plant_sim")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import array
 import math
 import os
+import time
 
 import numpy as np
 import yaml
@@ -108,21 +109,40 @@ down ROS before it ends itself: DDS teardown must never leave a node hanging. It
 clean-up (``on_exit``: e.g. closing a recording) always finishes first."""
 
 
-def run_node(factory, args=None, until=None, on_exit=None):
+DRAIN_MIN_S, DRAIN_MAX_S = 0.5, 5.0
+"""Shortest and longest time a draining node (the recorder) keeps taking messages after it
+is told to stop [s]."""
+
+
+def run_node(factory, args=None, until=None, on_exit=None, drain=None):
     """``main`` of a node executable: init, spin (until ``until(node)`` is true), clean up.
 
     Ctrl-C / SIGINT ends it cleanly; ``on_exit(node)`` runs last (e.g. close a file) and may
     return the process's exit status. Whatever hangs after that, the process ends within
-    :data:`EXIT_GRACE_S` of being stopped.
+    :data:`EXIT_GRACE_S` of being stopped. ``drain(node)``: on SIGINT / SIGTERM the node keeps
+    spinning while this is true (at most :data:`DRAIN_MAX_S`): a recorder that is behind takes
+    the messages already on their way before it closes its file.
     """
+    import signal
     import sys
+    import threading
 
     import rclpy
     from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
+    import faulthandler
+    faulthandler.register(signal.SIGUSR1, all_threads=True)     # a hung node's stacks, on request
     chosen = apply_graph_defaults()
-    rclpy.init(args=args)
+    # SIGINT / SIGTERM just set ``stop`` (no rclpy signal-handler thread shutting ROS down under
+    # a spinning executor): the loop ends within one spin, ROS is torn down from this thread,
+    # and a draining node keeps ROS up while it takes what is still on its way
+    stop = threading.Event()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     status = [0]
-    stopping, cleanup = _exit_guard(rclpy.get_default_context(), status)
+    stopping, cleanup = _exit_guard(rclpy.get_default_context(), status, stop,
+                                    EXIT_GRACE_S + (DRAIN_MAX_S if drain else 0.0))
     node = None
     try:
         try:
@@ -140,8 +160,13 @@ def run_node(factory, args=None, until=None, on_exit=None):
             node.get_logger().info(f"graph defaults {chosen} (set them to open the graph: docs/security.md)")
         ex = make_executor()
         ex.add_node(node)
-        while rclpy.ok() and not (until and until(node)):
+        while rclpy.ok() and not stop.is_set() and not (until and until(node)):
             ex.spin_once(timeout_sec=0.1)
+        if drain is not None:                                      # at least DRAIN_MIN_S: it may just
+            t_stop = time.monotonic()                             # have been resumed (SIGCONT)
+            while rclpy.ok() and time.monotonic() < t_stop + DRAIN_MAX_S and (
+                    time.monotonic() < t_stop + DRAIN_MIN_S or drain(node)):
+                ex.spin_once(timeout_sec=0.05)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -157,22 +182,21 @@ def run_node(factory, args=None, until=None, on_exit=None):
         sys.exit(status[0])
 
 
-def _exit_guard(context, status):
-    """Start a daemon thread that ends the process (with ``status[0]``) :data:`EXIT_GRACE_S`
-    after ``context`` is shut down (SIGINT) or the returned event is set, unless it ended by
-    itself; it waits while the returned lock (held by the node's own clean-up) is taken."""
+def _exit_guard(context, status, stop, grace: float):
+    """Start a daemon thread that ends the process (with ``status[0]``) ``grace`` seconds after
+    ``context`` is shut down (rclpy's SIGINT handler), ``stop`` is set (ours) or the returned
+    event is set, unless it ended by itself; it waits while the returned lock (held by the
+    node's own clean-up) is taken."""
     import sys
     import threading
-    import time
     stopping, cleanup = threading.Event(), threading.Lock()
 
     def guard():
-        while not stopping.wait(0.2) and context.ok():
+        while not stopping.wait(0.2) and not stop.is_set() and context.ok():
             pass
-        time.sleep(EXIT_GRACE_S)
+        time.sleep(grace)
         with cleanup:
-            print(f"[run_node] ROS teardown did not finish {EXIT_GRACE_S} s after stop: exiting",
-                  file=sys.stderr, flush=True)
+            print(f"[run_node] ROS teardown did not finish {grace} s after stop: exiting", file=sys.stderr, flush=True)
             os._exit(status[0])
     threading.Thread(target=guard, name="exit_guard", daemon=True).start()
     return stopping, cleanup
@@ -332,11 +356,11 @@ class StageNode(Node):
 
 
 FAULT_CAUSES = ("watchdog", "non_finite_input", "diverged", "out_of_travel", "reference_out_of_travel",
-                "joined_mid_trial", "restarted")
+                "joined_mid_trial", "restarted", "recording_incomplete")
 """``cause`` of a ``fault`` event: no input within the timeout (the plant holds zero force),
 a NaN/inf input, a non-finite or runaway state, the table outside its travel, a reference
 outside the travel (refused), a node that joined a trial after its first sample, a node
-that restarted mid-run."""
+that restarted mid-run, per-sample messages that never reached the recorder."""
 
 
 def finite(*values) -> bool:

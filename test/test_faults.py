@@ -224,6 +224,32 @@ def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
+def test_a_stopped_recorder_catches_up_and_says_what_it_lost(tmp_path, make_run):
+    """SIGSTOPped for 2 s the recorder falls behind (more than the topics' 0.1 s history, unless
+    the machine is slow): the run goes on (the recorder is not in the loop); resumed, it takes
+    what is still on its way, and its recording says how many samples of which topic never
+    reached it -- exactly as many as are missing."""
+    exp = _experiment(tmp_path, trials=2, dwell=0.1)
+    run = make_run(tmp_path, exp, _params())
+    run.wait_commands()
+    run.graph.pause("recorder")
+    time.sleep(2.0)
+    run.graph.resume("recorder")
+    code, codes = run.finish(timeout=RUN_TIMEOUT)
+    assert code == 0 and codes["recorder"] == 0
+    rec = run.recording()
+    assert rec.salvaged is None and rec.events[-1]["event"] in ("run_end", "fault")
+    gaps = [e for e in rec.events if e.get("cause") == "recording_incomplete"]
+    assert len(gaps) <= 1
+    lost = gaps[0]["lost"].get("/stage/measured", 0) if gaps else 0
+    assert not gaps or f"{lost} sample(s) of /stage/measured" in gaps[0]["reason"]
+    y = np.concatenate([_batch_y(exp)[i] for i in range(2)])
+    assert rec.counts["/stage/measured"] == len(y) - lost                     # the count is right
+    assert 0 < len(rec) <= rec.counts["/stage/measured"]                 # (samples on all three topics)
+    k = (rec.stamp_ns - rec.stamp_ns[0]) // DT_NS
+    assert np.array_equal(rec.y, y[k])
+
+
 # =========================================================================== restarts
 def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new plant gets the trial's trajectory (latched) and starts it again from sample 0:
@@ -348,6 +374,9 @@ def test_lost_messages_outside_the_lockstep_are_recorded_as_lost(tmp_path, make_
         assert any(w.startswith("/stage/command") and "not on every contract topic" in w for w in rec.warnings)
     else:
         assert len(rec) == len(y) and not rec.warnings
+    # the recorder says what never reached it
+    (gap,) = [e for e in rec.events if e.get("cause") == "recording_incomplete"]
+    assert gap["lost"] == {topic: 5} and f"5 sample(s) of {topic}" in gap["reason"]
 
 
 def test_a_nan_command_stops_the_run_naming_the_servo(tmp_path, make_run):

@@ -92,18 +92,23 @@ class Graph:
         return self.procs["experiment_sequencer"].wait(timeout=timeout)
 
     def stop(self) -> dict[str, int]:
-        """SIGINT to every node still running; each must exit within 15 s (else killed and
+        """SIGINT to every node still running, the recorder first (as ``nanostage graph`` does:
+        it drains while the publishers are up); each must exit within 15 s (else killed and
         reported as ``"hung"``)."""
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        for name, p in self.procs.items():
-            try:
-                self.codes.setdefault(name, p.wait(timeout=15))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-                self.codes[name] = "hung"
+        order = sorted(self.procs, key=lambda n: n != "recorder")
+        for group in (order[:1], order[1:]):
+            for name in group:
+                if self.procs[name].poll() is None:
+                    self.procs[name].send_signal(signal.SIGINT)
+            for name in group:
+                try:
+                    self.codes.setdefault(name, self.procs[name].wait(timeout=15))
+                except subprocess.TimeoutExpired:
+                    self.procs[name].send_signal(signal.SIGUSR1)      # its stacks to its stderr
+                    time.sleep(0.5)
+                    self.procs[name].kill()
+                    self.procs[name].wait()
+                    self.codes[name] = "hung"
         return self.codes
 
     def stderr(self, name: str) -> str:

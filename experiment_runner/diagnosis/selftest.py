@@ -179,6 +179,9 @@ CASES = [
     Case("isolator_transient_x3", "isolator_transient", {"stage.sai.impact_impulse": 3.6e-3},
          expect={"impact_impulse": 3.6e-3}, experiment="sai_steps", nominal="sai_stage", nominal_edit=_no_ilc,
          seed=141),
+    # VAN stage (Ch. 3, 500 Hz dither on both bearings): Coulomb friction +30 % on both bearings
+    Case("coulomb_+30%_van", "coulomb", _both("friction.f_c", 2.655 * 1.3), expect={"F_C": 5.31 * 1.3},
+         experiment="steps", nominal="van_stage", seed=142),
     # negative controls: the truth is the nominal
     Case("negative_circle_a", None, seed=211),
     Case("negative_circle_b", None, seed=212),
@@ -219,6 +222,7 @@ CASES = [
     Case("negative_steps_b", None, experiment="steps", seed=223),
     Case("negative_circle_d", None, seed=224),
     Case("negative_fi_stage_sine", None, nominal="fi_stage", experiment="sine", seed=225),
+    Case("negative_van_stage", None, nominal="van_stage", experiment="steps", seed=227),
     Case("negative_sai_stage", None, nominal="sai_stage", nominal_edit=_no_ilc, experiment="sai_steps", seed=226),
 ]
 
