@@ -241,10 +241,11 @@ def test_a_stopped_recorder_catches_up_and_says_what_it_lost(tmp_path, make_run)
     assert rec.salvaged is None and rec.events[-1]["event"] in ("run_end", "fault")
     gaps = [e for e in rec.events if e.get("cause") == "recording_incomplete"]
     assert len(gaps) <= 1
-    lost = gaps[0]["lost"].get("/stage/measured", 0) if gaps else 0
-    assert not gaps or f"{lost} sample(s) of /stage/measured" in gaps[0]["reason"]
+    lost = gaps[0]["lost"] if gaps else {}
     y = np.concatenate([_batch_y(exp)[i] for i in range(2)])
-    assert rec.counts["/stage/measured"] == len(y) - lost                     # the count is right
+    for topic in ("/stage/reference", "/stage/command", "/stage/measured", "/stage/truth", "/clock"):
+        assert rec.counts[topic] == len(y) - lost.get(topic, 0), topic      # it says exactly what is missing
+        assert not lost.get(topic) or f"{lost[topic]} sample(s) of {topic}" in gaps[0]["reason"]
     assert 0 < len(rec) <= rec.counts["/stage/measured"]                 # (samples on all three topics)
     k = (rec.stamp_ns - rec.stamp_ns[0]) // DT_NS
     assert np.array_equal(rec.y, y[k])
