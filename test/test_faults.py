@@ -224,11 +224,12 @@ def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
-def test_a_stopped_recorder_catches_up_and_says_what_it_lost(tmp_path, make_run):
+def test_a_stopped_recorder_never_leaves_a_silently_incomplete_recording(tmp_path, make_run):
     """SIGSTOPped for 2 s the recorder falls behind (more than the topics' 0.1 s history, unless
     the machine is slow): the run goes on (the recorder is not in the loop); resumed, it takes
-    what is still on its way, and its recording says how many samples of which topic never
-    reached it -- exactly as many as are missing."""
+    what is still on its way. What it wrote is right, and a recording that misses anything
+    says so: a ``recording_incomplete`` fault counting the gaps it saw, or trials it did not
+    hear end (incomplete)."""
     exp = _experiment(tmp_path, trials=2, dwell=0.1)
     run = make_run(tmp_path, exp, _params())
     run.wait_commands()
@@ -238,17 +239,17 @@ def test_a_stopped_recorder_catches_up_and_says_what_it_lost(tmp_path, make_run)
     code, codes = run.finish(timeout=RUN_TIMEOUT)
     assert code == 0 and codes["recorder"] == 0
     rec = run.recording()
-    assert rec.salvaged is None and rec.events[-1]["event"] in ("run_end", "fault")
-    gaps = [e for e in rec.events if e.get("cause") == "recording_incomplete"]
-    assert len(gaps) <= 1
-    lost = gaps[0]["lost"] if gaps else {}
+    assert rec.salvaged is None
     y = np.concatenate([_batch_y(exp)[i] for i in range(2)])
-    for topic in ("/stage/reference", "/stage/command", "/stage/measured", "/stage/truth", "/clock"):
-        assert rec.counts[topic] == len(y) - lost.get(topic, 0), topic      # it says exactly what is missing
-        assert not lost.get(topic) or f"{lost[topic]} sample(s) of {topic}" in gaps[0]["reason"]
-    assert 0 < len(rec) <= rec.counts["/stage/measured"]                 # (samples on all three topics)
     k = (rec.stamp_ns - rec.stamp_ns[0]) // DT_NS
-    assert np.array_equal(rec.y, y[k])
+    assert 0 < len(rec) and np.array_equal(rec.y, y[k])                  # what it has is right
+    gaps = [e for e in rec.events if e.get("cause") == "recording_incomplete"]
+    for topic, n in (gaps[0]["lost"].items() if gaps else ()):           # what it reports is real
+        assert rec.counts[topic] <= len(y) - n and f"{n} sample(s) of {topic}" in gaps[0]["reason"]
+    topics = ("/stage/reference", "/stage/command", "/stage/measured", "/stage/truth", "/clock")
+    everything = all(rec.counts[t] == len(y) for t in topics)
+    told = bool(gaps) or len(rec.trials()) < 2 or not all(t.complete for t in rec.trials())
+    assert everything or told, rec.counts
 
 
 # =========================================================================== restarts
