@@ -84,7 +84,8 @@ class RecorderNode(StageNode):
         last = self.last_ns.get(topic.name, -1)
         if stamp <= last:
             return
-        if self.dt_ns and last >= 0 and stamp - last > self.dt_ns:
+        # a gap in the stamps: samples that never came (after run_end nothing belongs to the run)
+        if self.open_run and self.dt_ns and last >= 0 and stamp - last > self.dt_ns:
             self.lost[topic.name] = self.lost.get(topic.name, 0) + (stamp - last) // self.dt_ns - 1
         self.last_ns[topic.name] = stamp
         self._write(topic.name, msg)
