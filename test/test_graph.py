@@ -396,7 +396,10 @@ def test_recorder_killed_mid_run_leaves_a_salvageable_file_and_a_restarted_one_t
     assert code == 0 and all(c != "hung" for c in codes.values()), codes
     # the restarted recorder did not replace the first part: it wrote the next free bag, the rest of the run
     second = read_recording(tmp_path / "run_2")
-    assert second.salvaged is None and [e["event"] for e in second.events][-1] == "run_end"
+    assert second.salvaged is None and "run_end" in [e["event"] for e in second.events]
+    # after run_end at most the recorder's own note that it fell behind catching up (load)
+    tail = second.events[[e["event"] for e in second.events].index("run_end") + 1:]
+    assert all(e.get("cause") == "recording_incomplete" for e in tail), tail
     assert [r["trial"] for r in second.results] == [2] and not any(e["event"] == "abort" for e in second.events)
     _, trials, res = _batch("fi_p2p_5um")
     everything = np.concatenate([res.y[t.index] for t in trials])
