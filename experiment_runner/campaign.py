@@ -52,7 +52,6 @@ True
 from __future__ import annotations
 
 import copy
-import csv
 import json
 import math
 import os
@@ -1430,6 +1429,7 @@ def _compare_graph(g: dict, rr: RunResult) -> dict:
 # =========================================================================== outputs
 def write_results(cr: CampaignRun) -> None:
     """``results.csv``, ``results.json`` and ``calibration.json`` (SI units)."""
+    from experiment_runner.report import write_rows_csv
     camp = cr.campaign
     rows = []
     for case in camp.cases:
@@ -1446,11 +1446,7 @@ def write_results(cr: CampaignRun) -> None:
                     "n_trials": st.n, "n_valid": st.n_valid, "seed": seed,
                     "sim_over_seed": finite_or_none(st.mean / seed) if seed and math.isfinite(st.mean) else None,
                     "baseline": case.name == camp.baseline})
-    with open(cr.out_dir / "results.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: ("" if v is None else v) for k, v in r.items()})
+    write_rows_csv(cr.out_dir / "results.csv", rows)
     doc = {
         "campaign": camp.name, "title": camp.title, "description": camp.description, "seed_source": camp.seed.source,
         "seed_notes": camp.seed.notes, "baseline": camp.baseline, "settings": cr.settings, "timing_s": cr.timing,
@@ -1527,11 +1523,8 @@ def add_campaign_arguments(parser):
     parser.add_argument("--no-mcap", action="store_true", help="skip the MCAP recordings of batch trials")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--json", action="store_true", help="print results.json's findings and calibration")
-    from experiment_runner.executor import cpu_count
-    parser.add_argument("--workers", type=int, default=cpu_count(),
-                        help="local worker processes for the trials (default: one per core; 1 = this process)")
-    parser.add_argument("--cluster", default=None, metavar="ADDRESS",
-                        help="run the trials on the Dask distributed scheduler at ADDRESS (tcp://host:8786)")
+    from experiment_runner.executor import add_executor_arguments, cpu_count
+    add_executor_arguments(parser, "trials", cpu_count(), "default: one per core; 1 = this process")
     parser.add_argument("--restart", action="store_true",
                         help="discard the trials of an interrupted run in --out (default: resume them)")
     return parser

@@ -820,10 +820,8 @@ def add_design_arguments(parser):
     parser.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                         help="preset override, e.g. stage.drive.noise_current_rms=7e-4 (YAML value; repeatable)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
-    parser.add_argument("--workers", type=int, default=None,
-                        help="local processes for the sweep (default: this process, all cores)")
-    parser.add_argument("--cluster", default=None, metavar="ADDRESS",
-                        help="Dask scheduler address (e.g. tcp://host:8786) to run the sweep on")
+    from experiment_runner.executor import add_executor_arguments
+    add_executor_arguments(parser, "sweep", workers_help="default: this process, all cores")
     return parser
 
 

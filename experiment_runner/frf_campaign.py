@@ -738,6 +738,7 @@ def run_frf_campaign(camp, out_dir, *, progress: bool = True, report: bool = Tru
 def write_frf_results(cr) -> None:
     """``results.json`` (metrics, findings, seed checks, every FRF), ``results.csv`` (metrics)
     and ``frf.csv`` (one row per case x amplitude x frequency); SI units, Hz, dB, degrees."""
+    from experiment_runner.report import write_rows_csv
     from experiment_runner.campaign import _clean
     camp = cr.campaign
     rows = []
@@ -750,11 +751,7 @@ def write_frf_results(cr) -> None:
                              "condition": cond.key, "condition_label": cond.label, "amplitude_n": cond.amplitude,
                              "metric": m, "value": finite_or_none(r.values[m]), "seed": seed,
                              "baseline": case.name == camp.baseline})
-    with open(cr.out_dir / "results.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        for row in rows:
-            w.writerow({k: ("" if v is None else v) for k, v in row.items()})
+    write_rows_csv(cr.out_dir / "results.csv", rows)
     with open(cr.out_dir / "frf.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["case", "amplitude_n", "frequency_hz", "status", "G_re_m_per_n", "G_im_m_per_n",
@@ -890,19 +887,13 @@ def frf_table(cr, metric) -> list[str]:
 
 def write_frf_report(cr) -> Path:
     """``out_dir/report.md`` of a frequency-response campaign."""
-    from experiment_runner.report import cases_md, findings_table, plots_md
+    from experiment_runner.report import cases_md, findings_table, plots_md, report_head
     camp = cr.campaign
     t = camp.test
-    L = [f"# {camp.title}", ""]
-    if camp.description:
-        L += [camp.description.strip(), ""]
-    L += [f"Seed: {camp.seed.source}. Campaign file `{camp.name}`; open-loop stepped-sine plant FRFs on the "
-          f"compiled plant ({len(t.amplitudes)} force amplitudes x {len(frequency_grid(t))} frequencies "
-          f"{t.f_min:g}–{t.f_max:g} Hz per case, {cr.timing.get('column_samples', 0) / 1e6:.1f} M column-samples), "
-          f"loops calculated with each case's discrete servo; wall time "
-          f"{cr.timing.get('total_s', math.nan):.1f} s.", ""]
-    if camp.seed.notes:
-        L += [f"Seed notes: {camp.seed.notes.strip()}", ""]
+    L = report_head(camp, f"open-loop stepped-sine plant FRFs on the compiled plant ({len(t.amplitudes)} force "
+                    f"amplitudes x {len(frequency_grid(t))} frequencies {t.f_min:g}–{t.f_max:g} Hz per case, "
+                    f"{cr.timing.get('column_samples', 0) / 1e6:.1f} M column-samples), loops calculated with each "
+                    f"case's discrete servo; wall time {cr.timing.get('total_s', math.nan):.1f} s.")
     L += ["## Bandwidth and margins per amplitude", "",
           "BW: -3 dB bandwidth of the closed loop T (reference → measured position); GM / PM: margins of the loop "
           "broken at the plant input, at its last gain crossover (negative = the LTI loop at that amplitude is "

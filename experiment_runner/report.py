@@ -522,23 +522,39 @@ def _short(v):
     return str(v)
 
 
+def write_rows_csv(path: Path, rows: list[dict]) -> None:
+    """``rows`` (dicts with the same keys) as CSV, None as an empty cell."""
+    import csv
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if v is None else v) for k, v in r.items()})
+
+
+def report_head(camp, how: str) -> list[str]:
+    """The first lines of a campaign's ``report.md``: title, description, seed, ``how`` it was
+    run, seed notes."""
+    L = [f"# {camp.title}", ""]
+    if camp.description:
+        L += [camp.description.strip(), ""]
+    L += [f"Seed: {camp.seed.source}. Campaign file `{camp.name}`; {how}", ""]
+    if camp.seed.notes:
+        L += [f"Seed notes: {camp.seed.notes.strip()}", ""]
+    return L
+
+
 def write_report(cr) -> Path:
     """``out_dir/report.md``."""
     if cr.campaign.test.kind == "frequency_response":      # bandwidth/margins per amplitude table
         from experiment_runner.frf_campaign import write_frf_report
         return write_frf_report(cr)
     camp = cr.campaign
-    L = [f"# {camp.title}", ""]
-    if camp.description:
-        L += [camp.description.strip(), ""]
-    L += [f"Seed: {camp.seed.source}. Campaign file `{camp.name}`; {camp.trials} trials per case and condition, "
-          f"run on the batch engine"
-          + (" (representative trials also through the ROS 2 graph)" if cr.settings.get("graph") else "")
-          + f"; wall time {cr.timing.get('total_s', float('nan')):.0f} s "
-          f"(calibration {cr.timing.get('calibration_s', 0):.0f} s, simulation {cr.timing.get('simulation_s', 0):.0f} s, "
-          f"graph {cr.timing.get('graph_s', 0):.0f} s).", ""]
-    if camp.seed.notes:
-        L += [f"Seed notes: {camp.seed.notes.strip()}", ""]
+    L = report_head(camp, f"{camp.trials} trials per case and condition, run on the batch engine"
+                    + (" (representative trials also through the ROS 2 graph)" if cr.settings.get("graph") else "")
+                    + f"; wall time {cr.timing.get('total_s', float('nan')):.0f} s "
+                    f"(calibration {cr.timing.get('calibration_s', 0):.0f} s, simulation "
+                    f"{cr.timing.get('simulation_s', 0):.0f} s, graph {cr.timing.get('graph_s', 0):.0f} s).")
     L += ["## Seed vs simulation", "",
           "Simulation: mean ± standard deviation over the trials (SI values in `results.csv`). "
           "† = calibration target (baseline): fitted, not predicted.", ""]

@@ -28,10 +28,8 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
     parser.add_argument("--max-fit-seconds", type=float, default=3.0, help="cap of the fit set [s of data]")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--verbose", action="store_true", help="progress on stdout")
-    parser.add_argument("--workers", type=int, default=None,
-                        help="local processes for the candidate fits (default: threads of this process)")
-    parser.add_argument("--cluster", default=None, metavar="ADDRESS",
-                        help="Dask scheduler address (e.g. tcp://host:8786) to run the candidate fits on")
+    from experiment_runner.executor import add_executor_arguments
+    add_executor_arguments(parser, "candidate fits", workers_help="default: threads of this process")
     return parser
 
 
