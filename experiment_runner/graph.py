@@ -237,6 +237,9 @@ def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id
     if params and not processes:
         raise ValueError("node parameters need processes=True (one process per node)")
     import json
+
+    from experiment_runner.experiment import load_experiment
+    load_experiment(experiment)            # a bad experiment file is a ConfigError before any node starts
     out_dir.mkdir(parents=True, exist_ok=True)
     bag = out_dir / "run"
     _clear_previous_run(out_dir)
