@@ -157,6 +157,7 @@ def analyse(camp, case, cond, preset, trial: int, correction=None, hysteresis: f
         "case": case.name, "condition": cond.key, "trial": int(trial),
         "settling_time_s": ts, "twin_settling_time_s": ts_twin, "friction_limited": bool(limited),
         "end_error_m": float(e[k0]), "overshoot_m": float(max(0.0, np.max(e[k_mid:k_end + 1]))),
+        "excursion_m": float(e[k0 + int(np.argmax(np.abs(e[k0:k_end + 1])))]) if k_end >= k0 else float(e[k0]),
         "reversals": revs, "travel_after_last_reversal_m": after, "premotion_range_m": pm,
         "settled_in_premotion": (after is not None and math.isfinite(pm) and after < pm),
         "trace": {"t": (np.arange(k_start, k_plot) - k0) / rate, "e": e[k_start:k_plot],
@@ -176,6 +177,9 @@ def summary(m: dict) -> str:
     """One sentence: how the trial ended its move, reversed and settled, and whether friction set the time."""
     e0 = m["end_error_m"]
     s = [f"ends the move {_nm(abs(e0))} {'past' if e0 > 0 else 'short of'} the target"]
+    ex = m.get("excursion_m", e0)
+    if abs(ex) > 2 * abs(e0) and abs(ex) > m["trace"]["window"]:
+        s.append(f"then gets {_nm(abs(ex))} {'past' if ex > 0 else 'short of'} it")
     if m["overshoot_m"] > m["trace"]["window"]:
         s.append(f"overshoots by {_nm(m['overshoot_m'])}")
     revs = [r for r in m["reversals"] if r["t_s"] > -0.005]

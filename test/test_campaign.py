@@ -17,7 +17,7 @@ from stage_sim.config import ConfigError
 # Calibrated values of the full main job (50 / 20 trials, dwell 1 s), reused so that the
 # direction tests run in seconds; test_calibration_fits_the_baseline checks the fit itself.
 CAL_4_2 = {"drive_noise_current_rms": 9.870e-4}
-CAL_5_2 = {"bearing_stiffness_scale": 2.508, "drive_noise_current_rms": 1.281e-3}
+CAL_5_2 = {"bearing_stiffness_scale": 2.507, "drive_noise_current_rms": 1.266e-3}
 CAL_3_3 = {"drive_noise_current_rms": 9.562e-4}
 
 
