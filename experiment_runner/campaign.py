@@ -79,7 +79,7 @@ __all__ = ["Campaign", "load_campaign", "list_campaigns", "conditions", "run_cam
 CAMPAIGN_DIR = Path(__file__).with_name("campaigns")
 MAIN_JOB = ("table_4_2", "table_5_2")
 """Campaigns of :func:`main_job` (``nanostage campaign --main``)."""
-MAIN_JOB_FRF = {"table_4_2": "frf_fi"}
+MAIN_JOB_FRF = {"table_4_2": "frf_fi", "table_5_2": "frf_sai"}
 """Frequency-response campaigns the main job runs next to a point-to-point one (Fig. 4.6 next to Table 4.2)."""
 
 Metric = Literal["settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m",
