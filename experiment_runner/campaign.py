@@ -1139,27 +1139,11 @@ def _spread_finding(camp: Campaign, f: Finding, runs: dict, conds: list) -> dict
 # =========================================================================== graph
 def _run_graph_with_correction(experiment: str, out: Path, timeout: float, domain_id, correction) -> dict:
     """:func:`experiment_runner.graph.run_one_process` with a learned Step II correction held by the
-    SAI manager node from its start.
-
-    ``run_one_process`` has no way to hand the node a correction, so for the duration of the call
-    ``stage_control.nodes.SaiNode`` is a subclass that starts with it (``run_one_process`` imports
-    the node class when called). Only used in the spawned graph worker processes.
-    """
-    import stage_control.nodes as nodes_mod
+    SAI manager node from its start (its ``initial_correction`` parameter)."""
     from experiment_runner.graph import run_one_process
-    base = nodes_mod.SaiNode
-    corr = np.asarray(correction, float)
-
-    class SaiNodeWithCorrection(base):
-        def __init__(self, **kwargs):
-            super().__init__(**kwargs)
-            self.correction = corr.copy()
-
-    nodes_mod.SaiNode = SaiNodeWithCorrection
-    try:
-        return run_one_process(experiment, out, timeout, domain_id)
-    finally:
-        nodes_mod.SaiNode = base
+    corr = [float(v) for v in np.asarray(correction, float).ravel()]
+    return run_one_process(experiment, out, timeout, domain_id,
+                           params={"sai_manager": {"initial_correction": corr}} if corr else None)
 
 
 def _graph_worker(jobs: list, domain_id: int) -> list:

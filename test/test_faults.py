@@ -21,15 +21,22 @@ import yaml
 from test_graph import RUN_TIMEOUT, Listener, _domain, _ros_env
 
 from experiment_runner.experiment import EXPERIMENT_DIR, experiment_preset, load_experiment, run_batch
-from experiment_runner.graph import EXIT_ABORTED, NodeProcesses, run_graph
+from experiment_runner.graph import EXIT_ABORTED, run_graph
+from experiment_runner.ros.launch import NodeProcesses
+from experiment_runner.ros.nodes import nodes_for
 from experiment_runner.recording import read_recording, write_run
 from stage_control.servo import build_servo, check_reference
 from stage_sim.config import load_preset, with_overrides
 
-FI_NODES = ("plant_sim", "servo_controller", "recorder", "experiment_sequencer")
-"""The nodes an FI-stage run needs (no dither, no SAI manager)."""
-VAN_NODES = FI_NODES + ("dither_generator",)
-SAI_NODES = FI_NODES + ("sai_manager",)
+def _nodes(experiment: str) -> tuple[str, ...]:
+    """The nodes a run of ``experiment`` needs (the table of nodes: no dither generator without
+    dither, no SAI manager without one)."""
+    return nodes_for(experiment_preset(load_experiment(experiment)))
+
+
+FI_NODES = _nodes("fi_p2p_5um")
+VAN_NODES = _nodes("van_asym_hc")
+SAI_NODES = _nodes("sai_p2p_5um")
 
 FAST = {"plant_sim": {"input_timeout": 3.0},               # the watchdog
         "experiment_sequencer": {"sample_timeout": 6.0, "wait_for_nodes": 4,   # 3 nodes + the Listener
@@ -464,7 +471,7 @@ def servo_node():
     from rclpy.parameter import Parameter
 
     from msg_defs import convert
-    from stage_control.nodes import ServoNode
+    from experiment_runner.ros.servo_node import ServoNode
     ctx = Context()
     rclpy.init(context=ctx, domain_id=_domain())
     node = ServoNode(context=ctx, parameter_overrides=[Parameter("preset", value="fi_stage")])
@@ -509,7 +516,7 @@ def test_a_second_sequencer_on_the_domain_refuses_to_start():
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
 
-    from experiment_runner.sequencer import SequencerNode
+    from experiment_runner.ros.sequencer_node import SequencerNode
     ctx = Context()
     rclpy.init(context=ctx, domain_id=_domain())
     try:

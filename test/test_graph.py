@@ -32,11 +32,13 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 
 from experiment_runner.experiment import build_trials, experiment_preset, load_experiment, run_batch, trial_metrics
-from experiment_runner.graph import NODES, run_processes
+from experiment_runner.ros.launch import run_processes
+from experiment_runner.ros.nodes import NODE_NAMES
 from experiment_runner.recording import read_recording
 from msg_defs import convert
-from msg_defs.node_io import domain_env
-from msg_defs.topics import COMMAND, EVENTS, TRAJECTORY, qos_profile
+from experiment_runner.ros.qos import qos_profile
+from experiment_runner.ros.run import domain_env
+from msg_defs.topics import COMMAND, EVENTS, TRAJECTORY
 
 BIN = Path(sys.executable).parent
 RUN_TIMEOUT = 90.0                   # s: a whole graph run, start-up included
@@ -64,7 +66,7 @@ def _ros_env(domain: int):
 class Graph:
     """The node processes of one run (console scripts), stderr of each kept in a file."""
 
-    def __init__(self, experiment: str, out: Path, domain: int, params: dict | None = None, nodes=NODES,
+    def __init__(self, experiment: str, out: Path, domain: int, params: dict | None = None, nodes=NODE_NAMES,
                  ros_args: dict | None = None):
         self.out, self.domain = out, domain
         out.mkdir(parents=True, exist_ok=True)

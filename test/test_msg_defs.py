@@ -11,8 +11,8 @@ import yaml
 from rosbags.typesys import Stores, get_typestore
 
 from msg_defs import convert
-from msg_defs.topics import (CONTRACT_TOPICS, EVENT_KINDS, TOPICS, Qos, get_topic, markdown_table,
-                             offered_qos_yaml, qos_profile, subscription_qos)
+from experiment_runner.ros.qos import qos_profile, subscription_qos
+from msg_defs.topics import CONTRACT_TOPICS, EVENT_KINDS, TOPICS, Qos, get_topic, markdown_table, offered_qos_yaml
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 FAMILIES = [None, TS]

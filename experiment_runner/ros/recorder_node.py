@@ -25,11 +25,12 @@ from pathlib import Path
 
 import yaml
 
-from msg_defs import convert
-from msg_defs.node_io import StageNode, run_node
-from msg_defs.topics import (CLOCK, COMMAND, CONFIG, DITHER, MEASURED, REFERENCE, TOPICS, TRAJECTORY, TRUTH,
-                             subscription_qos)
 from experiment_runner.recording import McapRecorder, bag_layout
+from experiment_runner.ros.node import StageNode
+from experiment_runner.ros.qos import subscription_qos
+from experiment_runner.ros.run import run_node
+from msg_defs import convert
+from msg_defs.topics import CLOCK, COMMAND, CONFIG, DITHER, MEASURED, REFERENCE, TOPICS, TRAJECTORY, TRUTH
 
 RECORDED = tuple(name for name in TOPICS if name != CONFIG.name)
 RAW = (REFERENCE.name, COMMAND.name, MEASURED.name, TRUTH.name, DITHER.name, CLOCK.name)

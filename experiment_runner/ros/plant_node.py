@@ -1,6 +1,6 @@
 """``plant_sim`` node: the stage simulator on the ROS graph, in lockstep.
 
-A thin adapter around :class:`stage_sim.plant.PlantSim`: for every control sample it
+A thin adapter around :func:`stage_sim.plant.plant_step`: for every control sample it
 publishes ``/stage/measured``, ``/stage/truth`` and ``/clock``, waits until the
 servo command (and, where the stage has them, the dither forces and the SAI mode)
 for that sample has arrived, then advances one period.
@@ -21,10 +21,15 @@ from __future__ import annotations
 import time
 
 import numpy as np
+
+from experiment_runner.ros.node import JointStateOut, Lockstep, StageNode, check_preset, finite
+from experiment_runner.ros.nodes import publisher_of
+from experiment_runner.ros.run import run_node
 from msg_defs import convert
-from msg_defs.node_io import NODE_OF_INPUT, SAI_COMMAND, JointStateOut, Lockstep, StageNode, finite, run_node
-from stage_sim.config import ConfigError, load_preset, preset_from_dict
-from stage_sim.plant import DIVERGED, OUT_OF_TRAVEL, PlantSim, SimulationError, build_plant
+from msg_defs.topics import SAI_COMMAND
+from experiment_runner.batch import Models
+from stage_sim.config import load_preset, preset_from_dict
+from stage_sim.plant import DIVERGED, OUT_OF_TRAVEL, STATUS_TEXT, plant_step
 
 INPUT_TOPIC = {"command": "/stage/command", "dither": "/stage/dither", "sai": SAI_COMMAND.name}
 """Topic of each lockstep input of the plant."""
@@ -35,15 +40,39 @@ a message sent before its subscriber was matched (start-up) is lost even on a re
 topic; the controllers answer a repeated sample by repeating their answer."""
 
 
-def check_preset(name):
-    """Parameter validator: None if ``name`` is empty or a loadable preset, else why not."""
-    if not name:
-        return None
-    try:
-        load_preset(name)
-    except ConfigError as err:
-        return str(err)
-    return None
+class PlantTrial:
+    """One trial of the plant, stepped one control period at a time with
+    :func:`stage_sim.plant.plant_step` (one-trial arrays, allocated once), from the batch
+    engine's initial state (:meth:`experiment_runner.batch.Models.initial_state`)."""
+
+    def __init__(self, models: Models, x0: float, seed: int):
+        init = models.initial_state([x0])
+        self.pm = models.plant
+        self.state = tuple(init.plant)
+        self.meas = init.meas
+        self.seeds = np.array([seed], np.int64)
+        self.status = np.zeros(1, np.int64)
+        self.u, self.d0, self.d1, self.mode = (np.zeros(1) for _ in range(4))
+        self.k = 0
+
+    def step(self, u: float, d0: float, d1: float, mode: float) -> int:
+        """Apply ``u`` [N], dither ``d0, d1`` [N] and SAI ``mode`` over one period; the plant
+        status after it (0 ok, else :data:`stage_sim.plant.STATUS_TEXT`)."""
+        self.u[0], self.d0[0], self.d1[0], self.mode[0] = u, d0, d1, mode
+        plant_step(self.pm, *self.state, self.u, self.d0, self.d1, self.mode, self.k, self.seeds, self.meas,
+                   self.status)
+        self.k += 1
+        return int(self.status[0])
+
+    @property
+    def positions(self):
+        """True positions of every body [m]."""
+        return self.state[0][:self.pm.n, 0]
+
+    @property
+    def velocities(self):
+        """True velocities of every body [m/s]."""
+        return self.state[0][self.pm.n:, 0]
 
 
 class PlantNode(StageNode):
@@ -84,14 +113,14 @@ class PlantNode(StageNode):
 
     def _build(self):
         p = self.preset
-        self.pm = build_plant(p.stage, p.controller.rate, p.simulation.max_omega_h, p.simulation.max_substeps)
+        self.models = Models.from_preset(p)
+        self.pm = self.models.plant
         self.dt_ns = int(round(1e9 / p.controller.rate))
         self.bodies = ["table"] + [f"body_{i}" for i in range(1, self.pm.n)]
         if self.pm.bear_dof:
             self.bodies[self.pm.bear_dof] = "bearing"
         needed = ["command"] + (["dither"] if p.dither else []) + (["sai"] if p.sai_manager else [])
         self.lock = Lockstep(tuple(needed))
-        self.init_mode = 0.0 if p.sai_manager and p.sai_manager.rule != "always_compliant" else 1.0
         if self._held is not None:
             self._trajectory(self._held)
 
@@ -105,11 +134,10 @@ class PlantNode(StageNode):
         self.start = tr.start
         self.n = len(tr.x_ref)
         self.k = 0
-        self.mode = self.init_mode
+        self.mode = self.models.sai_mode
         self.lock.clear()
         self.ready = {}
-        self.sim = PlantSim(self.pm, 1, x0=tr.x_ref[0], sai_mode=self.mode,
-                            seeds=[self.preset.simulation.seed + tr.trial])
+        self.sim = PlantTrial(self.models, tr.x_ref[0], self.preset.simulation.seed + tr.trial)
         self._publish_isolator()
         self._publish_sample()
 
@@ -129,8 +157,7 @@ class PlantNode(StageNode):
         self.clock.clock.sec, self.clock.clock.nanosec = divmod(stamp, 1_000_000_000)
         self.pub_clock.publish(self.clock)
         self.pub_measured.publish(stamp, names, position=pos)
-        self.pub_truth.publish(stamp, self.bodies, position=self.sim.positions[:, 0],
-                               velocity=self.sim.velocities[:, 0])
+        self.pub_truth.publish(stamp, self.bodies, position=self.sim.positions, velocity=self.sim.velocities)
         self.waiting_since = time.monotonic()
         self.resends = 0
 
@@ -145,7 +172,7 @@ class PlantNode(StageNode):
         if key < self.k or key >= self.n:
             return
         if not finite(*(value if isinstance(value, tuple) else (value,))):
-            node = NODE_OF_INPUT[INPUT_TOPIC[name]]
+            node = publisher_of(INPUT_TOPIC[name])
             self._stop("non_finite_input", f"{name} {value} for sample {key} from {node}", node, key)
             return
         got = self.lock.put(key, name, value)
@@ -158,12 +185,11 @@ class PlantNode(StageNode):
             got = self.ready.pop(self.k)
             d0, d1 = got.get("dither", (0.0, 0.0))
             mode = got.get("sai", self.mode)
-            try:
-                self.sim.step(got["command"], d0, d1, mode)
-            except SimulationError as err:
-                status = int(self.sim.status[0])
+            status = self.sim.step(got["command"], d0, d1, mode)
+            if status:
                 cause = {DIVERGED: "diverged", OUT_OF_TRAVEL: "out_of_travel"}[status]
-                self._stop(cause, f"{err} (sample {self.k})", self.get_name(), self.k)
+                self._stop(cause, f"{STATUS_TEXT[status]} at t = {self.sim.k * self.pm.dt:.6f} s of trial "
+                                  f"{self.trial} (sample {self.k})", self.get_name(), self.k)
                 return
             self.k += 1
             if mode != self.mode:
@@ -182,7 +208,7 @@ class PlantNode(StageNode):
             self.resends += 1
             self.pub_measured.republish()
         if waited > self.timeout:
-            silent = sorted({NODE_OF_INPUT[INPUT_TOPIC[m]] for m in self.lock.missing(self.k)})
+            silent = sorted({publisher_of(INPUT_TOPIC[m]) for m in self.lock.missing(self.k)})
             self._stop("watchdog", f"no input for sample {self.k} within {self.timeout} s from: "
                                    f"{', '.join(silent)}", silent, self.k, silent=silent)
 

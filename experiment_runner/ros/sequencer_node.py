@@ -18,10 +18,12 @@ import time
 import numpy as np
 import yaml
 
-from msg_defs import convert
-from msg_defs.node_io import NODE_OF_INPUT, StageNode, run_node
-from stage_sim.config import ConfigError
 from experiment_runner.experiment import build_trials, experiment_preset, load_experiment, trial_metrics
+from experiment_runner.ros.node import StageNode
+from experiment_runner.ros.nodes import JOINING, publisher_of
+from experiment_runner.ros.run import run_node
+from msg_defs import convert
+from stage_sim.config import ConfigError
 
 
 def _check_experiment(name):
@@ -30,10 +32,6 @@ def _check_experiment(name):
     except ConfigError as err:
         return str(err)
     return None
-
-
-WAITED_NODES = ("plant_sim", "servo_controller", "dither_generator", "sai_manager", "recorder")
-"""The subscribers of ``/experiment/trajectory`` the sequencer waits for (``wait_for_nodes``)."""
 
 
 class SequencerNode(StageNode):
@@ -45,10 +43,10 @@ class SequencerNode(StageNode):
                           "experiment name (shipped) or YAML path", check=_check_experiment)
         self.timeout = self.param("sample_timeout", 5.0, "wall-clock time without a new sample "
                                   "before the trial is aborted [s]", 0.01, 3600.0, attr="timeout")
-        self.wait_nodes = self.param("wait_for_nodes", 5, "subscribers of /experiment/trajectory "
-                                     "to wait for before starting (5: plant_sim, servo_controller, "
-                                     "dither_generator, sai_manager, recorder; fewer, and the "
-                                     "recorder may miss the first events)", 0, 100, attr="wait_nodes")
+        self.wait_nodes = self.param("wait_for_nodes", len(JOINING), "subscribers of /experiment/trajectory "
+                                     f"to wait for before starting ({len(JOINING)}: {', '.join(JOINING)}; "
+                                     "fewer, and the recorder may miss the first events)", 0, 100,
+                                     attr="wait_nodes")
         self.start_delay = self.param("start_delay", 1.0, "wall-clock time to wait once the nodes are "
                                       "there, so they discover each other too (what a publisher "
                                       "sends before its subscriber matched is lost) [s]", 0.0, 60.0,
@@ -95,7 +93,7 @@ class SequencerNode(StageNode):
                 # the loop reached the end, but records were lost on the way (not resent: no node waits for them)
                 stale = "reference" if np.isnan(self.xr).any() else "measured"
                 lost = int(np.isnan(self.xr if stale == "reference" else self.y).sum())
-                node = NODE_OF_INPUT[f"/stage/{stale}"]
+                node = publisher_of(f"/stage/{stale}")
                 self._abort(f"{lost} {stale} sample(s) of the trial never arrived (lost); its metrics "
                             "cannot be computed", node)
                 return
@@ -104,7 +102,7 @@ class SequencerNode(StageNode):
             # (a plant killed mid-publish may have reached us but not the servo)
             quiet = time.monotonic() - self.last_measured > self.timeout
             stale = "measured" if quiet or self.k_meas <= self.k_ref else "reference"
-            node = NODE_OF_INPUT["/stage/measured" if stale == "measured" else "/stage/reference"]
+            node = publisher_of(f"/stage/{stale}")
             self._abort(f"no {stale} sample after sample {max(self.k_meas, self.k_ref)} within "
                         f"{self.timeout} s", node)
 
@@ -122,7 +120,7 @@ class SequencerNode(StageNode):
             self.ready_since = None
             if now - self.t_created > self.start_timeout:
                 present = set(self.get_node_names())
-                missing = [n for n in WAITED_NODES if n not in present]
+                missing = [n for n in JOINING if n not in present]
                 self._abort(f"only {self.pub_traj.get_subscription_count()} of {self.wait_nodes} nodes "
                             f"after {self.start_timeout} s; missing: {', '.join(missing) or '?'}", missing)
             return
