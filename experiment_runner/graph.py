@@ -12,10 +12,12 @@ import sys
 import time
 from pathlib import Path
 
-from experiment_runner.ros.launch import (EXIT_ABORTED, EXIT_RECORDING_CUT, EXIT_TIMEOUT, NodeProcesses,
-                                          run_one_process, run_processes)
+from experiment_runner.experiment import load_experiment
+from experiment_runner.ros.launch import EXIT_ABORTED, EXIT_RECORDING_CUT, EXIT_TIMEOUT, run_one_process, run_processes
+from experiment_runner.ros.run import check_domain_id
+from stage_sim.config import ConfigError
 
-__all__ = ["run_graph", "run_one_process", "run_processes", "NodeProcesses", "EXIT_ABORTED", "EXIT_TIMEOUT",
+__all__ = ["run_graph", "check_run", "run_one_process", "run_processes", "EXIT_ABORTED", "EXIT_TIMEOUT",
            "EXIT_RECORDING_CUT"]
 
 
@@ -29,9 +31,7 @@ def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id
     """
     import json
 
-    from experiment_runner.experiment import load_experiment
-    load_experiment(experiment)            # a bad experiment file is a ConfigError before any node starts
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_run(experiment, out_dir, domain_id, timeout)     # bad input: a ConfigError before any node starts
     bag = out_dir / "run"
     _clear_previous_run(out_dir)
     t0 = time.monotonic()
@@ -69,6 +69,25 @@ def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id
     for reason in incomplete:
         print(f"recording incomplete: {reason}", file=sys.stderr)
     return EXIT_RECORDING_CUT if code == 0 and (rec.salvaged or extra or incomplete) else code
+
+
+def check_run(experiment: str, out_dir: Path, domain_id=None, timeout: float = 3600.0) -> None:
+    """Refuse a run that cannot work, before any node starts: a :class:`ConfigError` naming the
+    experiment file's problem, a ROS domain ID out of range (argument or ``ROS_DOMAIN_ID``), a
+    timeout that is not positive, an output folder that cannot be made. ``out_dir`` exists after."""
+    load_experiment(experiment)
+    try:
+        check_domain_id(domain_id)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    if not (isinstance(timeout, (int, float)) and timeout > 0):
+        raise ConfigError(f"--timeout: got {timeout!r}; expected a positive number of seconds")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"--out {out_dir}: a file is there; expected a folder (made if missing)")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"--out {out_dir}: cannot make the output folder ({err.strerror or err})") from None
 
 
 def _clear_previous_run(out_dir: Path):

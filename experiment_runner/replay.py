@@ -20,6 +20,7 @@ import math
 from experiment_runner.metrics import METRICS, trial_metrics
 from experiment_runner.recording import Recording, read_recording
 from msg_defs import convert
+from stage_sim.config import ConfigError
 
 __all__ = ["check_metrics", "add_replay_arguments", "main_replay"]
 
@@ -82,17 +83,33 @@ def check_metrics(recording: Recording | str, *, rtol: float = 1e-9, atol: float
 
 
 # =========================================================================== CLI pieces
+def _non_negative(kind):
+    """argparse type: a ``kind`` (int or float) >= 0 (else a usage error, exit 2)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not value >= 0:
+            raise argparse.ArgumentTypeError(f"got {text!r}; expected a number >= 0"
+                                             + (" (an integer)" if kind is int else ""))
+        return value
+    parse.__name__ = kind.__name__
+    return parse
+
+
 def add_replay_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Arguments of ``nanostage replay`` (wire with ``set_defaults(func=main_replay)``)."""
     parser.add_argument("path", help="recording: the MCAP file or its bag directory")
-    parser.add_argument("--rate", type=float, default=1.0,
+    parser.add_argument("--rate", type=_non_negative(float), default=1.0,
                         help="speed relative to stage time; 0 = as fast as possible (default 1)")
     parser.add_argument("--check", action="store_true",
                         help="recompute the metrics from the file and compare with /experiment/results")
     parser.add_argument("--no-publish", action="store_true", help="do not publish (with --check: only check)")
-    parser.add_argument("--domain-id", type=int, default=None, help="ROS domain (default: ROS_DOMAIN_ID)")
+    parser.add_argument("--domain-id", type=int, default=None,
+                        help="ROS domain, 0 to 232 (default: ROS_DOMAIN_ID, else 42)")
     parser.add_argument("--topics", nargs="*", default=None, help="replay only these topics")
-    parser.add_argument("--wait-for", type=int, default=0, metavar="N",
+    parser.add_argument("--wait-for", type=_non_negative(int), default=0, metavar="N",
                         help="wait until N subscriptions match a contract topic before publishing")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     return parser
@@ -107,6 +124,11 @@ def main_replay(args) -> int:
     out = {}
     if not getattr(args, "no_publish", False):
         from experiment_runner.ros.player import replay
+        from experiment_runner.ros.run import check_domain_id
+        try:
+            check_domain_id(args.domain_id)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
         out = replay(args.path, rate=args.rate, domain_id=args.domain_id, topics=args.topics,
                      wait_for=args.wait_for, log=None if args.json else print)
     if args.check:

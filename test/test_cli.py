@@ -1,6 +1,8 @@
 """``nanostage`` entry point: a bad input file or recording is an error message and exit 2, not a traceback."""
 from __future__ import annotations
 
+import pytest
+
 from experiment_runner.cli import main
 
 
@@ -33,3 +35,54 @@ def test_graph_bad_or_malformed_experiment_exits_2_before_any_node(tmp_path, cap
     err = capsys.readouterr().err
     assert "not valid YAML at line 1" in err and str(broken) in err
     assert not (tmp_path / "o" / "run.mcap").exists()
+
+
+def _fails(argv, capsys, *expected) -> str:
+    """``nanostage argv`` ends with exit 2 and a message (no traceback) holding ``expected``."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.startswith(f"nanostage {argv[0]}: "), err
+    for text in expected:
+        assert text in err, err
+    return err
+
+
+def test_graph_bad_input_exits_2_naming_it(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "o"
+    _fails(["graph", "no_such_experiment", "--out", str(out)], capsys,
+           "no_such_experiment: no such experiment file", "shipped experiments: fi_p2p_5um")
+    _fails(["graph", str(tmp_path / "missing.yaml"), "--out", str(out)], capsys, "missing.yaml: no such experiment file")
+    _fails(["graph", "fi_p2p_5um", "--domain-id", "300", "--out", str(out)], capsys,
+           "ROS domain ID (--domain-id): got 300; expected an integer from 0 to 232")
+    monkeypatch.setenv("ROS_DOMAIN_ID", "lab")
+    _fails(["graph", "fi_p2p_5um", "--out", str(out)], capsys,
+           "ROS domain ID (environment variable ROS_DOMAIN_ID): got 'lab'")
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    _fails(["graph", "fi_p2p_5um", "--timeout", "0", "--out", str(out)], capsys, "--timeout: got 0.0; expected a positive")
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    _fails(["graph", "fi_p2p_5um", "--out", str(a_file)], capsys, f"--out {a_file}: a file is there")
+    assert not out.exists()                                    # refused before anything was made
+
+
+def test_replay_bad_input_exits_2_naming_it(tmp_path, capsys):
+    from experiment_runner.experiment import experiment_preset, load_experiment, run_batch
+    from experiment_runner.recording import write_run
+    _fails(["replay", str(tmp_path / "missing.mcap")], capsys, "missing.mcap: no such file or directory")
+    yml = tmp_path / "exp.yaml"
+    yml.write_text("preset: fi_stage\n")
+    _fails(["replay", str(yml), "--check"], capsys, "exp.yaml: not an MCAP file")
+    (tmp_path / "empty").mkdir()
+    _fails(["replay", str(tmp_path / "empty")], capsys, "empty")
+    exp = load_experiment("fi_p2p_5um")
+    _, res = run_batch(exp)
+    rec = write_run(tmp_path / "run", res, experiment_preset(exp))
+    _fails(["replay", str(rec), "--topics", "/stage/measured", "/nope"], capsys,
+           "no topic /nope in the recording (its topics: /experiment/config")
+    _fails(["replay", str(rec), "--domain-id", "233"], capsys, "got 233; expected an integer from 0 to 232")
+    for bad in (["--rate", "-1"], ["--rate", "fast"], ["--wait-for", "-3"]):
+        with pytest.raises(SystemExit) as exc:
+            main(["replay", str(rec), *bad])
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert f"argument {bad[0]}: got '{bad[1]}'; expected a number >= 0" in err and "Traceback" not in err

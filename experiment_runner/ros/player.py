@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import time
 
-from experiment_runner.recording import _load
+from experiment_runner.recording import RecordingError, _load
+from experiment_runner.ros.run import check_domain_id
 from experiment_runner.ros.qos import qos_profile
 from msg_defs import convert
 from msg_defs.topics import CLOCK, CONTRACT_TOPICS, TOPICS, Qos
@@ -48,9 +49,11 @@ def replay(path, rate: float = 1.0, *, domain_id: int | None = None,
         messages; a subscriber whose callbacks are slower than the replay still drops
         what overflows its keep-last queue, 1000 samples on the per-sample topics).
     domain_id : int, optional
-        ROS domain (default: ``ROS_DOMAIN_ID`` of the environment).
+        ROS domain (default: ``ROS_DOMAIN_ID`` of the environment, else 42); ``ValueError``
+        outside 0..232.
     topics : iterable of str, optional
-        Only these topics (default all).
+        Only these topics (default all); a :class:`~experiment_runner.recording.RecordingError`
+        names those the recording does not have.
     clock : bool
         Publish ``rosgraph_msgs/Clock`` at each new log time (recorded ``/clock``
         messages are then not republished, since they carry the same time).
@@ -73,6 +76,11 @@ def replay(path, rate: float = 1.0, *, domain_id: int | None = None,
 
     raw = _load(path)
     wanted = None if topics is None else set(topics)
+    present = {ch.topic for ch in raw.channels.values()}
+    if wanted is not None and wanted - present:
+        raise RecordingError(f"{path}: no topic {', '.join(sorted(wanted - present))} in the recording "
+                             f"(its topics: {', '.join(sorted(present))})")
+    domain_id = check_domain_id(domain_id)
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain_id)
     out = {"published": {}, "skipped": {}, "salvaged": raw.salvaged}

@@ -21,8 +21,38 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.executors import ExternalShutdownException
 from rclpy.signals import SignalHandlerOptions
 
-__all__ = ["domain_env", "GRAPH_DEFAULTS", "apply_graph_defaults", "executor_kind", "make_executor",
-           "run_node", "params_source", "EXIT_GRACE_S", "DRAIN_MIN_S", "DRAIN_MAX_S"]
+__all__ = ["domain_env", "GRAPH_DEFAULTS", "apply_graph_defaults", "DOMAIN_IDS", "check_domain_id",
+           "executor_kind", "make_executor", "run_node", "params_source", "EXIT_GRACE_S", "DRAIN_MIN_S",
+           "DRAIN_MAX_S"]
+
+
+DOMAIN_IDS = range(0, 233)
+"""ROS domain IDs a graph can use here: Fast DDS derives its UDP ports from the domain, and
+above 232 they leave the port range (the participant cannot be created: the process ends)."""
+
+
+def check_domain_id(value=None, environ=os.environ) -> int:
+    """The ROS domain a run will use (``value``, else ``ROS_DOMAIN_ID``, else 42), checked:
+    ``ValueError`` naming the value, where it came from and what is allowed.
+
+    >>> check_domain_id(7), check_domain_id(None, {"ROS_DOMAIN_ID": "12"}), check_domain_id(None, {})
+    (7, 12, 42)
+    >>> check_domain_id(300)
+    Traceback (most recent call last):
+    ...
+    ValueError: ROS domain ID (--domain-id): got 300; expected an integer from 0 to 232
+    """
+    source = "--domain-id" if value is not None else "environment variable ROS_DOMAIN_ID"
+    if value is None:
+        value = environ.get("ROS_DOMAIN_ID", GRAPH_DEFAULTS["ROS_DOMAIN_ID"])
+    try:
+        domain = int(str(value).strip())
+    except ValueError:
+        domain = None
+    if domain is None or domain not in DOMAIN_IDS:
+        raise ValueError(f"ROS domain ID ({source}): got {value!r}; expected an integer from "
+                         f"{DOMAIN_IDS.start} to {DOMAIN_IDS.stop - 1}")
+    return domain
 
 
 def domain_env(domain_id: int | None = None) -> dict:
