@@ -20,7 +20,10 @@ the trial portion (``trial_start`` of trial 1 to the last ``trial_end``, as hear
 a listener in its own context; trial 0 is the warm-up), next to the raw rclpy
 publish-subscribe round-trip rate measured in the same run (two nodes in one process,
 ``sensor_msgs/JointState`` ping -> pong with the lockstep topics' reliable QoS), with
-the executor the graph uses and with rclpy's ``SingleThreadedExecutor``.
+the executor the graph uses and with rclpy's ``SingleThreadedExecutor``. The fair
+ceiling is per message: ``graph_message_rate_one_process`` (the graph's messages per
+second) against ``rclpy_message_rate`` (2 x round trips/s: one publish and one delivery
+each), see :func:`run_graph_bench`.
 """
 from __future__ import annotations
 
@@ -49,7 +52,14 @@ def _rtf(preset, ref, n_trials, models, repeats):
 
 
 def run_graph_bench(quick: bool = False) -> dict:
-    """The graph part of the benchmark (keys ``graph_loop_hz_*``, ``rclpy_roundtrip_hz*``)."""
+    """The graph part of the benchmark, all figures from this run.
+
+    ``graph_message_rate_one_process`` (messages/s of the one-process graph: control samples/s
+    x ``graph_messages_per_sample``) against ``rclpy_message_rate`` (2 x raw rclpy round trips/s
+    on the graph's executor: the middleware's cost per message, one publish and one delivery);
+    ``graph_loop_hz_*``: control samples/s in one process and with one process per node;
+    ``rclpy_roundtrip_hz*``: raw round trips/s (events executor, and the single-threaded one).
+    """
     from experiment_runner.ros.run import executor_kind
     from experiment_runner.ros.timing import graph_loop_hz, rclpy_roundtrip_hz
     trials = 3 if quick else 8
@@ -60,7 +70,13 @@ def run_graph_bench(quick: bool = False) -> dict:
     rt_single = rclpy_roundtrip_hz(max(1000, n_rt // 5), executor="single")
     def r(x, nd=1):
         return None if x is None else round(x, nd)
+    per_sample = one["messages_per_sample"]
+    msg_rate = one["hz"] * per_sample if one["hz"] and per_sample else None
     return {
+        "graph_messages_per_sample": r(per_sample, 3),
+        "graph_message_rate_one_process": r(msg_rate),
+        "rclpy_message_rate": round(2 * rt, 1),
+        "graph_message_rate_vs_rclpy": r(msg_rate and msg_rate / (2 * rt), 3),
         "graph_loop_hz_one_process": r(one["hz"]),
         "graph_loop_hz_processes": r(procs["hz"]),
         "graph_samples_timed": f"{one['samples']} / {procs['samples']}",

@@ -30,7 +30,7 @@ import struct
 from functools import lru_cache
 
 __all__ = ["JOINT_STATE", "CLOCK", "joint_state", "clock", "stamp_ns", "read_joint_state", "first",
-           "canonical", "nan_filled"]
+           "JointStateReader", "canonical", "nan_filled"]
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 CLOCK = "rosgraph_msgs/msg/Clock"
@@ -149,6 +149,65 @@ def read_joint_state(data, with_frame: bool = False):
     return out + (frame,) if with_frame else out
 
 
+class JointStateReader:
+    """:func:`read_joint_state` for a stream of messages of one layout (one topic): the layout
+    of the last canonical message is kept, and a message in it is read with one
+    ``Struct.unpack_from`` (any other message takes the general path).
+
+    >>> r = JointStateReader()
+    >>> [r.read(joint_state(k, ("motor",), effort=(0.5 * k,)))[4] for k in range(3)]
+    [(0.0,), (0.5,), (1.0,)]
+    >>> r.canonical(joint_state(7, ("motor",), effort=(1.0,))) == joint_state(7, ("motor",), effort=(1.0,))
+    True
+    """
+
+    __slots__ = ("_layout", "_size", "_static", "_end", "_names", "_cuts")
+
+    def __init__(self):
+        self._layout = None
+
+    def _learn(self, fields) -> None:
+        stamp, names, pos, vel, eff, frame = fields
+        layout, static = _layout(names, (len(pos), len(vel), len(eff)), frame)
+        self._layout, self._size, self._static = layout, layout.size, static
+        self._end = 12 + len(static)
+        self._names = names
+        a = 5 + len(pos)                                  # fields: enc, sec, nsec, static, n, pos..., n, vel..., n, eff...
+        b = a + 1 + len(vel)
+        self._cuts = (5, a, a + 1, b, b + 1)
+
+    def _known(self, data) -> bool:
+        return (self._layout is not None and len(data) == self._size and data[1] == 1
+                and data[12:self._end] == self._static)
+
+    def read(self, data) -> tuple:
+        """``(stamp_ns, names, position, velocity, effort)`` as :func:`read_joint_state`."""
+        if not self._known(data):
+            fields = read_joint_state(data, with_frame=True)
+            if canonical_fields(fields) == bytes(data):
+                self._learn(fields)
+            return fields[:5]
+        t = self._layout.unpack_from(data)
+        c = self._cuts
+        return t[1] * _NS + t[2], self._names, t[c[0]:c[1]], t[c[2]:c[3]], t[c[4]:]
+
+    def canonical(self, data) -> bytes:
+        """:func:`canonical` of ``data`` (returned as is when it is canonical already)."""
+        if self._known(data):
+            return bytes(data)
+        fields = read_joint_state(data, with_frame=True)
+        out = canonical_fields(fields)
+        if out == bytes(data):
+            self._learn(fields)
+        return out
+
+
+def canonical_fields(fields) -> bytes:
+    """:func:`joint_state` of the fields :func:`read_joint_state` gives (``with_frame``)."""
+    stamp, names, pos, vel, eff, frame = fields
+    return joint_state(stamp, names, pos, vel, eff, frame_id=frame)
+
+
 def first(data, field: str) -> float:
     """``field[0]`` (``"position"``, ``"velocity"`` or ``"effort"``) of a JointState in CDR
     (nan if the array is empty)."""
@@ -161,8 +220,7 @@ def canonical(data, msg_type: str = JOINT_STATE) -> bytes:
     Clock in any CDR: what :func:`joint_state` / :func:`clock` write for the same values."""
     if msg_type == CLOCK:
         return clock(stamp_ns(data))
-    stamp, names, pos, vel, eff, frame = read_joint_state(data, with_frame=True)
-    return joint_state(stamp, names, pos, vel, eff, frame_id=frame)
+    return canonical_fields(read_joint_state(data, with_frame=True))
 
 
 def nan_filled(data) -> bytes:

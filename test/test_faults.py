@@ -46,6 +46,12 @@ loaded 2-core machine."""
 DT_NS = 100_000                       # control period of the FI stage (10 kHz) [ns]
 
 
+MID_TRIAL = 0.3
+"""Dwell [s] of a trial that a test acts on mid-way (about 3,500 samples): long enough that the
+trial is still running when the listener has heard the servo's first 200 commands, however
+fast the graph loop is (several kHz with one process per node)."""
+
+
 def _experiment(tmp_path: Path, trials: int = 1, dwell: float = 0.03, base: str = "fi_p2p_5um", **doc) -> Path:
     """Experiment ``base`` with ``trials`` trials, starting at 0, ``dwell`` [s] (fi_p2p_5um,
     0.03: 527 samples a trial), changed by ``doc``."""
@@ -150,7 +156,7 @@ def _recorded_abort(rec, node: str, trial=0) -> None:
 # (a killed servo and a killed recorder: test_graph.py)
 @pytest.mark.parametrize("node", ["plant_sim", "experiment_sequencer"])
 def test_a_killed_node_ends_the_run_with_the_trial_aborted_naming_it(tmp_path, make_run, node):
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params())
     run.wait_commands()
     assert run.graph.kill(node) == -signal.SIGKILL
@@ -178,7 +184,7 @@ def test_a_killed_dither_generator_or_sai_manager_trips_the_watchdog_naming_it(t
                                                                                nodes):
     """The plant waits for their per-sample inputs: the watchdog names the silent node (and the
     servo too where it waits for the SAI manager's correction)."""
-    exp = _experiment(tmp_path, base=base, dwell=0.05)
+    exp = _experiment(tmp_path, base=base, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params({"experiment_sequencer": {"wait_for_nodes": len(nodes)}}), nodes=nodes)
     run.wait_commands()
     assert run.graph.kill(node) == -signal.SIGKILL
@@ -197,7 +203,7 @@ def test_a_killed_dither_generator_or_sai_manager_trips_the_watchdog_naming_it(t
 
 
 def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applied(tmp_path, make_run):
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params())
     run.wait_commands()
     run.graph.pause("servo_controller")                            # SIGSTOP: hangs, sockets open
@@ -219,7 +225,7 @@ def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applie
 
 def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
     """Nothing comes from a SIGSTOPped plant: the sequencer's sample timeout aborts the trial."""
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params())
     run.wait_commands()
     run.graph.pause("plant_sim")
@@ -266,7 +272,7 @@ def test_a_stopped_recorder_never_leaves_a_silently_incomplete_recording(tmp_pat
 def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new plant gets the trial's trajectory (latched) and starts it again from sample 0:
     the sequencer sees the sample index go back and refuses the mixed trial."""
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     slow = {"plant_sim": {"input_timeout": 60.0}, "experiment_sequencer": {"sample_timeout": 60.0}}
     run = make_run(tmp_path, exp, _params(slow))
     run.wait_commands()
@@ -284,7 +290,7 @@ def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_r
 def test_a_servo_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new servo gets the trial's trajectory (latched) and the plant's repeated sample k > 0:
     it refuses to start from rest in mid-motion."""
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     slow = {"plant_sim": {"input_timeout": 60.0}, "experiment_sequencer": {"sample_timeout": 60.0}}
     run = make_run(tmp_path, exp, _params(slow))                    # no watchdog: the restart is seen
     run.wait_commands()

@@ -18,7 +18,6 @@ lies outside the stage's travel (refused before the trial starts).
 """
 from __future__ import annotations
 
-import numpy as np
 
 from experiment_runner.batch import Models
 from experiment_runner.ros.node import Lockstep, StageNode, check_preset, finite
@@ -26,6 +25,10 @@ from experiment_runner.ros.nodes import publisher_of
 from msg_defs import convert
 from msg_defs.topics import SAI_COMMAND
 from stage_sim.config import load_preset, preset_from_dict
+
+
+_FIELD = {"position": 1, "velocity": 2, "effort": 3}
+"""Index of a JointState array in ``(names, position, velocity, effort)``."""
 
 
 class ControllerNode(StageNode):
@@ -56,16 +59,20 @@ class ControllerNode(StageNode):
         return True
 
     def subscribe_input(self, topic, name, field):
-        """Per-sample input ``name`` = ``msg.<field>[0]`` (not subscribed while this node is unused)."""
+        """Per-sample input ``name`` = ``<field>[0]`` of the JointState on ``topic`` (not subscribed
+        while this node is unused)."""
         self._sender[name] = publisher_of(getattr(topic, "name", topic))
         self._input_specs.append((topic, name, field))
         if self.preset is None or self.active(self.preset):
-            self._inputs.append(self.subscribe(topic, lambda m: self._input(m, name, getattr(m, field)[0])))
+            self._inputs.append(self._subscribe_input(topic, name, field))
+
+    def _subscribe_input(self, topic, name, field):
+        i = _FIELD[field]
+        return self.subscribe_samples(topic, lambda stamp, *fields: self._put(stamp, name, fields[i][0]))
 
     def _listen_inputs(self, on: bool):
         if on and not self._inputs:
-            self._inputs = [self.subscribe(t, lambda m, n=n, f=f: self._input(m, n, getattr(m, f)[0]))
-                            for t, n, f in self._input_specs]
+            self._inputs = [self._subscribe_input(t, n, f) for t, n, f in self._input_specs]
         elif not on:
             for sub in self._inputs:
                 self.destroy_subscription(sub)
@@ -94,7 +101,6 @@ class ControllerNode(StageNode):
         self._held = None
         self.tr = convert.trajectory_from_msg(msg)
         self.lock.clear()
-        self.one = lambda v: np.array([v], float)
         self.last_k = -1                    # last sample computed
         self.stopped = False
         problem = self.refuse(self.tr)
@@ -105,9 +111,6 @@ class ControllerNode(StageNode):
         early, self._early = self._early, []
         for item in early:
             self._put(*item)
-
-    def _input(self, msg, name, value):
-        self._put(convert.stamp_ns(msg), name, value)
 
     def _put(self, stamp, name, value):
         if self.tr is None:                 # an input may overtake its trajectory: keep it

@@ -13,7 +13,7 @@ import numpy as np
 from experiment_runner.ros.controller import ControllerNode
 from experiment_runner.ros.node import JointStateOut, finite
 from experiment_runner.ros.run import run_node
-from msg_defs.topics import SAI_COMMAND
+from msg_defs.topics import PIEZOS, SAI_COMMAND
 from stage_control.dither import dither_step
 
 
@@ -37,6 +37,7 @@ class DitherNode(ControllerNode):
         if self.model is not None:
             self.state = self.models.initial_state([self.tr.x_ref[0]]).dither
             self.out = np.zeros((2, 1))
+            self.xr, self.vr, self.y = (np.zeros(1) for _ in range(3))       # one-trial inputs
 
     def healthy(self):
         return self.model is None or finite(self.out, self.state)
@@ -44,10 +45,11 @@ class DitherNode(ControllerNode):
     def sample(self, k, got):
         if self.model is None:
             return
-        xr = self.one(self.tr.x_ref[k] + got.get("sai", 0.0))
-        dither_step(self.model, self.state, k, xr, self.one(self.tr.v_ref[k]),
-                    self.one(got["measured"]), self.out)
-        self.pub.publish(self.stamp(k), ["piezo_1", "piezo_2"], effort=self.out[:, 0])
+        self.xr[0] = self.tr.x_ref[k] + got.get("sai", 0.0)
+        self.vr[0] = self.tr.v_ref[k]
+        self.y[0] = got["measured"]
+        dither_step(self.model, self.state, k, self.xr, self.vr, self.y, self.out)
+        self.pub.publish(self.stamp(k), PIEZOS, effort=self.out[:, 0].tolist())
 
     def resend(self, k):
         if self.model is not None:

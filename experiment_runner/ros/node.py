@@ -22,7 +22,7 @@ from rclpy.parameter import Parameter
 
 from experiment_runner.ros.qos import qos_profile, subscription_qos
 from experiment_runner.ros.run import params_source
-from msg_defs import convert
+from msg_defs import cdr, convert
 from msg_defs.topics import FAULT_CAUSES, TRAJECTORY, Topic, get_topic
 from stage_sim.config import ConfigError, load_preset
 
@@ -73,12 +73,19 @@ class StageNode(Node):
             return FaultyPublisher(self, pub, **{k: v for k, v in self.fault.items() if k != "topic"})
         return pub
 
-    def subscribe(self, topic, callback, record: bool = False):
-        """Subscribe with the topic's QoS (:func:`msg_defs.topics.subscription_qos`; ``record``:
-        also get the per-sample messages sent before this subscription was matched)."""
+    def subscribe(self, topic, callback, record: bool = False, raw: bool = False):
+        """Subscribe with the topic's QoS (:func:`experiment_runner.ros.qos.subscription_qos`;
+        ``record``: also get the per-sample messages sent before this subscription was matched;
+        ``raw``: ``callback`` gets the CDR bytes, e.g. for :mod:`msg_defs.cdr`)."""
         t = get_topic(topic)
         return self.create_subscription(convert.message_class(None, t.msg_type), t.name, callback,
-                                        subscription_qos(t, record))
+                                        subscription_qos(t, record), raw=raw)
+
+    def subscribe_samples(self, topic, callback, record: bool = False):
+        """Subscribe to a per-sample JointState topic: ``callback(stamp_ns, names, position,
+        velocity, effort)`` (tuples), read from the CDR bytes (:class:`msg_defs.cdr.JointStateReader`)."""
+        read = cdr.JointStateReader().read
+        return self.subscribe(topic, lambda data: callback(*read(data)), record=record, raw=True)
 
     def join_runs(self, callback):
         """Subscribe ``callback`` to ``/experiment/trajectory`` -- the subscription the sequencer
@@ -216,10 +223,10 @@ class FaultyPublisher:
         if n < self.after or (self.count >= 0 and n >= self.after + self.count):
             self._pub.publish(msg)
         elif self.mode == "nan":
-            self._pub.publish(_nan_copy(msg))
+            self._pub.publish(cdr.nan_filled(msg) if isinstance(msg, bytes) else _nan_copy(msg))
         elif self.mode == "delay":
             from rclpy.serialization import serialize_message
-            data = serialize_message(msg)       # the message object may be refilled before it goes
+            data = msg if isinstance(msg, bytes) else serialize_message(msg)   # as it is now
             timer = None
 
             def later():
@@ -264,22 +271,15 @@ class Lockstep:
         self.pending.clear()
 
 
-def _floats(x) -> array.array:
-    """A float64[] field value (``array('d')``, what rclpy stores) from a sequence or array."""
-    if isinstance(x, np.ndarray):
-        return array.array("d", np.ascontiguousarray(x, dtype=np.float64).reshape(-1).tobytes())
-    return array.array("d", x)
-
-
 class JointStateOut:
-    """Publisher of ``sensor_msgs/JointState`` for per-sample topics: one message per joint-name
-    list is built once (:func:`msg_defs.convert.joint_state`) and refilled for every sample
-    (same content, ~10x cheaper than building a message each time)."""
+    """Publisher of a per-sample ``sensor_msgs/JointState`` topic, as canonical CDR bytes
+    (:func:`msg_defs.cdr.joint_state`): no message object is built, converted to C and
+    serialized for every sample, and what the subscribers (the recorder) get is already
+    what a recording holds."""
 
     def __init__(self, node: StageNode, topic):
         self.pub = node.publisher(topic)
-        self._msgs: dict[tuple, object] = {}
-        self.last = None                    # the message published last
+        self.last = None                    # the bytes published last
 
     def republish(self):
         """Publish the last message again (an answer to a sample the plant sent again)."""
@@ -287,16 +287,6 @@ class JointStateOut:
             self.pub.publish(self.last)
 
     def publish(self, stamp_ns: int, names, position=(), velocity=(), effort=()):
-        key = tuple(names)
-        msg = self._msgs.get(key)
-        if msg is None:
-            msg = self._msgs[key] = convert.joint_state(None, stamp_ns, key)
-        stamp = msg.header.stamp
-        stamp.sec, stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
-        for field, val in (("position", position), ("velocity", velocity), ("effort", effort)):
-            val = _floats(val)
-            if len(val) not in (0, len(key)):
-                raise ValueError(f"JointState {field} has {len(val)} values for {len(key)} names {list(key)}")
-            setattr(msg, field, val)
-        self.pub.publish(msg)
-        self.last = msg
+        """Publish one sample; the value sequences hold floats (empty or one per name)."""
+        self.last = cdr.joint_state(stamp_ns, names, position, velocity, effort)
+        self.pub.publish(self.last)

@@ -18,6 +18,7 @@ when
 """
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -25,7 +26,7 @@ import numpy as np
 from experiment_runner.ros.node import JointStateOut, Lockstep, StageNode, check_preset, finite
 from experiment_runner.ros.nodes import publisher_of
 from experiment_runner.ros.run import run_node
-from msg_defs import convert
+from msg_defs import cdr, convert
 from msg_defs.topics import SAI_COMMAND
 from experiment_runner.batch import Models
 from stage_sim.config import load_preset, preset_from_dict
@@ -33,6 +34,9 @@ from stage_sim.plant import DIVERGED, OUT_OF_TRAVEL, STATUS_TEXT, plant_step
 
 INPUT_TOPIC = {"command": "/stage/command", "dither": "/stage/dither", "sai": SAI_COMMAND.name}
 """Topic of each lockstep input of the plant."""
+
+TABLE, TABLE_BEARING = ("table",), ("table", "bearing")
+"""Joint names of ``/stage/measured`` without and with a bearing sensor."""
 
 RESEND_S = 0.25
 """Wall-clock wait for a sample's inputs after which its measurement is published again:
@@ -64,15 +68,6 @@ class PlantTrial:
         self.k += 1
         return int(self.status[0])
 
-    @property
-    def positions(self):
-        """True positions of every body [m]."""
-        return self.state[0][:self.pm.n, 0]
-
-    @property
-    def velocities(self):
-        """True velocities of every body [m/s]."""
-        return self.state[0][self.pm.n:, 0]
 
 
 class PlantNode(StageNode):
@@ -87,13 +82,12 @@ class PlantNode(StageNode):
         self.pub_measured = JointStateOut(self, "/stage/measured")
         self.pub_truth = JointStateOut(self, "/stage/truth")
         self.pub_clock = self.publisher("/clock")
-        self.clock = convert.clock_msg(None, 0)
         self.pub_isolator = JointStateOut(self, "/stage/isolator")
         self.join_runs(self._trajectory)
         self.subscribe("/experiment/events", self._event_in)
-        self.subscribe("/stage/command", lambda m: self._input(m, "command", m.effort[0]))
-        self.subscribe("/stage/dither", lambda m: self._input(m, "dither", (m.effort[0], m.effort[1])))
-        self.subscribe(SAI_COMMAND, lambda m: self._input(m, "sai", m.position[0]))
+        self.subscribe_samples("/stage/command", lambda t, n, p, v, e: self._input(t, "command", e[0]))
+        self.subscribe_samples("/stage/dither", lambda t, n, p, v, e: self._input(t, "dither", (e[0], e[1])))
+        self.subscribe_samples(SAI_COMMAND, lambda t, n, p, v, e: self._input(t, "sai", p[0]))
         self.preset = load_preset(self.preset_name) if self.preset_name else None
         self.listen_config(self._configure)
         self.sim = None
@@ -116,9 +110,10 @@ class PlantNode(StageNode):
         self.models = Models.from_preset(p)
         self.pm = self.models.plant
         self.dt_ns = int(round(1e9 / p.controller.rate))
-        self.bodies = ["table"] + [f"body_{i}" for i in range(1, self.pm.n)]
+        bodies = ["table"] + [f"body_{i}" for i in range(1, self.pm.n)]
         if self.pm.bear_dof:
-            self.bodies[self.pm.bear_dof] = "bearing"
+            bodies[self.pm.bear_dof] = "bearing"
+        self.bodies = tuple(bodies)
         needed = ["command"] + (["dither"] if p.dither else []) + (["sai"] if p.sai_manager else [])
         self.lock = Lockstep(tuple(needed))
         if self._held is not None:
@@ -152,23 +147,24 @@ class PlantNode(StageNode):
 
     def _publish_sample(self):
         stamp = self._stamp(self.k)
-        y = self.sim.meas[:, 0]
-        names, pos = (["table"], [y[0]]) if np.isnan(y[1]) else (["table", "bearing"], list(y))
-        self.clock.clock.sec, self.clock.clock.nanosec = divmod(stamp, 1_000_000_000)
-        self.pub_clock.publish(self.clock)
+        y, yb = self.sim.meas[:, 0].tolist()
+        names, pos = (TABLE, (y,)) if math.isnan(yb) else (TABLE_BEARING, (y, yb))
+        self.pub_clock.publish(cdr.clock(stamp))
         self.pub_measured.publish(stamp, names, position=pos)
-        self.pub_truth.publish(stamp, self.bodies, position=self.sim.positions, velocity=self.sim.velocities)
+        z = self.sim.state[0][:, 0].tolist()
+        n = self.pm.n
+        self.pub_truth.publish(stamp, self.bodies, position=z[:n], velocity=z[n:])
         self.waiting_since = time.monotonic()
         self.resends = 0
 
     def _publish_isolator(self):
         if self.preset.stage.sai is not None:
-            self.pub_isolator.publish(self._stamp(self.k), ["isolator"], position=[self.mode])
+            self.pub_isolator.publish(self._stamp(self.k), ("isolator",), position=(self.mode,))
 
-    def _input(self, msg, name, value):
+    def _input(self, stamp, name, value):
         if self.sim is None or self.lock is None:
             return
-        key = convert.stamp_ns(msg) // self.dt_ns - self.start
+        key = stamp // self.dt_ns - self.start
         if key < self.k or key >= self.n:
             return
         if not finite(*(value if isinstance(value, tuple) else (value,))):

@@ -19,6 +19,8 @@ from msg_defs import convert
 from msg_defs.topics import SAI_COMMAND
 from stage_control.sai import ilc_update, sai_step
 
+ISOLATOR = ("isolator",)
+
 
 def _check_correction(values) -> str | None:
     """Parameter validator: None if every value is finite, else which is not."""
@@ -52,6 +54,7 @@ class SaiNode(ControllerNode):
     def reset(self):
         self.state = self.models.initial_state([self.tr.x_ref[0]]).sai
         self.mode, self.xc = np.zeros(1), np.zeros(1)
+        self.v, self.va = np.zeros(1), np.zeros(1)          # one-trial inputs
         self.y = np.full(len(self.tr.x_ref), np.nan)
         self.modes = np.zeros(len(self.tr.x_ref))
         self.sent = {}
@@ -64,19 +67,19 @@ class SaiNode(ControllerNode):
     def _publish(self, k):
         v = self.tr.v_ref
         ka = min(k + self.model.lead, len(v) - 1)
-        sai_step(self.model, self.state, self.correction, k, self.one(v[k]), self.one(v[ka]),
-                 self.mode, self.xc)
-        self.modes[k] = self.mode[0]
-        self.sent = {j: v for j, v in self.sent.items() if j >= k - 1}
-        self.sent[k] = (self.mode[0], self.xc[0])
-        self.pub.publish(self.stamp(k), ["isolator"], position=self.mode, effort=self.xc)
+        self.v[0], self.va[0] = v[k], v[ka]
+        sai_step(self.model, self.state, self.correction, k, self.v, self.va, self.mode, self.xc)
+        self.modes[k] = mode = self.mode[0]
+        self.sent.pop(k - 2, None)
+        self.sent[k] = (mode, self.xc[0])
+        self.pub.publish(self.stamp(k), ISOLATOR, position=(mode,), effort=(self.xc[0],))
 
     def resend(self, k):
         """Sample ``k``'s command (sent one sample ahead) and ``k + 1``'s, as sent."""
         for j in (k, k + 1):
             if j in self.sent:
-                self.pub.publish(self.stamp(j), ["isolator"], position=[self.sent[j][0]],
-                                 effort=[self.sent[j][1]])
+                self.pub.publish(self.stamp(j), ISOLATOR, position=(self.sent[j][0],),
+                                 effort=(self.sent[j][1],))
 
     def sample(self, k, got):
         if self.manager is None:

@@ -12,6 +12,7 @@ and the executable exits 1.
 """
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -64,8 +65,10 @@ class SequencerNode(StageNode):
         self.pub_traj = self.publisher("/experiment/trajectory")
         self.pub_results = self.publisher("/experiment/results")
         # every sample counts for the metrics: also those sent before discovery matched us (record)
-        self.subscribe("/stage/measured", lambda m: self._sample(m, "measured", m.position[0]), record=True)
-        self.subscribe("/stage/reference", lambda m: self._sample(m, "reference", m.position[0]), record=True)
+        self.subscribe_samples("/stage/measured", lambda t, n, p, v, e: self._sample(t, "measured", p[0]),
+                               record=True)
+        self.subscribe_samples("/stage/reference", lambda t, n, p, v, e: self._sample(t, "reference", p[0]),
+                               record=True)
         self.subscribe("/experiment/events", self._event_in)
         self.results: list[dict] = []
         self.done = False
@@ -144,6 +147,7 @@ class SequencerNode(StageNode):
         n = len(tr.x_ref)
         self.y = np.full(n, np.nan)
         self.xr = np.full(n, np.nan)
+        self.unheard = {"measured": n, "reference": n}     # samples of each still nan
         self.k_meas = self.k_ref = -1
         settle = [s for s in tr.segments if s.kind == "settle"]
         extra = {}
@@ -156,27 +160,30 @@ class SequencerNode(StageNode):
         self.pub_traj.publish(convert.trajectory_to_msg(None, tr.x_ref, tr.v_ref, trial=tr.index,
                                                         case=tr.case, start=self.start, rate=self.rate))
 
-    def _sample(self, msg, name, value):
+    def _sample(self, stamp, name, value):
         if self.done or self.current < 0:
             return
-        k = convert.stamp_ns(msg) // self.dt_ns - self.start
+        k = stamp // self.dt_ns - self.start
         n = len(self.y)
         if not 0 <= k < n:
             return
+        now = time.monotonic()
         if name == "measured":
-            self.last_measured = time.monotonic()
+            self.last_measured = now
             if k < self.k_meas:             # not a resend (that is k_meas): a plant started afresh
                 self._abort(f"plant_sim published sample {k} of trial {self.trials[self.current].index} "
                             f"after sample {self.k_meas}: it restarted mid-run", "plant_sim")
                 return
-            self.y[k] = value
+            values = self.y
             self.k_meas = max(self.k_meas, k)
         else:
-            self.xr[k] = value
+            values = self.xr
             self.k_ref = max(self.k_ref, k)
-        self.last_progress = time.monotonic()
-        if self.k_meas == n - 1 and self.k_ref == n - 1 and not np.isnan(self.y).any() \
-                and not np.isnan(self.xr).any():
+        self.unheard[name] += math.isnan(value) - math.isnan(values[k])
+        values[k] = value
+        self.last_progress = now
+        if self.k_meas == n - 1 and self.k_ref == n - 1 and not self.unheard["measured"] \
+                and not self.unheard["reference"]:
             self._finish_trial()
 
     def _finish_trial(self):

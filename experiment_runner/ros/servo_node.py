@@ -17,6 +17,8 @@ from experiment_runner.ros.controller import ControllerNode
 from experiment_runner.ros.node import JointStateOut, finite
 from experiment_runner.ros.run import run_node
 from msg_defs.topics import SAI_COMMAND
+
+MOTOR, TABLE = ("motor",), ("table",)
 from stage_control.servo import check_reference, servo_step
 
 
@@ -29,14 +31,14 @@ class ServoNode(ControllerNode):
         super().__init__("servo_controller", **kwargs)
         self.pub_command = JointStateOut(self, "/stage/command")
         self.pub_reference = JointStateOut(self, "/stage/reference")
-        self.subscribe(SAI_COMMAND, lambda m: self._input(m, "sai", m.effort[0]))
+        self.subscribe_samples(SAI_COMMAND, lambda stamp, n, p, v, e: self._put(stamp, "sai", e[0]))
 
     def build(self, preset):
         self.model = self.models.servo
 
     def reset(self):
         self.state = self.models.initial_state([self.tr.x_ref[0]]).servo
-        self.u = np.zeros(1)
+        self.u, self.xr, self.vr, self.y = (np.zeros(1) for _ in range(4))   # one-trial inputs and output
 
     def refuse(self, tr):
         problem = check_reference(tr.x_ref, self.preset.stage.travel)
@@ -47,12 +49,14 @@ class ServoNode(ControllerNode):
         return finite(self.u, self.state)
 
     def sample(self, k, got):
-        xr = self.one(self.tr.x_ref[k] + got.get("sai", 0.0))
-        vr = self.one(self.tr.v_ref[k])
-        servo_step(self.model, self.state, xr, vr, self.one(got["measured"]), self.u)
+        xr, vr = self.xr, self.vr
+        xr[0] = x = self.tr.x_ref[k] + got.get("sai", 0.0)
+        vr[0] = v = self.tr.v_ref[k]
+        self.y[0] = got["measured"]
+        servo_step(self.model, self.state, xr, vr, self.y, self.u)
         stamp = self.stamp(k)
-        self.pub_command.publish(stamp, ["motor"], effort=self.u)
-        self.pub_reference.publish(stamp, ["table"], position=xr, velocity=vr)
+        self.pub_command.publish(stamp, MOTOR, effort=(self.u[0],))
+        self.pub_reference.publish(stamp, TABLE, position=(x,), velocity=(v,))
 
     def resend(self, k):
         self.pub_command.republish()

@@ -132,7 +132,11 @@ def graph_loop_hz(processes: bool, trials: int = 6, domain_id: int | None = None
     SAI manager, recorder, sequencer) on ``fi_p2p_5um`` with ``trials`` trials, over the
     trial portion only (trial 0 is a warm-up, not timed); one process
     (:func:`~experiment_runner.ros.launch.run_one_process`) or one per node
-    (:func:`~experiment_runner.ros.launch.run_processes`). ``hz`` is None if the run failed."""
+    (:func:`~experiment_runner.ros.launch.run_processes`). ``hz`` is None if the run failed.
+
+    ``messages_per_sample``: messages the graph published per control sample, counted in the
+    run's recording (every topic the graph publishes is recorded except the internal
+    ``/sai/command``, which the FI stage does not use), over all trials."""
     import yaml
 
     from experiment_runner.experiment import EXPERIMENT_DIR, build_trials, load_experiment
@@ -157,4 +161,9 @@ def graph_loop_hz(processes: bool, trials: int = 6, domain_id: int | None = None
         finally:
             clock.close()
         hz, samples = clock.rate(lengths)
-    return {"hz": hz if ok and samples else None, "samples": samples, "ok": ok}
+        per_sample = None
+        if ok:
+            from experiment_runner.recording import read_recording
+            rec = read_recording(Path(tmp) / "run")
+            per_sample = sum(rec.counts.values()) / sum(lengths.values())
+    return {"hz": hz if ok and samples else None, "samples": samples, "ok": ok, "messages_per_sample": per_sample}
