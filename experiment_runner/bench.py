@@ -63,7 +63,7 @@ def run_graph_bench(quick: bool = False) -> dict:
     from experiment_runner.ros.run import executor_kind
     from experiment_runner.ros.timing import graph_loop_hz, rclpy_roundtrip_hz
     trials = 3 if quick else 8
-    n_rt = 3000 if quick else 10000
+    n_rt = 5000 if quick else 20000
     one = graph_loop_hz(False, trials)
     procs = graph_loop_hz(True, trials)
     rt = rclpy_roundtrip_hz(n_rt)

@@ -186,7 +186,7 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
     import rclpy
     from rclpy.parameter import Parameter
 
-    from experiment_runner.ros.run import make_executor
+    from experiment_runner.ros.run import make_executor, spin_for
     args = run_args(experiment, out, params)
     args["recorder"]["overwrite"] = True
     rclpy.init()
@@ -202,10 +202,8 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
             ex.add_node(n)
         t0 = time.monotonic()
         while not seq.done and time.monotonic() - t0 < timeout:
-            ex.spin_once(timeout_sec=0.1)
-        t_end = time.monotonic() + 0.5
-        while time.monotonic() < t_end:          # deliver the last events to the recorder
-            ex.spin_once(timeout_sec=0.05)
+            spin_for(ex, 0.05)
+        spin_for(ex, 0.5)                        # deliver the last events to the recorder
         recorder.close()
         summary = {"results": seq.results, "aborted": seq.aborted, "done": seq.done,
                    "wall_s": time.monotonic() - t0, "recording": str(recorder.rec.path if recorder.rec else None)}

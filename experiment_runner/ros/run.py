@@ -117,6 +117,16 @@ def make_executor(context=None, kind: str | None = None):
     return SingleThreadedExecutor(context=context)
 
 
+def spin_for(ex, seconds: float) -> None:
+    """Run ``ex``'s callbacks for ``seconds`` (wall clock), or until it is stopped.
+
+    One call for many callbacks: the ``EventsExecutor`` dispatches them in its C++ loop
+    (``spin_once`` returns to Python, re-takes its lock and releases the GIL for each one).
+    """
+    from rclpy.task import Future
+    ex.spin_until_future_complete(Future(), timeout_sec=seconds)
+
+
 EXIT_GRACE_S = 5.0
 """Wall-clock time a node gets, once it is told to stop (SIGINT) or its run is done, to tear
 down ROS before it ends itself: DDS teardown must never leave a node hanging. Its own
@@ -167,7 +177,7 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
         ex = make_executor()
         ex.add_node(node)
         while rclpy.ok() and not stop.is_set() and not (until and until(node)):
-            ex.spin_once(timeout_sec=0.1)
+            spin_for(ex, 0.05)
         if drain is not None:                                      # at least DRAIN_MIN_S: it may just
             t_stop = time.monotonic()                             # have been resumed (SIGCONT)
             while rclpy.ok() and time.monotonic() < t_stop + DRAIN_MAX_S and (

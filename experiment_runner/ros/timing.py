@@ -22,11 +22,13 @@ def _bench_domain() -> int:
 def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: int | None = None) -> float:
     """Raw rclpy round trips per wall-clock second: two nodes in one process (own context),
     ``ping`` publishes a ``JointState`` on a lockstep-QoS topic, ``pong`` republishes it
-    on another, ``ping`` sends the next when it comes back; ``executor`` as
+    on another, ``ping`` sends the next when it comes back, all in one spin of the executor
+    (as the graph spins); ``executor`` as
     :func:`experiment_runner.ros.run.make_executor` (``None``: the graph's default)."""
     import rclpy
     from rclpy.context import Context
     from rclpy.node import Node
+    from rclpy.task import Future
     from sensor_msgs.msg import JointState
 
     from experiment_runner.ros.qos import qos_profile
@@ -43,6 +45,7 @@ def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: in
         pong_pub = pong.create_publisher(JointState, "/bench/pong", qos)
         msg = JointState(name=["table"], position=[0.0])
         count = [0]
+        done = Future()
 
         def back(m):
             count[0] += 1
@@ -50,6 +53,8 @@ def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: in
                 msg.header.stamp.nanosec = count[0]
                 msg.position[0] = float(count[0])
                 ping_pub.publish(msg)
+            else:
+                done.set_result(True)
 
         pong.create_subscription(JointState, "/bench/ping", pong_pub.publish, qos)
         ping.create_subscription(JointState, "/bench/pong", back, qos)
@@ -64,8 +69,7 @@ def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: in
             ex.spin_once(timeout_sec=0.01)
         t0 = time.perf_counter()
         ping_pub.publish(msg)
-        while count[0] < n and time.perf_counter() - t0 < 120.0:
-            ex.spin_once(timeout_sec=1.0)
+        ex.spin_until_future_complete(done, timeout_sec=120.0)     # one spin, as the graph's
         hz = count[0] / (time.perf_counter() - t0)
         ex.shutdown()
         ping.destroy_node()
