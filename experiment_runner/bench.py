@@ -57,6 +57,8 @@ def run_graph_bench(quick: bool = False) -> dict:
     ``graph_message_rate_one_process`` (messages/s of the one-process graph: control samples/s
     x ``graph_messages_per_sample``) against ``rclpy_message_rate`` (2 x raw rclpy round trips/s
     on the graph's executor: the middleware's cost per message, one publish and one delivery);
+    ``rclpy_message_rate_serialized``: the same with the message as CDR bytes both ways, as
+    the graph sends its per-sample messages (the middleware's floor for them);
     ``graph_loop_hz_*``: control samples/s in one process and with one process per node;
     ``rclpy_roundtrip_hz*``: raw round trips/s (events executor, and the single-threaded one).
     """
@@ -67,6 +69,7 @@ def run_graph_bench(quick: bool = False) -> dict:
     one = graph_loop_hz(False, trials)
     procs = graph_loop_hz(True, trials)
     rt = rclpy_roundtrip_hz(n_rt)
+    rt_raw = rclpy_roundtrip_hz(n_rt, serialized=True)
     rt_single = rclpy_roundtrip_hz(max(1000, n_rt // 5), executor="single")
     def r(x, nd=1):
         return None if x is None else round(x, nd)
@@ -77,6 +80,8 @@ def run_graph_bench(quick: bool = False) -> dict:
         "graph_message_rate_one_process": r(msg_rate),
         "rclpy_message_rate": round(2 * rt, 1),
         "graph_message_rate_vs_rclpy": r(msg_rate and msg_rate / (2 * rt), 3),
+        "rclpy_message_rate_serialized": round(2 * rt_raw, 1),
+        "graph_message_rate_vs_rclpy_serialized": r(msg_rate and msg_rate / (2 * rt_raw), 3),
         "graph_loop_hz_one_process": r(one["hz"]),
         "graph_loop_hz_processes": r(procs["hz"]),
         "graph_samples_timed": f"{one['samples']} / {procs['samples']}",

@@ -30,7 +30,7 @@ import struct
 from functools import lru_cache
 
 __all__ = ["JOINT_STATE", "CLOCK", "joint_state", "clock", "stamp_ns", "read_joint_state", "first",
-           "JointStateReader", "canonical", "nan_filled"]
+           "JointStateReader", "JointStateWriter", "canonical", "nan_filled"]
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 CLOCK = "rosgraph_msgs/msg/Clock"
@@ -83,16 +83,35 @@ def joint_state(stamp: int, names, position=(), velocity=(), effort=(), frame_id
     Each of ``position``, ``velocity``, ``effort`` (sequences of floats) is empty or as
     long as ``names``.
     """
-    names = tuple(names)
-    arrays = (position, velocity, effort)
-    lengths = tuple(len(a) for a in arrays)
-    for field, n in zip(_FIELDS, lengths):
-        if n not in (0, len(names)):
-            raise ValueError(f"JointState {field} has {n} values for {len(names)} names {list(names)}")
-    layout, static = _layout(names, lengths, frame_id)
-    sec, nanosec = divmod(int(stamp), _NS)
-    return layout.pack(_ENC[True], sec, nanosec, static, lengths[0], *position, lengths[1], *velocity,
-                       lengths[2], *effort)
+    return JointStateWriter(frame_id).pack(stamp, tuple(names), position, velocity, effort)
+
+
+class JointStateWriter:
+    """:func:`joint_state` for a stream of messages (one topic): the layout of the last
+    joint names and array lengths is kept, so a message in it is one ``Struct.pack``.
+
+    >>> w = JointStateWriter()
+    >>> w.pack(5, ("motor",), effort=(1.5,)) == joint_state(5, ["motor"], effort=[1.5])
+    True
+    """
+
+    __slots__ = ("_frame", "_key", "_layout", "_static")
+
+    def __init__(self, frame_id: str = ""):
+        self._frame, self._key = frame_id, None
+
+    def pack(self, stamp: int, names: tuple, position=(), velocity=(), effort=()) -> bytes:
+        """One message; ``names`` a tuple of str, the arrays sequences of floats."""
+        key = (names, len(position), len(velocity), len(effort))
+        if key != self._key:
+            for field, n in zip(_FIELDS, key[1:]):
+                if n not in (0, len(names)):
+                    raise ValueError(f"JointState {field} has {n} values for {len(names)} names {list(names)}")
+            self._layout, self._static = _layout(tuple(names), key[1:], self._frame)
+            self._key = key
+        sec, nanosec = divmod(int(stamp), _NS)
+        return self._layout.pack(_ENC[True], sec, nanosec, self._static, key[1], *position, key[2], *velocity,
+                                 key[3], *effort)
 
 
 def clock(stamp: int) -> bytes:

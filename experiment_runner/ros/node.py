@@ -279,6 +279,7 @@ class JointStateOut:
 
     def __init__(self, node: StageNode, topic):
         self.pub = node.publisher(topic)
+        self._pack = cdr.JointStateWriter().pack
         self.last = None                    # the bytes published last
 
     def republish(self):
@@ -287,6 +288,6 @@ class JointStateOut:
             self.pub.publish(self.last)
 
     def publish(self, stamp_ns: int, names, position=(), velocity=(), effort=()):
-        """Publish one sample; the value sequences hold floats (empty or one per name)."""
-        self.last = cdr.joint_state(stamp_ns, names, position, velocity, effort)
+        """Publish one sample; ``names`` a tuple, the value sequences floats (empty or one per name)."""
+        self.last = self._pack(stamp_ns, names, position, velocity, effort)
         self.pub.publish(self.last)

@@ -19,12 +19,15 @@ def _bench_domain() -> int:
     return 1 + (os.getpid() * 7 + int(time.time())) % 100
 
 
-def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: int | None = None) -> float:
+def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: int | None = None,
+                       serialized: bool = False) -> float:
     """Raw rclpy round trips per wall-clock second: two nodes in one process (own context),
     ``ping`` publishes a ``JointState`` on a lockstep-QoS topic, ``pong`` republishes it
     on another, ``ping`` sends the next when it comes back, all in one spin of the executor
     (as the graph spins); ``executor`` as
-    :func:`experiment_runner.ros.run.make_executor` (``None``: the graph's default)."""
+    :func:`experiment_runner.ros.run.make_executor` (``None``: the graph's default).
+    ``serialized``: the message travels as CDR bytes both ways (``publish(bytes)``, ``raw``
+    subscriptions), as the graph's per-sample messages do, instead of as message objects."""
     import rclpy
     from rclpy.context import Context
     from rclpy.node import Node
@@ -33,6 +36,7 @@ def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: in
 
     from experiment_runner.ros.qos import qos_profile
     from experiment_runner.ros.run import domain_env, make_executor
+    from msg_defs import cdr
     from msg_defs.topics import MEASURED
 
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = domain_env()["ROS_AUTOMATIC_DISCOVERY_RANGE"]
@@ -50,14 +54,19 @@ def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: in
         def back(m):
             count[0] += 1
             if count[0] < n:
-                msg.header.stamp.nanosec = count[0]
-                msg.position[0] = float(count[0])
-                ping_pub.publish(msg)
+                if serialized:
+                    ping_pub.publish(cdr.joint_state(count[0], ("table",), position=(float(count[0]),)))
+                else:
+                    msg.header.stamp.nanosec = count[0]
+                    msg.position[0] = float(count[0])
+                    ping_pub.publish(msg)
             else:
                 done.set_result(True)
 
-        pong.create_subscription(JointState, "/bench/ping", pong_pub.publish, qos)
-        ping.create_subscription(JointState, "/bench/pong", back, qos)
+        pong.create_subscription(JointState, "/bench/ping", pong_pub.publish, qos, raw=serialized)
+        ping.create_subscription(JointState, "/bench/pong", back, qos, raw=serialized)
+        if serialized:
+            msg = cdr.joint_state(0, ("table",), position=(0.0,))
         ex = make_executor(ctx, executor)
         ex.add_node(ping)
         ex.add_node(pong)
