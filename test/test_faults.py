@@ -98,7 +98,7 @@ class Run:
     def finish(self, timeout: float = 30.0):
         """Sequencer's exit code (None if it did not end), every node's exit code."""
         code = self.graph.wait(timeout=timeout)
-        self.listener.wait_for(lambda ev: any(e["event"] == "run_end" for e in ev), 3.0)
+        self.listener.wait_for(lambda ev: any(e["event"] == "run_end" for e in ev), 15.0)   # returns when heard; a loaded machine may be slow
         with _ros_env(self.domain):
             codes = self.graph.stop()
         self.listener.close()
