@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("paper", help="reproduce the seed's simulation results: claim | seed | ours | agrees")
     p.add_argument("--json", action="store_true", help="print the claims as JSON")
     p.add_argument("--out", default="out/paper", help="folder for plots and the Markdown table")
-    p.add_argument("--only", nargs="*", default=None, help="run only claims whose id starts with these")
+    p.add_argument("--only", nargs="*", default=None, help="run only the claim groups whose name starts with these "
+                   "(e.g. appendix_a fi_design; a name no group has is refused, listing them)")
     p.set_defaults(func=_paper)
 
     p = sub.add_parser("bench", help="benchmark the simulation core (simulated s per wall s, memory)")

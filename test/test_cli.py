@@ -86,3 +86,56 @@ def test_replay_bad_input_exits_2_naming_it(tmp_path, capsys):
         assert exc.value.code == 2
         err = capsys.readouterr().err
         assert f"argument {bad[0]}: got '{bad[1]}'; expected a number >= 0" in err and "Traceback" not in err
+
+
+def _refused_by_argparse(argv, capsys, *expected) -> str:
+    """``nanostage argv`` stops in argument parsing: exit 2, argparse's one-line error."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and f"nanostage {argv[0]}: error: " in err, err
+    for text in expected:
+        assert text in err, err
+    return err
+
+
+def test_campaign_bad_input_exits_2_before_any_work(tmp_path, capsys):
+    out = tmp_path / "o"
+    _refused_by_argparse(["campaign", "table_4_2", "--trials", "-3", "--out", str(out)], capsys,
+                         "argument --trials: got -3; expected an integer >= 1")
+    _refused_by_argparse(["campaign", "table_4_2", "--workers", "0", "--out", str(out)], capsys,
+                         "argument --workers: got 0; expected an integer >= 1")
+    _refused_by_argparse(["campaign", "table_4_2", "--dwell", "nan", "--out", str(out)], capsys,
+                         "argument --dwell: got nan; expected a finite number > 0")
+    _refused_by_argparse(["campaign", "table_4_2", "--calibration-trials", "two", "--out", str(out)], capsys,
+                         "argument --calibration-trials: got 'two'")
+    _fails(["campaign", "no_such_campaign", "--out", str(out)], capsys,
+           "no_such_campaign: no such campaign file", "shipped campaigns: ")
+    _fails(["campaign", "table_4_2", "--calibration", str(tmp_path / "none.json"), "--out", str(out)], capsys,
+           "--calibration", "none.json: cannot read it")
+    bad = tmp_path / "cal.json"
+    bad.write_text("{not json")
+    _fails(["campaign", "table_4_2", "--calibration", str(bad), "--out", str(out)], capsys, "invalid JSON")
+    bad.write_text('{"values": {"ki_scale": "fast"}}')
+    _fails(["campaign", "table_4_2", "--calibration", str(bad), "--out", str(out)], capsys,
+           "field 'values' must map each calibrated quantity to a finite number")
+    assert not out.exists()                                    # refused before anything was made
+
+
+def test_paper_unknown_claim_group_exits_2_listing_the_groups(tmp_path, capsys):
+    _fails(["paper", "--only", "appendix_z", "--out", str(tmp_path / "p")], capsys,
+           "--only appendix_z: no claim group starts with it", "groups: appendix_a, van")
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["presets", "no_such_preset"], "no_such_preset: no such preset file"),
+    (["design", "no_such_preset", "--rms", "2"], "no_such_preset: no such preset file"),
+    (["design", "fi_stage", "--rms", "-2"], "--rms -2"),
+    (["synth", "no_such_truth", "fi_p2p_5um", "--out", "x.mcap"], "no_such_truth: no such preset file"),
+    (["diagnose", "no_such.mcap", "--out", "d"], "no_such.mcap: no such file or directory"),
+])
+def test_other_commands_bad_input_exits_2_naming_it(tmp_path, capsys, monkeypatch, argv, expected):
+    monkeypatch.chdir(tmp_path)
+    _fails(argv, capsys, expected)
