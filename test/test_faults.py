@@ -154,6 +154,7 @@ def _recorded_abort(rec, node: str, trial=0) -> None:
 
 # =========================================================================== killed nodes
 # (a killed servo and a killed recorder: test_graph.py)
+@pytest.mark.slow
 @pytest.mark.parametrize("node", ["plant_sim", "experiment_sequencer"])
 def test_a_killed_node_ends_the_run_with_the_trial_aborted_naming_it(tmp_path, make_run, node):
     exp = _experiment(tmp_path, dwell=MID_TRIAL)
@@ -180,6 +181,7 @@ def test_a_killed_node_ends_the_run_with_the_trial_aborted_naming_it(tmp_path, m
 
 @pytest.mark.parametrize("base, node, nodes", [("van_asym_hc", "dither_generator", VAN_NODES),
                                                 ("sai_p2p_5um", "sai_manager", SAI_NODES)])
+@pytest.mark.slow
 def test_a_killed_dither_generator_or_sai_manager_trips_the_watchdog_naming_it(tmp_path, make_run, base, node,
                                                                                nodes):
     """The plant waits for their per-sample inputs: the watchdog names the silent node (and the
@@ -202,6 +204,7 @@ def test_a_killed_dither_generator_or_sai_manager_trips_the_watchdog_naming_it(t
     assert np.array_equal(rec.y[tr.slice], y[:tr.stop - tr.start])         # what was recorded is right
 
 
+@pytest.mark.slow
 def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applied(tmp_path, make_run):
     exp = _experiment(tmp_path, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params())
@@ -223,6 +226,7 @@ def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applie
     assert rec.counts["/stage/measured"] == rec.counts["/stage/truth"] == k + 1 and len(rec) >= k
 
 
+@pytest.mark.slow
 def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
     """Nothing comes from a SIGSTOPped plant: the sequencer's sample timeout aborts the trial."""
     exp = _experiment(tmp_path, dwell=MID_TRIAL)
@@ -240,6 +244,7 @@ def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
+@pytest.mark.slow
 def test_a_stopped_recorder_never_leaves_a_silently_incomplete_recording(tmp_path, make_run):
     """SIGSTOPped for 2 s the recorder falls behind (more than the topics' 0.1 s history, unless
     the machine is slow): the run goes on (the recorder is not in the loop); resumed, it takes
@@ -269,6 +274,7 @@ def test_a_stopped_recorder_never_leaves_a_silently_incomplete_recording(tmp_pat
 
 
 # =========================================================================== restarts
+@pytest.mark.slow
 def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new plant gets the trial's trajectory (latched) and starts it again from sample 0:
     the sequencer sees the sample index go back and refuses the mixed trial."""
@@ -287,6 +293,7 @@ def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_r
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
+@pytest.mark.slow
 def test_a_servo_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new servo gets the trial's trajectory (latched) and the plant's repeated sample k > 0:
     it refuses to start from rest in mid-motion."""
@@ -305,6 +312,7 @@ def test_a_servo_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_r
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
+@pytest.mark.slow
 def test_a_rerun_in_the_same_out_dir_starts_clean(tmp_path):
     """A previous run's recording is not read as the next one's, even if the next records nothing."""
     out = tmp_path / "out"
@@ -326,6 +334,7 @@ def test_a_rerun_in_the_same_out_dir_starts_clean(tmp_path):
 
 
 # =========================================================================== messages
+@pytest.mark.slow
 def test_dropped_and_delayed_messages_are_recovered_and_change_nothing(tmp_path, make_run):
     """A lost lockstep message is sent again (the plant repeats its sample after 0.25 s, the
     servo its answer); a late one is waited for: the run is the batch engine's, bit for bit.
@@ -349,6 +358,7 @@ def test_dropped_and_delayed_messages_are_recovered_and_change_nothing(tmp_path,
     ("fi_p2p_5um", "plant_sim", "/stage/measured", FI_NODES),
     ("van_asym_hc", "dither_generator", "/stage/dither", VAN_NODES),
     ("sai_p2p_5um", "sai_manager", "/sai/command", SAI_NODES)])
+@pytest.mark.slow
 def test_dropped_lockstep_messages_of_every_node_are_recovered(tmp_path, make_run, base, node, topic, nodes):
     """3 messages in a row lost on each lockstep topic: the plant sends its sample again, the
     node answers again; the run is the batch engine's, bit for bit."""
@@ -366,6 +376,7 @@ def test_dropped_lockstep_messages_of_every_node_are_recovered(tmp_path, make_ru
 
 @pytest.mark.parametrize("node, topic", [("servo_controller", "/stage/reference"), ("plant_sim", "/stage/truth"),
                                          ("plant_sim", "/clock")])
+@pytest.mark.slow
 def test_lost_messages_outside_the_lockstep_are_recorded_as_lost(tmp_path, make_run, node, topic):
     """Messages no node waits for (the reference record, the truth, the clock) are lost for
     good: the loop runs on bit for bit. Without its reference record the trial's metrics
@@ -397,6 +408,7 @@ def test_lost_messages_outside_the_lockstep_are_recorded_as_lost(tmp_path, make_
     assert gap["lost"] == {topic: 5} and f"5 sample(s) of {topic}" in gap["reason"]
 
 
+@pytest.mark.slow
 def test_a_nan_command_stops_the_run_naming_the_servo(tmp_path, make_run):
     node, topic, catcher, sender = "servo_controller", "/stage/command", "plant_sim", "servo_controller"
     exp = _experiment(tmp_path)
@@ -419,6 +431,7 @@ def test_a_nan_command_stops_the_run_naming_the_servo(tmp_path, make_run):
 
 
 # =========================================================================== travel and divergence
+@pytest.mark.slow
 def test_the_table_leaving_its_travel_stops_the_run_and_keeps_the_recording(tmp_path, make_run):
     # the table overshoots the 5 um target by ~7 nm 0.06 s into the trial
     exp = _experiment(tmp_path, dwell=0.1, overrides={"stage.travel.max": 5.001e-6})
@@ -434,6 +447,7 @@ def test_the_table_leaving_its_travel_stops_the_run_and_keeps_the_recording(tmp_
     assert rec.salvaged is None and 0 < len(rec) < len(_batch_y(_experiment(tmp_path, dwell=0.1))[0])
 
 
+@pytest.mark.slow
 def test_a_reference_outside_the_travel_is_refused_before_the_trial_moves(tmp_path, make_run):
     exp = _experiment(tmp_path, overrides={"stage.travel.max": 4.0e-6})    # the 5 um target is beyond it
     # the fault comes at the trial's first sample: give discovery time to match the servo's events

@@ -218,6 +218,7 @@ def fi_run(tmp_path_factory):
     return _graph_run(tmp_path_factory, "fi_p2p_5um")
 
 
+@pytest.mark.slow
 def test_fi_point_to_point_settles_and_publishes_its_settling_time(fi_run):
     rec = fi_run["rec"]
     assert fi_run["code"] == 0
@@ -235,6 +236,7 @@ def test_fi_point_to_point_settles_and_publishes_its_settling_time(fi_run):
     assert ev[0] == "run_start" and ev[-1] == "run_end" and "abort" not in ev and "fault" not in ev
 
 
+@pytest.mark.slow
 def test_fi_trajectories_equal_the_batch_engine_bit_for_bit(fi_run):
     rec = fi_run["rec"]
     exp, trials, res = _batch("fi_p2p_5um")
@@ -258,6 +260,7 @@ def sai_run(tmp_path_factory):
     return _graph_run(tmp_path_factory, "sai_p2p_5um")
 
 
+@pytest.mark.slow
 def test_sai_goes_compliant_before_the_move_and_stiff_at_the_target(sai_run):
     rec = sai_run["rec"]
     assert sai_run["code"] == 0
@@ -310,6 +313,7 @@ def _tail_pp(rec, seconds=0.05):
     return float(np.ptp(table[-n:])), float(np.ptp(rec.y[-n:]))
 
 
+@pytest.mark.slow
 def test_dither_hc_removes_the_parasitic_vibration_of_an_asymmetric_van_stage(van_runs):
     no_hc, hc = van_runs["van_asym_no_hc"], van_runs["van_asym_hc"]
     assert no_hc["code"] == 0 and hc["code"] == 0
@@ -325,6 +329,7 @@ def test_dither_hc_removes_the_parasitic_vibration_of_an_asymmetric_van_stage(va
 
 
 # =========================================================================== 4. killed nodes
+@pytest.mark.slow
 def test_servo_killed_mid_trial_aborts_the_trial_naming_it(tmp_path, listener_factory):
     domain = _domain()
     lst = listener_factory(domain)
@@ -367,6 +372,7 @@ def test_servo_killed_mid_trial_aborts_the_trial_naming_it(tmp_path, listener_fa
     assert np.array_equal(rec.y[tr.slice], res.y[killed][:tr.stop - tr.start])
 
 
+@pytest.mark.slow
 def test_recorder_killed_mid_run_leaves_a_salvageable_file_and_a_restarted_one_the_rest(
         tmp_path, listener_factory):
     domain = _domain()
@@ -417,6 +423,7 @@ def test_recorder_killed_mid_run_leaves_a_salvageable_file_and_a_restarted_one_t
     assert rec.config is not None and rec.results[0]["trial"] == 0
 
 
+@pytest.mark.slow
 def test_a_controller_that_joins_late_gets_the_sample_again_and_nothing_is_lost(tmp_path, listener_factory):
     """A sample published before its subscriber was matched is lost even on a reliable
     topic (what a slow start-up does at random): here the servo starts only after the
@@ -478,6 +485,7 @@ def _run_refused(args, domain, timeout=60.0):
     return proc.returncode, proc.stderr
 
 
+@pytest.mark.slow
 def test_params_file_sets_a_node_parameter_and_bad_values_are_refused_at_run_time(tmp_path, listener_factory):
     domain = _domain()
     lst = listener_factory(domain)

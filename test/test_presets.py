@@ -460,6 +460,7 @@ def _run_node(node: str, pfile, values: dict):
     return proc.returncode, proc.stderr
 
 
+@pytest.mark.slow
 def test_node_parameter_files_are_checked_like_every_other_file(tmp_path):
     code, err = _run_node("plant_sim", tmp_path / "typo.yaml", {"input_timeot": 2.0})
     assert code == 2 and "Traceback" not in err
