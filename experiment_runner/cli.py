@@ -111,6 +111,12 @@ def main(argv=None) -> int:
     except (ConfigError, RecordingError) as err:
         print(f"nanostage {args.command}: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader of our output went away (``nanostage presets | head``): not an error of ours;
+        # point stdout at devnull so the interpreter's final flush does not fail again
+        import os
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141                        # 128 + SIGPIPE, as a shell reports it
 
 
 if __name__ == "__main__":

@@ -139,3 +139,16 @@ def test_paper_unknown_claim_group_exits_2_listing_the_groups(tmp_path, capsys):
 def test_other_commands_bad_input_exits_2_naming_it(tmp_path, capsys, monkeypatch, argv, expected):
     monkeypatch.chdir(tmp_path)
     _fails(argv, capsys, expected)
+
+
+def test_a_closed_output_pipe_is_not_a_traceback():
+    import subprocess
+    import sys
+    # far more output than a pipe holds (64 KiB), so the writer meets the closed pipe for sure
+    child = ("import sys\nfrom experiment_runner.cli import main\n"
+             "for _ in range(400):\n    rc = main(['presets'])\n    if rc:\n        sys.exit(rc)\n")
+    proc = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.readline()               # take one line, then stop listening (as `| head -1` does)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141 and "Traceback" not in err, err
