@@ -136,6 +136,7 @@ def test_fit_reports_an_unreachable_target():
     assert res.params[0].at_bound == "upper" and res.values["p"] == 1.0
 
 
+@pytest.mark.slow
 def test_calibration_fits_the_baseline(tmp_path):
     """Table 4.2 fitted on 8 No FI trials: the noise part of the RMS in-position error lands on the
     seed's No FI number; the PID is the designed one (not calibrated); FI is not used. (With 4
@@ -181,6 +182,7 @@ def t52(tmp_path_factory):
     return cm.run_campaign("table_5_2", out, trials=8, calibration=_cal(CAL_5_2), progress=False)
 
 
+@pytest.mark.slow
 def test_outputs_are_written(t42):
     out = t42.out_dir
     for f in ("results.csv", "results.json", "calibration.json", "report.md"):
@@ -207,6 +209,7 @@ def _ratio(cr, case, versus, key, metric="settling_time_s"):
     return cr.stat(case, key, metric).mean / cr.stat(versus, key, metric).mean - 1.0
 
 
+@pytest.mark.slow
 def test_table_4_2_findings(t42):
     """The seed's headline with the designed PID: FI settles much faster than No FI at 5 mm and 5 um
     (at least half the seed's -63% / -84%), and has the larger RMS in-position error."""
@@ -217,6 +220,7 @@ def test_table_4_2_findings(t42):
     assert "pid_integral_scale" not in (t42.calibration or {}).get("values", {})
 
 
+@pytest.mark.slow
 def test_table_4_2_mechanism(t42):
     """For the seed's reason (Sec. 4.3): the No FI table reverses at the end of the 5 mm move and
     creeps in through the bearings' pre-motion stiffness, at least 1.5x (and 5 ms) slower than its
@@ -232,6 +236,7 @@ def test_table_4_2_mechanism(t42):
     assert (t42.out_dir / "plots" / "mechanism_5mm.png").is_file()
 
 
+@pytest.mark.slow
 def test_table_5_2_findings(t52):
     """Table 5.2 with the designed PID and the bearing stiffness between Tables 6.5 and 6.4: every
     finding in the seed's direction; FI at least half the seed's reductions (-66% / -92%); the SAI
@@ -277,6 +282,7 @@ def test_dahl_bearings_ratchet_out_of_position(tmp_path):
 
 
 # --------------------------------------------------------------------------- graph and CLI
+@pytest.mark.slow
 def test_graph_runs_reproduce_the_batch_trials(tmp_path):
     """Representative trials through the ROS graph, incl. an SAI trial with its learned Step II
     correction, give the batch engine's measured positions exactly."""
@@ -297,6 +303,7 @@ def test_graph_runs_reproduce_the_batch_trials(tmp_path):
     assert "through the ROS 2 graph" in (tmp_path / "out" / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_cli(tmp_path, capsys):
     p = argparse.ArgumentParser()
     cm.add_campaign_arguments(p)

@@ -185,6 +185,7 @@ def runs(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["frf_fi", "frf_dob"])
 def test_seed_findings_directions(runs, name):
     """Findings without a note reproduce the seed; those with a note are reported as disagreeing."""
@@ -198,6 +199,7 @@ def test_seed_findings_directions(runs, name):
             assert f["agrees"], (f["id"], f["status"], f["sim_case"], f["sim_versus"])
 
 
+@pytest.mark.slow
 def test_frf_fi_physics(runs):
     cr = runs["frf_fi"]
     r = {(c, a): cr.runs[(c, k.key)] for c in ("nofi", "fi") for k in cr.conditions for a in [k.amplitude]}
@@ -211,6 +213,7 @@ def test_frf_fi_physics(runs):
     assert all(x.values[m] > 0 for x in r.values() for m in ("gain_margin_db", "phase_margin_deg"))
 
 
+@pytest.mark.slow
 def test_simulated_closed_loop_agrees_with_the_calculated_one(runs):
     """frf_fi also runs each closed loop on the batch engine at the force amplitudes (the LTI check)."""
     cr = runs["frf_fi"]
@@ -228,6 +231,7 @@ def test_simulated_closed_loop_agrees_with_the_calculated_one(runs):
     assert all(x["T_sim_re"] != "" for x in rows if x["status"] == "0")
 
 
+@pytest.mark.slow
 def test_frf_dob_seed_bounds(runs):
     checks = fc.seed_bound_check(runs["frf_dob"].campaign, runs["frf_dob"].runs)
     # the 200 Hz DOB's negative No FI margins at 0.11 N are not reproduced (see the finding's note)
@@ -236,6 +240,7 @@ def test_frf_dob_seed_bounds(runs):
     assert all(c["within_bound"] for c in checks if c["case"] != "nofi_dob200" and c["bound"] != "value")
 
 
+@pytest.mark.slow
 def test_outputs_are_written(runs):
     cr = runs["frf_dob"]
     d = json.loads((cr.out_dir / "results.json").read_text())
