@@ -286,8 +286,8 @@ def frf_lines(frf_cr, settling_cr=None, images: str = "") -> list[str]:
     cases = camp.cases
     L = [f"### Closed-loop bandwidth and margins vs force amplitude ({camp.name}, Fig. 4.6)", "",
          "The same PID on the plant FRF measured at each force amplitude (stepped sine, "
-         f"[{camp.name}/report.md]({camp.name}/report.md)): the No FI loop loses its bandwidth in the "
-         "pre-motion regime (small amplitudes), which is where the point-to-point trials above settle.", "",
+         f"[{camp.name}/report.md]({camp.name}/report.md)): the stage without isolation loses its bandwidth in "
+         "the pre-motion regime (small amplitudes), which is where the point-to-point trials above settle.", "",
          "| amplitude | " + " | ".join(f"{c.label}: BW / GM / PM" for c in cases) + " |",
          "|---|" + "---|" * len(cases)]
 
@@ -321,11 +321,13 @@ def frf_lines(frf_cr, settling_cr=None, images: str = "") -> list[str]:
               f"On the rigid bodies alone that moves the crossover from {a['crossover_hz']:.0f} to "
               f"{b['crossover_hz']:.0f} Hz and lowers the gain margin from {a['gain_margin_db']:.1f} to "
               f"{b['gain_margin_db']:.1f} dB (phase margin {a['phase_margin_deg']:.0f}° vs "
-              f"{b['phase_margin_deg']:.0f}°): the whole gain-margin difference of the FRFs. The seed's own "
-              "Table C.1 has the same ratio (Z = 13.8 vs 7.9 N/(A kg), 4.8 dB), so its 'similar or slightly better' "
-              "FI margins (Sec. 4.3) require No FI margins lowered by the friction resonance's interaction with its "
-              "~400 Hz mode, which the model's appended-mass mode does not have (its No FI phase margin is instead "
-              "raised by 3-13° by the friction's damping at the crossover)."]
+              f"{b['phase_margin_deg']:.0f}°): the whole gain-margin difference of the FRFs; the stiff stage's "
+              "phase margin is raised instead by the friction's damping at its crossover."]
+        if camp.name == "frf_fi":       # the Ch. 4 stage: the seed's Table C.1 measures the same mass ratio
+            L[-1] += (" The seed's own Table C.1 has the same ratio (Z = 13.8 vs 7.9 N/(A kg), 4.8 dB), so its "
+                      "'similar or slightly better' FI margins (Sec. 4.3) require No FI margins lowered by the "
+                      "friction resonance's interaction with its ~400 Hz mode, which the model's appended-mass "
+                      "mode (a mass on the table, independent of friction) does not have.")
     if images:
         L += [""] + [f"![{camp.name} {n}]({images}/{n}.png)" for n in ("bandwidth_margins",)]
     return L + [""]
