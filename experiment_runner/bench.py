@@ -2,8 +2,12 @@
 
 Reports simulated seconds per wall-clock second for one FI-stage point-to-point
 trajectory and for a batch of 100 such trials (on one core, and on all cores),
-at the preset's control rate with the sub-steps the integrator needs, plus the
-process's peak resident memory.
+at the preset's control rate with the sub-steps the integrator needs
+(``core_substeps_per_sample``; ``core_ns_per_substep_per_trial`` is the one-core batch's
+wall time per sub-step and trial), plus the process's peak resident memory.
+
+``main_job_seconds`` (only with ``main_job=True``, ``nanostage bench --main-job``): wall
+time of ``nanostage campaign --main`` in a temporary folder, with the CLI's default workers.
 
 ``campaign_trials_per_s_1`` / ``_2``: Table 4.2 campaign trials (both cases, both step
 sizes, 1 s dwell, no calibration) per wall-clock second in this process and on two local
@@ -118,7 +122,18 @@ def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table
     return len(jobs) * trials / wall
 
 
-def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True) -> int:
+def main_job_seconds() -> float:
+    """Wall time [s] of the README's main job (``nanostage campaign --main``: calibration,
+    every trial, the graph runs, report and plots) in a temporary folder."""
+    from experiment_runner.campaign import main_job
+    from experiment_runner.executor import cpu_count
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        main_job(tmp, progress=False, resume=False, workers=cpu_count())     # as the CLI runs it
+        return time.perf_counter() - t0
+
+
+def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, main_job: bool = False) -> int:
     preset = load_preset("fi_stage")
     models = Models.from_preset(preset)
     ref = point_to_point(5e-3, dt=1.0 / preset.controller.rate)
@@ -137,7 +152,11 @@ def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True) ->
         "core_batch_rtf": round(batch_one_core, 1),
         "core_batch_rtf_all_cores": round(batch_all, 1),
         "cores": threads,
-        "substeps_per_control_period": models.plant.n_sub,
+        # the distance to the limit: sub-steps the integrator needs per control sample, and
+        # the wall time of one sub-step of one trial in the one-core batch
+        "core_substeps_per_sample": models.plant.n_sub,
+        "core_ns_per_substep_per_trial": round(1e9 / (preset.controller.rate * batch_one_core
+                                                      * models.plant.n_sub), 1),
         "control_rate_hz": preset.controller.rate,
         "trajectory_s": round(float(ref.t[-1]), 4),
         "peak_memory_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
@@ -148,6 +167,8 @@ def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True) ->
     result["diagnose_seconds_10s"] = round(diagnose_seconds(10.0), 1)
     if graph:
         result.update(run_graph_bench(quick))
+    if main_job:
+        result["main_job_seconds"] = round(main_job_seconds(), 1)
     if as_json:
         print(json.dumps(result))
     else:

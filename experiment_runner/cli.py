@@ -13,7 +13,7 @@ def _paper(args):
 
 def _bench(args):
     from experiment_runner.bench import run_bench
-    return run_bench(as_json=args.json, quick=args.quick, graph=args.graph)
+    return run_bench(as_json=args.json, quick=args.quick, graph=args.graph, main_job=args.main_job)
 
 
 def _graph(args):
@@ -78,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--graph", action=argparse.BooleanOptionalAction, default=True,
                    help="also time the ROS 2 node graph (one process, one per node) and raw rclpy "
                         "round trips (default: on)")
+    p.add_argument("--main-job", action="store_true",
+                   help="also time the main job (nanostage campaign --main, about 2 minutes)")
     p.set_defaults(func=_bench)
 
     p = sub.add_parser("graph", help="run an experiment through the ROS 2 node graph and record it to MCAP")
