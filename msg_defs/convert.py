@@ -37,7 +37,7 @@ import numpy as np
 from msg_defs.topics import CLOCK, EVENT_KINDS, TRAJECTORY
 
 __all__ = [
-    "message_class", "is_rosbags", "split_ns", "time_msg", "header", "joint_state", "string_msg",
+    "message_class", "is_rosbags", "split_ns", "time_msg", "header", "joint_state", "joint_state_cdr", "string_msg",
     "clock_msg", "float64_multiarray", "stamp_ns", "joint", "values",
     "Trajectory", "trajectory_to_msg", "trajectory_from_msg",
     "Correction", "correction_to_msg", "correction_from_msg",
@@ -133,6 +133,52 @@ def joint_state(types, stamp_ns: int, names, position=(), velocity=(), effort=()
             raise ValueError(f"JointState {key} has {len(fields[key])} values for {len(names)} names {names}")
     cls = message_class(types, "sensor_msgs/msg/JointState")
     return cls(header=header(types, stamp_ns), name=names, **fields)
+
+
+def joint_state_cdr(stamps_ns, names, position=None, velocity=None, effort=None) -> np.ndarray:
+    """Many ``sensor_msgs/msg/JointState`` messages serialized at once (CDR little-endian,
+    byte for byte what rosbags' ``serialize_cdr`` gives for :func:`joint_state`).
+
+    ``stamps_ns`` (n,) stage times [ns]; ``position``/``velocity``/``effort`` (n, len(names))
+    or None (empty field). Returns an (n, size) uint8 array, row ``i`` the message of sample
+    ``i`` (``rows[i].tobytes()`` for a recorder). One template message with the values
+    patched in: for writers of long records (an importer), ~10x faster than a message
+    object per sample.
+
+    >>> b = joint_state_cdr([5, 1_000_000_007], ["table"], position=[[1.0], [2.0]])
+    >>> ts = _jazzy_store()
+    >>> b[1].tobytes() == ts.serialize_cdr(joint_state(ts, 1_000_000_007, ["table"], position=[2.0]),
+    ...                                     "sensor_msgs/msg/JointState")
+    True
+    """
+    ts = _jazzy_store()
+    st = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    n, k = len(st), len(names)
+    given = {f: np.asarray(v, dtype=np.float64).reshape(n, k)
+             for f, v in (("position", position), ("velocity", velocity), ("effort", effort)) if v is not None}
+    # a template whose stamp and values are unique byte patterns: find where each one lies
+    sec0, nsec0 = 0x5AFE5AFE, 0x3ADE3ADE
+    marks = {(f, j): np.frombuffer(bytes([0xFE, 0xCA, i, j, 0x13, 0x37, 0xBE, 0x4E]), "<f8")[0]
+             for i, f in enumerate(given) for j in range(k)}
+    tmpl = bytes(ts.serialize_cdr(joint_state(ts, sec0 * NS + nsec0, names,
+                                              **{f: [marks[f, j] for j in range(k)] for f in given}),
+                                  "sensor_msgs/msg/JointState"))
+
+    def where(pattern: bytes) -> int:
+        off = tmpl.find(pattern)
+        if off < 0 or tmpl.find(pattern, off + 1) >= 0:
+            raise RuntimeError("JointState CDR template: a marker is not unique")   # not reachable
+        return off
+    rows = np.tile(np.frombuffer(tmpl, np.uint8), (n, 1))
+    sec, nsec = np.divmod(st, NS)
+    for val, pat in ((sec.astype("<i4"), np.int32(sec0).astype("<i4").tobytes()),
+                     (nsec.astype("<u4"), np.uint32(nsec0).astype("<u4").tobytes())):
+        o = where(pat)
+        rows[:, o:o + 4] = val.view(np.uint8).reshape(n, 4)
+    for (f, j), mark in marks.items():
+        o = where(np.float64(mark).astype("<f8").tobytes())
+        rows[:, o:o + 8] = np.ascontiguousarray(given[f][:, j]).astype("<f8").view(np.uint8).reshape(n, 8)
+    return rows
 
 
 def string_msg(types, text: str):
