@@ -35,8 +35,9 @@ Mapping (:class:`Mapping`, from flags or a YAML file, :func:`load_mapping`)
     ``resample``, ``case``, ``notes`` (free text carried into ``/experiment/config``).
 
 Sampling
-    Any rate. The stamps are the regular grid ``k * T`` (``T`` the mean period, snapped to
-    the ns when that moves no sample by more than 1 % of ``T``); the source time of the
+    Any rate. The stamps are the regular grid ``k * T`` to the ns (``T`` the mean period of
+    the time column, snapped to a whole ns when that moves no sample by more than 1 % of
+    ``T``; or ``1 / rate`` exactly); the source time of the
     first sample is ``run.time_offset_s``. Irregular stamps (an interval off the mean by more
     than 5 %, or a sample more than 25 % of ``T`` off the grid: dropped samples, a changed
     rate, a time column that is not time) are refused with the row and values, unless
@@ -184,7 +185,9 @@ def read_table(path) -> Table:
         return reader(path)
     except ConfigError:
         raise
-    except (OSError, ValueError, KeyError, TypeError, NotImplementedError, UnicodeDecodeError) as err:
+    except MemoryError:
+        raise
+    except Exception as err:       # noqa: BLE001 - third-party readers fail in many ways on a bad file
         raise ConfigError(f"{path}: not a readable {kind} file ({type(err).__name__}: {err})") from None
 
 
@@ -573,11 +576,12 @@ def _grid(tab: Table, m: Mapping, t: np.ndarray) -> tuple[float, float]:
     return period, float(np.max(np.abs(dev)))
 
 
-def _stamps(n: int, period: float) -> tuple[np.ndarray, float]:
-    """Regular stamps [ns] from 0 and the period actually used [s] (ns-snapped when harmless)."""
+def _stamps(n: int, period: float, snap_ok: bool = True) -> tuple[np.ndarray, float]:
+    """Regular stamps [ns] from 0 and the period actually used [s]: a period estimated from a
+    time column is snapped to the ns when that is harmless; a given rate is kept exact."""
     p_ns = period * 1e9
     snap = round(p_ns)
-    if snap > 0 and abs(snap - p_ns) * max(n - 1, 1) <= SNAP_TOL * p_ns:
+    if snap > 0 and (snap == p_ns or snap_ok and abs(snap - p_ns) * max(n - 1, 1) <= SNAP_TOL * p_ns):
         return np.arange(n, dtype=np.int64) * int(snap), snap / 1e9
     if p_ns < 1:
         raise ConfigError(f"sampling period {period!r} s is below 1 ns")
@@ -620,6 +624,7 @@ def prepare(tab: Table, m: Mapping) -> Signals:
             dt = np.diff(t)
             irregular = bool(np.max(np.abs(dt - period)) > INTERVAL_TOL * period)
             grid_p = 1.0 / m.resample_rate if m.resample_rate else float(np.median(dt))
+            grid_p = max(round(grid_p * 1e9), 1) / 1e9        # the grid is ours to choose: whole ns
             tg = t0 + np.arange(int(math.floor((t[-1] - t0) / grid_p * (1 + 1e-12))) + 1) * grid_p
             if len(tg) < 3:
                 raise ConfigError(f"{tab.path}: resampling at {1 / grid_p:g} Hz leaves {len(tg)} sample(s)")
@@ -639,7 +644,7 @@ def prepare(tab: Table, m: Mapping) -> Signals:
                   f"largest deviation of a source time from the grid {max_dev:.3g} s)")
     else:
         t0 = 0.0
-        stamps, period = _stamps(n, 1.0 / m.rate)
+        stamps, period = _stamps(n, 1.0 / m.rate, snap_ok=False)
         timing = f"k * {period:.9g} s (rate {m.rate:g} Hz given; the table has no time column)"
 
     x_ref = cols.get("reference")
