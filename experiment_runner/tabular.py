@@ -746,7 +746,8 @@ def write_signals(sig: Signals, out, overwrite: bool = False, node: str = "conve
         per_sample.append((EXTERNAL_FORCE.name, cdr(st, [TABLE], effort=sig.f_ext[:, None])))
     if sig.extra:
         names = list(sig.extra)
-        per_sample.append((SOURCE_CHANNELS.name, cdr(st, names, position=np.column_stack([sig.extra[k] for k in names]))))
+        values = np.column_stack([sig.extra[k] for k in names])
+        per_sample.append((SOURCE_CHANNELS.name, cdr(st, names, position=values)))
     with _atomic_bag(out, overwrite) as tmp:
         with McapRecorder(tmp, yaml.safe_dump(sig.config, sort_keys=False, allow_unicode=True),
                           start_ns=int(st[0])) as rec:

@@ -151,7 +151,8 @@ def test_round_trip_of_files_written_by_other_tools(writer, rate, tmp_path, caps
     (trial,) = rec.trials()
     assert trial.complete and trial.slice == slice(0, N)
     cfg = yaml.safe_load(rec.config)
-    assert cfg["run"]["rate"] == pytest.approx(rate, rel=1e-12) and cfg["run"]["time_offset_s"] == pytest.approx(T0, abs=1e-12)
+    assert cfg["run"]["rate"] == pytest.approx(rate, rel=1e-12)
+    assert cfg["run"]["time_offset_s"] == pytest.approx(T0, abs=1e-12)
     assert cfg["run"]["open_loop"] is False and cfg["run"]["samples_per_trial"] == N
     assert cfg["provenance"]["file"] == src.name and len(cfg["provenance"]["sha256"]) == 64
     assert "central difference" in cfg["mapping"]["/stage/reference.velocity"]

@@ -47,7 +47,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 __all__ = ["DataMissing", "data_root", "EmpsData", "load_emps", "convert_emps", "EMPS_PUBLISHED",
            "EMPS_PUBLISHED_ASYM", "EMPS_NOMINAL", "idim_ls", "run_emps", "run_realdata", "main_realdata",
