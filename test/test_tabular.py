@@ -460,3 +460,27 @@ def test_convert_emps_is_the_table_importer_and_gives_the_same_recording(emps_fi
     t = read_recording(tmp_path / "t")
     for k in ("stamp_ns", "x_ref", "v_ref", "u", "y"):
         np.testing.assert_array_equal(getattr(t, k), getattr(rec, k))
+
+
+def test_external_force_topic_is_read_per_control_sample(tmp_path):
+    """``/stage/external_force`` written by any writer (here McapRecorder message by message)
+    comes back aligned with the control samples; a sample without it is nan, with a warning."""
+    from experiment_runner.recording import McapRecorder, _typestore
+    from msg_defs.convert import joint_state
+    from msg_defs.topics import EXTERNAL_FORCE, TOPICS
+    assert EXTERNAL_FORCE.units.startswith("N") and TOPICS["/stage/external_force"] is EXTERNAL_FORCE
+    ts = _typestore()
+    with McapRecorder(tmp_path / "f", "run: {axis: rotary}\n") as rec:
+        for k in range(10):
+            s = k * 100_000
+            rec.write("/stage/reference", s, joint_state(ts, s, ["table"], position=[0.0], velocity=[0.0]))
+            rec.write("/stage/command", s, joint_state(ts, s, ["motor"], effort=[1.0]))
+            rec.write("/stage/measured", s, joint_state(ts, s, ["table"], position=[k * 1e-9]))
+            if k not in (3, 7):
+                rec.write("/stage/external_force", s, joint_state(ts, s, ["table"], effort=[0.5 * k]))
+    r = read_recording(tmp_path / "f")
+    want = 0.5 * np.arange(10.0)
+    want[[3, 7]] = np.nan
+    np.testing.assert_array_equal(r.external_force, want)
+    assert any("/stage/external_force: 2 control sample(s) without a value" in w for w in r.warnings)
+    assert r.axis == "rotary" and r.source is None and not r.open_loop
