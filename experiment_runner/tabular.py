@@ -76,7 +76,7 @@ import numpy as np
 from stage_sim.validation import ConfigError
 
 __all__ = ["Table", "read_table", "Mapping", "load_mapping", "mapping_from_dict", "Signals", "prepare",
-           "convert_table", "EMPS_MAPPING", "add_convert_arguments", "main_convert"]
+           "convert_table", "sha256", "EMPS_MAPPING", "add_convert_arguments", "main_convert"]
 
 EMPS_MAPPING = Path(__file__).with_name("mappings") / "emps.yaml"
 """The mapping of the EMPS benchmark's ``DATA_EMPS.mat`` (``nanostage convert emps``)."""
@@ -489,20 +489,10 @@ def mapping_from_dict(data: dict, source: str = "mapping") -> Mapping:
 
 
 def load_mapping(path, overrides: dict | None = None) -> Mapping:
-    """A mapping YAML file (keys of :class:`Mapping`), ``overrides`` (flags) on top."""
-    from stage_sim.validation import load_yaml
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such mapping file")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"{path}: cannot read the mapping file ({err})") from None
-    data = load_yaml(text, str(path))
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: a mapping file must hold a YAML mapping, got {type(data).__name__}")
+    """A mapping YAML file (keys of :class:`Mapping`; a bare name is a shipped mapping of
+    ``mappings/``, e.g. ``emps``), ``overrides`` (flags) on top."""
+    from stage_sim.config import read_yaml_file
+    data, path = read_yaml_file(path, EMPS_MAPPING.parent, "mapping")
     data = dict(data)
     source = str(path)
     if overrides:
@@ -673,7 +663,7 @@ def prepare(tab: Table, m: Mapping) -> Signals:
     if resampled:
         run["resampled"] = resampled
     cfg = {"recording_contract": 1, "run": run,
-           "provenance": {"file": tab.path.name, "sha256": _sha256(tab.path), "format": tab.format,
+           "provenance": {"file": tab.path.name, "sha256": sha256(tab.path), "format": tab.format,
                           "scalars": dict(tab.scalars)},
            "mapping": mapping}
     if x_ref is None:
@@ -686,7 +676,8 @@ def prepare(tab: Table, m: Mapping) -> Signals:
                    config=cfg)
 
 
-def _sha256(path: Path) -> str:
+def sha256(path) -> str:
+    """Hex SHA-256 of a file (the provenance of an imported recording)."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

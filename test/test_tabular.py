@@ -369,14 +369,14 @@ def test_mapping_file_errors_name_the_file_and_key(tmp_path, capsys):
              "time: time\ncommand: u\nmeasured: y_um\nscale: 3\n": "scale: got 3; expected a mapping",
              "time: time\ncommand: u\nmeasured: [y_um]\n": "measured: got ['y_um']; expected a column name",
              "time: time\ncommand: u\ncommand: y\n": "duplicate key 'command'",
-             "- time\n": "must hold a YAML mapping"}
+             "- time\n": "top level must be a mapping"}
     for i, (text, frag) in enumerate(cases.items()):
         mp = _write(tmp_path, f"m{i}.yaml", text)
         assert main(["convert", "table", str(src), "--mapping", str(mp), "--out", str(tmp_path / "o")]) == 2
         err = capsys.readouterr().err.strip()
         assert f"m{i}.yaml" in err and frag in err and len(err.splitlines()) == 1, (text, err)
     assert main(["convert", "table", str(src), "--mapping", str(tmp_path / "none.yaml"), "--out", "o"]) == 2
-    assert "none.yaml: no such mapping file" in capsys.readouterr().err
+    assert "none.yaml: no such mapping file (shipped mappings: emps)" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 

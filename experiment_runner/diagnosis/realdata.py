@@ -39,7 +39,6 @@ Limits (EMPS)
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
@@ -47,6 +46,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from experiment_runner.tabular import sha256
 
 __all__ = ["DataMissing", "data_root", "EmpsData", "load_emps", "convert_emps", "EMPS_PUBLISHED",
            "EMPS_PUBLISHED_ASYM", "EMPS_NOMINAL", "idim_ls", "run_emps", "run_realdata", "main_realdata",
@@ -104,14 +105,6 @@ def _need_file(path: Path, what: str) -> Path:
     if not path.is_file():
         raise DataMissing(f"{what}: {path} does not exist")
     return path
-
-
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 # =========================================================================== EMPS
