@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("paper", help="reproduce the seed's simulation results: claim | seed | ours | agrees")
     p.add_argument("--json", action="store_true", help="print the claims as JSON")
     p.add_argument("--out", default="out/paper", help="folder for plots and the Markdown table")
-    p.add_argument("--only", nargs="*", default=None, help="run only claims whose id starts with these")
+    p.add_argument("--only", nargs="*", default=None, help="run only the claim groups whose name starts with these "
+                   "(e.g. appendix_a fi_design; a name no group has is refused, listing them)")
     p.set_defaults(func=_paper)
 
     p = sub.add_parser("bench", help="benchmark the simulation core (simulated s per wall s, memory)")
@@ -110,6 +111,12 @@ def main(argv=None) -> int:
     except (ConfigError, RecordingError) as err:
         print(f"nanostage {args.command}: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader of our output went away (``nanostage presets | head``): not an error of ours;
+        # point stdout at devnull so the interpreter's final flush does not fail again
+        import os
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141                        # 128 + SIGPIPE, as a shell reports it
 
 
 if __name__ == "__main__":

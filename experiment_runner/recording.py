@@ -211,18 +211,9 @@ class McapRecorder:
         return conn
 
     # ------------------------------------------------------------------ writing
-    def _serialize(self, topic: str, msg_type: str, msg):
-        store = self._store
-        if convert.is_rosbags(msg):
-            return store.serialize_cdr(msg, msg_type)
-        from rclpy.serialization import serialize_message
-        raw = serialize_message(msg)
-        # Fast CDR leaves padding bytes uninitialised and pads the end to 8 bytes, which
-        # rosbags' reader refuses: re-encode canonically (same values, zero padding).
-        msgdef = store.get_msgdef(msg_type)
-        func = msgdef.deserialize_cdr_le if raw[1] else msgdef.deserialize_cdr_be
-        obj, _ = func(raw[4:], 0, msgdef.cls, store)
-        return store.serialize_cdr(obj, msg_type)
+    def _serialize(self, msg_type: str, msg) -> bytes:
+        """Canonical CDR (zero padding, nothing after the last field) of a message of any family."""
+        return self._store.serialize_cdr(convert.to_rosbags(msg, self._store), msg_type)
 
     def write(self, topic: str, stamp_ns: int, msg) -> None:
         """Write one message at stage time ``stamp_ns`` [ns] (its MCAP log time).
@@ -251,7 +242,7 @@ class McapRecorder:
                 if got != stamp_ns:
                     raise ValueError(f"{topic}: message stamp {got} ns != log time {stamp_ns} ns "
                                      "(both must be the sample's stage time)")
-            data = self._serialize(topic, msg_type, msg)
+            data = self._serialize(msg_type, msg)
         self._writer.write(conn, stamp_ns, data)
         self.counts[topic] += 1
 

@@ -718,27 +718,31 @@ def write_signals(sig: Signals, out, overwrite: bool = False, node: str = "conve
     import yaml
 
     from experiment_runner.recording import McapRecorder, _typestore, bag_layout
-    from msg_defs import convert
+    from msg_defs import cdr, convert
     from msg_defs.topics import (BEARING, COMMAND, EVENTS, EXTERNAL_FORCE, MEASURED, MOTOR, REFERENCE,
                                  SOURCE_CHANNELS, TABLE)
     ts = _typestore()
     case = sig.config["run"]["case"]
     st = sig.stamp_ns
-    cdr = convert.joint_state_cdr
-    per_sample = []                                   # (topic, (n, size) CDR rows), in write order
+    # per-sample topics: (topic, names, {field: (n, len(names)) values}), in write order
+    per_sample = []
     if sig.x_ref is not None:
-        per_sample.append((REFERENCE.name, cdr(st, [TABLE], position=sig.x_ref[:, None], velocity=sig.v_ref[:, None])))
-    per_sample.append((COMMAND.name, cdr(st, [MOTOR], effort=sig.u[:, None])))
+        per_sample.append((REFERENCE.name, (TABLE,), {"position": sig.x_ref[:, None],
+                                                      "velocity": sig.v_ref[:, None]}))
+    per_sample.append((COMMAND.name, (MOTOR,), {"effort": sig.u[:, None]}))
     if sig.y_bearing is not None:
-        per_sample.append((MEASURED.name, cdr(st, [TABLE, BEARING], position=np.column_stack([sig.y, sig.y_bearing]))))
+        per_sample.append((MEASURED.name, (TABLE, BEARING),
+                           {"position": np.column_stack([sig.y, sig.y_bearing])}))
     else:
-        per_sample.append((MEASURED.name, cdr(st, [TABLE], position=sig.y[:, None])))
+        per_sample.append((MEASURED.name, (TABLE,), {"position": sig.y[:, None]}))
     if sig.f_ext is not None:
-        per_sample.append((EXTERNAL_FORCE.name, cdr(st, [TABLE], effort=sig.f_ext[:, None])))
+        per_sample.append((EXTERNAL_FORCE.name, (TABLE,), {"effort": sig.f_ext[:, None]}))
     if sig.extra:
-        names = list(sig.extra)
-        values = np.column_stack([sig.extra[k] for k in names])
-        per_sample.append((SOURCE_CHANNELS.name, cdr(st, names, position=values)))
+        names = tuple(sig.extra)
+        per_sample.append((SOURCE_CHANNELS.name, names,
+                           {"position": np.column_stack([sig.extra[k] for k in names])}))
+    per_sample = [(topic, names, cdr.JointStateWriter(), {f: v.tolist() for f, v in fields.items()})
+                  for topic, names, fields in per_sample]
     with _atomic_bag(out, overwrite) as tmp:
         with McapRecorder(tmp, yaml.safe_dump(sig.config, sort_keys=False, allow_unicode=True),
                           start_ns=int(st[0])) as rec:
@@ -747,8 +751,8 @@ def write_signals(sig: Signals, out, overwrite: bool = False, node: str = "conve
             w(EVENTS.name, s0, convert.event_msg(ts, "run_start", stamp_ns=s0, case=case, node=node))
             w(EVENTS.name, s0, convert.event_msg(ts, "trial_start", stamp_ns=s0, trial=0, case=case, node=node))
             for i, s in enumerate(st.tolist()):
-                for topic, rows in per_sample:
-                    w(topic, s, rows[i].tobytes())
+                for topic, names, writer, fields in per_sample:
+                    w(topic, s, writer.pack(s, names, **{f: v[i] for f, v in fields.items()}))
             w(EVENTS.name, s1, convert.event_msg(ts, "trial_end", stamp_ns=s1, trial=0, case=case, node=node))
             w(EVENTS.name, s1, convert.event_msg(ts, "run_end", stamp_ns=s1, case=case, node=node))
     return bag_layout(out)[1]

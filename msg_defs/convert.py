@@ -26,6 +26,7 @@ Examples
 from __future__ import annotations
 
 import array
+import dataclasses
 import importlib
 import json
 import math
@@ -37,11 +38,11 @@ import numpy as np
 from msg_defs.topics import CLOCK, EVENT_KINDS, TRAJECTORY
 
 __all__ = [
-    "message_class", "is_rosbags", "split_ns", "time_msg", "header", "joint_state", "joint_state_cdr", "string_msg",
+    "message_class", "is_rosbags", "split_ns", "time_msg", "header", "joint_state", "string_msg",
     "clock_msg", "float64_multiarray", "stamp_ns", "joint", "values",
     "Trajectory", "trajectory_to_msg", "trajectory_from_msg",
     "Correction", "correction_to_msg", "correction_from_msg",
-    "event", "event_json", "event_msg", "parse_event", "to_json", "from_json", "message_type_of",
+    "event", "event_json", "event_msg", "parse_event", "to_json", "from_json", "message_type_of", "to_rosbags",
 ]
 
 NS = 1_000_000_000
@@ -98,6 +99,41 @@ def _rosbags_family(types) -> bool:
     return _is_typestore(types) or (isinstance(types, type) and is_rosbags(types))
 
 
+def _is_message(obj) -> bool:
+    """An rclpy message instance (generated classes carry ``get_fields_and_field_types``)."""
+    return hasattr(type(obj), "get_fields_and_field_types")
+
+
+def _rosbags_value(v, store):
+    if _is_message(v) or is_rosbags(v):
+        return to_rosbags(v, store)
+    if isinstance(v, array.array):
+        return np.array(v, dtype=np.dtype(v.typecode))
+    if isinstance(v, np.ndarray):
+        return v.copy()
+    if isinstance(v, list) and v and isinstance(v[0], bytes):      # byte[]
+        return np.frombuffer(b"".join(v), np.uint8).copy()
+    if isinstance(v, (list, tuple)) and v and (_is_message(v[0]) or is_rosbags(v[0])):
+        return [to_rosbags(x, store) for x in v]
+    return list(v) if isinstance(v, tuple) else v
+
+
+def to_rosbags(msg, store=None):
+    """The same message as a rosbags dataclass (``store``: a Typestore, default ROS 2 Jazzy):
+    how a ROS-free module (the recording writer) serializes an rclpy message.
+
+    >>> m = to_rosbags(joint_state(message_class(None, "sensor_msgs/msg/JointState"), 5, ["table"], [1.5]))
+    >>> m.__msgtype__, stamp_ns(m), m.position.tolist()
+    ('sensor_msgs/msg/JointState', 5, [1.5])
+    """
+    store = store or _jazzy_store()
+    if is_rosbags(msg):
+        return msg
+    cls = store.types[message_type_of(msg)]
+    return cls(**{f.name: _rosbags_value(getattr(msg, f.name), store) for f in dataclasses.fields(cls)
+                  if f.name != "__msgtype__"})
+
+
 # --------------------------------------------------------------------------- builders
 def split_ns(ns: int) -> tuple[int, int]:
     """``(sec, nanosec)`` of a time in ns, ``0 <= nanosec < 1e9`` (as builtin_interfaces/Time).
@@ -133,52 +169,6 @@ def joint_state(types, stamp_ns: int, names, position=(), velocity=(), effort=()
             raise ValueError(f"JointState {key} has {len(fields[key])} values for {len(names)} names {names}")
     cls = message_class(types, "sensor_msgs/msg/JointState")
     return cls(header=header(types, stamp_ns), name=names, **fields)
-
-
-def joint_state_cdr(stamps_ns, names, position=None, velocity=None, effort=None) -> np.ndarray:
-    """Many ``sensor_msgs/msg/JointState`` messages serialized at once (CDR little-endian,
-    byte for byte what rosbags' ``serialize_cdr`` gives for :func:`joint_state`).
-
-    ``stamps_ns`` (n,) stage times [ns]; ``position``/``velocity``/``effort`` (n, len(names))
-    or None (empty field). Returns an (n, size) uint8 array, row ``i`` the message of sample
-    ``i`` (``rows[i].tobytes()`` for a recorder). One template message with the values
-    patched in: for writers of long records (an importer), ~10x faster than a message
-    object per sample.
-
-    >>> b = joint_state_cdr([5, 1_000_000_007], ["table"], position=[[1.0], [2.0]])
-    >>> ts = _jazzy_store()
-    >>> b[1].tobytes() == ts.serialize_cdr(joint_state(ts, 1_000_000_007, ["table"], position=[2.0]),
-    ...                                     "sensor_msgs/msg/JointState")
-    True
-    """
-    ts = _jazzy_store()
-    st = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-    n, k = len(st), len(names)
-    given = {f: np.asarray(v, dtype=np.float64).reshape(n, k)
-             for f, v in (("position", position), ("velocity", velocity), ("effort", effort)) if v is not None}
-    # a template whose stamp and values are unique byte patterns: find where each one lies
-    sec0, nsec0 = 0x5AFE5AFE, 0x3ADE3ADE
-    marks = {(f, j): np.frombuffer(bytes([0xFE, 0xCA, i, j, 0x13, 0x37, 0xBE, 0x4E]), "<f8")[0]
-             for i, f in enumerate(given) for j in range(k)}
-    tmpl = bytes(ts.serialize_cdr(joint_state(ts, sec0 * NS + nsec0, names,
-                                              **{f: [marks[f, j] for j in range(k)] for f in given}),
-                                  "sensor_msgs/msg/JointState"))
-
-    def where(pattern: bytes) -> int:
-        off = tmpl.find(pattern)
-        if off < 0 or tmpl.find(pattern, off + 1) >= 0:
-            raise RuntimeError("JointState CDR template: a marker is not unique")   # not reachable
-        return off
-    rows = np.tile(np.frombuffer(tmpl, np.uint8), (n, 1))
-    sec, nsec = np.divmod(st, NS)
-    for val, pat in ((sec.astype("<i4"), np.int32(sec0).astype("<i4").tobytes()),
-                     (nsec.astype("<u4"), np.uint32(nsec0).astype("<u4").tobytes())):
-        o = where(pat)
-        rows[:, o:o + 4] = val.view(np.uint8).reshape(n, 4)
-    for (f, j), mark in marks.items():
-        o = where(np.float64(mark).astype("<f8").tobytes())
-        rows[:, o:o + 8] = np.ascontiguousarray(given[f][:, j]).astype("<f8").view(np.uint8).reshape(n, 8)
-    return rows
 
 
 def string_msg(types, text: str):
