@@ -17,7 +17,10 @@ Writing
 Reading
     :func:`read_recording` reads a recording (the MCAP file or its bag directory), from
     ours, a rig's or any tool that follows the contract, into numpy arrays
-    (:class:`Recording`). It reads through the MCAP index; if the file was cut short (a
+    (:class:`Recording`), with the optional ``/stage/external_force`` and
+    ``/source/channels`` where present; a file without ``/stage/reference`` is an
+    open-loop record, read only on request (``require_reference=False``). It reads
+    through the MCAP index; if the file was cut short (a
     killed recorder) it falls back to reading record by record up to the last complete
     chunk and says what it salvaged in ``Recording.salvaged`` (messages, of how many
     recorded when the bag's ``metadata.yaml`` tells, and the stage time span). A damaged

@@ -439,6 +439,9 @@ def mapping_from_dict(data: dict, source: str = "mapping") -> Mapping:
                               f"{'drive command' if r == 'command' else 'measured position'})")
     if data.get("rate") is not None:
         kw["rate"] = _positive(data["rate"], where("rate"))
+    if "rate" in kw and (data.get("resample") or data.get("resample_rate") is not None):
+        raise ConfigError(f"{source}: {lab('resample')} needs {lab('time')} (a table sampled at a given "
+                          f"{lab('rate')} is regular already)")
     if ("time" in kw) == ("rate" in kw):
         raise ConfigError(f"{source}: give {lab('time')} (the time column) or {lab('rate')} (the sampling rate "
                           f"[Hz] of a table without one), " + ("not both" if "time" in kw else "one of them"))
