@@ -6,7 +6,8 @@ standard message type, units, QoS, rate and content. The recording contract
 (``/stage/reference``, ``/stage/command``, ``/stage/measured``) and the optional ones
 (``/experiment/config``, ``/experiment/events``, ``/clock``, ``/stage/truth``,
 ``/stage/dither``, ``/stage/isolator``); the project adds ``/experiment/trajectory``,
-``/stage/correction`` and ``/experiment/results``. ``msg_defs/README.md`` shows the
+``/stage/correction``, ``/experiment/results``, ``/stage/external_force`` (a known
+external force input) and ``/source/channels`` (source columns an importer keeps). ``msg_defs/README.md`` shows the
 same table for people; :func:`markdown_table` prints it from this module.
 
 QoS is plain data (:class:`Qos`); the ROS layer turns it into an
@@ -30,7 +31,7 @@ from dataclasses import dataclass
 __all__ = [
     "Qos", "Topic", "TOPICS", "CONTRACT_TOPICS",
     "REFERENCE", "COMMAND", "MEASURED", "TRUTH", "DITHER", "ISOLATOR", "CORRECTION", "CLOCK",
-    "CONFIG", "EVENTS", "TRAJECTORY", "RESULTS", "SAI_COMMAND",
+    "CONFIG", "EVENTS", "TRAJECTORY", "RESULTS", "SAI_COMMAND", "EXTERNAL_FORCE", "SOURCE_CHANNELS",
     "TABLE", "BEARING", "MOTOR", "PIEZOS", "ISOLATOR_JOINT", "EVENT_KINDS", "FAULT_CAUSES",
     "get_topic", "rosbag2_qos", "offered_qos_yaml", "qos_yaml", "markdown_table",
     "INFINITE_DURATION",
@@ -205,9 +206,22 @@ RESULTS = Topic(
     "peak_tracking_error_m, rms_tracking_error_m (null = not settled / not defined), "
     "target_m, settle_start_s, node")
 
+EXTERNAL_FORCE = Topic(
+    "/stage/external_force", "sensor_msgs/msg/JointState", "N (N·m on a rotary stage)", _LOCKSTEP,
+    "every control sample (only where a known external force acts)",
+    'name ["table"], effort [F_e]: a known external force on the table (a shaker, a calibrated load, '
+    "a test pulse; not the drive's force, which is /stage/command), +x, applied over [k, k+1); "
+    "a recording without this topic had none", stream=True)
+SOURCE_CHANNELS = Topic(
+    "/source/channels", "sensor_msgs/msg/JointState", "the source file's (as the mapping states them in /experiment/config)",
+    _LOCKSTEP, "every control sample (imported recordings that keep extra columns)",
+    "name = the source file's column names, position = their values as in the file, unscaled; "
+    "kept by nanostage convert (mapping key extra) for the reader's reference, not used by any tool",
+    stream=True)
+
 TOPICS: dict[str, Topic] = {t.name: t for t in (
     REFERENCE, COMMAND, MEASURED, TRUTH, DITHER, ISOLATOR, CORRECTION, CLOCK,
-    CONFIG, EVENTS, TRAJECTORY, RESULTS)}
+    CONFIG, EVENTS, TRAJECTORY, RESULTS, EXTERNAL_FORCE, SOURCE_CHANNELS)}
 """Every topic of the contract, by name."""
 
 CONTRACT_TOPICS = (REFERENCE.name, COMMAND.name, MEASURED.name)

@@ -57,7 +57,7 @@ def test_qos_plain_data_and_rclpy_profile():
     assert subscription_qos("/experiment/trajectory").durability == DurabilityPolicy.TRANSIENT_LOCAL  # latched
     streams = {n for n, t in TOPICS.items() if t.stream}
     assert streams == {"/stage/reference", "/stage/command", "/stage/measured", "/stage/truth", "/stage/dither",
-                       "/clock"}
+                       "/clock", "/stage/external_force", "/source/channels"}
     assert qos_profile(Qos("best_effort", depth=3)).reliability == ReliabilityPolicy.BEST_EFFORT
     with pytest.raises(ValueError, match="reliability"):
         Qos("sometimes")

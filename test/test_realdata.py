@@ -155,5 +155,7 @@ def test_convert_command_line(emps, tmp_path, capsys):
     from experiment_runner.cli import main
     assert main(["convert", "emps", str(emps.path), "--out", str(tmp_path / "rec")]) == 0
     assert capsys.readouterr().out.strip().endswith("rec.mcap")
-    with pytest.raises(SystemExit, match="missing.mat"):
-        main(["convert", "emps", str(tmp_path / "missing.mat"), "--out", str(tmp_path / "r2")])
+    # a bad input is one line on stderr and exit 2, nothing written
+    assert main(["convert", "emps", str(tmp_path / "missing.mat"), "--out", str(tmp_path / "r2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "missing.mat" in err and len(err.splitlines()) == 1 and not (tmp_path / "r2").exists()
