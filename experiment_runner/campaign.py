@@ -79,6 +79,8 @@ __all__ = ["Campaign", "load_campaign", "list_campaigns", "conditions", "run_cam
 CAMPAIGN_DIR = Path(__file__).with_name("campaigns")
 MAIN_JOB = ("table_4_2", "table_5_2")
 """Campaigns of :func:`main_job` (``nanostage campaign --main``)."""
+MAIN_JOB_FRF = {"table_4_2": "frf_fi", "table_5_2": "frf_sai"}
+"""Frequency-response campaigns the main job runs next to a point-to-point one (Fig. 4.6 next to Table 4.2)."""
 
 Metric = Literal["settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m",
                  "bandwidth_hz", "gain_margin_db", "phase_margin_deg"]   # the last three: frequency_response
@@ -101,7 +103,7 @@ class PointToPointTest(_Strict):
     dwell: Pos = Field(1.0, description="settling portion after the reference stops [s]")
     pre: NonNeg = Field(0.005, description="rest before the move [s]")
     duration: Optional[Pos] = Field(None, description="move duration [s]; default from the seed's anchors")
-    shape: Literal["cycloidal", "step"] = "cycloidal"
+    shape: Literal["cycloidal", "triangular", "step"] = "cycloidal"
     window: Pos = Field(25e-9, description="settling window half-width [m]")
 
     @model_validator(mode="after")
@@ -829,6 +831,7 @@ class RunResult:
     recording: Optional[str] = None
     graph: Optional[dict] = None
     x0: list = field(default_factory=list)
+    mechanism: Optional[dict] = None   # point-to-point: experiment_runner.mechanism.analyse of the trial
 
 
 @dataclass
@@ -1323,6 +1326,9 @@ def run_campaign(campaign, out_dir, *, trials: Optional[int] = None, dwell: Opti
                 rr = RunResult(case=case.name, cond=cond, preset=preset,
                                overrides=case_overrides(camp, case, cal_values, cond), metrics=mets, stats=stats,
                                rep=rep, trace=trace, wall_s=time.monotonic() - tc, x0=x0)
+                if camp.test.kind == "point_to_point" and camp.sweep is None:
+                    from experiment_runner.mechanism import analyse
+                    rr.mechanism = analyse(camp, case, cond, preset, rep, corr)
                 if mcap:
                     bag = out_dir / "recordings" / f"{case.name}_{cond.key}_batch"
                     from experiment_runner.recording import write_run
@@ -1446,7 +1452,9 @@ def write_results(cr: CampaignRun) -> None:
                     for k, v in cr.step_ii.items()},
         "representative": [{"case": k[0], "condition": k[1], "trial": rr.rep, "x0_m": rr.x0[rr.rep],
                             "metrics": {m: rr.metrics[rr.rep].get(m) for m in _metric_names(camp)},
-                            "recording": rr.recording, "graph": rr.graph} for k, rr in cr.runs.items()],
+                            "recording": rr.recording, "graph": rr.graph,
+                            "mechanism": ({k2: v for k2, v in rr.mechanism.items() if k2 != "trace"}
+                                          if rr.mechanism else None)} for k, rr in cr.runs.items()],
         "trials": [{"case": k[0], "condition": k[1], "trial": i, "x0_m": rr.x0[i] if i < len(rr.x0) else None,
                     **{m: met.get(m) for m in _metric_names(camp)}, **({"failed": met["failed"]} if "failed" in met else {})}
                    for k, rr in cr.runs.items() for i, met in enumerate(rr.metrics)],
@@ -1483,7 +1491,14 @@ def main_job(out_dir="out/campaigns", progress: bool = True, graph: bool = True,
     t0 = time.monotonic()
     out_dir = Path(out_dir)
     runs = [run_campaign(name, out_dir / name, graph=graph, progress=progress, **run_kw) for name in MAIN_JOB]
-    path = rep_mod.write_index(runs, out_dir, time.monotonic() - t0)
+    from experiment_runner.mechanism import frf_lines
+    extras = {}
+    for cr in runs:
+        if cr.campaign.name in MAIN_JOB_FRF:
+            name = MAIN_JOB_FRF[cr.campaign.name]
+            frf = run_campaign(name, out_dir / name, progress=progress)
+            extras[cr.campaign.name] = frf_lines(frf, cr, images=f"{name}/plots")
+    path = rep_mod.write_index(runs, out_dir, time.monotonic() - t0, extras)
     print(f"report: {path}")
     return path
 

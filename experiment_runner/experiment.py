@@ -34,7 +34,7 @@ class PointToPoint(_Strict):
     duration: Optional[Pos] = Field(None, description="move duration [s]; default from the seed's anchors")
     dwell: Pos = Field(0.25, description="settling portion after the move [s]")
     pre: NonNeg = Field(0.005, description="rest before the move [s]")
-    shape: Literal["cycloidal", "step"] = "cycloidal"
+    shape: Literal["cycloidal", "triangular", "step"] = "cycloidal"
 
 
 class StepSequence(_Strict):

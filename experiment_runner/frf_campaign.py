@@ -558,7 +558,8 @@ def run_frf_campaign(camp, out_dir, *, progress: bool = True, report: bool = Tru
     from tqdm import tqdm
 
     from experiment_runner.batch import Models
-    from experiment_runner.campaign import CampaignRun, Stat, case_overrides, case_preset, conditions, write_outputs
+    from experiment_runner.campaign import (CalibrationFrom, CampaignRun, Stat, case_overrides, case_preset,
+                                            conditions, source_calibration, write_outputs)
     from stage_sim.config import ConfigError
     if graph:
         raise ConfigError(f"{camp.name}: --graph does not apply to a frequency_response campaign "
@@ -568,11 +569,14 @@ def run_frf_campaign(camp, out_dir, *, progress: bool = True, report: bool = Tru
     out_dir.mkdir(parents=True, exist_ok=True)
     conds = conditions(camp)
     test = camp.test
+    # calibration: {from: NAME} reuses a point-to-point campaign's fitted stage (e.g. its bearing stiffness)
+    cal = source_calibration(camp, out_dir) if isinstance(camp.calibration, CalibrationFrom) else None
+    cal_values = dict(cal["values"]) if cal else None
     runs, samples, plants = {}, 0, {}
     with tqdm(total=len(camp.cases), desc=f"{camp.name}: FRFs", unit="case", file=sys.stderr,
               disable=not progress, leave=False) as bar:
         for case in camp.cases:
-            preset = case_preset(camp, case)
+            preset = case_preset(camp, case, cal_values)
             models = Models.from_preset(preset)
             # the plant FRF does not depend on the controller: cases on the same stage share it
             key = (preset.stage.model_dump_json(), preset.simulation.model_dump_json(), preset.controller.rate)
@@ -598,7 +602,7 @@ def run_frf_campaign(camp, out_dir, *, progress: bool = True, report: bool = Tru
                     a[ok] = x
                     return a
                 runs[(case.name, cond.key)] = FrfRun(
-                    case=case.name, cond=cond, preset=preset, overrides=case_overrides(camp, case),
+                    case=case.name, cond=cond, preset=preset, overrides=case_overrides(camp, case, cal_values),
                     freqs_hz=pf.freqs_hz, G=pf.G[i].copy(), G_aug=full(lf["G_aug"]), L=full(lf["L"]),
                     T=full(lf["T"]), values=vals, margins=mg, status=pf.status[i].copy(),
                     stats={m: Stat.of([v if math.isfinite(v) else None]) for m, v in vals.items()},
@@ -612,10 +616,10 @@ def run_frf_campaign(camp, out_dir, *, progress: bool = True, report: bool = Tru
             bar.update(1)
     timing = {"simulation_s": time.monotonic() - t_start, "column_samples": samples}
     findings = evaluate_frf_findings(camp, runs)
-    settings = {"trials": 1, "test": test.model_dump(), "calibrated": False, "graph": False,
+    settings = {"trials": 1, "test": test.model_dump(), "calibrated": cal is not None, "graph": False,
                 "frequencies_hz": frequency_grid(test).tolist()}
     cr = CampaignRun(campaign=camp, out_dir=out_dir, conditions=conds, runs=runs, findings=findings,
-                     calibration=None, step_ii={}, settings=settings, timing=timing)
+                     calibration=cal, step_ii={}, settings=settings, timing=timing)
     write_outputs(cr, write_frf_results, report=report, plots=plots, t_start=t_start)
     return cr
 

@@ -156,9 +156,32 @@ def _cycloid(distance: float, n: int, dt: float):
     return x, v, a
 
 
+def _triangular(distance: float, n: int, dt: float):
+    """Triangular-velocity (bang-bang acceleration) rest-to-rest move sampled at k = 0..n-1.
+
+    The trapezoidal-velocity profile with no constant-velocity phase: ``a = +4D/T**2`` for
+    ``t < T/2`` and ``-4D/T**2`` after, the least peak acceleration of any trapezoid of
+    duration ``T``; the acceleration steps at the start, middle and end (unbounded jerk).
+    """
+    T = n * dt
+    t = np.arange(n) * dt
+    A = 4.0 * distance / T**2
+    first = t < 0.5 * T
+    tau = T - t
+    x = np.where(first, 0.5 * A * t**2, distance - 0.5 * A * tau**2)
+    v = np.where(first, A * t, A * tau)
+    a = np.where(first, A, -A)
+    return x, v, a
+
+
+_MOVES = {"cycloidal": _cycloid, "triangular": _triangular}
+SHAPES = ("cycloidal", "triangular", "step")
+"""Point-to-point move shapes (see :func:`point_to_point`)."""
+
+
 def _steps(distances, start, pre, dwell, dt, duration, shape) -> Reference:
     """Concatenate rest, then per step a move and a dwell at rest."""
-    if shape not in ("cycloidal", "step"):
+    if shape not in SHAPES:
         raise ValueError(f"unknown shape {shape!r}")
     n_pre, n_dwell = _samples(pre, dt), _samples(dwell, dt)
     xs = [np.full(n_pre, float(start))]
@@ -173,7 +196,7 @@ def _steps(distances, start, pre, dwell, dt, duration, shape) -> Reference:
                               else duration, dt)
             if n_move < 1:
                 raise ValueError("move duration is shorter than one sample")
-            x, v, a = _cycloid(d, n_move, dt)
+            x, v, a = _MOVES[shape](d, n_move, dt)
         xs += [pos + x, np.full(n_dwell, pos + d)]
         pos += d
         vs += [v, np.zeros(n_dwell)]
@@ -213,8 +236,12 @@ def point_to_point(distance: float, duration: float | None = None,
         Initial position [m].
     pre : float
         Time at rest before the move [s].
-    shape : {"cycloidal", "step"}
-        ``"step"`` jumps to the target at ``t = pre`` (ideal step of the
+    shape : {"cycloidal", "triangular", "step"}
+        ``"triangular"`` is the trapezoidal-velocity move without a cruise
+        phase: constant acceleration ``4 D / T**2`` for the first half of the
+        move and its negative for the second (peak velocity ``2 D / T``, as
+        the cycloid's, but the acceleration steps at both ends: the reference
+        stops with a sudden end of deceleration). ``"step"`` jumps to the target at ``t = pre`` (ideal step of the
         Appendix A simulations); its ``v`` and ``a`` are zero everywhere
         (the impulses at the jump are not representable) and its "move"
         segment is empty.
@@ -262,7 +289,7 @@ def step_sequence(distance: float, n_forward: int = 8, n_backward: int = 8,
         Duration of each move [s]; default :func:`default_move_duration`.
     pre : float
         Time at rest before the first move [s].
-    shape : {"cycloidal", "step"}
+    shape : {"cycloidal", "triangular", "step"}
         Move shape, see :func:`point_to_point`.
 
     Returns

@@ -98,6 +98,8 @@ def write_plots(cr) -> list:
         files.append(_plot_distribution(plt, cr, metric, cases, cols, out))
     if cr.step_ii:
         files.append(_plot_step_ii(plt, cr, out))
+    from experiment_runner import mechanism
+    files += mechanism.plot(cr, out)
     if cr.calibration and cr.calibration.get("parameters"):
         files.append(_plot_calibration(plt, cr, out))
     plt.close("all")
@@ -578,6 +580,8 @@ def write_report(cr) -> Path:
             L.append(f"* **{f['id']}** ({f['claim']}): {why}.{extra}"
                      + (f" {f['explanation'].strip()}" if f["explanation"] else ""))
         L.append("")
+    from experiment_runner import mechanism
+    L += mechanism.report_lines(cr)
     L += ["## Calibration", ""]
     L += calibration_lines(cr)
     L.append("")
@@ -631,8 +635,9 @@ def write_report(cr) -> Path:
     return path
 
 
-def write_index(runs, out_dir, runtime_s: float) -> Path:
-    """The main job's summary ``out_dir/report.md`` over several campaign runs."""
+def write_index(runs, out_dir, runtime_s: float, extras: dict | None = None) -> Path:
+    """The main job's summary ``out_dir/report.md`` over several campaign runs; ``extras`` maps a
+    campaign name to Markdown lines added to its section."""
     out_dir = Path(out_dir)
     L = ["# Campaigns: seed vs simulation", "",
          f"Main job: {', '.join(cr.campaign.name for cr in runs)}; total wall time {runtime_s:.0f} s. "
@@ -656,6 +661,9 @@ def write_index(runs, out_dir, runtime_s: float) -> Path:
             L.append(f"* {f['id']}: {f['status']}." + (f" {f['explanation'].strip()}" if f["explanation"] else ""))
         if bad:
             L.append("")
+        from experiment_runner import mechanism
+        L += mechanism.report_lines(cr, images=(rel.parent / "plots").as_posix() if cr.files.get("plots") else "")
+        L += (extras or {}).get(cr.campaign.name, [])
         g = [rr.graph for rr in cr.runs.values() if rr.graph is not None]
         if g:
             ok = sum(1 for x in g if x.get("done") and not x.get("aborted"))

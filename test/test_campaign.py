@@ -16,9 +16,9 @@ from stage_sim.config import ConfigError
 
 # Calibrated values of the full main job (50 / 20 trials, dwell 1 s), reused so that the
 # direction tests run in seconds; test_calibration_fits_the_baseline checks the fit itself.
-CAL_4_2 = {"pid_integral_scale": 0.6387, "drive_noise_current_rms": 6.975e-4}
-CAL_5_2 = {"pid_integral_scale": 0.4116, "drive_noise_current_rms": 9.688e-4}
-CAL_3_3 = {"pid_integral_scale": 0.4078, "drive_noise_current_rms": 8.128e-4}
+CAL_4_2 = {"drive_noise_current_rms": 9.870e-4}
+CAL_5_2 = {"bearing_stiffness_scale": 2.507, "drive_noise_current_rms": 1.266e-3}
+CAL_3_3 = {"drive_noise_current_rms": 9.562e-4}
 
 
 def _cal(values):
@@ -138,21 +138,35 @@ def test_fit_reports_an_unreachable_target():
 
 @pytest.mark.slow
 def test_calibration_fits_the_baseline(tmp_path):
-    """Table 4.2 fitted on 4 No FI trials: the 5 mm settling time and the noise part of the RMS
-    in-position error land on the seed's No FI numbers; FI is not used."""
-    cr = cm.run_campaign("table_4_2", tmp_path, trials=4, calibration_trials=4, progress=False,
+    """Table 4.2 fitted on 8 No FI trials: the noise part of the RMS in-position error lands on the
+    seed's No FI number; the PID is the designed one (not calibrated); FI is not used. (With 4
+    trials the in-position RMS is not monotonic in the noise level near the fit: 9% off.)"""
+    cr = cm.run_campaign("table_4_2", tmp_path, trials=8, calibration_trials=8, progress=False,
                          plots=False, mcap=False, report=False)
     cal = cr.calibration
     assert cal["converged"] and cal["baseline"] == "nofi"
-    ts, rms = cal["parameters"]
-    assert ts["target"]["sim_after"] == pytest.approx(0.044, rel=0.02)
+    (rms,) = cal["parameters"]
     assert rms["target"]["sim_effective"] == pytest.approx(rms["target"]["seed_effective"], rel=0.05)
-    assert 0.4 < ts["value"] < 0.9 and 2e-4 < rms["value"] < 2e-3
-    assert ts["applied"]["nofi"] == ts["applied"]["fi"]         # the same PID in both cases
+    assert 2e-4 < rms["value"] < 2e-3
+    assert rms["applied"]["nofi"] == rms["applied"]["fi"]         # the same drive in both cases
+    assert cr.runs[("nofi", "5mm")].preset.controller.pid == cm.load_preset("fi_stage_nofi_gms").controller.pid
     on_disk = json.loads((tmp_path / "calibration.json").read_text())
     assert on_disk["values"] == pytest.approx(cal["values"])
-    # the No FI 5 mm mean is the calibration target; the FI case was not simulated while fitting
-    assert all(h["values"].keys() == {"pid_integral_scale", "drive_noise_current_rms"} for h in cal["history"])
+    assert all(h["values"].keys() == {"drive_noise_current_rms"} for h in cal["history"])
+
+
+@pytest.mark.slow
+def test_bearing_stiffness_scale_is_fitted_within_the_tables(tmp_path):
+    """Table 5.2: the Table 6.5 GMS stiffness scale lands inside [1, 3.55] (Table 6.5 as printed ..
+    Table 6.4's k_sigma) with the Baseline 5 mm settling time on the seed's 77 ms (+-5%)."""
+    cr = cm.run_campaign("table_5_2", tmp_path, trials=4, calibration_trials=4, progress=False,
+                         plots=False, mcap=False, report=False)
+    fit = {p["name"]: p for p in cr.calibration["parameters"]}
+    k = fit["bearing_stiffness_scale"]
+    assert k["at_bound"] is None and 1.5 < k["value"] < 3.55
+    assert k["target"]["sim_after"] == pytest.approx(0.077, rel=0.05)
+    ks = cr.runs[("fi", "5mm")].preset.stage.bearings[0].friction.k
+    assert ks[0] == pytest.approx(3.9e5 * k["value"])              # applied to every case
 
 
 # --------------------------------------------------------------------------- runs and findings
@@ -191,35 +205,51 @@ def test_outputs_are_written(t42):
     assert "## Seed vs simulation" in md and "## Calibration" in md and "44 ms" in md
 
 
+def _ratio(cr, case, versus, key, metric="settling_time_s"):
+    return cr.stat(case, key, metric).mean / cr.stat(versus, key, metric).mean - 1.0
+
+
 @pytest.mark.slow
 def test_table_4_2_findings(t42):
-    # reproduced: FI settles faster at 5 um, and has the larger RMS in-position error at both sizes
-    for fid in ("fi_settles_faster_5um", "fi_rms_larger_5mm", "fi_rms_larger_5um"):
-        assert _same_direction(_finding(t42, fid)), fid
-    assert _finding(t42, "fi_settles_faster_5um")["agrees"]          # and clearly (|z| >= 2)
-    # NOT reproduced (see the finding's note): at 5 mm the calibrated PID's integral recovery of the
-    # end-of-move error sets the settling time in both cases, so FI is no faster than No FI
-    f = _finding(t42, "fi_settles_faster_5mm")
-    assert not _same_direction(f) and not f["agrees"] and f["sim_change"] > -0.1 and f["explanation"]
-    # the No FI 5 um settling time is a prediction and lands near the seed's 62 ms
-    assert t42.stat("nofi", "5um", "settling_time_s").mean == pytest.approx(0.062, rel=0.15)
+    """The seed's headline with the designed PID: FI settles much faster than No FI at 5 mm and 5 um
+    (at least half the seed's -63% / -84%), and has the larger RMS in-position error."""
+    for f in t42.findings:
+        assert f["agrees"], (f["id"], f["status"])                     # seed direction, |z| >= 2
+    assert _ratio(t42, "fi", "nofi", "5mm") < 0.5 * -0.63
+    assert _ratio(t42, "fi", "nofi", "5um") < 0.5 * -0.84
+    assert "pid_integral_scale" not in (t42.calibration or {}).get("values", {})
+
+
+@pytest.mark.slow
+def test_table_4_2_mechanism(t42):
+    """For the seed's reason (Sec. 4.3): the No FI table reverses at the end of the 5 mm move and
+    creeps in through the bearings' pre-motion stiffness, at least 1.5x (and 5 ms) slower than its
+    friction-free twin; the FI case, with the same PID, is within 35% of the twin."""
+    m = t42.runs[("nofi", "5mm")].mechanism
+    assert m["friction_limited"] and m["settled_in_premotion"]
+    assert [r for r in m["reversals"] if r["t_s"] > -0.005], m["reversals"]
+    assert m["settling_time_s"] > 1.5 * m["twin_settling_time_s"]
+    fi = t42.runs[("fi", "5mm")].mechanism
+    assert not fi["friction_limited"] and fi["settling_time_s"] < 1.35 * fi["twin_settling_time_s"]
+    assert fi["twin_settling_time_s"] == pytest.approx(m["twin_settling_time_s"], rel=0.05)   # same rigid stage
+    assert "## Settling mechanism" in (t42.out_dir / "report.md").read_text()
+    assert (t42.out_dir / "plots" / "mechanism_5mm.png").is_file()
 
 
 @pytest.mark.slow
 def test_table_5_2_findings(t52):
-    reproduced = ["fi_settles_faster_5um", "fi_rms_larger_5mm", "fi_rms_larger_5um", "sai_settles_faster_5um",
-                  "sai_rms_as_baseline_5mm", "sai_rms_as_baseline_5um", "sai_rms_below_fi_5mm",
-                  "sai_rms_below_fi_5um", "sai_slower_than_fi_5um"]
-    for fid in reproduced:
-        assert _same_direction(_finding(t52, fid)), fid
-    for fid in ("fi_settles_faster_5um", "sai_settles_faster_5um", "sai_slower_than_fi_5um", "sai_rms_below_fi_5mm"):
-        assert _finding(t52, fid)["agrees"], fid                      # and clearly (|z| >= 2)
-    # NOT reproduced: at 5 mm neither FI nor SAI settles faster than the Baseline, and FI is the slowest
-    for fid in ("fi_settles_faster_5mm", "sai_settles_faster_5mm"):
-        f = _finding(t52, fid)
-        assert not _same_direction(f) and not f["agrees"] and f["sim_change"] > -0.1, fid
-    assert not _same_direction(_finding(t52, "sai_slower_than_fi_5mm"))
-    assert t52.stat("fi", "5mm", "settling_time_s").mean > t52.stat("sai", "5mm", "settling_time_s").mean
+    """Table 5.2 with the designed PID and the bearing stiffness between Tables 6.5 and 6.4: every
+    finding in the seed's direction; FI at least half the seed's reductions (-66% / -92%); the SAI
+    keeps the Baseline's in-position error (within 30%). The Baseline 5 mm settling is friction-limited."""
+    for f in t52.findings:
+        assert _same_direction(f), (f["id"], f["sim_change"], f["status"])
+    assert _ratio(t52, "fi", "baseline", "5mm") < 0.5 * -0.66
+    assert _ratio(t52, "fi", "baseline", "5um") < 0.5 * -0.92
+    assert _ratio(t52, "sai", "baseline", "5mm") < 0.0 and _ratio(t52, "sai", "baseline", "5um") < 0.0
+    for key in ("5mm", "5um"):
+        assert abs(_ratio(t52, "sai", "baseline", key, "rms_in_position_m")) < 0.3
+    m = t52.runs[("baseline", "5mm")].mechanism
+    assert m["friction_limited"] and m["settling_time_s"] > 2.0 * m["twin_settling_time_s"]
     # Step II was learned (u_10 after 10 ILC iterations at rest) and used in the SAI trials only
     d = t52.step_ii["sai"]
     assert d["iterations"] == 10 and len(d["rms_history_m"]) == 11 and np.any(d["correction"] != 0)
@@ -228,7 +258,8 @@ def test_table_5_2_findings(t52):
 
 def test_table_3_3_findings(tmp_path):
     """VAN: dither with HC settles faster and has a larger in-position error (all four directions
-    of Table 3.3 reproduced; the settling reductions are much smaller than the seed's 66% / 22%)."""
+    of Table 3.3 reproduced; the settling reductions, -16% / -6% at 50 trials, are much smaller than
+    the seed's -66% / -22%)."""
     cr = cm.run_campaign("table_3_3", tmp_path, trials=8, calibration=_cal(CAL_3_3), progress=False,
                          plots=False, mcap=False)
     for f in cr.findings:
@@ -244,7 +275,10 @@ def test_dahl_bearings_ratchet_out_of_position(tmp_path):
                          progress=False, plots=False, mcap=False)
     for fid in ("fi_rms_larger_5mm", "fi_rms_larger_5um"):
         assert not _same_direction(_finding(cr, fid))
-    assert cr.stat("nofi", "5mm", "settling_time_s").n_valid < 4       # No FI leaves the window again
+    # No FI ratchets in and out of the window: it never settles within the dwell, or only after more
+    # than twice the GMS stage's ~56 ms (table_4_2)
+    st = cr.stat("nofi", "5mm", "settling_time_s")
+    assert st.n_valid < 4 or st.mean > 0.12
 
 
 # --------------------------------------------------------------------------- graph and CLI

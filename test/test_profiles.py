@@ -160,3 +160,22 @@ def test_reference_is_read_only_and_segment_defaults():
     seg = Segment("move", 0, 3, 1.0, 0)
     assert math.isnan(seg.frequency)
     assert np.arange(5)[seg.slice].tolist() == [0, 1, 2]
+
+
+def test_triangular_move_is_bang_bang_and_ends_at_rest():
+    """Triangular velocity (trapezoid without cruise): +-4D/T^2 acceleration, peak velocity 2D/T at
+    mid-move, position, velocity and acceleration consistent, at the target with zero velocity."""
+    D, T = 5e-3, 0.125
+    ref = point_to_point(D, dwell=0.01, shape="triangular")
+    move, settle = ref.segments
+    assert (move.stop - move.start) * DT == pytest.approx(T)
+    a = ref.a[move.slice]
+    np.testing.assert_allclose(np.unique(np.round(a, 9)), [-4 * D / T**2, 4 * D / T**2])
+    assert np.all(a[: a.size // 2] > 0) and np.all(a[a.size // 2:] < 0)
+    assert ref.v.max() == pytest.approx(2 * D / T, rel=1e-3)
+    inner = slice(move.start + 1, move.stop - 1)
+    assert np.max(np.abs(np.gradient(ref.x, DT) - ref.v)[inner]) < 2e-3 * 2 * D / T
+    assert ref.x[settle.start] == pytest.approx(D) and ref.v[settle.start] == 0
+    assert ref.v[move.stop - 1] == pytest.approx(4 * D / T**2 * DT, rel=1e-6)   # one sample before rest
+    with pytest.raises(ValueError, match="unknown shape"):
+        point_to_point(D, shape="trapezium")
