@@ -180,7 +180,7 @@ class JointStateReader:
     True
     """
 
-    __slots__ = ("_layout", "_size", "_static", "_end", "_names", "_cuts")
+    __slots__ = ("_layout", "_size", "_static", "_end", "_names", "_cuts", "_pads")
 
     def __init__(self):
         self._layout = None
@@ -194,10 +194,20 @@ class JointStateReader:
         a = 5 + len(pos)                                  # fields: enc, sec, nsec, static, n, pos..., n, vel..., n, eff...
         b = a + 1 + len(vel)
         self._cuts = (5, a, a + 1, b, b + 1)
+        # alignment bytes before each array of doubles: zero in a canonical message, anything
+        # in rclpy's (Fast CDR leaves them unset), so a message is "known" only if they are 0
+        pads, at = [], self._end                          # data offset (body offset + 4)
+        for n in (len(pos), len(vel), len(eff)):
+            at += 4
+            if n:
+                pad = -(at - 4) % 8
+                pads.extend(range(at, at + pad))
+                at += pad + 8 * n
+        self._pads = tuple(pads)
 
     def _known(self, data) -> bool:
         return (self._layout is not None and len(data) == self._size and data[1] == 1
-                and data[12:self._end] == self._static)
+                and data[12:self._end] == self._static and not any(data[i] for i in self._pads))
 
     def read(self, data) -> tuple:
         """``(stamp_ns, names, position, velocity, effort)`` as :func:`read_joint_state`."""

@@ -202,6 +202,34 @@ def test_cdr_joint_state_is_rosbags_canonical_cdr_and_reads_any_cdr(names, array
         assert got[:2] == want[:2] and [_bits(v) for v in got[2:]] == [_bits(v) for v in want[2:]]
 
 
+@pytest.mark.parametrize("names, arrays", [l for l in LAYOUTS if any(l[1].values())])
+def test_cdr_reader_canonical_clears_unset_alignment_bytes(names, arrays):
+    """Fast CDR leaves the alignment bytes before the arrays of doubles unset (they may hold
+    anything): a message of the learned layout with non-zero padding is still made canonical."""
+    from msg_defs.cdr import _layout
+    mine = cdr.joint_state(42, names, **arrays)
+    layout, static = _layout(tuple(names), tuple(len(arrays.get(k, [])) for k in ("position", "velocity", "effort")))
+    packed = layout.pack(*layout.unpack_from(mine))
+    assert packed == mine
+    dirty = bytearray(mine)
+    at, pads = 12 + len(static), []
+    for n in (len(arrays.get(k, [])) for k in ("position", "velocity", "effort")):
+        at += 4
+        if n:
+            pad = -(at - 4) % 8
+            pads += range(at, at + pad)
+            at += pad + 8 * n
+    if not pads:
+        pytest.skip("this layout has no alignment bytes before its arrays")
+    for i in pads:
+        dirty[i] = 0xA5
+    reader = cdr.JointStateReader()
+    for data in (mine, bytes(dirty), mine, bytes(dirty)):            # learned from mine, then dirty
+        assert reader.canonical(data) == mine
+        assert [_bits(v) for v in reader.read(data)[2:]] == [_bits(arrays.get(k, []))
+                                                            for k in ("position", "velocity", "effort")]
+
+
 def test_cdr_clock_nan_fill_and_bad_lengths():
     from rclpy.serialization import serialize_message
     for ns in (0, 1, 10**9, 123_456_789_012):
