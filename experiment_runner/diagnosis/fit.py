@@ -218,7 +218,7 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
                 best = (c, v, spec)
         c, v, spec = best
         theta = np.array([float(v)])
-        sigma = np.array([0.0])
+        sigma = np.array([np.nan])        # an integer found by search: no standard error (not "± 0")
         corr = None
     else:
         tr = _Transform(params)
@@ -268,8 +268,12 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
         except np.linalg.LinAlgError:
             sigma = np.full(len(theta), np.nan)
             corr = None
-    on_bound = [p.name for p, v in zip(params, theta) if effect.kind != "integer"
-                and (abs(v - p.lo) <= 1e-6 * max(abs(p.hi - p.lo), 1e-300) or abs(v - p.hi) <= 1e-6 * abs(p.hi - p.lo))]
+    # at a bound (within 0.1 % of the range in the optimiser's variable, log or linear): "not identified"
+    on_bound = []
+    if effect.kind != "integer":
+        zlo, zhi = tr.bounds()
+        on_bound = [p.name for p, z, a, b in zip(params, tr.to_z(theta), zlo, zhi)
+                    if min(abs(z - a), abs(b - z)) <= 1e-3 * max(abs(b - a), 1e-300)]
     J_fit, J_held, ne = ev.both(spec)
     return FitResult(key=effect.key, title=effect.title, names=names, units=units, theta=np.asarray(theta, float),
                      sigma=np.asarray(sigma, float), corr=corr, spec=spec, J_fit=J_fit, J_held=J_held, n_eff_held=ne,

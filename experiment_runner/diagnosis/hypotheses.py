@@ -521,9 +521,13 @@ class PositionFriction(Effect):
     def params(self, spec, ctx):
         fc = max(coulomb_total(spec.preset), ctx.get("r_rms", 0.1))
         hs = max(ctx.get("x_half_span", 1e-3), 1e-9)
-        return [Param("dF_0", "N", -0.9 * fc, 3 * fc, 0.0, doc="friction change at the centre of the recorded travel"),
-                Param("g_1", "N/m", -3 * fc / hs, 3 * fc / hs, 0.0, doc="friction slope along the travel"),
-                Param("g_2", "N/m^2", -3 * fc / hs ** 2, 3 * fc / hs ** 2, 0.0, doc="friction curvature")]
+        slope = [Param("g_1", "N/m", -3 * fc / hs, 3 * fc / hs, 0.0, doc="friction slope along the travel"),
+                 Param("g_2", "N/m^2", -3 * fc / hs ** 2, 3 * fc / hs ** 2, 0.0, doc="friction curvature")]
+        if ctx.get("level_fitted"):
+            # the Coulomb level is already an adopted effect: dF_0 would be the same parameter twice
+            return slope
+        return [Param("dF_0", "N", -0.9 * fc, 3 * fc, 0.0, doc="friction change at the centre of the recorded travel")
+                ] + slope
 
     def nominal(self, spec):
         return {"dF_0": 0.0, "g_1": 0.0, "g_2": 0.0}
@@ -533,7 +537,7 @@ class PositionFriction(Effect):
 
     def apply(self, spec, theta):
         c = self._c
-        df0, g1, g2 = (float(v) for v in theta)
+        df0, g1, g2 = (float(v) for v in theta) if len(theta) == 3 else (0.0, float(theta[0]), float(theta[1]))
 
         def fn(node, fr, w):
             # re-centre an existing variation at c: g1' (x-c0) + g2' (x-c0)^2 about c
