@@ -16,6 +16,7 @@ gives the same report (same effects, bit-identical parameters).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import pickle
@@ -64,6 +65,9 @@ class Options:
     workers: int | None = None            # candidate fits as tasks on this many local processes (1: in turn here)
     cluster: object = None                # ... on this Dask cluster (scheduler address or cluster object)
     own_floor: bool = True                # judge each candidate against its own noise floor
+    min_share: float = 0.25               # after the first effect: share of the remaining replay excess over
+                                          # the floor a candidate must remove (the remnant of an imperfect fit
+                                          # is not "explained" by extras)
     verbose: bool = False
     extra: dict = field(default_factory=dict)
 
@@ -155,6 +159,68 @@ def _candidate_task(token: str, blob: bytes, key: str, current: ModelSpec, selec
         except Exception as exc:     # noqa: BLE001 - one bad candidate must not stop the diagnosis
             f, err = None, repr(exc)
     return f, err, ev.evals, ev.seconds
+
+
+def _spec_without(selected: list, base: ModelSpec) -> ModelSpec:
+    """``base`` with the ``selected`` effects at their current values (stochastic/integer ones
+    first, as :func:`.fit.fit_with` builds them)."""
+    spec = base
+    for f in selected:
+        if LIBRARY[f.key].kind != "deterministic":
+            spec = LIBRARY[f.key].apply(spec, f.theta)
+    for f in selected:
+        if LIBRARY[f.key].kind == "deterministic":
+            spec = LIBRARY[f.key].apply(spec, f.theta)
+    return spec
+
+
+def _refine_by_replay(bf: FitResult, spec: ModelSpec, selected: list, base: ModelSpec, ctx: dict,
+                      fj: ReplayJudge, jfl, max_nfev: int = 12):
+    """Output-error refinement of the adopted effect ``bf``'s own parameters: least squares of the
+    closed-loop replay error on the *fit* samples (``fj``), command and position in units of the
+    current run-to-run floor ``jfl``, started at the force-observer fit (the others held).
+    Returns (spec, theta, sigma) or None (no gain, a bound reached, or a failure). ``sigma``: from
+    the replay Jacobian, scaled by the residual's mean square (the replay's own scatter)."""
+    from scipy.optimize import least_squares
+
+    from .fit import _Transform
+    try:
+        e = get_effect(bf.key)
+        if hasattr(e, "bind"):
+            e.bind(ctx)
+        prev = _spec_without(selected, base)
+        ps = e.params(prev, ctx)
+        if len(ps) != len(bf.theta):
+            return None
+        tr = _Transform(ps)
+        lo, hi = tr.bounds()
+        eps = 1e-6 * (hi - lo)
+        z0 = np.clip(tr.to_z(bf.theta), lo + eps, hi - eps)
+        m = fj.mask
+        su, sy = jfl.sigma_u, jfl.sigma_y
+        bad = np.full(2 * int(m.sum()), 1e3)
+
+        def res(z):
+            rp = fj.replay(e.apply(prev, tr.to_theta(z)))
+            if not rp.ok:
+                return bad
+            return np.concatenate([((fj.u - rp.u) / su)[m], ((fj.y - rp.y) / sy)[m]])
+
+        r0 = res(z0)
+        out = least_squares(res, z0, bounds=(lo, hi), max_nfev=max_nfev * (len(z0) + 1), x_scale="jac",
+                            diff_step=2e-2)
+        if not out.success and out.status < 0 or out.cost >= 0.5 * float(r0 @ r0):
+            return None
+        if np.any(np.abs(out.x - lo) <= 1e-3 * (hi - lo)) or np.any(np.abs(hi - out.x) <= 1e-3 * (hi - lo)):
+            return None
+        theta = tr.to_theta(out.x)
+        J = out.jac
+        s2 = 2 * out.cost / max(len(out.fun) - len(theta), 1)
+        cov_z = np.linalg.pinv(J.T @ J) * s2
+        sigma = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * np.abs(tr.dtheta_dz(theta))
+        return e.apply(prev, theta), np.asarray(theta, float), sigma
+    except Exception:   # noqa: BLE001 - the refinement is an improvement, never a failure of the diagnosis
+        return None
 
 
 def ctx_for(ctx: dict, selected: list) -> dict:
@@ -304,6 +370,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                      "(run on the recorded reference and measurement): the closed-loop replay follows the "
                      "equivalent reference, for which it reproduces the recorded command exactly")
     judge = ReplayJudge(data, x_ref=x_eq)
+    fit_judge = ReplayJudge(dataclasses.replace(data, held=data.fit), x_ref=x_eq) if data.fit.any() else None
     jfl0 = judge.floor(base)
     timing["floor_s"] = time.perf_counter() - t
     _log(opt, f"floor: sim B ms {fl.msB:.3f}, n_eff {fl.n_eff:.0f}; replay floor {jfl0.sigma_u:.3g} N, "
@@ -380,12 +447,18 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         fits.sort(key=lambda f: f.J_held * (1 + opt.complexity * len(f.theta)))
         return fits
 
-    def judge_rows(fits, jfl, s0):
+    def judge_rows(fits, jfl, s0, first):
         """Replay of every candidate against the current model's run-to-run floor ``jfl``."""
         out = []
+        D_floor = float(np.mean(s0.sum(axis=1))) / max(judge.n, 1)
         for f in fits:
             rp = judge.replay(f.spec)
             c = judge.compare(jfl, rp, fl_blocks=s0)
+            share = c.T / max(c.D_before - D_floor, 1e-300)
+            if c.accepted and not first and share < opt.min_share:
+                c.accepted = False
+                c.why = (f"removes {100 * share:.0f} % of the remaining replay excess over the floor "
+                         f"(< {100 * opt.min_share:.0f} %)")
             bound = list(f.on_bound) + ([n for n in f.joint.on_bound if not n.startswith(f.key + ".")]
                                         if f.joint is not None else [])
             why = c.why
@@ -439,7 +512,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             if not fits:
                 break
             s0 = judge.sim_blocks(jfl.replay, jfl)
-            judged = judge_rows(fits, jfl, s0)
+            judged = judge_rows(fits, jfl, s0, first=not selected)
             D_cur = judge.D(jfl.replay, jfl)
             ok = sorted([j for j in judged if j["ok"]], key=lambda j: j["cmp"].D_after)
             best = conf = None
@@ -486,6 +559,12 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                 if refit is not None and not refit.on_bound and replay_D(refit.spec) <= best["cmp"].D_after:
                     adopt(refit)
                     new_spec = refit.spec
+            if fit_judge is not None and LIBRARY[bf.key].kind == "deterministic":
+                ref = _refine_by_replay(bf, new_spec, selected, base, ctx_for(ctx, selected), fit_judge, path["jfl"])
+                if ref is not None and replay_D(ref[0]) < replay_D(new_spec):
+                    new_spec, bf.theta, bf.sigma = ref
+                    bf.derived = LIBRARY[bf.key].derived(base, bf.theta)
+                    bf.refined = True
             selected.append(bf)
             # a confounded alternative that states a known quantity (force constant) is not adopted later;
             # the others may be, if they add beyond the floor on top of this one (then they were not
@@ -499,7 +578,8 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             path["found"].append({"effect": bf.key, "title": bf.title, "kind": LIBRARY[bf.key].kind, "step": step,
                                   "params": bf.params(), "derived": bf.derived, "expressible": bf.expressible,
                                   "confounded_with": [j["fit"].key for j in conf], "alternatives": alts,
-                                  "J_held": bf.J_held, "replay": best["cmp"].row()})
+                                  "J_held": bf.J_held, "replay": best["cmp"].row(),
+                                  "refined_by_replay": bool(getattr(bf, "refined", False))})
             path["current"] = new_spec
             path["floor"] = _Floor(new_spec, data, obs.f_o, opt.floor_seeds, data.smooth_hz)
             ev.floor = path["floor"].floor
