@@ -272,8 +272,9 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
     on_bound = []
     if effect.kind != "integer":
         zlo, zhi = tr.bounds()
-        on_bound = [p.name for p, z, a, b in zip(params, tr.to_z(theta), zlo, zhi)
-                    if min(abs(z - a), abs(b - z)) <= 1e-3 * max(abs(b - a), 1e-300)]
+        tol = 1e-3 * np.maximum(np.abs(zhi - zlo), 1e-300)
+        on_bound = [p.name for p, z, a, b, t in zip(params, tr.to_z(theta), zlo, zhi, tol)
+                    if abs(b - z) <= t or (abs(z - a) <= t and not getattr(p, "physical_lo", False))]
     J_fit, J_held, ne = ev.both(spec)
     return FitResult(key=effect.key, title=effect.title, names=names, units=units, theta=np.asarray(theta, float),
                      sigma=np.asarray(sigma, float), corr=corr, spec=spec, J_fit=J_fit, J_held=J_held, n_eff_held=ne,
@@ -345,7 +346,7 @@ class _Joint(Effect):
         s = spec
         for k, (e, _) in enumerate(self.parts):
             ps = e.params(s, ctx)
-            out += [Param(f"{e.key}.{p.name}", p.unit, p.lo, p.hi, p.x0, p.log) for p in ps]
+            out += [Param(f"{e.key}.{p.name}", p.unit, p.lo, p.hi, p.x0, p.log, physical_lo=p.physical_lo) for p in ps]
             if self.thetas is not None:
                 # e.g. the asymmetry's bounds scale with the Coulomb force an earlier part added
                 s = e.apply(s, self.thetas[k])

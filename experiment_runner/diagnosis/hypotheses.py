@@ -41,6 +41,8 @@ class Param:
     x0: float
     log: bool = False
     doc: str = ""
+    physical_lo: bool = False     # the lower bound is a physical limit (a capacity >= 0): reaching it is a
+                                  # result (the element is absent), not "not identified"
 
     def clip(self, v):
         return float(min(max(v, self.lo), self.hi))
@@ -272,7 +274,7 @@ class Gms(Effect):
     def params(self, spec, ctx):
         fc = max(coulomb_total(spec.preset), 1e-3)
         d = self.deltas(ctx)
-        return [Param(f"F_{i + 1}", "N", 1e-4 * fc, 3 * fc, fc / self.N,
+        return [Param(f"F_{i + 1}", "N", 1e-4 * fc, 3 * fc, fc / self.N, physical_lo=True,
                       doc=f"capacity of the block slipping after {d[i] * 1e6:.3g} um") for i in range(self.N)]
 
     def starts(self, spec, ctx):

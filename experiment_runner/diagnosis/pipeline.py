@@ -175,7 +175,7 @@ def _spec_without(selected: list, base: ModelSpec) -> ModelSpec:
 
 
 def _refine_by_replay(bf: FitResult, spec: ModelSpec, selected: list, base: ModelSpec, ctx: dict,
-                      fj: ReplayJudge, jfl, max_nfev: int = 12):
+                      fj: ReplayJudge, jfl, max_nfev: int = 12, keep_bounds: bool = False):
     """Output-error refinement of the adopted effect ``bf``'s own parameters: least squares of the
     closed-loop replay error on the *fit* samples (``fj``), command and position in units of the
     current run-to-run floor ``jfl``, started at the force-observer fit (the others held).
@@ -211,13 +211,18 @@ def _refine_by_replay(bf: FitResult, spec: ModelSpec, selected: list, base: Mode
                             diff_step=2e-2)
         if not out.success and out.status < 0 or out.cost >= 0.5 * float(r0 @ r0):
             return None
-        if np.any(np.abs(out.x - lo) <= 1e-3 * (hi - lo)) or np.any(np.abs(hi - out.x) <= 1e-3 * (hi - lo)):
+        tol = 1e-3 * (hi - lo)
+        at = [p.name for p, z, a, b, t in zip(ps, out.x, lo, hi, tol)
+              if abs(b - z) <= t or (abs(z - a) <= t and not p.physical_lo)]
+        if at and not keep_bounds:
             return None
         theta = tr.to_theta(out.x)
         J = out.jac
         s2 = 2 * out.cost / max(len(out.fun) - len(theta), 1)
         cov_z = np.linalg.pinv(J.T @ J) * s2
         sigma = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * np.abs(tr.dtheta_dz(theta))
+        if keep_bounds:
+            return e.apply(prev, theta), np.asarray(theta, float), sigma, at
         return e.apply(prev, theta), np.asarray(theta, float), sigma
     except Exception:   # noqa: BLE001 - the refinement is an improvement, never a failure of the diagnosis
         return None
@@ -507,6 +512,16 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                 adopt(rf)
                 path.update(current=rf.spec, J_cur=rf.J_held, J_fit=rf.J_fit)
             current, J_cur, jfl = path["current"], path["J_cur"], path["jfl"]
+            z_cur = judge.consistency(jfl.replay, jfl)
+            if z_cur <= judge.t_q:
+                # the current model's replay is within its run-to-run floor (calibrated z): nothing to explain
+                path["steps"].append({"step": step, "J_held_before": J_cur, "replay_D_before": judge.D(jfl.replay, jfl),
+                                      "replay_z_before": z_cur, "z_critical": judge.t_q,
+                                      "floor_rms": {"command_N": jfl.sigma_u, "position_m": jfl.sigma_y},
+                                      "threshold": None, "accepted": None, "confounded_with": [], "candidates": [],
+                                      "stopped": "replay within the run-to-run floor"})
+                _log(opt, f"step {step}: replay z {z_cur:.3g} <= {judge.t_q:.3g}: within the floor, stop")
+                break
             todo = [e for e in candidates(current, selected) if e.key not in path["banned"]]
             fits = fit_all(todo, current, selected, path["J_fit"])
             if not fits:
@@ -514,7 +529,27 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             s0 = judge.sim_blocks(jfl.replay, jfl)
             judged = judge_rows(fits, jfl, s0, first=not selected)
             D_cur = judge.D(jfl.replay, jfl)
-            ok = sorted([j for j in judged if j["ok"]], key=lambda j: j["cmp"].D_after)
+            # the best replay among stable, beyond-floor candidates belongs to a fit at a bound: the force
+            # observer's fit may have failed where the replay can still tell; refine it by the replay and
+            # judge it again (adoptable only off its bounds)
+            pen = lambda j: j["cmp"].D_after * (1 + opt.complexity * len(j["fit"].theta))  # noqa: E731
+            near = [j for j in judged if j["cmp"].accepted and j["on_bound"]]
+            D_ok = min((j["cmp"].D_after for j in judged if j["ok"]), default=float("inf"))
+            jn = min(near, key=lambda j: j["cmp"].D_after) if near else None
+            if jn is not None and fit_judge is not None and jn["cmp"].D_after < 1.25 * D_ok:
+                f = jn["fit"]
+                if LIBRARY[f.key].kind == "deterministic":
+                    ref = _refine_by_replay(f, f.spec, selected, base, ctx_for(ctx, selected), fit_judge, jfl,
+                                            keep_bounds=True)
+                    if ref is not None:
+                        f2 = dataclasses.replace(f, spec=ref[0], theta=ref[1], sigma=ref[2], on_bound=ref[3],
+                                                 derived=LIBRARY[f.key].derived(base, ref[1]), joint=None)
+                        j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
+                        j2["why"] += " (refined by the replay)"
+                        judged.append(j2)
+            # ranked by the replay with the selection's complexity penalty per parameter (a 12-block GMS
+            # must do clearly better than the one Coulomb level it contains)
+            ok = sorted([j for j in judged if j["ok"]], key=pen)
             best = conf = None
             alts = []
             if ok:
@@ -539,6 +574,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                 rows.append(r)
             rows.sort(key=lambda r: r["replay"]["D_after"])
             path["steps"].append({"step": step, "J_held_before": J_cur, "replay_D_before": D_cur,
+                                  "replay_z_before": z_cur, "z_critical": judge.t_q,
                                   "floor_rms": {"command_N": jfl.sigma_u, "position_m": jfl.sigma_y},
                                   "threshold": min((r["threshold"] for r in rows), default=None),
                                   "accepted": best["fit"].key if best else None,

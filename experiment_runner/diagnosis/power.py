@@ -493,11 +493,12 @@ def _info(tr):
 
 
 def _improved_worse(rep: dict):
-    v = rep.get("validation", {}).get("replay_command_rms_N") or {}
-    n, i = v.get("nominal"), v.get("improved")
-    if n is None or i is None or not rep.get("found"):
+    """The improved model's held-out replay unstable or further from the data than the nominal's."""
+    r = rep.get("replay") or {}
+    if not rep.get("found") or not r:
         return False
-    return bool(i > 1.05 * n)
+    fr = r["floor_ratio"]
+    return bool(not r["stable"]["improved"] or fr["improved"] > 1.05 * fr["nominal"])
 
 
 def _extra_reason(rep: dict, effect: str) -> str:

@@ -185,6 +185,10 @@ def to_markdown(rep: dict) -> str:
             for s in loc["segments"][:5]))
     L.append("\n## Candidates\n")
     for st in rep["selection"]["steps"]:
+        if st.get("stopped"):
+            L.append(f"Step {st['step']}: stopped: {st['stopped']} (z {_fmt(st.get('replay_z_before'))} <= "
+                     f"{_fmt(st.get('z_critical'))}).\n")
+            continue
         L.append(f"Step {st['step']}: replay D before {_fmt(st.get('replay_D_before'))} (2 = at the run-to-run floor), "
                  f"J_held before {_fmt(st['J_held_before'])}; accepted: **{st['accepted'] or 'none'}**"
                  + (f" (confounded with {', '.join(st['confounded_with'])}: not adopted)" if st["confounded_with"] else "")
