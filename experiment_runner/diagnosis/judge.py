@@ -40,6 +40,7 @@ Controller check
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -54,6 +55,7 @@ from .model import ModelSpec
 __all__ = ["Replay", "Floor", "ReplayJudge", "Comparison", "controller_check", "equivalent_reference",
            "noise_free"]
 
+_TOKENS = itertools.count()
 FLOOR_SEEDS = tuple(70001 + 1000 * i for i in range(16))
 """Noise seeds of the simulated recordings of the run-to-run floor (fixed: same data, same decision)."""
 
@@ -162,6 +164,7 @@ class ReplayJudge:
         self.n_blocks = nb
         self.block_n = np.bincount(ids[self.mask], minlength=nb).astype(float)
         self.sims = 0
+        self.token = next(_TOKENS)      # replay cache key on the specs (an id() could be reused)
 
     # ------------------------------------------------------------------ simulation
     def _simulate(self, spec: ModelSpec, seeds):
@@ -182,7 +185,7 @@ class ReplayJudge:
 
     def replay(self, spec: ModelSpec) -> Replay:
         """Noise-free closed-loop replay of ``spec`` (cached on the spec)."""
-        key = ("judge_replay", id(self))
+        key = ("judge_replay", self.token)
         hit = spec._compiled.get(key)
         if hit is not None:
             return hit
