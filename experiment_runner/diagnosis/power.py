@@ -287,6 +287,8 @@ def _draw_record(rng, case: PowerCase):
         period = 2 * math.pi * r / v
         if period > 0.6:              # keep the record affordable: at most ~0.6 s per trial
             prof["speed"] = 2 * math.pi * r / 0.6
+        elif period < 0.25:           # and long enough to diagnose (>= 250 samples at 1 kHz)
+            prof["speed"] = 2 * math.pi * r / 0.25
         trials = int(rng.integers(3, 7))
     elif rec == "sine":
         f1 = _logu(rng.random(), 3.0, 10.0) if slow else _logu(rng.random(), 5.0, 15.0)
