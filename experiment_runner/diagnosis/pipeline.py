@@ -48,6 +48,9 @@ KNOWN = frozenset({"force_constant"})
 # the model's servo on the recorded reference and measurement must reproduce the recorded command
 # to this relative RMS, else the replay follows the equivalent reference (judge.equivalent_reference)
 CONTROLLER_TOL = 0.02
+# when no candidate is adoptable, this many of the force observer's best proposals are refined by the
+# replay (output error on the fit samples) and judged again
+REFINE_PROPOSALS = 3
 
 
 @dataclass
@@ -547,6 +550,25 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                         j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
                         j2["why"] += " (refined by the replay)"
                         judged.append(j2)
+            # nothing adoptable although the replay is beyond its floor: the force observer's fits may be
+            # off where the replay is sensitive (a ripple phase, a second effect on top of the first);
+            # the observer's three best proposals are refined by the replay and judged again
+            if fit_judge is not None and not any(j["ok"] for j in judged):
+                tried = {jn["fit"].key} if jn is not None else set()
+                props = sorted([j for j in judged if j["fit"].key not in tried
+                                and LIBRARY[j["fit"].key].kind == "deterministic"],
+                               key=lambda j: j["fit"].J_held)[:REFINE_PROPOSALS]
+                for jp in props:
+                    f = jp["fit"]
+                    ref = _refine_by_replay(f, f.spec, selected, base, ctx_for(ctx, selected), fit_judge, jfl,
+                                            keep_bounds=True)
+                    if ref is None:
+                        continue
+                    f2 = dataclasses.replace(f, spec=ref[0], theta=ref[1], sigma=ref[2], on_bound=ref[3],
+                                             derived=LIBRARY[f.key].derived(base, ref[1]), joint=None)
+                    j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
+                    j2["why"] += " (refined by the replay)"
+                    judged.append(j2)
             # ranked by the replay with the selection's complexity penalty per parameter (a 12-block GMS
             # must do clearly better than the one Coulomb level it contains)
             ok = sorted([j for j in judged if j["ok"]], key=pen)
