@@ -478,6 +478,19 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                         "why": why})
         return out
 
+    def refine_and_judge(f, selected, jfl, s0) -> list:
+        """Candidate ``f`` refined by the replay (:func:`_refine_by_replay`), judged: [row] or []."""
+        if LIBRARY[f.key].kind != "deterministic":
+            return []
+        ref = _refine_by_replay(f, f.spec, selected, base, ctx_for(ctx, selected), fit_judge, jfl, keep_bounds=True)
+        if ref is None:
+            return []
+        f2 = dataclasses.replace(f, spec=ref[0], theta=ref[1], sigma=ref[2], on_bound=ref[3],
+                                 derived=LIBRARY[f.key].derived(base, ref[1]), joint=None)
+        j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
+        j2["why"] += " (refined by the replay)"
+        return [j2]
+
     def forward():
         """Forward selection from ``base``: each step fits every candidate (re-fitting the
         selected ones with it); the force observer proposes and ranks, the closed-loop replay
@@ -540,16 +553,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             D_ok = min((j["cmp"].D_after for j in judged if j["ok"]), default=float("inf"))
             jn = min(near, key=lambda j: j["cmp"].D_after) if near else None
             if jn is not None and fit_judge is not None and jn["cmp"].D_after < 1.25 * D_ok:
-                f = jn["fit"]
-                if LIBRARY[f.key].kind == "deterministic":
-                    ref = _refine_by_replay(f, f.spec, selected, base, ctx_for(ctx, selected), fit_judge, jfl,
-                                            keep_bounds=True)
-                    if ref is not None:
-                        f2 = dataclasses.replace(f, spec=ref[0], theta=ref[1], sigma=ref[2], on_bound=ref[3],
-                                                 derived=LIBRARY[f.key].derived(base, ref[1]), joint=None)
-                        j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
-                        j2["why"] += " (refined by the replay)"
-                        judged.append(j2)
+                judged += refine_and_judge(jn["fit"], selected, jfl, s0)
             # nothing adoptable although the replay is beyond its floor: the force observer's fits may be
             # off where the replay is sensitive (a ripple phase, a second effect on top of the first);
             # the observer's three best proposals are refined by the replay and judged again
@@ -559,16 +563,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                                 and LIBRARY[j["fit"].key].kind == "deterministic"],
                                key=lambda j: j["fit"].J_held)[:REFINE_PROPOSALS]
                 for jp in props:
-                    f = jp["fit"]
-                    ref = _refine_by_replay(f, f.spec, selected, base, ctx_for(ctx, selected), fit_judge, jfl,
-                                            keep_bounds=True)
-                    if ref is None:
-                        continue
-                    f2 = dataclasses.replace(f, spec=ref[0], theta=ref[1], sigma=ref[2], on_bound=ref[3],
-                                             derived=LIBRARY[f.key].derived(base, ref[1]), joint=None)
-                    j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
-                    j2["why"] += " (refined by the replay)"
-                    judged.append(j2)
+                    judged += refine_and_judge(jp["fit"], selected, jfl, s0)
             # ranked by the replay with the selection's complexity penalty per parameter (a 12-block GMS
             # must do clearly better than the one Coulomb level it contains)
             ok = sorted([j for j in judged if j["ok"]], key=pen)
