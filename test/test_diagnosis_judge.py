@@ -38,8 +38,10 @@ def test_the_model_itself_is_at_its_floor(negative):
     j = ReplayJudge(data)
     fl = j.floor(spec)
     assert fl.replay.ok
-    assert 0.8 < j.floor_ratio(fl.replay, fl) < 1.25
+    # the calibrated statement: the data's replay error is one of the model's own recordings' (|z| below
+    # the Student quantile of the adoption test); the RMS ratio of one held-out trial scatters (0.5...2)
     assert abs(j.consistency(fl.replay, fl)) < j.t_q
+    assert 0.5 < j.floor_ratio(fl.replay, fl) < 2.0
     # no change, no improvement: the nominal compared with itself is not "beyond the floor"
     c = j.compare(fl, fl.replay)
     assert not c.accepted and c.T == 0.0
