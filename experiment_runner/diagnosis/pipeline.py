@@ -545,11 +545,11 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             s0 = judge.sim_blocks(jfl.replay, jfl)
             judged = judge_rows(fits, jfl, s0, first=not selected)
             D_cur = judge.D(jfl.replay, jfl)
-            # the best replay among stable, beyond-floor candidates belongs to a fit at a bound: the force
-            # observer's fit may have failed where the replay can still tell; refine it by the replay and
-            # judge it again (adoptable only off its bounds)
+            # the best replay among the stable, improving candidates is not adoptable (a bound, its misfit
+            # within the data's noise test): the force observer's fit may be off where the replay is
+            # sensitive; refine it by the replay and judge it again (adoptable only off its bounds)
             pen = lambda j: j["cmp"].D_after * (1 + opt.complexity * len(j["fit"].theta))  # noqa: E731
-            near = [j for j in judged if j["cmp"].accepted and j["on_bound"]]
+            near = [j for j in judged if j["cmp"].stable and j["cmp"].T > 0 and not j["ok"]]
             D_ok = min((j["cmp"].D_after for j in judged if j["ok"]), default=float("inf"))
             jn = min(near, key=lambda j: j["cmp"].D_after) if near else None
             if jn is not None and fit_judge is not None and jn["cmp"].D_after < 1.25 * D_ok:
