@@ -278,15 +278,16 @@ class ReplayJudge:
         return float(2.0 * np.sqrt(np.sum(sb ** 2)) / self.n)
 
     # ------------------------------------------------------------------ tests
-    def compare(self, fl: Floor, rp_new: Replay, fl_blocks=None) -> Comparison:
-        """Is ``rp_new`` (current model + an effect) a real improvement over ``fl``'s model?"""
-        rp0 = fl.replay
+    def compare(self, fl: Floor, rp_new: Replay, fl_blocks=None, rp_base: Replay | None = None) -> Comparison:
+        """Is ``rp_new`` (current model + an effect) a real improvement over ``fl``'s model (or over
+        the replay ``rp_base``, e.g. a simpler alternative, with ``fl``'s noise)?"""
+        rp0 = fl.replay if rp_base is None else rp_base
         b0 = self.data_blocks(rp0, fl)
         b1 = self.data_blocks(rp_new, fl)
         n = max(self.n, 1)
         D0, D1 = float(b0.sum() / n), float(b1.sum() / n)
         T = D0 - D1
-        s0 = fl_blocks if fl_blocks is not None else self.sim_blocks(rp0, fl)
+        s0 = fl_blocks if (fl_blocks is not None and rp_base is None) else self.sim_blocks(rp0, fl)
         s1 = self.sim_blocks(rp_new, fl)
         Tk = (s0.sum(axis=1) - s1.sum(axis=1)) / n
         thr = float(np.mean(Tk) + self.t_q * np.std(Tk, ddof=1))

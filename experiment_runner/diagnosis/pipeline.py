@@ -576,7 +576,16 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                 # adopt one of them: not a quantity the nominal states as known (a data-sheet force
                 # constant) unless the data demand it, then the simplest, then the best replay
                 best = min(equiv, key=lambda j: (j["fit"].key in KNOWN, len(j["fit"].theta), j["cmp"].D_after))
-                conf = [j for j in equiv if j is not best]
+                # a simpler adoptable candidate wins unless the more complex one improves on it beyond the
+                # floor (e.g. position-dependent friction over a plain Coulomb level it contains)
+                for j in sorted(ok, key=lambda j: (len(j["fit"].theta), j["cmp"].D_after)):
+                    if len(j["fit"].theta) >= len(best["fit"].theta) or j["fit"].key in KNOWN:
+                        continue
+                    if not judge.compare(jfl, best["rp"], rp_base=j["rp"]).accepted:
+                        conf = [best] + [x for x in equiv if x is not best]
+                        best = j
+                        break
+                conf = [j for j in (conf or equiv) if j is not best]
                 alts = [{"effect": j["fit"].key, "title": j["fit"].title, "params": j["fit"].params(),
                          "derived": j["fit"].derived, "replay_D": j["cmp"].D_after} for j in conf]
             rows = []
