@@ -259,6 +259,8 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
         # correlation of the whitened residual inflates the variance
         infl = npts / max(1.0, n_eff(best["fun"][:, None], np.ones((npts, 1), bool)))
         try:
+            if not np.all(np.isfinite(Jm)):
+                raise np.linalg.LinAlgError("non-finite Jacobian")     # LAPACK would print to stdout
             cov_z = np.linalg.pinv(Jm.T @ Jm) * s2 * infl
             dz = tr.dtheta_dz(theta)
             cov = cov_z * np.outer(dz, dz)
@@ -523,6 +525,9 @@ def sparse_regression(features: dict, target: np.ndarray, threshold: float = 0.0
     if not names or not len(target):
         return {"terms": {}, "explained": 0.0}
     X = np.column_stack([features[n] for n in names])
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(target))):
+        # a non-finite feature (e.g. an observer that diverged): no regression (LAPACK would print to stdout)
+        return {"terms": {}, "explained": 0.0, "note": "non-finite features or residual"}
     sc = np.sqrt(np.mean(X ** 2, axis=0))
     sc[sc == 0] = 1.0
     Xs = X / sc

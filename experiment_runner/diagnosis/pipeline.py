@@ -204,10 +204,14 @@ def _refine_by_replay(bf: FitResult, spec: ModelSpec, selected: list, base: Mode
         bad = np.full(2 * int(m.sum()), 1e3)
 
         def res(z):
-            rp = fj.replay(e.apply(prev, tr.to_theta(z)))
+            th = tr.to_theta(z)
+            if not np.all(np.isfinite(th)):
+                return bad
+            rp = fj.replay(e.apply(prev, th))
             if not rp.ok:
                 return bad
-            return np.concatenate([((fj.u - rp.u) / su)[m], ((fj.y - rp.y) / sy)[m]])
+            r = np.concatenate([((fj.u - rp.u) / su)[m], ((fj.y - rp.y) / sy)[m]])
+            return r if np.all(np.isfinite(r)) else bad
 
         r0 = res(z0)
         out = least_squares(res, z0, bounds=(lo, hi), max_nfev=max_nfev * (len(z0) + 1), x_scale="jac",
@@ -221,6 +225,8 @@ def _refine_by_replay(bf: FitResult, spec: ModelSpec, selected: list, base: Mode
             return None
         theta = tr.to_theta(out.x)
         J = out.jac
+        if not (np.all(np.isfinite(J)) and np.all(np.isfinite(theta))):
+            return None
         s2 = 2 * out.cost / max(len(out.fun) - len(theta), 1)
         cov_z = np.linalg.pinv(J.T @ J) * s2
         sigma = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * np.abs(tr.dtheta_dz(theta))
