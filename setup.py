@@ -1,17 +1,22 @@
 """ament_python package ``nanostage`` (also installable with plain pip)."""
+import runpy
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
 PACKAGE = "nanostage"
 MODULES = ["stage_sim", "stage_control", "experiment_runner", "msg_defs"]
+# one console script per node of the graph, from the one table of nodes (standard library only)
+NODE_SCRIPTS = runpy.run_path(str(Path(__file__).parent / "experiment_runner" / "ros" / "nodes.py"))["console_scripts"]()
 
 setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=[p for m in MODULES for p in (m, f"{m}.*")]),
     package_data={"stage_sim": ["presets/*.yaml"],
-                  "experiment_runner": ["experiments/*.yaml", "campaigns/*.yaml", "diagnosis/nominal/*.yaml"]},
+                  "experiment_runner": ["experiments/*.yaml", "campaigns/*.yaml", "diagnosis/nominal/*.yaml",
+                                        "mappings/*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -28,12 +33,7 @@ setup(
     entry_points={
         "console_scripts": [
             "nanostage = experiment_runner.cli:main",
-            "plant_sim = stage_sim.node:main",
-            "servo_controller = stage_control.nodes:main_servo",
-            "dither_generator = stage_control.nodes:main_dither",
-            "sai_manager = stage_control.nodes:main_sai",
-            "experiment_sequencer = experiment_runner.sequencer:main",
-            "recorder = experiment_runner.recorder_node:main",
+            *NODE_SCRIPTS,
         ],
     },
 )

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -25,18 +26,32 @@ from stage_control.dither import build_dither, dither_step, init_dither_state
 from stage_control.sai import build_sai, init_sai_state, sai_step
 from stage_control.servo import build_servo, init_servo_state, servo_step
 from stage_sim.config import Dither, Preset, SaiManager
-from stage_sim.plant import (OK, STATUS_TEXT, PlantModel, SimulationError, quantize, build_plant,
+from stage_sim.plant import (OK, STATUS_TEXT, PlantModel, PlantState, SimulationError, quantize, build_plant,
                              init_plant_state, plant_step)
+
+
+class InitialState(NamedTuple):
+    """Where every component of a trial starts (arrays over trials, last axis)."""
+    plant: PlantState
+    meas: np.ndarray     # (2, n) first measurement: table, bearing sensor (nan without one) [m]
+    servo: np.ndarray
+    dither: np.ndarray
+    sai: np.ndarray
 
 
 @dataclass
 class Models:
-    """Compiled models of one preset: plant, servo, dither generator, SAI manager."""
+    """Compiled models of one preset: plant, servo, dither generator, SAI manager.
+
+    The one place a preset becomes models and a trial's initial state, for the batch
+    engine and the graph's nodes alike (so both start every trial identically).
+    """
     plant: PlantModel
     servo: tuple
     dither: tuple
     sai: tuple
     lead: int            # SAI look-ahead [samples]
+    sai_mode: float = 1.0  # isolator mode at the start of a trial (1 compliant, 0 stiff)
 
     @classmethod
     def from_preset(cls, preset: Preset) -> "Models":
@@ -47,7 +62,21 @@ class Models:
         sai = preset.sai_manager or SaiManager(rule="always_compliant")
         return cls(plant=plant, servo=build_servo(preset.controller, preset.stage),
                    dither=build_dither(dither, rate), sai=build_sai(sai, rate),
-                   lead=int(round(sai.release_lead * rate)))
+                   lead=int(round(sai.release_lead * rate)),
+                   sai_mode=0.0 if sai.rule != "always_compliant" else 1.0)
+
+    def initial_state(self, x0) -> InitialState:
+        """Every component at rest, one trial per start position in ``x0`` [m]: relaxed
+        plant (isolator in :attr:`sai_mode`), zero controller states."""
+        x0 = np.atleast_1d(np.asarray(x0, float))
+        n, pm = x0.shape[0], self.plant
+        plant = init_plant_state(pm, n, x0, sai_mode=self.sai_mode)
+        meas = np.full((2, n), np.nan)
+        meas[0] = [quantize(x, pm.q_table) for x in plant.z[0]]
+        if pm.bsens_dof >= 0:
+            meas[1] = [quantize(x, pm.q_bearing) for x in plant.z[pm.bsens_dof]]
+        return InitialState(plant=plant, meas=meas, servo=init_servo_state(self.servo, n),
+                            dither=init_dither_state(self.dither, n), sai=init_sai_state(self.sai, n))
 
 
 @dataclass
@@ -195,16 +224,12 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     n_chunks = max(1, min(numba.get_num_threads(), n_trials))
     size = -(-n_trials // n_chunks)
     pm = models.plant
-    init_mode = 0.0 if (preset.sai_manager and preset.sai_manager.rule != "always_compliant") else 1.0
-    st = init_plant_state(pm, n_chunks * size, _chunked(x_ref[:, 0], 1, n_chunks * size)[0],
-                          sai_mode=init_mode)
+    init = models.initial_state(_chunked(x_ref[:, 0], 1, n_chunks * size)[0])
     plant = [np.ascontiguousarray(np.moveaxis(a.reshape(a.shape[:-1] + (n_chunks, size)), -2, 0))
-             for a in st]
+             for a in init.plant]
     T = x_ref.shape[1]
-    states = [np.ascontiguousarray(np.moveaxis(
-        init(m, n_chunks * size).reshape(-1, n_chunks, size), 1, 0))
-        for init, m in ((init_servo_state, models.servo), (init_dither_state, models.dither),
-                        (init_sai_state, models.sai))]
+    states = [np.ascontiguousarray(np.moveaxis(a.reshape(-1, n_chunks, size), 1, 0))
+              for a in (init.servo, init.dither, init.sai)]
     outs = [np.zeros((n_chunks, T, size)) for _ in range(9)]
     status = np.zeros((n_chunks, size), np.int64)
     fail = -np.ones((n_chunks, size), np.int64)

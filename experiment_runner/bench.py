@@ -2,8 +2,12 @@
 
 Reports simulated seconds per wall-clock second for one FI-stage point-to-point
 trajectory and for a batch of 100 such trials (on one core, and on all cores),
-at the preset's control rate with the sub-steps the integrator needs, plus the
-process's peak resident memory.
+at the preset's control rate with the sub-steps the integrator needs
+(``core_substeps_per_sample``; ``core_ns_per_substep_per_trial`` is the one-core batch's
+wall time per sub-step and trial), plus the process's peak resident memory.
+
+``main_job_seconds`` (only with ``main_job=True``, ``nanostage bench --main-job``): wall
+time of ``nanostage campaign --main`` in a temporary folder, with the CLI's default workers.
 
 ``campaign_trials_per_s_1`` / ``_2``: Table 4.2 campaign trials (both cases, both step
 sizes, 1 s dwell, no calibration) per wall-clock second in this process and on two local
@@ -20,15 +24,16 @@ the trial portion (``trial_start`` of trial 1 to the last ``trial_end``, as hear
 a listener in its own context; trial 0 is the warm-up), next to the raw rclpy
 publish-subscribe round-trip rate measured in the same run (two nodes in one process,
 ``sensor_msgs/JointState`` ping -> pong with the lockstep topics' reliable QoS), with
-the executor the graph uses and with rclpy's ``SingleThreadedExecutor``.
+the executor the graph uses and with rclpy's ``SingleThreadedExecutor``. The fair
+ceiling is per message: ``graph_message_rate_one_process`` (the graph's messages per
+second) against ``rclpy_message_rate`` (2 x round trips/s: one publish and one delivery
+each), see :func:`run_graph_bench`.
 """
 from __future__ import annotations
 
 import json
-import os
 import resource
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -50,162 +55,37 @@ def _rtf(preset, ref, n_trials, models, repeats):
     return n_trials * ref.t[-1] / best
 
 
-def _bench_domain() -> int:
-    """A ROS domain in 1..100 for this run (never the default 0)."""
-    return 1 + (os.getpid() * 7 + int(time.time())) % 100
-
-
-def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: int | None = None) -> float:
-    """Raw rclpy round trips per wall-clock second: two nodes in one process (own context),
-    ``ping`` publishes a ``JointState`` on a lockstep-QoS topic, ``pong`` republishes it
-    on another, ``ping`` sends the next when it comes back; ``executor`` as
-    :func:`msg_defs.node_io.make_executor` (``None``: the graph's default)."""
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.node import Node
-    from sensor_msgs.msg import JointState
-
-    from msg_defs.node_io import domain_env, make_executor
-    from msg_defs.topics import MEASURED, qos_profile
-
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = domain_env()["ROS_AUTOMATIC_DISCOVERY_RANGE"]
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain_id or _bench_domain())
-    try:
-        qos = qos_profile(MEASURED)
-        ping, pong = Node("bench_ping", context=ctx), Node("bench_pong", context=ctx)
-        ping_pub = ping.create_publisher(JointState, "/bench/ping", qos)
-        pong_pub = pong.create_publisher(JointState, "/bench/pong", qos)
-        msg = JointState(name=["table"], position=[0.0])
-        count = [0]
-
-        def back(m):
-            count[0] += 1
-            if count[0] < n:
-                msg.header.stamp.nanosec = count[0]
-                msg.position[0] = float(count[0])
-                ping_pub.publish(msg)
-
-        pong.create_subscription(JointState, "/bench/ping", pong_pub.publish, qos)
-        ping.create_subscription(JointState, "/bench/pong", back, qos)
-        ex = make_executor(ctx, executor)
-        ex.add_node(ping)
-        ex.add_node(pong)
-        deadline = time.monotonic() + 10.0
-        while (ping_pub.get_subscription_count() < 1 or pong_pub.get_subscription_count() < 1) \
-                and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.05)
-        for _ in range(20):                       # let discovery finish
-            ex.spin_once(timeout_sec=0.01)
-        t0 = time.perf_counter()
-        ping_pub.publish(msg)
-        while count[0] < n and time.perf_counter() - t0 < 120.0:
-            ex.spin_once(timeout_sec=1.0)
-        hz = count[0] / (time.perf_counter() - t0)
-        ex.shutdown()
-        ping.destroy_node()
-        pong.destroy_node()
-    finally:
-        rclpy.shutdown(context=ctx)
-    return hz
-
-
-class _EventClock:
-    """Wall-clock arrival times of ``/experiment/events`` (own context, own thread)."""
-
-    def __init__(self, domain_id: int):
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-
-        from msg_defs import convert
-        from msg_defs.topics import EVENTS, qos_profile
-        self.events: list[tuple[float, dict]] = []
-        self.ctx = Context()
-        rclpy.init(context=self.ctx, domain_id=domain_id)
-        self.node = Node("bench_event_clock", context=self.ctx)
-        self.node.create_subscription(
-            convert.message_class(None, EVENTS.msg_type), EVENTS.name,
-            lambda m: self.events.append((time.perf_counter(), convert.parse_event(m.data))), qos_profile(EVENTS))
-        self.ex = SingleThreadedExecutor(context=self.ctx)
-        self.ex.add_node(self.node)
-        self.stop = False
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self):
-        while not self.stop and self.ctx.ok():
-            self.ex.spin_once(timeout_sec=0.05)
-
-    def close(self):
-        import rclpy
-        time.sleep(0.3)                           # the last events are on their way
-        self.stop = True
-        self.thread.join(timeout=5.0)
-        self.ex.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.ctx)
-
-    def rate(self, lengths: dict[int, int], skip: int = 1) -> tuple[float, int]:
-        """Control samples per wall second from the first trial_start heard to the last
-        trial_end (trials in between are contiguous), and the samples counted; the first
-        ``skip`` trials are left out (warm-up: numba caches, first messages of each type)."""
-        starts = {e["trial"]: t for t, e in self.events if e["event"] == "trial_start"}
-        ends = {e["trial"]: t for t, e in self.events if e["event"] == "trial_end"}
-        done = sorted(i for i in starts if i in ends and i >= skip)
-        if not done:
-            return float("nan"), 0
-        first, last = done[0], done[-1]
-        samples = sum(lengths[i] for i in range(first, last + 1))
-        return samples / (ends[last] - starts[first]), samples
-
-
-def graph_loop_hz(processes: bool, trials: int = 6, domain_id: int | None = None) -> dict:
-    """Control samples per wall-clock second of the whole node graph (plant, servo, dither,
-    SAI manager, recorder, sequencer) on ``fi_p2p_5um`` with ``trials`` trials, over the
-    trial portion only (trial 0 is a warm-up, not timed); one process
-    (:func:`~experiment_runner.graph.run_one_process`) or one per node
-    (:func:`~experiment_runner.graph.run_processes`). ``hz`` is None if the run failed."""
-    import yaml
-
-    from experiment_runner.experiment import EXPERIMENT_DIR, build_trials, load_experiment
-    from experiment_runner.graph import run_one_process, run_processes
-    from msg_defs.node_io import domain_env
-    domain_id = domain_id or _bench_domain()
-    os.environ.update(domain_env(domain_id))
-    with tempfile.TemporaryDirectory(prefix="nanostage_bench_") as tmp:
-        doc = yaml.safe_load((EXPERIMENT_DIR / "fi_p2p_5um.yaml").read_text())
-        doc.update(name="bench_fi_p2p", trials=int(trials))
-        exp_path = Path(tmp) / "bench_fi_p2p.yaml"
-        exp_path.write_text(yaml.safe_dump(doc))
-        lengths = {t.index: len(t.x_ref) for t in build_trials(load_experiment(exp_path))}
-        clock = _EventClock(domain_id)
-        try:
-            if processes:
-                code = run_processes(str(exp_path), Path(tmp) / "run", timeout=300.0, domain_id=domain_id)
-                ok = code == 0
-            else:
-                summary = run_one_process(str(exp_path), Path(tmp) / "run", timeout=300.0, domain_id=domain_id)
-                ok = summary["done"] and not summary["aborted"]
-        finally:
-            clock.close()
-        hz, samples = clock.rate(lengths)
-    return {"hz": hz if ok and samples else None, "samples": samples, "ok": ok}
-
-
 def run_graph_bench(quick: bool = False) -> dict:
-    """The graph part of the benchmark (keys ``graph_loop_hz_*``, ``rclpy_roundtrip_hz*``)."""
-    from msg_defs.node_io import executor_kind
+    """The graph part of the benchmark, all figures from this run.
+
+    ``graph_message_rate_one_process`` (messages/s of the one-process graph: control samples/s
+    x ``graph_messages_per_sample``) against ``rclpy_message_rate`` (2 x raw rclpy round trips/s
+    on the graph's executor: the middleware's cost per message, one publish and one delivery);
+    ``rclpy_message_rate_serialized``: the same with the message as CDR bytes both ways, as
+    the graph sends its per-sample messages (the middleware's floor for them);
+    ``graph_loop_hz_*``: control samples/s in one process and with one process per node;
+    ``rclpy_roundtrip_hz*``: raw round trips/s (events executor, and the single-threaded one).
+    """
+    from experiment_runner.ros.run import executor_kind
+    from experiment_runner.ros.timing import graph_loop_hz, rclpy_roundtrip_hz
     trials = 3 if quick else 8
-    n_rt = 3000 if quick else 10000
+    n_rt = 5000 if quick else 20000
     one = graph_loop_hz(False, trials)
     procs = graph_loop_hz(True, trials)
     rt = rclpy_roundtrip_hz(n_rt)
+    rt_raw = rclpy_roundtrip_hz(n_rt, serialized=True)
     rt_single = rclpy_roundtrip_hz(max(1000, n_rt // 5), executor="single")
     def r(x, nd=1):
         return None if x is None else round(x, nd)
+    per_sample = one["messages_per_sample"]
+    msg_rate = one["hz"] * per_sample if one["hz"] and per_sample else None
     return {
+        "graph_messages_per_sample": r(per_sample, 3),
+        "graph_message_rate_one_process": r(msg_rate),
+        "rclpy_message_rate": round(2 * rt, 1),
+        "graph_message_rate_vs_rclpy": r(msg_rate and msg_rate / (2 * rt), 3),
+        "rclpy_message_rate_serialized": round(2 * rt_raw, 1),
+        "graph_message_rate_vs_rclpy_serialized": r(msg_rate and msg_rate / (2 * rt_raw), 3),
         "graph_loop_hz_one_process": r(one["hz"]),
         "graph_loop_hz_processes": r(procs["hz"]),
         "graph_samples_timed": f"{one['samples']} / {procs['samples']}",
@@ -242,7 +122,18 @@ def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table
     return len(jobs) * trials / wall
 
 
-def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True) -> int:
+def main_job_seconds() -> float:
+    """Wall time [s] of the README's main job (``nanostage campaign --main``: calibration,
+    every trial, the graph runs, report and plots) in a temporary folder."""
+    from experiment_runner.campaign import main_job
+    from experiment_runner.executor import cpu_count
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        main_job(tmp, progress=False, resume=False, workers=cpu_count())     # as the CLI runs it
+        return time.perf_counter() - t0
+
+
+def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, main_job: bool = False) -> int:
     preset = load_preset("fi_stage")
     models = Models.from_preset(preset)
     ref = point_to_point(5e-3, dt=1.0 / preset.controller.rate)
@@ -261,7 +152,11 @@ def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True) ->
         "core_batch_rtf": round(batch_one_core, 1),
         "core_batch_rtf_all_cores": round(batch_all, 1),
         "cores": threads,
-        "substeps_per_control_period": models.plant.n_sub,
+        # the distance to the limit: sub-steps the integrator needs per control sample, and
+        # the wall time of one sub-step of one trial in the one-core batch
+        "core_substeps_per_sample": models.plant.n_sub,
+        "core_ns_per_substep_per_trial": round(1e9 / (preset.controller.rate * batch_one_core
+                                                      * models.plant.n_sub), 1),
         "control_rate_hz": preset.controller.rate,
         "trajectory_s": round(float(ref.t[-1]), 4),
         "peak_memory_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
@@ -272,6 +167,8 @@ def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True) ->
     result["diagnose_seconds_10s"] = round(diagnose_seconds(10.0), 1)
     if graph:
         result.update(run_graph_bench(quick))
+    if main_job:
+        result["main_job_seconds"] = round(main_job_seconds(), 1)
     if as_json:
         print(json.dumps(result))
     else:

@@ -1139,27 +1139,11 @@ def _spread_finding(camp: Campaign, f: Finding, runs: dict, conds: list) -> dict
 # =========================================================================== graph
 def _run_graph_with_correction(experiment: str, out: Path, timeout: float, domain_id, correction) -> dict:
     """:func:`experiment_runner.graph.run_one_process` with a learned Step II correction held by the
-    SAI manager node from its start.
-
-    ``run_one_process`` has no way to hand the node a correction, so for the duration of the call
-    ``stage_control.nodes.SaiNode`` is a subclass that starts with it (``run_one_process`` imports
-    the node class when called). Only used in the spawned graph worker processes.
-    """
-    import stage_control.nodes as nodes_mod
+    SAI manager node from its start (its ``initial_correction`` parameter)."""
     from experiment_runner.graph import run_one_process
-    base = nodes_mod.SaiNode
-    corr = np.asarray(correction, float)
-
-    class SaiNodeWithCorrection(base):
-        def __init__(self, **kwargs):
-            super().__init__(**kwargs)
-            self.correction = corr.copy()
-
-    nodes_mod.SaiNode = SaiNodeWithCorrection
-    try:
-        return run_one_process(experiment, out, timeout, domain_id)
-    finally:
-        nodes_mod.SaiNode = base
+    corr = [float(v) for v in np.asarray(correction, float).ravel()]
+    return run_one_process(experiment, out, timeout, domain_id,
+                           params={"sai_manager": {"initial_correction": corr}} if corr else None)
 
 
 def _graph_worker(jobs: list, domain_id: int) -> list:
@@ -1506,19 +1490,21 @@ def main_job(out_dir="out/campaigns", progress: bool = True, graph: bool = True,
 
 def add_campaign_arguments(parser):
     """Arguments of ``nanostage campaign`` (wire with ``set_defaults(func=main_campaign)``)."""
+    from experiment_runner.cliargs import positive_float, positive_int
     parser.add_argument("campaign", nargs="?", help="campaign name (see --list) or YAML path")
     parser.add_argument("--list", action="store_true", help="list the shipped campaigns")
     parser.add_argument("--main", action="store_true",
                         help=f"the main job: {' and '.join(MAIN_JOB)} end to end with --graph (always starts anew)")
     parser.add_argument("--out", default=None, help="output folder (default out/campaigns[/NAME])")
-    parser.add_argument("--trials", type=int, default=None, help="trials per case and condition (override)")
-    parser.add_argument("--dwell", type=float, default=None, help="point-to-point dwell [s] (override)")
+    parser.add_argument("--trials", type=positive_int, default=None, help="trials per case and condition (override)")
+    parser.add_argument("--dwell", type=positive_float, default=None, help="point-to-point dwell [s] (override)")
     parser.add_argument("--graph", action="store_true",
                         help="also run the representative trial of every case and condition through the ROS graph")
     parser.add_argument("--no-calibrate", action="store_true", help="use the presets' values (no fit)")
     parser.add_argument("--calibration", default=None, metavar="JSON",
                         help="reuse the values of a calibration.json instead of fitting")
-    parser.add_argument("--calibration-trials", type=int, default=None, help="baseline trials per fit evaluation")
+    parser.add_argument("--calibration-trials", type=positive_int, default=None,
+                        help="baseline trials per fit evaluation")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--no-mcap", action="store_true", help="skip the MCAP recordings of batch trials")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -1528,6 +1514,22 @@ def add_campaign_arguments(parser):
     parser.add_argument("--restart", action="store_true",
                         help="discard the trials of an interrupted run in --out (default: resume them)")
     return parser
+
+
+def _read_calibration(path) -> dict:
+    """A ``calibration.json`` written by an earlier campaign (``--calibration``)."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except OSError as err:
+        raise ConfigError(f"--calibration {path}: cannot read it ({err.strerror or err})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError(f"--calibration {path}: not a calibration.json (invalid JSON: {err})") from None
+    values = doc.get("values") if isinstance(doc, dict) else None
+    if not isinstance(values, dict) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values.values()):
+        raise ConfigError(f"--calibration {path}: field 'values' must map each calibrated quantity to a finite "
+                          f"number (a campaign's calibration.json); got {values!r:.80}")
+    return doc
 
 
 def main_campaign(args) -> int:
@@ -1548,14 +1550,14 @@ def main_campaign(args) -> int:
             print("nanostage campaign: give a CAMPAIGN (name or YAML path), --list or --main", file=sys.stderr)
             return 2
         camp = load_campaign(args.campaign)
-        cal = json.loads(Path(args.calibration).read_text()) if args.calibration else None
+        cal = _read_calibration(args.calibration) if args.calibration else None
         out = Path(args.out or f"out/campaigns/{camp.name}")
         cr = run_campaign(camp, out, trials=args.trials, dwell=args.dwell, calibrate=not args.no_calibrate,
                           calibration=cal, calibration_trials=args.calibration_trials, graph=args.graph,
                           plots=not args.no_plots, mcap=not args.no_mcap, progress=not args.quiet,
                           workers=args.workers, cluster=args.cluster, resume=not args.restart)
     except ConfigError as err:
-        print(str(err), file=sys.stderr)
+        print(f"nanostage campaign: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("nanostage campaign: interrupted; the same command resumes from the trials done "

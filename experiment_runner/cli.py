@@ -13,7 +13,7 @@ def _paper(args):
 
 def _bench(args):
     from experiment_runner.bench import run_bench
-    return run_bench(as_json=args.json, quick=args.quick, graph=args.graph)
+    return run_bench(as_json=args.json, quick=args.quick, graph=args.graph, main_job=args.main_job)
 
 
 def _graph(args):
@@ -52,8 +52,8 @@ MODULE_COMMANDS = [
      "experiment_runner.diagnosis.cli", "add_diagnose_arguments", "main_diagnose"),
     ("synth", "simulate an experiment on a concealed truth into a recording",
      "experiment_runner.diagnosis.synth", "add_synth_arguments", "main_synth"),
-    ("convert", "convert a real data file (EMPS benchmark) into a contract recording",
-     "experiment_runner.diagnosis.realdata", "add_convert_arguments", "main_convert"),
+    ("convert", "import a table (CSV/text, MATLAB .mat, HDF5, .npz) or the EMPS benchmark as a recording",
+     "experiment_runner.tabular", "add_convert_arguments", "main_convert"),
     ("realdata", "run the diagnosis on the real data sets of ../shared/data; report",
      "experiment_runner.diagnosis.realdata", "add_realdata_arguments", "main_realdata"),
     ("design", "FI design advisor (Ch. 6) or VAN piezo power / flexure fatigue check (Sec. 3.3)",
@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("paper", help="reproduce the seed's simulation results: claim | seed | ours | agrees")
     p.add_argument("--json", action="store_true", help="print the claims as JSON")
     p.add_argument("--out", default="out/paper", help="folder for plots and the Markdown table")
-    p.add_argument("--only", nargs="*", default=None, help="run only claims whose id starts with these")
+    p.add_argument("--only", nargs="*", default=None, help="run only the claim groups whose name starts with these "
+                   "(e.g. appendix_a fi_design; a name no group has is refused, listing them)")
     p.set_defaults(func=_paper)
 
     p = sub.add_parser("bench", help="benchmark the simulation core (simulated s per wall s, memory)")
@@ -77,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--graph", action=argparse.BooleanOptionalAction, default=True,
                    help="also time the ROS 2 node graph (one process, one per node) and raw rclpy "
                         "round trips (default: on)")
+    p.add_argument("--main-job", action="store_true",
+                   help="also time the main job (nanostage campaign --main, about 2 minutes)")
     p.set_defaults(func=_bench)
 
     p = sub.add_parser("graph", help="run an experiment through the ROS 2 node graph and record it to MCAP")
@@ -110,6 +113,12 @@ def main(argv=None) -> int:
     except (ConfigError, RecordingError) as err:
         print(f"nanostage {args.command}: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader of our output went away (``nanostage presets | head``): not an error of ours;
+        # point stdout at devnull so the interpreter's final flush does not fail again
+        import os
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141                        # 128 + SIGPIPE, as a shell reports it
 
 
 if __name__ == "__main__":

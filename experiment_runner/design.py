@@ -53,8 +53,8 @@ from experiment_runner.batch import Models, simulate
 from experiment_runner.executor import make_executor
 from experiment_runner.metrics import rms_in_position, settling_time
 from experiment_runner.paper import fi_design
-from stage_sim.config import ConfigError, DahlFriction, GmsFriction, LugreFriction, Preset, load_preset, \
-    with_overrides
+from stage_sim.config import ConfigError, GmsFriction, Preset, load_preset, with_overrides
+from stage_sim.friction import initial_stiffness
 from stage_sim.plant import build_plant
 
 # ----------------------------------------------------------------------------- defaults
@@ -97,16 +97,6 @@ class LumpedStage:
     gms_source: str
 
 
-def _tangent(fr) -> float:
-    if isinstance(fr, DahlFriction):
-        return fr.k_sigma
-    if isinstance(fr, GmsFriction):
-        return float(sum(fr.k))
-    if isinstance(fr, LugreFriction):
-        return fr.sigma0
-    return 0.0
-
-
 def lumped_stage(preset) -> LumpedStage:
     """Lump a preset with FI joints into the Fig. 6.2 model.
 
@@ -124,7 +114,7 @@ def lumped_stage(preset) -> LumpedStage:
     m_t = st.table.mass * (1.0 + sum(m.mass_ratio for m in st.modes)) + sum(
         b.mass for b in st.bearings if b.joint is None)
     m_b = sum(b.mass for b in jointed)
-    k_f = sum(_tangent(b.friction) for b in jointed)
+    k_f = sum(initial_stiffness(b.friction) for b in jointed)
     f_c = sum(b.friction.f_c for b in jointed)
     gms = [b.friction for b in jointed if isinstance(b.friction, GmsFriction)]
     if len(gms) == len(jointed):        # parallel bearings: blocks side by side, fractions of the total F_C

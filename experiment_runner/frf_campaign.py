@@ -17,14 +17,14 @@ Eq. C.5 (Fig. C.8-C.10). This module does the same on the simulated stage:
    raised-cosine envelope (no net impulse, so a sliding stage does not drift), waits for the
    transients and fits ``a cos + b sin + c + d t`` to the position (encoder reading, or the
    true table position; drive noise included) over a window of whole periods
-   (:func:`sine_phasor`). Cases on the same stage share the plant FRF.
+   (:func:`experiment_runner.metrics.sine_phasor`). Cases on the same stage share the plant FRF.
 2. **Loop** (:func:`loop_frfs`): the case's discrete controller (PID with derivative filter
    and backward-Euler integral, and the DOB of Eq. C.1-C.3 if the preset has one, exactly as
    :func:`stage_control.servo.servo_step` implements them) in the frequency domain; the loop
    broken at the plant input ``L``, the closed loop ``T`` (reference to measured position)
    and the augmented plant ``G_aug`` of Eq. C.5.
-3. **Metrics**: ``bandwidth_hz`` (:func:`experiment_runner.metrics.closed_loop_bandwidth` of
-   ``T``), ``gain_margin_db`` and ``phase_margin_deg`` (:func:`loop_margins`: python-control
+3. **Metrics**: ``bandwidth_hz`` (:func:`stage_control.tuning.closed_loop_bandwidth` of
+   ``T``), ``gain_margin_db`` and ``phase_margin_deg`` (:func:`stage_control.tuning.loop_margins`: python-control
    on an FRD of ``L``).
 4. Optionally (``simulate_closed_loop``) **the closed loop itself** on the batch engine
    (:func:`closed_loop_frf`, :func:`experiment_runner.batch.simulate` over a batch of
@@ -51,12 +51,13 @@ import numpy as np
 from numba import njit, prange
 from pydantic import Field, model_validator
 
-from experiment_runner.metrics import finite_or_none
+from experiment_runner.metrics import finite_or_none, sine_phasor
 from stage_sim.config import NonNeg, Pos, _Strict
+from stage_control.tuning import LoopMargins, closed_loop_bandwidth, loop_margins
 from stage_sim.plant import OK, init_plant_state, plant_step, quantize
 
-__all__ = ["FrequencyResponseTest", "FRF_METRICS", "FRF_METRIC_INFO", "frequency_grid", "sine_phasor",
-           "plant_frf", "PlantFrf", "closed_loop_frf", "controller_frf", "loop_frfs", "loop_margins", "LoopMargins",
+__all__ = ["FrequencyResponseTest", "FRF_METRICS", "FRF_METRIC_INFO", "frequency_grid",
+           "plant_frf", "PlantFrf", "closed_loop_frf", "controller_frf", "loop_frfs",
            "run_frf_campaign", "write_frf_plots", "write_frf_report"]
 
 FRF_METRICS = ("bandwidth_hz", "gain_margin_db", "phase_margin_deg")
@@ -123,46 +124,6 @@ def frequency_grid(test: FrequencyResponseTest) -> np.ndarray:
     n = max(2, int(round(math.log10(test.f_max / test.f_min) * test.points_per_decade)) + 1)
     return np.logspace(math.log10(test.f_min), math.log10(test.f_max), n)
 
-
-# =========================================================================== estimator
-def sine_phasor(t, s, f):
-    """Complex amplitude of a sine in a signal with offset and linear drift (least squares).
-
-    Fits ``s(t) = Re{S exp(j 2 pi f t)} + c + d t`` over the given samples, so that a sine
-    force ``A sin(2 pi f t)`` has ``S = -j A`` and an FRF is ``H = S_y / S_u``. The drift
-    term absorbs a slow creep of a sliding stage; over whole periods it is orthogonal to
-    the sine up to O(1/N) and costs no accuracy.
-
-    Parameters
-    ----------
-    t : array_like, shape (n,)
-        Sample times [s].
-    s : array_like, shape (..., n)
-        Signal(s) [any unit].
-    f : float
-        Frequency [Hz].
-
-    Returns
-    -------
-    complex or numpy.ndarray
-        ``S`` [unit of s], shape ``s.shape[:-1]``.
-
-    Examples
-    --------
-    >>> t = np.arange(1000) * 1e-4
-    >>> s = 2.0 * np.cos(2 * np.pi * 50 * t + 0.5) + 3.0 + 40.0 * t
-    >>> S = sine_phasor(t, s, 50.0)
-    >>> round(abs(S), 9), round(float(np.angle(S)), 9)
-    (2.0, 0.5)
-    """
-    t = np.asarray(t, float)
-    s = np.asarray(s, float)
-    w = 2.0 * np.pi * f
-    tc = t - t.mean()
-    basis = np.stack([np.cos(w * t), np.sin(w * t), np.ones_like(t), tc / max(np.ptp(t), 1e-300)], axis=1)
-    coef, *_ = np.linalg.lstsq(basis, s.reshape(-1, t.size).T, rcond=None)
-    out = coef[0] - 1j * coef[1]
-    return out.reshape(s.shape[:-1]) if s.ndim > 1 else complex(out[0])
 
 
 # =========================================================================== open-loop kernel
@@ -486,80 +447,6 @@ def loop_frfs(preset, freqs_hz, G) -> dict:
     return {"L": L, "T": CG / (1.0 + CG), "G_aug": G_aug, **c}
 
 
-class LoopMargins(NamedTuple):
-    """Margins of a measured loop at its last gain crossover (see :func:`loop_margins`)."""
-    gain_margin_db: float
-    phase_margin_deg: float
-    phase_crossover_hz: float
-    gain_crossover_hz: float
-    n_gain_crossovers: int
-
-
-def loop_margins(freqs_hz, L) -> LoopMargins:
-    """Gain and phase margins of a measured loop FRF, signed (negative = unstable).
-
-    python-control (:func:`control.stability_margins` with ``returnall=True`` on
-    ``control.frd(L, w)``) finds every gain crossover ``|L| = 1`` and phase crossover
-    ``arg L = -180° (mod 360°)``. The loops here have an integrator (type 1 on a stuck stage,
-    type 3 on a sliding one), so low-frequency phase crossovers with ``|L| > 1`` are
-    conditional-stability crossings, not margins; the margins are taken where the loop finally
-    rolls off:
-
-    * ``phase_margin_deg = 180° + arg L`` at the *last* (highest) gain crossover, wrapped into
-      (-180°, 180°] (negative: the phase there is below -180°);
-    * if it is positive, ``gain_margin_db = -20 log10 |L|`` at the first phase crossover above
-      it (inf if none in the measured range); if not, at the last phase crossover below it
-      (|L| > 1 there: the gain margin is negative too).
-
-    Parameters
-    ----------
-    freqs_hz : array_like, shape (n,)
-        Increasing frequencies [Hz] (finite data only).
-    L : array_like, shape (n,)
-        Complex loop FRF.
-
-    Returns
-    -------
-    LoopMargins
-        nan margins if ``|L|`` never crosses 1 in the range.
-
-    Examples
-    --------
-    ``K / (s (s+1) (s+10))`` has its phase crossover at sqrt(10) rad/s where ``|L| = K/110``:
-
-    >>> f = np.logspace(-2.5, 1.5, 1500)
-    >>> s = 2j * np.pi * f
-    >>> [tuple(round(v, 1) for v in loop_margins(f, K / (s * (s + 1) * (s + 10)))[:2]) for K in (11, 220)]
-    [(20.0, 45.2), (-6.0, -11.2)]
-    """
-    import control
-    f = np.asarray(freqs_hz, float)
-    L = np.asarray(L, complex)
-    w = 2 * np.pi * f
-    ph = np.unwrap(np.angle(L))            # continuous, for interpolation between the samples
-    _, _, _, w180, wgc, _ = control.stability_margins(control.frd(L, w), returnall=True)
-    wgc = np.sort(np.asarray(wgc, float).ravel())
-    w180 = np.sort(np.asarray(w180, float).ravel())
-    wgc = wgc[np.isfinite(wgc) & (wgc >= w[0]) & (wgc <= w[-1])]
-    w180 = w180[np.isfinite(w180) & (w180 >= w[0]) & (w180 <= w[-1])]
-    if wgc.size == 0:
-        return LoopMargins(math.nan, math.nan, math.nan, math.nan, 0)
-    lw = np.log(w)
-    wc = float(wgc[-1])
-    pm = (math.degrees(float(np.interp(math.log(wc), lw, ph))) + 360.0) % 360.0 - 180.0
-    pm = 180.0 if pm == -180.0 else pm
-
-    def mag(x):
-        return float(np.exp(np.interp(math.log(x), lw, np.log(np.abs(L)))))
-
-    if pm > 0:
-        above = w180[w180 > wc]
-        wp = float(above[0]) if above.size else math.nan
-    else:
-        below = w180[w180 < wc]
-        wp = float(below[-1]) if below.size else math.nan
-    gm = -20.0 * math.log10(mag(wp)) if math.isfinite(wp) else (math.inf if pm > 0 else math.nan)
-    return LoopMargins(float(gm), float(pm), wp / (2 * np.pi), wc / (2 * np.pi), int(wgc.size))
 
 
 # =========================================================================== campaign
@@ -672,7 +559,6 @@ def run_frf_campaign(camp, out_dir, *, progress: bool = True, report: bool = Tru
 
     from experiment_runner.batch import Models
     from experiment_runner.campaign import CampaignRun, Stat, case_overrides, case_preset, conditions, write_outputs
-    from experiment_runner.metrics import closed_loop_bandwidth
     from stage_sim.config import ConfigError
     if graph:
         raise ConfigError(f"{camp.name}: --graph does not apply to a frequency_response campaign "

@@ -1,16 +1,16 @@
 """Performance metrics for nanopositioning experiments (SI units).
 
 Time-domain metrics (settling time, RMS in-position error, tracking errors)
-follow seed Sec. 3.4 and 4.4; frequency-domain metrics (FRFs, -3 dB
-closed-loop bandwidth, gain and phase margins) follow seed Sec. 4.3.
+follow seed Sec. 3.4 and 4.4; frequency-domain estimates (FRFs from
+sine tests and broadband data) follow seed Sec. 4.3; the closed-loop
+bandwidth and stability margins computed from them live with the loop
+design in :mod:`stage_control.tuning`.
 Time-domain functions accept a single record ``x`` of shape ``(T,)`` or a
 batch of trials of shape ``(n_trials, T)`` sharing the time vector ``t``.
 """
 
 import math
-from typing import NamedTuple
 
-import control
 import numpy as np
 from scipy import signal
 
@@ -168,15 +168,53 @@ def tracking_errors(x_ref, x):
             _scalar_or_array(np.sqrt(np.mean(e**2, axis=-1))))
 
 
+def sine_phasor(t, s, f):
+    """Complex amplitude of a sine in a signal with offset and linear drift (least squares).
+
+    Fits ``s(t) = Re{S exp(j 2 pi f t)} + c + d t`` over the given samples, so that a sine
+    force ``A sin(2 pi f t)`` has ``S = -j A`` and an FRF is ``H = S_y / S_u``. The drift
+    term absorbs a slow creep of a sliding stage; over whole periods it is orthogonal to
+    the sine up to O(1/N) and costs no accuracy.
+
+    Parameters
+    ----------
+    t : array_like, shape (n,)
+        Sample times [s].
+    s : array_like, shape (..., n)
+        Signal(s) [any unit].
+    f : float
+        Frequency [Hz].
+
+    Returns
+    -------
+    complex or numpy.ndarray
+        ``S`` [unit of s], shape ``s.shape[:-1]``.
+
+    Examples
+    --------
+    >>> t = np.arange(1000) * 1e-4
+    >>> s = 2.0 * np.cos(2 * np.pi * 50 * t + 0.5) + 3.0 + 40.0 * t
+    >>> S = sine_phasor(t, s, 50.0)
+    >>> round(abs(S), 9), round(float(np.angle(S)), 9)
+    (2.0, 0.5)
+    """
+    t = np.asarray(t, float)
+    s = np.asarray(s, float)
+    w = 2.0 * np.pi * f
+    tc = t - t.mean()
+    basis = np.stack([np.cos(w * t), np.sin(w * t), np.ones_like(t), tc / max(np.ptp(t), 1e-300)], axis=1)
+    coef, *_ = np.linalg.lstsq(basis, s.reshape(-1, t.size).T, rcond=None)
+    out = coef[0] - 1j * coef[1]
+    return out.reshape(s.shape[:-1]) if s.ndim > 1 else complex(out[0])
+
+
 def frf_sine(t, u, y, segments):
     """FRF ``H = Y / U`` from a stepped-sine test.
 
     For every segment of kind ``"sine"`` (see
-    :func:`experiment_runner.profiles.sine_sweep`), ``u`` and ``y`` are
-    projected on ``exp(-j 2 pi f t)`` over the segment, i.e. the Fourier
-    coefficient at the segment's frequency ``f``. The projection rejects
-    harmonics and the mean exactly when the segment spans whole periods in
-    whole samples, as ``sine_sweep`` guarantees.
+    :func:`experiment_runner.profiles.sine_sweep`), the complex amplitudes of
+    ``u`` and ``y`` at the segment's frequency ``f`` are estimated by
+    :func:`sine_phasor` over the segment and divided.
 
     Parameters
     ----------
@@ -211,11 +249,8 @@ def frf_sine(t, u, y, segments):
     y = np.asarray(y, dtype=float)
     sines = [s for s in segments if s.kind == "sine"]
     freqs = np.array([s.frequency for s in sines])
-    H = []
-    for seg, f in zip(sines, freqs):
-        phasor = np.exp(-2j * np.pi * f * t[seg.start:seg.stop])
-        H.append((y[..., seg.start:seg.stop] @ phasor)
-                 / (u[..., seg.start:seg.stop] @ phasor))
+    H = [sine_phasor(t[s.start:s.stop], y[..., s.start:s.stop], f)
+         / sine_phasor(t[s.start:s.stop], u[..., s.start:s.stop], f) for s, f in zip(sines, freqs)]
     return freqs, np.stack(H, axis=-1)
 
 
@@ -259,93 +294,6 @@ def frf_welch(u, y, fs, nperseg):
     _, s_uy = signal.csd(u, y, fs=fs, nperseg=nperseg)
     return f, s_uy / s_uu, np.abs(s_uy) ** 2 / (s_uu * s_yy)
 
-
-def closed_loop_bandwidth(freqs_hz, T):
-    """-3 dB closed-loop bandwidth [Hz] (seed Fig. 4.6(a)).
-
-    The lowest frequency at which ``|T|`` drops below ``1 / sqrt(2)``
-    (-3 dB relative to the ideal DC gain 1), interpolated linearly in
-    (log frequency, dB) between the two samples around the crossing.
-
-    Parameters
-    ----------
-    freqs_hz : array_like, shape (n,)
-        Increasing frequencies [Hz].
-    T : array_like, shape (n,)
-        Complex closed-loop FRF (reference to position).
-
-    Returns
-    -------
-    float
-        Bandwidth [Hz]; nan if ``|T|`` never drops below the threshold or is
-        already below it at the lowest frequency (the crossing lies outside
-        the measured range).
-
-    Examples
-    --------
-    >>> f = np.logspace(0, 4, 200)  # 50 points per decade
-    >>> round(closed_loop_bandwidth(f, 1 / (1j * f / 200.0 + 1)), 1)  # fc = 200 Hz
-    199.9
-    """
-    f = np.asarray(freqs_hz, dtype=float)
-    mag_db = 20.0 * np.log10(np.abs(np.asarray(T)))
-    threshold = -10.0 * np.log10(2.0)
-    below = np.flatnonzero(mag_db < threshold)
-    if below.size == 0 or below[0] == 0:
-        return float("nan")
-    k = below[0]
-    frac = (threshold - mag_db[k - 1]) / (mag_db[k] - mag_db[k - 1])
-    return float(np.exp(np.log(f[k - 1]) + frac * np.log(f[k] / f[k - 1])))
-
-
-class Margins(NamedTuple):
-    """Classical stability margins of a loop transfer function."""
-
-    gain_margin_db: float
-    """Gain margin [dB] (inf if the phase never crosses -180 deg)."""
-    phase_margin_deg: float
-    """Phase margin [deg] (inf if ``|L|`` never crosses 1)."""
-    phase_crossover_hz: float
-    """Frequency [Hz] of the gain margin (nan if none)."""
-    gain_crossover_hz: float
-    """Frequency [Hz] of the phase margin (nan if none)."""
-
-
-def margins(freqs_hz, L):
-    """Gain and phase margins of a measured open-loop FRF (seed Fig. 4.6).
-
-    Builds ``control.frd(L, 2 pi freqs_hz)`` and calls
-    ``control.stability_margins`` (python-control 0.10), which interpolates
-    the data with splines and returns the smallest margins; crossovers are
-    only found inside the measured frequency range.
-
-    Parameters
-    ----------
-    freqs_hz : array_like, shape (n,)
-        Increasing frequencies [Hz], dense around the crossovers.
-    L : array_like, shape (n,)
-        Complex loop FRF, e.g. controller times plant.
-
-    Returns
-    -------
-    Margins
-        ``(gain_margin_db, phase_margin_deg, phase_crossover_hz,
-        gain_crossover_hz)``.
-
-    Examples
-    --------
-    >>> f = np.logspace(-2, 2, 500)
-    >>> s = 2j * np.pi * f
-    >>> m = margins(f, 20 / (s * (s + 1) * (0.01 * s + 1)))
-    >>> round(m.gain_margin_db, 2), round(m.phase_margin_deg, 2)
-    (14.07, 10.24)
-    """
-    w = 2.0 * np.pi * np.asarray(freqs_hz, dtype=float)
-    gm, pm, _, w_pc, w_gc, _ = control.stability_margins(control.frd(L, w))
-    with np.errstate(divide="ignore"):
-        gm_db = 20.0 * np.log10(gm)
-    return Margins(float(gm_db), float(pm), float(w_pc) / (2.0 * np.pi),
-                   float(w_gc) / (2.0 * np.pi))
 
 
 def error_spectrum(e, fs, window="hann"):

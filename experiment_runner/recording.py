@@ -17,7 +17,10 @@ Writing
 Reading
     :func:`read_recording` reads a recording (the MCAP file or its bag directory), from
     ours, a rig's or any tool that follows the contract, into numpy arrays
-    (:class:`Recording`). It reads through the MCAP index; if the file was cut short (a
+    (:class:`Recording`), with the optional ``/stage/external_force`` and
+    ``/source/channels`` where present; a file without ``/stage/reference`` is an
+    open-loop record, read only on request (``require_reference=False``). It reads
+    through the MCAP index; if the file was cut short (a
     killed recorder) it falls back to reading record by record up to the last complete
     chunk and says what it salvaged in ``Recording.salvaged`` (messages, of how many
     recorded when the bag's ``metadata.yaml`` tells, and the stage time span). A damaged
@@ -43,9 +46,9 @@ from pathlib import Path
 import numpy as np
 
 from msg_defs import convert
-from msg_defs.topics import (BEARING, CLOCK, COMMAND, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS, ISOLATOR,
-                             ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS, TABLE, TOPICS,
-                             TRUTH, Qos, qos_yaml)
+from msg_defs.topics import (BEARING, CLOCK, COMMAND, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS, EXTERNAL_FORCE,
+                             ISOLATOR, ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS,
+                             SOURCE_CHANNELS, TABLE, TOPICS, TRUTH, Qos, qos_yaml)
 
 __all__ = ["RecordingError", "McapRecorder", "Recording", "JointSeries", "Trial", "read_recording",
            "write_run", "run_config_yaml", "mcap_file", "bag_layout"]
@@ -211,18 +214,9 @@ class McapRecorder:
         return conn
 
     # ------------------------------------------------------------------ writing
-    def _serialize(self, topic: str, msg_type: str, msg):
-        store = self._store
-        if convert.is_rosbags(msg):
-            return store.serialize_cdr(msg, msg_type)
-        from rclpy.serialization import serialize_message
-        raw = serialize_message(msg)
-        # Fast CDR leaves padding bytes uninitialised and pads the end to 8 bytes, which
-        # rosbags' reader refuses: re-encode canonically (same values, zero padding).
-        msgdef = store.get_msgdef(msg_type)
-        func = msgdef.deserialize_cdr_le if raw[1] else msgdef.deserialize_cdr_be
-        obj, _ = func(raw[4:], 0, msgdef.cls, store)
-        return store.serialize_cdr(obj, msg_type)
+    def _serialize(self, msg_type: str, msg) -> bytes:
+        """Canonical CDR (zero padding, nothing after the last field) of a message of any family."""
+        return self._store.serialize_cdr(convert.to_rosbags(msg, self._store), msg_type)
 
     def write(self, topic: str, stamp_ns: int, msg) -> None:
         """Write one message at stage time ``stamp_ns`` [ns] (its MCAP log time).
@@ -251,7 +245,7 @@ class McapRecorder:
                 if got != stamp_ns:
                     raise ValueError(f"{topic}: message stamp {got} ns != log time {stamp_ns} ns "
                                      "(both must be the sample's stage time)")
-            data = self._serialize(topic, msg_type, msg)
+            data = self._serialize(msg_type, msg)
         self._writer.write(conn, stamp_ns, data)
         self.counts[topic] += 1
 
@@ -341,9 +335,29 @@ class Recording:
     profile: str
     salvaged: str | None = None   # what was read from a file cut short (None = intact)
     warnings: list[str] = field(default_factory=list)
+    open_loop: bool = False       # no /stage/reference: the recorded command drove the plant (x_ref, v_ref nan)
+    external_force: np.ndarray | None = None   # known external force on the table [N] (/stage/external_force;
+    #                                            None: the recording has none; nan where a sample lacks it)
+    source: JointSeries | None = None          # /source/channels: columns an importer kept, as in the file
 
     def __len__(self):
         return len(self.stamp_ns)
+
+    @property
+    def axis(self) -> str:
+        """``"linear"`` or ``"rotary"``: ``run.axis`` of ``/experiment/config`` (an imported
+        recording), else the preset's ``stage.kind`` (a simulated one), else linear."""
+        import yaml
+        try:
+            cfg = yaml.safe_load(self.config or "") or {}
+        except yaml.YAMLError:
+            return "linear"
+        if not isinstance(cfg, dict):
+            return "linear"
+        run, preset = cfg.get("run"), cfg.get("preset")
+        kind = (run.get("axis") if isinstance(run, dict) else None) or \
+            ((preset.get("stage") or {}).get("kind") if isinstance(preset, dict) else None)
+        return kind if kind in ("linear", "rotary") else "linear"
 
     @property
     def duration(self) -> float:
@@ -673,19 +687,25 @@ def _need(series: JointSeries, topic: str, name: str, fld: str) -> np.ndarray:
     return col
 
 
-def read_recording(path) -> Recording:
+def read_recording(path, require_reference: bool = True) -> Recording:
     """Read a contract recording into arrays.
 
     Parameters
     ----------
     path : str or Path
         The MCAP file, or the bag directory holding it.
+    require_reference : bool
+        A recording without ``/stage/reference`` is an open-loop record (the recorded
+        command drove the plant; ``nanostage convert`` writes one from a table without a
+        reference column). Tools that need a reference (closed-loop replay) refuse it: the
+        default. With ``False`` it is read with ``open_loop = True`` and nan ``x_ref``/``v_ref``.
 
     Returns
     -------
     Recording
-        Control samples are those present on all three contract topics (matched by
+        Control samples are those present on all contract topics the file has (matched by
         log time). ``salvaged`` describes what was recovered from a file cut short.
+        ``external_force`` holds ``/stage/external_force`` at the control samples.
 
     Raises
     ------
@@ -702,9 +722,12 @@ def read_recording(path) -> Recording:
     topics = {c.topic: (raw.schemas[c.schema_id].name if c.schema_id in raw.schemas else "?")
               for c in raw.channels.values()}
     missing = [t for t in CONTRACT_TOPICS if t not in topics]
-    if missing:
+    open_loop = missing == [REFERENCE.name] and not require_reference
+    if missing and not open_loop:
+        hint = ("; a recording without it is open-loop, which this reader was not asked to take "
+                "(read_recording(..., require_reference=False))") if missing == [REFERENCE.name] else ""
         raise RecordingError(f"{where}: missing contract topic(s) {', '.join(missing)}; "
-                             f"topics present: {sorted(topics) or 'none'}")
+                             f"topics present: {sorted(topics) or 'none'}{hint}")
     for c in raw.channels.values():
         if c.topic in TOPICS and c.schema_id not in raw.schemas:
             raise RecordingError(f"{where}: {c.topic} (channel {c.id}) refers to schema {c.schema_id}, which "
@@ -747,11 +770,11 @@ def read_recording(path) -> Recording:
             raise RecordingError(f"{raw.path}: {ch.topic}: message at {m.log_time} ns does not decode "
                                  f"as {topics[ch.topic]} ({err})") from None
 
-    empty = [t for t in CONTRACT_TOPICS if not by_topic[t]]
+    empty = [t for t in CONTRACT_TOPICS if not by_topic[t] and not (open_loop and t == REFERENCE.name)]
     if empty:
         raise RecordingError(f"{where}: contract topic(s) {', '.join(empty)} hold no messages")
     try:
-        return _assemble(raw, where, topics, by_topic, counts)
+        return _assemble(raw, where, topics, by_topic, counts, open_loop)
     except RecordingError:
         raise
     except (AttributeError, TypeError, ValueError, IndexError, KeyError) as err:
@@ -759,41 +782,57 @@ def read_recording(path) -> Recording:
                              f"{err}); the schema was altered or the file is damaged") from None
 
 
-def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Counter) -> Recording:
+def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Counter,
+              open_loop: bool = False) -> Recording:
     """Decoded messages -> :class:`Recording` (control samples on all contract topics)."""
     warnings = []
-    series = {t: _joint_series(t, by_topic[t]) for t in (*CONTRACT_TOPICS, TRUTH.name, DITHER.name, ISOLATOR.name)
+    series = {t: _joint_series(t, by_topic[t]) for t in (*CONTRACT_TOPICS, TRUTH.name, DITHER.name, ISOLATOR.name,
+                                                         EXTERNAL_FORCE.name, SOURCE_CHANNELS.name)
               if by_topic[t]}
+    sample_topics = tuple(t for t in CONTRACT_TOPICS if not (open_loop and t == REFERENCE.name))
     for t in series:
         bad = sum(1 for lt, m in by_topic[t] if hasattr(m, "header") and convert.stamp_ns(m) != lt)
         if bad:
             warnings.append(f"{t}: {bad} message(s) with header.stamp != log time (log time used)")
 
-    # control samples: stamps present on all three contract topics
+    # control samples: stamps present on all three contract topics (two in an open-loop record)
     firsts = {}
-    for t in CONTRACT_TOPICS:
+    for t in sample_topics:
         uniq, idx = np.unique(series[t].stamp_ns, return_index=True)
         if len(uniq) < len(series[t]):
             warnings.append(f"{t}: {len(series[t]) - len(uniq)} duplicate stamp(s); first kept")
         firsts[t] = (uniq, idx)
-    common = firsts[CONTRACT_TOPICS[0]][0]
-    for t in CONTRACT_TOPICS[1:]:
+    common = firsts[sample_topics[0]][0]
+    for t in sample_topics[1:]:
         common = np.intersect1d(common, firsts[t][0], assume_unique=True)
     if not len(common):
-        raise RecordingError(f"{where}: no control sample has messages on all of {', '.join(CONTRACT_TOPICS)}")
+        raise RecordingError(f"{where}: no control sample has messages on all of {', '.join(sample_topics)}")
     cols = {}
-    for t in CONTRACT_TOPICS:
+    for t in sample_topics:
         uniq, idx = firsts[t]
         rows = idx[np.searchsorted(uniq, common)]
         if len(uniq) > len(common):
             warnings.append(f"{t}: {len(uniq) - len(common)} sample(s) not on every contract topic, dropped")
         cols[t] = rows
-    ref, cmd, meas = (series[t] for t in CONTRACT_TOPICS)
-    x_ref = _need(ref, REFERENCE.name, TABLE, "position")[cols[REFERENCE.name]]
-    v_ref = ref.joint(TABLE, "velocity")[cols[REFERENCE.name]]
+    cmd, meas = series[COMMAND.name], series[MEASURED.name]
+    if open_loop:
+        x_ref = v_ref = np.full(len(common), np.nan)
+    else:
+        ref = series[REFERENCE.name]
+        x_ref = _need(ref, REFERENCE.name, TABLE, "position")[cols[REFERENCE.name]]
+        v_ref = ref.joint(TABLE, "velocity")[cols[REFERENCE.name]]
     u = _need(cmd, COMMAND.name, MOTOR, "effort")[cols[COMMAND.name]]
     y = _need(meas, MEASURED.name, TABLE, "position")[cols[MEASURED.name]]
     y_b = meas.joint(BEARING, "position")[cols[MEASURED.name]]
+    f_ext = None
+    if EXTERNAL_FORCE.name in series:
+        ext = series[EXTERNAL_FORCE.name]
+        uniq, idx = np.unique(ext.stamp_ns, return_index=True)
+        pos = np.minimum(np.searchsorted(uniq, common), len(uniq) - 1)
+        hit = uniq[pos] == common
+        f_ext = np.where(hit, _need(ext, EXTERNAL_FORCE.name, TABLE, "effort")[idx[pos]], np.nan)
+        if not hit.all():
+            warnings.append(f"{EXTERNAL_FORCE.name}: {int((~hit).sum())} control sample(s) without a value (nan)")
 
     def _json_list(topic, parse):
         out = []
@@ -819,7 +858,8 @@ def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Count
         path=raw.path, stamp_ns=common.astype(np.int64), t=common * 1e-9, x_ref=x_ref, v_ref=v_ref, u=u, y=y,
         y_bearing=y_b, events=events, results=results, config=configs[0][1].data if configs else None,
         truth=series.get(TRUTH.name), dither=series.get(DITHER.name), isolator=series.get(ISOLATOR.name),
-        topics=topics, counts=dict(counts), profile=raw.profile, salvaged=raw.salvaged, warnings=warnings)
+        topics=topics, counts=dict(counts), profile=raw.profile, salvaged=raw.salvaged, warnings=warnings,
+        open_loop=open_loop, external_force=f_ext, source=series.get(SOURCE_CHANNELS.name))
 
 
 # =========================================================================== batch -> recording

@@ -26,6 +26,7 @@ Examples
 from __future__ import annotations
 
 import array
+import dataclasses
 import importlib
 import json
 import math
@@ -41,7 +42,7 @@ __all__ = [
     "clock_msg", "float64_multiarray", "stamp_ns", "joint", "values",
     "Trajectory", "trajectory_to_msg", "trajectory_from_msg",
     "Correction", "correction_to_msg", "correction_from_msg",
-    "event", "event_json", "event_msg", "parse_event", "to_json", "from_json", "message_type_of",
+    "event", "event_json", "event_msg", "parse_event", "to_json", "from_json", "message_type_of", "to_rosbags",
 ]
 
 NS = 1_000_000_000
@@ -96,6 +97,41 @@ def _float_array(types, x):
 
 def _rosbags_family(types) -> bool:
     return _is_typestore(types) or (isinstance(types, type) and is_rosbags(types))
+
+
+def _is_message(obj) -> bool:
+    """An rclpy message instance (generated classes carry ``get_fields_and_field_types``)."""
+    return hasattr(type(obj), "get_fields_and_field_types")
+
+
+def _rosbags_value(v, store):
+    if _is_message(v) or is_rosbags(v):
+        return to_rosbags(v, store)
+    if isinstance(v, array.array):
+        return np.array(v, dtype=np.dtype(v.typecode))
+    if isinstance(v, np.ndarray):
+        return v.copy()
+    if isinstance(v, list) and v and isinstance(v[0], bytes):      # byte[]
+        return np.frombuffer(b"".join(v), np.uint8).copy()
+    if isinstance(v, (list, tuple)) and v and (_is_message(v[0]) or is_rosbags(v[0])):
+        return [to_rosbags(x, store) for x in v]
+    return list(v) if isinstance(v, tuple) else v
+
+
+def to_rosbags(msg, store=None):
+    """The same message as a rosbags dataclass (``store``: a Typestore, default ROS 2 Jazzy):
+    how a ROS-free module (the recording writer) serializes an rclpy message.
+
+    >>> m = to_rosbags(joint_state(message_class(None, "sensor_msgs/msg/JointState"), 5, ["table"], [1.5]))
+    >>> m.__msgtype__, stamp_ns(m), m.position.tolist()
+    ('sensor_msgs/msg/JointState', 5, [1.5])
+    """
+    store = store or _jazzy_store()
+    if is_rosbags(msg):
+        return msg
+    cls = store.types[message_type_of(msg)]
+    return cls(**{f.name: _rosbags_value(getattr(msg, f.name), store) for f in dataclasses.fields(cls)
+                  if f.name != "__msgtype__"})
 
 
 # --------------------------------------------------------------------------- builders

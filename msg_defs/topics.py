@@ -6,13 +6,14 @@ standard message type, units, QoS, rate and content. The recording contract
 (``/stage/reference``, ``/stage/command``, ``/stage/measured``) and the optional ones
 (``/experiment/config``, ``/experiment/events``, ``/clock``, ``/stage/truth``,
 ``/stage/dither``, ``/stage/isolator``); the project adds ``/experiment/trajectory``,
-``/stage/correction`` and ``/experiment/results``. ``msg_defs/README.md`` shows the
+``/stage/correction``, ``/experiment/results``, ``/stage/external_force`` (a known
+external force input) and ``/source/channels`` (source columns an importer keeps). ``msg_defs/README.md`` shows the
 same table for people; :func:`markdown_table` prints it from this module.
 
-QoS is plain data (:class:`Qos`); :func:`qos_profile` turns it into an
-``rclpy.qos.QoSProfile`` (rclpy is imported only there, so this module imports
-without ROS) and :func:`offered_qos_yaml` into the ``offered_qos_profiles`` string
-that rosbag2 (Jazzy, bag version 9) stores on each MCAP channel.
+QoS is plain data (:class:`Qos`); the ROS layer turns it into an
+``rclpy.qos.QoSProfile`` (:mod:`experiment_runner.ros.qos`), :func:`offered_qos_yaml`
+into the ``offered_qos_profiles`` string that rosbag2 (Jazzy, bag version 9) stores on
+each MCAP channel. This module imports no ROS package.
 
 Examples
 --------
@@ -30,9 +31,9 @@ from dataclasses import dataclass
 __all__ = [
     "Qos", "Topic", "TOPICS", "CONTRACT_TOPICS",
     "REFERENCE", "COMMAND", "MEASURED", "TRUTH", "DITHER", "ISOLATOR", "CORRECTION", "CLOCK",
-    "CONFIG", "EVENTS", "TRAJECTORY", "RESULTS",
-    "TABLE", "BEARING", "MOTOR", "PIEZOS", "ISOLATOR_JOINT", "EVENT_KINDS",
-    "get_topic", "qos_profile", "subscription_qos", "rosbag2_qos", "offered_qos_yaml", "qos_yaml", "markdown_table",
+    "CONFIG", "EVENTS", "TRAJECTORY", "RESULTS", "SAI_COMMAND", "EXTERNAL_FORCE", "SOURCE_CHANNELS",
+    "TABLE", "BEARING", "MOTOR", "PIEZOS", "ISOLATOR_JOINT", "EVENT_KINDS", "FAULT_CAUSES",
+    "get_topic", "rosbag2_qos", "offered_qos_yaml", "qos_yaml", "markdown_table",
     "INFINITE_DURATION",
 ]
 
@@ -51,12 +52,19 @@ ISOLATOR_JOINT = "isolator"
 EVENT_KINDS = ("run_start", "run_end", "trial_start", "trial_end", "abort", "fault")
 """Values of the ``event`` field of an ``/experiment/events`` message."""
 
+FAULT_CAUSES = ("watchdog", "non_finite_input", "diverged", "out_of_travel", "reference_out_of_travel",
+                "joined_mid_trial", "restarted", "recording_incomplete")
+"""``cause`` of a ``fault`` event: no input within the timeout (the plant holds zero force),
+a NaN/inf input, a non-finite or runaway state, the table outside its travel, a reference
+outside the travel (refused), a node that joined a trial after its first sample, a node
+that restarted mid-run, per-sample messages that never reached the recorder."""
+
 CONTROL_DEPTH = 1000
 """Keep-last depth of the per-sample (lockstep) topics: 0.1 s at the 10 kHz control
 rate, so a subscriber (the recorder) that falls that far behind still loses nothing.
 Their publishers keep these samples for late joiners too (``transient_local``): a
 recorder that discovery matches with a publisher only after the first samples went
-out still gets them (see :func:`subscription_qos`)."""
+out still gets them (see :func:`experiment_runner.ros.qos.subscription_qos`)."""
 
 INFINITE_DURATION = (9223372036, 854775807)
 """``(sec, nsec)`` that rosbag2 writes for an unset (infinite) QoS duration."""
@@ -108,7 +116,7 @@ class Topic:
     units : str
         SI units of the content.
     qos : Qos
-        QoS the publishers offer (subscribers: :func:`subscription_qos`).
+        QoS the publishers offer (subscribers: :func:`experiment_runner.ros.qos.subscription_qos`).
     rate : str
         When it is published.
     description : str
@@ -198,13 +206,33 @@ RESULTS = Topic(
     "peak_tracking_error_m, rms_tracking_error_m (null = not settled / not defined), "
     "target_m, settle_start_s, node")
 
+EXTERNAL_FORCE = Topic(
+    "/stage/external_force", "sensor_msgs/msg/JointState", "N (N·m on a rotary stage)", _LOCKSTEP,
+    "every control sample (only where a known external force acts)",
+    'name ["table"], effort [F_e]: a known external force on the table (a shaker, a calibrated load, '
+    "a test pulse; not the drive's force, which is /stage/command), +x, applied over [k, k+1); "
+    "a recording without this topic had none", stream=True)
+SOURCE_CHANNELS = Topic(
+    "/source/channels", "sensor_msgs/msg/JointState", "the source file's (as the mapping states them in /experiment/config)",
+    _LOCKSTEP, "every control sample (imported recordings that keep extra columns)",
+    "name = the source file's column names, position = their values as in the file, unscaled; "
+    "kept by nanostage convert (mapping key extra) for the reader's reference, not used by any tool",
+    stream=True)
+
 TOPICS: dict[str, Topic] = {t.name: t for t in (
     REFERENCE, COMMAND, MEASURED, TRUTH, DITHER, ISOLATOR, CORRECTION, CLOCK,
-    CONFIG, EVENTS, TRAJECTORY, RESULTS)}
+    CONFIG, EVENTS, TRAJECTORY, RESULTS, EXTERNAL_FORCE, SOURCE_CHANNELS)}
 """Every topic of the contract, by name."""
 
 CONTRACT_TOPICS = (REFERENCE.name, COMMAND.name, MEASURED.name)
 """The topics every recording has (what a hardware rig can give)."""
+
+SAI_COMMAND = Topic(
+    "/sai/command", "sensor_msgs/msg/JointState", "1, m", Qos("reliable", "volatile", 1000),
+    "every control sample, one sample ahead (SAI stages)",
+    'name ["isolator"], position [mode] (1 compliant, 0 stiff), effort [x_correction]: the SAI '
+    "manager's mode and Step II reference correction for the sample of its stamp")
+"""Internal lockstep topic of the graph: not in :data:`TOPICS`, not recorded."""
 
 
 def get_topic(topic: Topic | str) -> Topic:
@@ -219,34 +247,6 @@ def get_topic(topic: Topic | str) -> Topic:
 
 def _qos_of(topic) -> Qos:
     return topic if isinstance(topic, Qos) else get_topic(topic).qos
-
-
-def qos_profile(topic: Topic | Qos | str):
-    """The ``rclpy.qos.QoSProfile`` of a topic (rclpy is imported here, lazily)."""
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-    q = _qos_of(topic)
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST if q.history == "keep_last" else HistoryPolicy.KEEP_ALL,
-        depth=q.depth,
-        reliability=ReliabilityPolicy.RELIABLE if q.reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT,
-        durability=(DurabilityPolicy.TRANSIENT_LOCAL if q.durability == "transient_local"
-                    else DurabilityPolicy.VOLATILE))
-
-
-def subscription_qos(topic: Topic | str, record: bool = False):
-    """The ``QoSProfile`` a subscriber of ``topic`` requests: the offered one, except that on
-    a per-sample topic (``stream``) only a recorder (``record``) asks for the samples sent
-    before it joined; anyone else gets live samples only.
-
-    >>> from rclpy.qos import DurabilityPolicy
-    >>> subscription_qos("/stage/measured").durability == DurabilityPolicy.VOLATILE
-    True
-    >>> subscription_qos("/stage/measured", record=True).durability == DurabilityPolicy.TRANSIENT_LOCAL
-    True
-    """
-    from dataclasses import replace
-    t = get_topic(topic)
-    return qos_profile(replace(t.qos, durability="volatile") if t.stream and not record else t.qos)
 
 
 def rosbag2_qos(topic: Topic | Qos | str) -> dict:

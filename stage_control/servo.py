@@ -46,7 +46,7 @@ from numba import njit
 
 from stage_control.filters import dc_state, discretize, realize, ss_coefficients
 from stage_sim.config import Controller, DahlFriction, GmsFriction, Stage
-from stage_sim.friction import dahl_update
+from stage_sim.friction import dahl_update, gms_block
 
 __all__ = ["ServoModel", "build_servo", "check_reference", "init_servo_state", "servo_step"]
 
@@ -259,15 +259,14 @@ def servo_step(model, state, x_ref, v_ref, x_meas, u_out):
         fc, visc = model.ff_fc, model.ff_viscous
         for b in range(nb):
             u_out[b] = 0.0
-        for i in range(model.n_ff):          # Eq. 4.4, block by block (= gms_update)
+        for i in range(model.n_ff):          # Eq. 4.4, block by block
             lim = model.ff_alpha[i] * fc
             ki_ = model.ff_k[i]
             row = SERVO_FF + i
             for b in range(nb):
                 xr = x_ref[b]
                 prev = xr if s[SERVO_STARTED, b] == 0.0 else s[SERVO_XREF_PREV, b]
-                fi = s[row, b] + ki_ * (xr - prev)
-                fi = lim if fi > lim else (-lim if fi < -lim else fi)
+                fi = gms_block(s[row, b], xr - prev, ki_, lim)
                 s[row, b] = fi
                 u_out[b] += fi
         for b in range(nb):

@@ -27,8 +27,17 @@ For a trial open-loop crossover ``wc`` [rad/s]:
    The resulting derivative zero ``wz = 1 / (1/wd + kd/kp)`` lies below ``wc``.
 
 The crossover ``wc`` is then found with Brent's method so that the closed-loop
-``-3 dB`` bandwidth of ``T = CG / (1 + CG)`` computed by python-control
-(:func:`control.bandwidth`) equals the requested bandwidth (to 1e-6 relative).
+``-3 dB`` bandwidth of ``T = CG / (1 + CG)`` (:func:`closed_loop_bandwidth`, where
+``|T|`` first drops below -3 dB) equals the requested bandwidth (to 1e-6
+relative).
+
+Analysis
+--------
+One implementation serves measured FRFs (the campaigns' stepped-sine tests) and the
+models here alike: :func:`closed_loop_bandwidth` and :func:`loop_margins` take an FRF on
+a frequency grid (python-control's :func:`control.stability_margins` on
+:func:`control.frd` finds the crossovers); :func:`closed_loop_bandwidth_hz` and
+:func:`margins` evaluate the model's loop on :data:`FREQUENCY_GRID_HZ` and call them.
 With the defaults (PM 40°, ``wd = 3 wc``, ``wi = wc/5``) the crossover lands at
 ``wc = 0.572 x bandwidth`` (114.5 Hz for 200 Hz): the -3 dB point of a 40° loop lies
 well above its crossover because of the closed-loop peaking.
@@ -59,7 +68,7 @@ Examples
 from __future__ import annotations
 
 import math
-from typing import Mapping, Optional
+from typing import Mapping, NamedTuple, Optional
 
 import control as ct
 import numpy as np
@@ -69,6 +78,7 @@ __all__ = [
     "DEFAULT_RATE", "HALF_SAMPLE_DELAY",
     "plant_tf", "pid_tf", "delay_tf",
     "loop_shape_pid", "closed_loop_bandwidth_hz", "margins",
+    "closed_loop_bandwidth", "LoopMargins", "loop_margins", "FREQUENCY_GRID_HZ",
 ]
 
 #: Control rate of the seed's dSPACE DS1007 boards [Hz] (Sec. 3.4, 4.3, 5.3).
@@ -173,7 +183,140 @@ def delay_tf(delay: float, order: int = 2) -> ct.TransferFunction:
     return ct.tf(num, den)
 
 
+# --------------------------------------------------------------------------- FRF analysis
+# One implementation of the closed-loop bandwidth and the stability margins, for measured
+# FRFs (campaigns) and for the models below alike.
+def closed_loop_bandwidth(freqs_hz, T) -> float:
+    """-3 dB closed-loop bandwidth [Hz] (seed Fig. 4.6(a)).
+
+    The lowest frequency at which ``|T|`` drops below -3 dB relative to the
+    ideal DC gain 1 (``10**(-3/20)``, as :func:`control.bandwidth` defines it;
+    ``1/sqrt(2)`` = -3.01 dB would read 0.08 % higher on the seed's loops),
+    interpolated linearly in (log frequency, dB) between the two samples around
+    the crossing.
+
+    Parameters
+    ----------
+    freqs_hz : array_like, shape (n,)
+        Increasing frequencies [Hz].
+    T : array_like, shape (n,)
+        Complex closed-loop FRF (reference to position).
+
+    Returns
+    -------
+    float
+        Bandwidth [Hz]; nan if ``|T|`` never drops below the threshold or is
+        already below it at the lowest frequency (the crossing lies outside
+        the measured range).
+
+    Examples
+    --------
+    >>> f = np.logspace(0, 4, 200)  # 50 points per decade
+    >>> round(closed_loop_bandwidth(f, 1 / (1j * f / 200.0 + 1)), 1)  # exact: 200 sqrt(10**0.3 - 1)
+    199.5
+    """
+    f = np.asarray(freqs_hz, dtype=float)
+    mag_db = 20.0 * np.log10(np.abs(np.asarray(T)))
+    threshold = -3.0
+    below = np.flatnonzero(mag_db < threshold)
+    if below.size == 0 or below[0] == 0:
+        return float("nan")
+    k = below[0]
+    frac = (threshold - mag_db[k - 1]) / (mag_db[k] - mag_db[k - 1])
+    return float(np.exp(np.log(f[k - 1]) + frac * np.log(f[k] / f[k - 1])))
+
+
+
+def _crossovers(freqs_hz, L):
+    """Gain and phase crossovers [rad/s] of a loop FRF (python-control, inside the range),
+    and ``|L|`` / unwrapped ``arg L`` interpolated in log frequency."""
+    f = np.asarray(freqs_hz, float)
+    L = np.asarray(L, complex)
+    w = _TWO_PI * f
+    _, _, _, w180, wgc, _ = ct.stability_margins(ct.frd(L, w), returnall=True)
+    wgc = np.sort(np.asarray(wgc, float).ravel())
+    w180 = np.sort(np.asarray(w180, float).ravel())
+    wgc = wgc[np.isfinite(wgc) & (wgc >= w[0]) & (wgc <= w[-1])]
+    w180 = w180[np.isfinite(w180) & (w180 >= w[0]) & (w180 <= w[-1])]
+    lw, lmag, ph = np.log(w), np.log(np.abs(L)), np.unwrap(np.angle(L))
+
+    def mag(x):
+        return float(np.exp(np.interp(math.log(x), lw, lmag)))
+
+    def phase(x):
+        return float(np.interp(math.log(x), lw, ph))
+    return f, L, wgc, w180, mag, phase
+
+class LoopMargins(NamedTuple):
+    """Margins of a measured loop at its last gain crossover (see :func:`loop_margins`)."""
+    gain_margin_db: float
+    phase_margin_deg: float
+    phase_crossover_hz: float
+    gain_crossover_hz: float
+    n_gain_crossovers: int
+
+
+def loop_margins(freqs_hz, L) -> LoopMargins:
+    """Gain and phase margins of a measured loop FRF, signed (negative = unstable).
+
+    python-control (:func:`control.stability_margins` with ``returnall=True`` on
+    ``control.frd(L, w)``) finds every gain crossover ``|L| = 1`` and phase crossover
+    ``arg L = -180° (mod 360°)``. The loops here have an integrator (type 1 on a stuck stage,
+    type 3 on a sliding one), so low-frequency phase crossovers with ``|L| > 1`` are
+    conditional-stability crossings, not margins; the margins are taken where the loop finally
+    rolls off:
+
+    * ``phase_margin_deg = 180° + arg L`` at the *last* (highest) gain crossover, wrapped into
+      (-180°, 180°] (negative: the phase there is below -180°);
+    * if it is positive, ``gain_margin_db = -20 log10 |L|`` at the first phase crossover above
+      it (inf if none in the measured range); if not, at the last phase crossover below it
+      (|L| > 1 there: the gain margin is negative too).
+
+    Parameters
+    ----------
+    freqs_hz : array_like, shape (n,)
+        Increasing frequencies [Hz] (finite data only).
+    L : array_like, shape (n,)
+        Complex loop FRF.
+
+    Returns
+    -------
+    LoopMargins
+        nan margins if ``|L|`` never crosses 1 in the range.
+
+    Examples
+    --------
+    ``K / (s (s+1) (s+10))`` has its phase crossover at sqrt(10) rad/s where ``|L| = K/110``:
+
+    >>> f = np.logspace(-2.5, 1.5, 1500)
+    >>> s = 2j * np.pi * f
+    >>> [tuple(round(v, 1) for v in loop_margins(f, K / (s * (s + 1) * (s + 10)))[:2]) for K in (11, 220)]
+    [(20.0, 45.2), (-6.0, -11.2)]
+    """
+    f, L, wgc, w180, mag, phase = _crossovers(freqs_hz, L)
+    if wgc.size == 0:
+        return LoopMargins(math.nan, math.nan, math.nan, math.nan, 0)
+    wc = float(wgc[-1])
+    pm = (math.degrees(phase(wc)) + 360.0) % 360.0 - 180.0
+    pm = 180.0 if pm == -180.0 else pm
+
+    if pm > 0:
+        above = w180[w180 > wc]
+        wp = float(above[0]) if above.size else math.nan
+    else:
+        below = w180[w180 < wc]
+        wp = float(below[-1]) if below.size else math.nan
+    gm = -20.0 * math.log10(mag(wp)) if math.isfinite(wp) else (math.inf if pm > 0 else math.nan)
+    return LoopMargins(float(gm), float(pm), wp / (2 * np.pi), wc / (2 * np.pi), int(wgc.size))
+
+
+
 # --------------------------------------------------------------------------- analysis
+#: Frequencies [Hz] on which the models' loops are evaluated: 0.01 Hz to 100 kHz,
+#: 500 per decade (linear interpolation between them is exact to ~1e-5 in dB and degrees).
+FREQUENCY_GRID_HZ = np.logspace(-2.0, 5.0, 3501)
+
+
 def _loop(mass, gains, delay=0.0, pade_order=2):
     L = pid_tf(gains) * plant_tf(mass)
     if delay:
@@ -181,12 +324,19 @@ def _loop(mass, gains, delay=0.0, pade_order=2):
     return L
 
 
+def _loop_frf(mass, gains, delay=0.0, pade_order=2) -> np.ndarray:
+    """``L(j w)`` of the PID on the rigid plant on :data:`FREQUENCY_GRID_HZ`."""
+    return np.asarray(_loop(mass, gains, delay, pade_order)(2j * np.pi * FREQUENCY_GRID_HZ), complex)
+
+
 def closed_loop_bandwidth_hz(mass: float, gains: Mapping[str, Optional[float]],
                              delay: float = 0.0, pade_order: int = 2) -> float:
     """Closed-loop ``-3 dB`` bandwidth of the PID on the rigid plant.
 
-    Computed by :func:`control.bandwidth` on ``T = CG/(1 + CG)`` (first frequency where
-    ``|T|`` drops 3 dB below its DC value of 1).
+    :func:`closed_loop_bandwidth` of ``T = CG/(1 + CG)`` evaluated on
+    :data:`FREQUENCY_GRID_HZ` (first frequency where ``|T|`` drops below -3 dB; its DC
+    value is 1 with the integrator or the double-integrator plant), the definition of
+    :func:`control.bandwidth`.
 
     Parameters
     ----------
@@ -211,16 +361,29 @@ def closed_loop_bandwidth_hz(mass: float, gains: Mapping[str, Optional[float]],
     >>> round(closed_loop_bandwidth_hz(1.5, g), 1)   # Table A.1 PD on the ALS-130H
     199.2
     """
-    T = ct.feedback(_loop(mass, gains, delay, pade_order), 1)
-    return float(ct.bandwidth(T)) / _TWO_PI
+    loop = _loop(mass, gains, delay, pade_order)
+    L = np.asarray(loop(2j * np.pi * FREQUENCY_GRID_HZ), complex)
+    f_bw = closed_loop_bandwidth(FREQUENCY_GRID_HZ, L / (1.0 + L))
+    if not math.isfinite(f_bw):
+        return f_bw
+    # the model is known between the grid points: polish the crossing to machine precision
+
+    def excess_db(f):
+        Lf = complex(loop(2j * np.pi * f))
+        return 20.0 * math.log10(abs(Lf / (1.0 + Lf))) + 3.0
+    k = int(np.searchsorted(FREQUENCY_GRID_HZ, f_bw))
+    lo, hi = FREQUENCY_GRID_HZ[max(k - 1, 0)], FREQUENCY_GRID_HZ[min(k, FREQUENCY_GRID_HZ.size - 1)]
+    if excess_db(lo) > 0 > excess_db(hi):
+        f_bw = brentq(excess_db, lo, hi, xtol=1e-12 * hi, rtol=1e-14)
+    return float(f_bw)
 
 
 def margins(mass: float, gains: Mapping[str, Optional[float]],
             delay: float = HALF_SAMPLE_DELAY, pade_order: int = 2) -> dict:
     """Stability margins of the PID on the rigid plant, with the sampling delay.
 
-    Uses :func:`control.stability_margins` on ``L = C G D`` where ``D`` is a Padé
-    approximation of ``delay`` (default: half a sample at 10 kHz, the ZOH delay of
+    :func:`loop_margins` of ``L = C G D`` evaluated on :data:`FREQUENCY_GRID_HZ`, where
+    ``D`` is a Padé approximation of ``delay`` (default: half a sample at 10 kHz, the ZOH delay of
     the seed's dSPACE loop; pass ``1/rate`` for a one-sample delay, 0 for none).
 
     Parameters
@@ -255,25 +418,22 @@ def margins(mass: float, gains: Mapping[str, Optional[float]],
     >>> m["gain_margin_db"] > 20, m["lower_gain_margin"] < 0.5
     (True, True)
     """
-    L = _loop(mass, gains, delay, pade_order)
-    gm, pm, sm, wpc, wgc, wms = (np.atleast_1d(np.asarray(v, dtype=float))
-                                 for v in ct.stability_margins(L, returnall=True))
+    L = _loop_frf(mass, gains, delay, pade_order)
+    m = loop_margins(FREQUENCY_GRID_HZ, L)
     # With an integrator on a double integrator the phase is below -180 deg at low
-    # frequency: that crossing gives a *lower* gain margin (< 1, how much the gain may
-    # drop); the usual (upper) gain margin is the smallest one above 1.
-    up = gm > 1
-    lo = (gm > 0) & (gm < 1)
-    gain_margin = float(gm[up].min()) if up.any() else math.inf
-    lower = float(gm[lo].max()) if lo.any() else 0.0
-    i_pm = int(np.argmin(pm)) if pm.size else None
+    # frequency, where |L| > 1: that crossing gives a *lower* gain margin (< 1, how far the
+    # gain may drop), the largest 1/|L| there.
+    _, _, wgc, w180, mag, _ = _crossovers(FREQUENCY_GRID_HZ, L)
+    below = [1.0 / mag(w) for w in w180 if wgc.size and w < wgc[-1] and mag(w) > 1.0]
+    gm_db = m.gain_margin_db
     return {
-        "gain_margin": gain_margin,
-        "gain_margin_db": 20.0 * math.log10(gain_margin) if math.isfinite(gain_margin) else math.inf,
-        "phase_crossover_hz": (float(wpc[up][np.argmin(gm[up])]) / _TWO_PI) if up.any() else math.nan,
-        "lower_gain_margin": lower,
-        "phase_margin_deg": float(pm[i_pm]) if i_pm is not None else math.inf,
-        "crossover_hz": float(wgc[i_pm]) / _TWO_PI if i_pm is not None else math.nan,
-        "stability_margin": float(np.min(sm)) if sm.size else math.inf,
+        "gain_margin": 10.0 ** (gm_db / 20.0) if math.isfinite(gm_db) else math.inf,
+        "gain_margin_db": gm_db if math.isfinite(gm_db) else math.inf,
+        "phase_crossover_hz": m.phase_crossover_hz,
+        "lower_gain_margin": max(below) if below else 0.0,
+        "phase_margin_deg": m.phase_margin_deg,
+        "crossover_hz": m.gain_crossover_hz,
+        "stability_margin": float(np.min(np.abs(1.0 + L))),
         "delay": float(delay),
     }
 

@@ -1,8 +1,13 @@
 """Friction models of the seed: Dahl, generalized Maxwell-slip (GMS), LuGre, Coulomb.
 
-Every model is a pair of compiled kernels (used by the plant integrator and by the
-feedforward compensators) plus a small batch class that drives the kernels with a
-displacement history, e.g. to draw hysteresis loops and virgin curves.
+The one home of each law's mathematics: its compiled kernels -- the update
+(:func:`dahl_update`, :func:`gms_block` / :func:`gms_update`, :func:`lugre_update`),
+the tangent stiffness (:func:`dahl_tangent`, :func:`gms_block_tangent`) and the
+stiffness at rest (:func:`initial_stiffness`) -- used by the plant integrator, the
+servo's feedforward, the FI design advisor and the diagnosis, plus a small batch class
+per law that drives the kernels with a displacement history, e.g. to draw hysteresis
+loops and virgin curves (:func:`virgin_curve`). The schema of each law's parameters is
+in :mod:`stage_sim.config`.
 
 Sign convention: the returned friction force ``F`` *resists* the motion, i.e. the
 body feels ``-F``; ``F -> +F_C`` after a long motion in the positive direction.
@@ -26,7 +31,8 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "dahl_update", "gms_update", "lugre_update", "stribeck",
+    "dahl_update", "dahl_tangent", "gms_block", "gms_block_tangent", "gms_update", "lugre_update", "stribeck",
+    "initial_stiffness",
     "Dahl", "GMS", "LuGre", "CoulombViscous", "virgin_curve",
 ]
 
@@ -66,24 +72,90 @@ def dahl_update(f, dx, k_sigma, f_c, shape):
     return s * f_c * (1.0 - u)
 
 
+@njit(cache=True, inline="always")
+def dahl_tangent(f, direction, k_sigma, f_c, shape):
+    """Tangent stiffness ``dF/dx`` of the Dahl model (Eq. 1.1) at force ``f`` [N/m].
+
+    ``k_sigma (1 - direction f / F_C)**shape`` for motion in ``direction`` (+1 or -1);
+    0 once saturated.
+
+    Examples
+    --------
+    >>> dahl_tangent(0.0, 1.0, 2e6, 5.0, 1.0), dahl_tangent(5.0, 1.0, 2e6, 5.0, 1.0)
+    (2000000.0, 0.0)
+    """
+    u = 1.0 - direction * f / f_c
+    if u <= 0.0:
+        return 0.0
+    if shape == 1.0:
+        return k_sigma * u
+    return k_sigma * u ** shape
+
+
+@njit(cache=True, inline="always")
+def gms_block(f_i, dx, k_i, limit):
+    """One Maxwell-slip block (Eq. 4.4) after a displacement ``dx`` [m]: it sticks
+    (``f_i + k_i dx``) up to ``±limit`` (= ``alpha_i F_C``) and slips there. Exact for any
+    monotone ``dx``; the one place the GMS block law is written (plant, feedforward,
+    :func:`gms_update`).
+
+    Examples
+    --------
+    >>> gms_block(0.0, 1e-6, 1e5, 0.5), gms_block(0.0, 1e-4, 1e5, 0.5)   # sticks (0.1 N), slips
+    (0.09999999999999999, 0.5)
+    """
+    fi = f_i + k_i * dx
+    if fi > limit:
+        return limit
+    if fi < -limit:
+        return -limit
+    return fi
+
+
+@njit(cache=True, inline="always")
+def gms_block_tangent(f_i, direction, k_i, limit):
+    """Tangent stiffness of one Maxwell-slip block moving in ``direction``: ``k_i`` while it
+    sticks, 0 once it slips at ``direction * f_i = limit``."""
+    return k_i if direction * f_i < limit else 0.0
+
+
 @njit(cache=True, fastmath=False)
 def gms_update(f, dx, k, alpha, f_c, n):
     """Exact update of ``n`` Maxwell-slip blocks (Eq. 4.4, Coulomb slip), in place.
 
-    Each block sticks (``df_i = k_i dx``) until ``|f_i| = alpha_i F_C`` and then slips.
-    Returns the total friction force ``sum(f_i)`` [N].
+    Each block sticks (``df_i = k_i dx``) until ``|f_i| = alpha_i F_C`` and then slips
+    (:func:`gms_block`). Returns the total friction force ``sum(f_i)`` [N].
     """
     total = 0.0
     for i in range(n):
-        lim = alpha[i] * f_c
-        fi = f[i] + k[i] * dx
-        if fi > lim:
-            fi = lim
-        elif fi < -lim:
-            fi = -lim
+        fi = gms_block(f[i], dx, k[i], alpha[i] * f_c)
         f[i] = fi
         total += fi
     return total
+
+
+def initial_stiffness(friction) -> float:
+    """Tangent stiffness [N/m] of a relaxed friction element at rest (a
+    :mod:`stage_sim.config` friction: Dahl ``k_sigma``, GMS ``sum(k_i)``, LuGre
+    ``sigma0``, Coulomb 0): the pre-motion stiffness the plant's sub-steps and the FI
+    design advisor work with.
+
+    Examples
+    --------
+    >>> from stage_sim.config import GmsFriction
+    >>> initial_stiffness(GmsFriction(model="gms", k=[1e5, 2e5], alpha=[0.4, 0.6], f_c=5.0))
+    300000.0
+    """
+    from stage_sim.config import CoulombFriction, DahlFriction, GmsFriction, LugreFriction
+    if isinstance(friction, DahlFriction):
+        return float(friction.k_sigma)
+    if isinstance(friction, GmsFriction):
+        return float(sum(friction.k))
+    if isinstance(friction, LugreFriction):
+        return float(friction.sigma0)
+    if isinstance(friction, CoulombFriction):
+        return 0.0
+    raise TypeError(f"unknown friction config {friction!r}")
 
 
 @njit(cache=True, fastmath=False)

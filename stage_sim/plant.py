@@ -38,7 +38,7 @@ import scipy.linalg
 from numba import njit
 
 from .config import CoulombFriction, DahlFriction, GmsFriction, LugreFriction, Stage
-from .friction import dahl_update, lugre_update, stribeck
+from .friction import dahl_tangent, dahl_update, gms_block, gms_block_tangent, initial_stiffness, lugre_update, stribeck
 
 # friction element kinds
 DAHL, GMS, LUGRE, COULOMB = 1, 2, 3, 4
@@ -108,17 +108,17 @@ def _friction_params(fr):
     k = alpha = np.zeros(0)
     if isinstance(fr, DahlFriction):
         par[:3] = fr.k_sigma, fr.f_c, fr.shape
-        return DAHL, par, k, alpha, fr.k_sigma
+        return DAHL, par, k, alpha, initial_stiffness(fr)
     if isinstance(fr, GmsFriction):
         par[0] = fr.f_c
         k, alpha = np.array(fr.k), np.array(fr.alpha)
-        return GMS, par, k, alpha, float(k.sum())
+        return GMS, par, k, alpha, initial_stiffness(fr)
     if isinstance(fr, LugreFriction):
         par[:6] = fr.sigma0, fr.sigma1, fr.f_c, fr.f_s, fr.v_s, fr.exponent
-        return LUGRE, par, k, alpha, fr.sigma0
+        return LUGRE, par, k, alpha, initial_stiffness(fr)
     if isinstance(fr, CoulombFriction):
         par[:2] = fr.f_c, fr.f_c if fr.f_s is None else fr.f_s
-        return COULOMB, par, k, alpha, 0.0
+        return COULOMB, par, k, alpha, initial_stiffness(fr)
     raise TypeError(f"unknown friction config {fr!r}")
 
 
@@ -412,13 +412,7 @@ def _friction_forces(pm, z, fr, f, k, seeds):
             for b in range(nb):
                 v = z[n + dof, b]
                 fe = fr[e, 0, b]
-                u = 1.0 - (fe if v > 0.0 else -fe) / fc
-                if u <= 0.0:
-                    kt = 0.0
-                elif shape == 1.0:
-                    kt = k0 * u
-                else:
-                    kt = k0 * u ** shape
+                kt = dahl_tangent(fe, 1.0 if v > 0.0 else -1.0, k0, fc, shape)
                 if pm.fr_var[e, 0] != 0.0:
                     f[dof, b] -= _varied(pm, e, z[dof, b], v, fe + kt * v * hh)
                 else:
@@ -433,8 +427,7 @@ def _friction_forces(pm, z, fr, f, k, seeds):
                 for i in range(pm.fr_n[e]):
                     fi = fr[e, i, b]
                     fe += fi
-                    if s * fi < pm.fr_alpha[e, i] * fc:
-                        kt += pm.fr_k[e, i]
+                    kt += gms_block_tangent(fi, s, pm.fr_k[e, i], pm.fr_alpha[e, i] * fc)
                 if pm.fr_var[e, 0] != 0.0:
                     f[dof, b] -= _varied(pm, e, z[dof, b], v, fe + kt * v * hh)
                 else:
@@ -639,8 +632,7 @@ def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode
                 for b in range(nb):
                     dx = zn[dof, b] - z[dof, b]
                     for i in range(pm.fr_n[e]):
-                        lim = pm.fr_alpha[e, i] * fc
-                        fr[e, i, b] = min(max(fr[e, i, b] + pm.fr_k[e, i] * dx, -lim), lim)
+                        fr[e, i, b] = gms_block(fr[e, i, b], dx, pm.fr_k[e, i], pm.fr_alpha[e, i] * fc)
             elif kind == LUGRE:
                 p = pm.fr_par
                 for b in range(nb):

@@ -263,7 +263,7 @@ def _about(info) -> str:
 
 def field_line(path: str, value, problem: str) -> str:
     """One problem line, ``  path: got value; problem`` -- the format of every input error
-    (config files here, node parameters in :mod:`msg_defs.node_io`)."""
+    (config files here, node parameters in :mod:`experiment_runner.ros.node`)."""
     return f"  {path}: got {_show(value)}; {problem}"
 
 

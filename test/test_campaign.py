@@ -136,6 +136,7 @@ def test_fit_reports_an_unreachable_target():
     assert res.params[0].at_bound == "upper" and res.values["p"] == 1.0
 
 
+@pytest.mark.slow
 def test_calibration_fits_the_baseline(tmp_path):
     """Table 4.2 fitted on 4 No FI trials: the 5 mm settling time and the noise part of the RMS
     in-position error land on the seed's No FI numbers; FI is not used."""
@@ -167,6 +168,7 @@ def t52(tmp_path_factory):
     return cm.run_campaign("table_5_2", out, trials=8, calibration=_cal(CAL_5_2), progress=False)
 
 
+@pytest.mark.slow
 def test_outputs_are_written(t42):
     out = t42.out_dir
     for f in ("results.csv", "results.json", "calibration.json", "report.md"):
@@ -189,6 +191,7 @@ def test_outputs_are_written(t42):
     assert "## Seed vs simulation" in md and "## Calibration" in md and "44 ms" in md
 
 
+@pytest.mark.slow
 def test_table_4_2_findings(t42):
     # reproduced: FI settles faster at 5 um, and has the larger RMS in-position error at both sizes
     for fid in ("fi_settles_faster_5um", "fi_rms_larger_5mm", "fi_rms_larger_5um"):
@@ -202,6 +205,7 @@ def test_table_4_2_findings(t42):
     assert t42.stat("nofi", "5um", "settling_time_s").mean == pytest.approx(0.062, rel=0.15)
 
 
+@pytest.mark.slow
 def test_table_5_2_findings(t52):
     reproduced = ["fi_settles_faster_5um", "fi_rms_larger_5mm", "fi_rms_larger_5um", "sai_settles_faster_5um",
                   "sai_rms_as_baseline_5mm", "sai_rms_as_baseline_5um", "sai_rms_below_fi_5mm",
@@ -244,6 +248,7 @@ def test_dahl_bearings_ratchet_out_of_position(tmp_path):
 
 
 # --------------------------------------------------------------------------- graph and CLI
+@pytest.mark.slow
 def test_graph_runs_reproduce_the_batch_trials(tmp_path):
     """Representative trials through the ROS graph, incl. an SAI trial with its learned Step II
     correction, give the batch engine's measured positions exactly."""
@@ -264,6 +269,7 @@ def test_graph_runs_reproduce_the_batch_trials(tmp_path):
     assert "through the ROS 2 graph" in (tmp_path / "out" / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_cli(tmp_path, capsys):
     p = argparse.ArgumentParser()
     cm.add_campaign_arguments(p)

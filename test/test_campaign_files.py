@@ -90,6 +90,7 @@ def test_file_validates_with_sourced_seed_numbers(name):
 
 @pytest.mark.parametrize("name", [n for n in cm.list_campaigns()
                                   if cm.load_campaign(n, check_presets=False).test.kind in RUN_KINDS])
+@pytest.mark.slow
 def test_file_runs_and_takes_the_seed_directions(name, tmp_path):
     camp = _reduced(cm.load_campaign(name))
     cr = cm.run_campaign(camp, tmp_path, calibration=_cal(camp), progress=False, plots=False, mcap=False)
@@ -109,6 +110,7 @@ def test_file_runs_and_takes_the_seed_directions(name, tmp_path):
 
 
 # --------------------------------------------------------------------------- calibration: {from: ...}
+@pytest.mark.slow
 def test_calibration_from_fits_caches_and_reuses(tmp_path):
     """A circle campaign on the table_4_2 stage runs table_4_2's baseline fit once (2 trials),
     caches it as calibration.json, and the next run into the folder, or into a sibling of the

@@ -14,6 +14,8 @@ from scipy.optimize import brentq
 from experiment_runner import campaign as cm
 from experiment_runner import frf_campaign as fc
 from experiment_runner.batch import simulate
+from experiment_runner.metrics import sine_phasor
+from stage_control.tuning import loop_margins
 from stage_sim.config import ConfigError, load_preset, with_overrides
 
 # A linear stage: the table (modes removed) on the two FI flexures to bearings held by a
@@ -53,7 +55,7 @@ def _test(**kw):
 def test_sine_phasor_rejects_offset_and_drift():
     t = np.arange(2000) * 1e-4                       # 10 periods of 50 Hz
     s = 3e-6 * np.sin(2 * np.pi * 50 * t - 0.7) + 1e-3 + 0.02 * t
-    S = fc.sine_phasor(t, s, 50.0)
+    S = sine_phasor(t, s, 50.0)
     assert abs(S) == pytest.approx(3e-6, rel=1e-9)
     assert np.angle(S) == pytest.approx(-0.7 - np.pi / 2, abs=1e-9)   # sin = cos(. - pi/2)
 
@@ -93,7 +95,7 @@ def test_calculated_closed_loop_matches_the_batch_engine(dob):
     res = simulate(preset, x_ref, np.zeros_like(x_ref))
     w = slice(k.size - n_meas, k.size)
     t = k[w] * dt
-    T_sim = np.array([fc.sine_phasor(t, res.y[i, w], f) / fc.sine_phasor(t, x_ref[i, w], f)
+    T_sim = np.array([sine_phasor(t, res.y[i, w], f) / sine_phasor(t, x_ref[i, w], f)
                       for i, f in enumerate(f_adj)])
     T_calc = fc.loop_frfs(preset, f_adj, _exact_plant(preset, f_adj))["T"]
     assert np.abs(T_sim - T_calc).max() < 1e-3 * np.abs(T_calc).max(), (T_sim, T_calc)
@@ -108,7 +110,7 @@ def test_loop_margins_reference_values():
     for K in (11.0, 220.0):
         wc = brentq(lambda w: w * math.hypot(w, 1) * math.hypot(w, 10) - K, 1e-3, 1e3)
         pm_ref = 90.0 - math.degrees(math.atan(wc) + math.atan(wc / 10))
-        m = fc.loop_margins(f, K / (s * (s + 1) * (s + 10)))
+        m = loop_margins(f, K / (s * (s + 1) * (s + 10)))
         assert m.gain_margin_db == pytest.approx(20 * math.log10(110 / K), abs=0.02)
         assert m.phase_margin_deg == pytest.approx(pm_ref, abs=0.05)
         assert m.phase_crossover_hz == pytest.approx(math.sqrt(10) / (2 * math.pi), rel=1e-3)
@@ -185,6 +187,7 @@ def runs(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["frf_fi", "frf_dob"])
 def test_seed_findings_directions(runs, name):
     """Findings without a note reproduce the seed; those with a note are reported as disagreeing."""
@@ -198,6 +201,7 @@ def test_seed_findings_directions(runs, name):
             assert f["agrees"], (f["id"], f["status"], f["sim_case"], f["sim_versus"])
 
 
+@pytest.mark.slow
 def test_frf_fi_physics(runs):
     cr = runs["frf_fi"]
     r = {(c, a): cr.runs[(c, k.key)] for c in ("nofi", "fi") for k in cr.conditions for a in [k.amplitude]}
@@ -211,6 +215,7 @@ def test_frf_fi_physics(runs):
     assert all(x.values[m] > 0 for x in r.values() for m in ("gain_margin_db", "phase_margin_deg"))
 
 
+@pytest.mark.slow
 def test_simulated_closed_loop_agrees_with_the_calculated_one(runs):
     """frf_fi also runs each closed loop on the batch engine at the force amplitudes (the LTI check)."""
     cr = runs["frf_fi"]
@@ -228,6 +233,7 @@ def test_simulated_closed_loop_agrees_with_the_calculated_one(runs):
     assert all(x["T_sim_re"] != "" for x in rows if x["status"] == "0")
 
 
+@pytest.mark.slow
 def test_frf_dob_seed_bounds(runs):
     checks = fc.seed_bound_check(runs["frf_dob"].campaign, runs["frf_dob"].runs)
     # the 200 Hz DOB's negative No FI margins at 0.11 N are not reproduced (see the finding's note)
@@ -236,6 +242,7 @@ def test_frf_dob_seed_bounds(runs):
     assert all(c["within_bound"] for c in checks if c["case"] != "nofi_dob200" and c["bound"] != "value")
 
 
+@pytest.mark.slow
 def test_outputs_are_written(runs):
     cr = runs["frf_dob"]
     d = json.loads((cr.out_dir / "results.json").read_text())

@@ -1,6 +1,8 @@
 """``nanostage`` entry point: a bad input file or recording is an error message and exit 2, not a traceback."""
 from __future__ import annotations
 
+import pytest
+
 from experiment_runner.cli import main
 
 
@@ -33,3 +35,120 @@ def test_graph_bad_or_malformed_experiment_exits_2_before_any_node(tmp_path, cap
     err = capsys.readouterr().err
     assert "not valid YAML at line 1" in err and str(broken) in err
     assert not (tmp_path / "o" / "run.mcap").exists()
+
+
+def _fails(argv, capsys, *expected) -> str:
+    """``nanostage argv`` ends with exit 2 and a message (no traceback) holding ``expected``."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.startswith(f"nanostage {argv[0]}: "), err
+    for text in expected:
+        assert text in err, err
+    return err
+
+
+def test_graph_bad_input_exits_2_naming_it(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "o"
+    _fails(["graph", "no_such_experiment", "--out", str(out)], capsys,
+           "no_such_experiment: no such experiment file", "shipped experiments: fi_p2p_5um")
+    _fails(["graph", str(tmp_path / "missing.yaml"), "--out", str(out)], capsys, "missing.yaml: no such experiment file")
+    _fails(["graph", "fi_p2p_5um", "--domain-id", "300", "--out", str(out)], capsys,
+           "ROS domain ID (--domain-id): got 300; expected an integer from 0 to 232")
+    monkeypatch.setenv("ROS_DOMAIN_ID", "lab")
+    _fails(["graph", "fi_p2p_5um", "--out", str(out)], capsys,
+           "ROS domain ID (environment variable ROS_DOMAIN_ID): got 'lab'")
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    _fails(["graph", "fi_p2p_5um", "--timeout", "0", "--out", str(out)], capsys, "--timeout: got 0.0; expected a positive")
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    _fails(["graph", "fi_p2p_5um", "--out", str(a_file)], capsys, f"--out {a_file}: a file is there")
+    assert not out.exists()                                    # refused before anything was made
+
+
+def test_replay_bad_input_exits_2_naming_it(tmp_path, capsys):
+    from experiment_runner.experiment import experiment_preset, load_experiment, run_batch
+    from experiment_runner.recording import write_run
+    _fails(["replay", str(tmp_path / "missing.mcap")], capsys, "missing.mcap: no such file or directory")
+    yml = tmp_path / "exp.yaml"
+    yml.write_text("preset: fi_stage\n")
+    _fails(["replay", str(yml), "--check"], capsys, "exp.yaml: not an MCAP file")
+    (tmp_path / "empty").mkdir()
+    _fails(["replay", str(tmp_path / "empty")], capsys, "empty")
+    exp = load_experiment("fi_p2p_5um")
+    _, res = run_batch(exp)
+    rec = write_run(tmp_path / "run", res, experiment_preset(exp))
+    _fails(["replay", str(rec), "--topics", "/stage/measured", "/nope"], capsys,
+           "no topic /nope in the recording (its topics: /experiment/config")
+    _fails(["replay", str(rec), "--domain-id", "233"], capsys, "got 233; expected an integer from 0 to 232")
+    for bad in (["--rate", "-1"], ["--rate", "fast"], ["--wait-for", "-3"]):
+        with pytest.raises(SystemExit) as exc:
+            main(["replay", str(rec), *bad])
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert f"argument {bad[0]}: got '{bad[1]}'; expected a number >= 0" in err and "Traceback" not in err
+
+
+def _refused_by_argparse(argv, capsys, *expected) -> str:
+    """``nanostage argv`` stops in argument parsing: exit 2, argparse's one-line error."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and f"nanostage {argv[0]}: error: " in err, err
+    for text in expected:
+        assert text in err, err
+    return err
+
+
+def test_campaign_bad_input_exits_2_before_any_work(tmp_path, capsys):
+    out = tmp_path / "o"
+    _refused_by_argparse(["campaign", "table_4_2", "--trials", "-3", "--out", str(out)], capsys,
+                         "argument --trials: got -3; expected an integer >= 1")
+    _refused_by_argparse(["campaign", "table_4_2", "--workers", "0", "--out", str(out)], capsys,
+                         "argument --workers: got 0; expected an integer >= 1")
+    _refused_by_argparse(["campaign", "table_4_2", "--dwell", "nan", "--out", str(out)], capsys,
+                         "argument --dwell: got nan; expected a finite number > 0")
+    _refused_by_argparse(["campaign", "table_4_2", "--calibration-trials", "two", "--out", str(out)], capsys,
+                         "argument --calibration-trials: got 'two'")
+    _fails(["campaign", "no_such_campaign", "--out", str(out)], capsys,
+           "no_such_campaign: no such campaign file", "shipped campaigns: ")
+    _fails(["campaign", "table_4_2", "--calibration", str(tmp_path / "none.json"), "--out", str(out)], capsys,
+           "--calibration", "none.json: cannot read it")
+    bad = tmp_path / "cal.json"
+    bad.write_text("{not json")
+    _fails(["campaign", "table_4_2", "--calibration", str(bad), "--out", str(out)], capsys, "invalid JSON")
+    bad.write_text('{"values": {"ki_scale": "fast"}}')
+    _fails(["campaign", "table_4_2", "--calibration", str(bad), "--out", str(out)], capsys,
+           "field 'values' must map each calibrated quantity to a finite number")
+    assert not out.exists()                                    # refused before anything was made
+
+
+def test_paper_unknown_claim_group_exits_2_listing_the_groups(tmp_path, capsys):
+    _fails(["paper", "--only", "appendix_z", "--out", str(tmp_path / "p")], capsys,
+           "--only appendix_z: no claim group starts with it", "groups: appendix_a, van")
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["presets", "no_such_preset"], "no_such_preset: no such preset file"),
+    (["design", "no_such_preset", "--rms", "2"], "no_such_preset: no such preset file"),
+    (["design", "fi_stage", "--rms", "-2"], "--rms -2"),
+    (["synth", "no_such_truth", "fi_p2p_5um", "--out", "x.mcap"], "no_such_truth: no such preset file"),
+    (["diagnose", "no_such.mcap", "--out", "d"], "no_such.mcap: no such file or directory"),
+])
+def test_other_commands_bad_input_exits_2_naming_it(tmp_path, capsys, monkeypatch, argv, expected):
+    monkeypatch.chdir(tmp_path)
+    _fails(argv, capsys, expected)
+
+
+def test_a_closed_output_pipe_is_not_a_traceback():
+    import subprocess
+    import sys
+    # far more output than a pipe holds (64 KiB), so the writer meets the closed pipe for sure
+    child = ("import sys\nfrom experiment_runner.cli import main\n"
+             "for _ in range(400):\n    rc = main(['presets'])\n    if rc:\n        sys.exit(rc)\n")
+    proc = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.readline()               # take one line, then stop listening (as `| head -1` does)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141 and "Traceback" not in err, err

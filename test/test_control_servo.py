@@ -276,6 +276,7 @@ def test_batch_kernel_matches_per_trial_reference(ctrl):
         np.testing.assert_array_equal(s[:, j], row)
 
 
+@pytest.mark.slow
 def test_models_work_inside_a_prange_region():
     """The batch engine calls the kernels from ``prange``: models must be flat NamedTuples
     (Numba cannot pass tuples of tuples into a parallel region, numba#9098)."""

@@ -83,6 +83,7 @@ def test_sweep_contents(sweep):
     assert a.preset_design.settling_time_s < np.nanmin(sweep.ts_mean[-1])
 
 
+@pytest.mark.slow
 def test_sweep_on_two_worker_processes_is_identical(sweep):
     """The k_fi rows run as executor tasks: a local 2-process pool gives the same trials."""
     sw2 = sweep_isolator("fi_stage", K_GRID[:2], C_GRID, n_trials=3, dwell=0.25, workers=2)
@@ -164,6 +165,7 @@ def test_cli_exit_codes(tmp_path, capsys):
     assert doc["van"]["passed"] is True and (tmp_path / "van" / "design.md").is_file()
 
 
+@pytest.mark.slow
 def test_cli_fi_run_writes_report(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(design.GRIDS, "coarse", (np.array([2e4, 2e5]), np.array([1.0, 300.0])))
     out = tmp_path / "fi"

@@ -54,6 +54,7 @@ def threaded(case):
     return diagnose(rec, nominal, options=Options(plots=False, effects=EFFECTS))
 
 
+@pytest.mark.slow
 def test_threaded_reference_finds_both(threaded):
     # the reference is a real diagnosis: both effects named, re-fitting exercised in step 2
     assert [f["effect"] for f in threaded["found"]] == ["coulomb", "viscous"]
@@ -61,12 +62,14 @@ def test_threaded_reference_finds_both(threaded):
     assert len(threaded["selection"]["steps"][1]["candidates"]) == 2
 
 
+@pytest.mark.slow
 def test_local_processes_same_report(case, threaded):
     rec, nominal = case
     rep = diagnose(rec, nominal, options=Options(plots=False, effects=EFFECTS, workers=2))
     assert _canon(rep) == _canon(threaded)
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_same_report(case, threaded):
     from distributed import LocalCluster
     rec, nominal = case

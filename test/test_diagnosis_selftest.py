@@ -43,6 +43,7 @@ def viscous_run(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_synth_conceals_the_truth(viscous_run):
     rec = read_recording(mcap_file(viscous_run / "rec.mcap"))
     assert "/stage/truth" not in rec.topics
@@ -52,6 +53,7 @@ def test_synth_conceals_the_truth(viscous_run):
     assert rec.truth is None
 
 
+@pytest.mark.slow
 def test_diagnose_cli_names_fits_and_proves(viscous_run, capsys):
     out = viscous_run / "diagnosis"
     argv = [str(viscous_run / "rec.mcap"), "fi_stage_nofi", "--out", str(out), "--json"]
@@ -77,6 +79,7 @@ def test_diagnose_cli_names_fits_and_proves(viscous_run, capsys):
     assert simulate(p, ref, np.gradient(ref) * 1e4).status[0] == 0
 
 
+@pytest.mark.slow
 def test_selftest_subset_json(capsys):
     argv = ["--selftest", "--json", "--only", "offset_sine", "coulomb+viscous", "negative_steps_b"]
     code = main_diagnose(_args(add_diagnose_arguments, argv))
@@ -102,6 +105,7 @@ def test_list_effects_cli(capsys):
     assert all({"key", "physics", "signature", "parameters", "in_preset"} <= set(r) for r in rows)
 
 
+@pytest.mark.slow
 def test_selftest_sai_and_above_band_cases(capsys):
     """The isolator switching transient on an SAI stage (3x the nominal impact impulse), an SAI
     negative control, and a 500 Hz dither imbalance above the observer bandwidth."""

@@ -5,21 +5,22 @@ import pytest
 
 from experiment_runner.batch import Models, simulate
 from experiment_runner.profiles import point_to_point
-from stage_control.dither import dither_step, init_dither_state
-from stage_control.sai import init_sai_state, sai_step
-from stage_control.servo import init_servo_state, servo_step
+from stage_control.dither import dither_step
+from stage_control.sai import sai_step
+from stage_control.servo import servo_step
 from stage_sim.config import load_preset
-from stage_sim.plant import PlantSim
+from stage_sim.plant import plant_step
 
 
 def _step_by_step(preset, x_ref, v_ref, seed):
-    """One trial, one component call per sample, B = 1 arrays (the node adapters' way)."""
+    """One trial, one component call per sample, B = 1 arrays (the node adapters' way), from
+    the models and initial state the nodes use."""
     m = Models.from_preset(preset)
     one = lambda v: np.array([v], float)
-    sai_mode = 0.0 if preset.sai_manager and preset.sai_manager.rule != "always_compliant" else 1.0
-    plant = PlantSim(m.plant, 1, x0=x_ref[0], sai_mode=sai_mode, seeds=[seed])
-    ss, ds, sa = (init_servo_state(m.servo, 1), init_dither_state(m.dither, 1), init_sai_state(m.sai, 1))
-    y = plant.meas[0].copy()
+    init = m.initial_state([x_ref[0]])
+    plant, meas, ss, ds, sa = init.plant, init.meas, init.servo, init.dither, init.sai
+    seeds, status = np.array([seed], np.int64), np.zeros(1, np.int64)
+    y = meas[0].copy()
     mode, xc, u, dout = one(0), one(0), one(0), np.zeros((2, 1))
     ys = np.empty(len(x_ref))
     for k in range(len(x_ref)):
@@ -29,7 +30,9 @@ def _step_by_step(preset, x_ref, v_ref, seed):
         dither_step(m.dither, ds, k, xr, one(v_ref[k]), y, dout)
         servo_step(m.servo, ss, xr, one(v_ref[k]), y, u)
         ys[k] = y[0]
-        y = plant.step(u, dout[0], dout[1], mode)[0].copy()
+        plant_step(m.plant, *plant, u, dout[0].copy(), dout[1].copy(), mode, k, seeds, meas, status)
+        assert status[0] == 0
+        y = meas[0].copy()
     return ys
 
 

@@ -85,10 +85,12 @@ def test_in_process_matches_one_batch_and_streams_every_trial(camp, reference_me
         assert cr.runs[(case.name, cond.key)].x0 == [x0[(case.name, i)] for i in range(TRIALS)]
 
 
+@pytest.mark.slow
 def test_local_process_pool_gives_identical_metrics(camp, reference_metrics, tmp_path):
     _check_same(_run(camp, tmp_path, workers=2), reference_metrics, camp)
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_gives_identical_metrics(camp, reference_metrics, tmp_path, dask_cluster):
     _check_same(_run(camp, tmp_path, cluster=dask_cluster.scheduler_address), reference_metrics, camp)
 

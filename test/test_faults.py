@@ -21,15 +21,22 @@ import yaml
 from test_graph import RUN_TIMEOUT, Listener, _domain, _ros_env
 
 from experiment_runner.experiment import EXPERIMENT_DIR, experiment_preset, load_experiment, run_batch
-from experiment_runner.graph import EXIT_ABORTED, NodeProcesses, run_graph
+from experiment_runner.graph import EXIT_ABORTED, run_graph
+from experiment_runner.ros.launch import NodeProcesses
+from experiment_runner.ros.nodes import nodes_for
 from experiment_runner.recording import read_recording, write_run
 from stage_control.servo import build_servo, check_reference
 from stage_sim.config import load_preset, with_overrides
 
-FI_NODES = ("plant_sim", "servo_controller", "recorder", "experiment_sequencer")
-"""The nodes an FI-stage run needs (no dither, no SAI manager)."""
-VAN_NODES = FI_NODES + ("dither_generator",)
-SAI_NODES = FI_NODES + ("sai_manager",)
+def _nodes(experiment: str) -> tuple[str, ...]:
+    """The nodes a run of ``experiment`` needs (the table of nodes: no dither generator without
+    dither, no SAI manager without one)."""
+    return nodes_for(experiment_preset(load_experiment(experiment)))
+
+
+FI_NODES = _nodes("fi_p2p_5um")
+VAN_NODES = _nodes("van_asym_hc")
+SAI_NODES = _nodes("sai_p2p_5um")
 
 FAST = {"plant_sim": {"input_timeout": 3.0},               # the watchdog
         "experiment_sequencer": {"sample_timeout": 6.0, "wait_for_nodes": 4,   # 3 nodes + the Listener
@@ -37,6 +44,12 @@ FAST = {"plant_sim": {"input_timeout": 3.0},               # the watchdog
 """Short timeouts (the plant's watchdog fires before the sequencer's own), long enough for a
 loaded 2-core machine."""
 DT_NS = 100_000                       # control period of the FI stage (10 kHz) [ns]
+
+
+MID_TRIAL = 0.3
+"""Dwell [s] of a trial that a test acts on mid-way (about 3,500 samples): long enough that the
+trial is still running when the listener has heard the servo's first 200 commands, however
+fast the graph loop is (several kHz with one process per node)."""
 
 
 def _experiment(tmp_path: Path, trials: int = 1, dwell: float = 0.03, base: str = "fi_p2p_5um", **doc) -> Path:
@@ -85,7 +98,7 @@ class Run:
     def finish(self, timeout: float = 30.0):
         """Sequencer's exit code (None if it did not end), every node's exit code."""
         code = self.graph.wait(timeout=timeout)
-        self.listener.wait_for(lambda ev: any(e["event"] == "run_end" for e in ev), 3.0)
+        self.listener.wait_for(lambda ev: any(e["event"] == "run_end" for e in ev), 15.0)   # returns when heard; a loaded machine may be slow
         with _ros_env(self.domain):
             codes = self.graph.stop()
         self.listener.close()
@@ -141,9 +154,10 @@ def _recorded_abort(rec, node: str, trial=0) -> None:
 
 # =========================================================================== killed nodes
 # (a killed servo and a killed recorder: test_graph.py)
+@pytest.mark.slow
 @pytest.mark.parametrize("node", ["plant_sim", "experiment_sequencer"])
 def test_a_killed_node_ends_the_run_with_the_trial_aborted_naming_it(tmp_path, make_run, node):
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params())
     run.wait_commands()
     assert run.graph.kill(node) == -signal.SIGKILL
@@ -167,11 +181,12 @@ def test_a_killed_node_ends_the_run_with_the_trial_aborted_naming_it(tmp_path, m
 
 @pytest.mark.parametrize("base, node, nodes", [("van_asym_hc", "dither_generator", VAN_NODES),
                                                 ("sai_p2p_5um", "sai_manager", SAI_NODES)])
+@pytest.mark.slow
 def test_a_killed_dither_generator_or_sai_manager_trips_the_watchdog_naming_it(tmp_path, make_run, base, node,
                                                                                nodes):
     """The plant waits for their per-sample inputs: the watchdog names the silent node (and the
     servo too where it waits for the SAI manager's correction)."""
-    exp = _experiment(tmp_path, base=base, dwell=0.05)
+    exp = _experiment(tmp_path, base=base, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params({"experiment_sequencer": {"wait_for_nodes": len(nodes)}}), nodes=nodes)
     run.wait_commands()
     assert run.graph.kill(node) == -signal.SIGKILL
@@ -189,8 +204,9 @@ def test_a_killed_dither_generator_or_sai_manager_trips_the_watchdog_naming_it(t
     assert np.array_equal(rec.y[tr.slice], y[:tr.stop - tr.start])         # what was recorded is right
 
 
+@pytest.mark.slow
 def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applied(tmp_path, make_run):
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params())
     run.wait_commands()
     run.graph.pause("servo_controller")                            # SIGSTOP: hangs, sockets open
@@ -210,9 +226,10 @@ def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applie
     assert rec.counts["/stage/measured"] == rec.counts["/stage/truth"] == k + 1 and len(rec) >= k
 
 
+@pytest.mark.slow
 def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
     """Nothing comes from a SIGSTOPped plant: the sequencer's sample timeout aborts the trial."""
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params())
     run.wait_commands()
     run.graph.pause("plant_sim")
@@ -227,6 +244,7 @@ def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
+@pytest.mark.slow
 def test_a_stopped_recorder_never_leaves_a_silently_incomplete_recording(tmp_path, make_run):
     """SIGSTOPped for 2 s the recorder falls behind (more than the topics' 0.1 s history, unless
     the machine is slow): the run goes on (the recorder is not in the loop); resumed, it takes
@@ -256,10 +274,11 @@ def test_a_stopped_recorder_never_leaves_a_silently_incomplete_recording(tmp_pat
 
 
 # =========================================================================== restarts
+@pytest.mark.slow
 def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new plant gets the trial's trajectory (latched) and starts it again from sample 0:
     the sequencer sees the sample index go back and refuses the mixed trial."""
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     slow = {"plant_sim": {"input_timeout": 60.0}, "experiment_sequencer": {"sample_timeout": 60.0}}
     run = make_run(tmp_path, exp, _params(slow))
     run.wait_commands()
@@ -274,10 +293,11 @@ def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_r
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
+@pytest.mark.slow
 def test_a_servo_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new servo gets the trial's trajectory (latched) and the plant's repeated sample k > 0:
     it refuses to start from rest in mid-motion."""
-    exp = _experiment(tmp_path)
+    exp = _experiment(tmp_path, dwell=MID_TRIAL)
     slow = {"plant_sim": {"input_timeout": 60.0}, "experiment_sequencer": {"sample_timeout": 60.0}}
     run = make_run(tmp_path, exp, _params(slow))                    # no watchdog: the restart is seen
     run.wait_commands()
@@ -292,6 +312,7 @@ def test_a_servo_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_r
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
+@pytest.mark.slow
 def test_a_rerun_in_the_same_out_dir_starts_clean(tmp_path):
     """A previous run's recording is not read as the next one's, even if the next records nothing."""
     out = tmp_path / "out"
@@ -313,6 +334,7 @@ def test_a_rerun_in_the_same_out_dir_starts_clean(tmp_path):
 
 
 # =========================================================================== messages
+@pytest.mark.slow
 def test_dropped_and_delayed_messages_are_recovered_and_change_nothing(tmp_path, make_run):
     """A lost lockstep message is sent again (the plant repeats its sample after 0.25 s, the
     servo its answer); a late one is waited for: the run is the batch engine's, bit for bit.
@@ -336,6 +358,7 @@ def test_dropped_and_delayed_messages_are_recovered_and_change_nothing(tmp_path,
     ("fi_p2p_5um", "plant_sim", "/stage/measured", FI_NODES),
     ("van_asym_hc", "dither_generator", "/stage/dither", VAN_NODES),
     ("sai_p2p_5um", "sai_manager", "/sai/command", SAI_NODES)])
+@pytest.mark.slow
 def test_dropped_lockstep_messages_of_every_node_are_recovered(tmp_path, make_run, base, node, topic, nodes):
     """3 messages in a row lost on each lockstep topic: the plant sends its sample again, the
     node answers again; the run is the batch engine's, bit for bit."""
@@ -353,6 +376,7 @@ def test_dropped_lockstep_messages_of_every_node_are_recovered(tmp_path, make_ru
 
 @pytest.mark.parametrize("node, topic", [("servo_controller", "/stage/reference"), ("plant_sim", "/stage/truth"),
                                          ("plant_sim", "/clock")])
+@pytest.mark.slow
 def test_lost_messages_outside_the_lockstep_are_recorded_as_lost(tmp_path, make_run, node, topic):
     """Messages no node waits for (the reference record, the truth, the clock) are lost for
     good: the loop runs on bit for bit. Without its reference record the trial's metrics
@@ -384,6 +408,7 @@ def test_lost_messages_outside_the_lockstep_are_recorded_as_lost(tmp_path, make_
     assert gap["lost"] == {topic: 5} and f"5 sample(s) of {topic}" in gap["reason"]
 
 
+@pytest.mark.slow
 def test_a_nan_command_stops_the_run_naming_the_servo(tmp_path, make_run):
     node, topic, catcher, sender = "servo_controller", "/stage/command", "plant_sim", "servo_controller"
     exp = _experiment(tmp_path)
@@ -406,6 +431,7 @@ def test_a_nan_command_stops_the_run_naming_the_servo(tmp_path, make_run):
 
 
 # =========================================================================== travel and divergence
+@pytest.mark.slow
 def test_the_table_leaving_its_travel_stops_the_run_and_keeps_the_recording(tmp_path, make_run):
     # the table overshoots the 5 um target by ~7 nm 0.06 s into the trial
     exp = _experiment(tmp_path, dwell=0.1, overrides={"stage.travel.max": 5.001e-6})
@@ -421,6 +447,7 @@ def test_the_table_leaving_its_travel_stops_the_run_and_keeps_the_recording(tmp_
     assert rec.salvaged is None and 0 < len(rec) < len(_batch_y(_experiment(tmp_path, dwell=0.1))[0])
 
 
+@pytest.mark.slow
 def test_a_reference_outside_the_travel_is_refused_before_the_trial_moves(tmp_path, make_run):
     exp = _experiment(tmp_path, overrides={"stage.travel.max": 4.0e-6})    # the 5 um target is beyond it
     # the fault comes at the trial's first sample: give discovery time to match the servo's events
@@ -464,7 +491,7 @@ def servo_node():
     from rclpy.parameter import Parameter
 
     from msg_defs import convert
-    from stage_control.nodes import ServoNode
+    from experiment_runner.ros.servo_node import ServoNode
     ctx = Context()
     rclpy.init(context=ctx, domain_id=_domain())
     node = ServoNode(context=ctx, parameter_overrides=[Parameter("preset", value="fi_stage")])
@@ -509,7 +536,7 @@ def test_a_second_sequencer_on_the_domain_refuses_to_start():
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
 
-    from experiment_runner.sequencer import SequencerNode
+    from experiment_runner.ros.sequencer_node import SequencerNode
     ctx = Context()
     rclpy.init(context=ctx, domain_id=_domain())
     try:

@@ -8,9 +8,9 @@ import pytest
 from scipy import optimize, signal
 
 from experiment_runner.metrics import (
-    closed_loop_bandwidth, error_spectrum, frf_sine, frf_welch, margins,
-    rms_in_position, settling_time, tracking_errors)
+    error_spectrum, frf_sine, frf_welch, rms_in_position, settling_time, tracking_errors)
 from experiment_runner.profiles import sine_sweep
+from stage_control.tuning import closed_loop_bandwidth, loop_margins
 
 DT = 1e-4
 WINDOW = 25e-9
@@ -158,7 +158,7 @@ def test_margins_match_control_margin():
     loop = pid * plant / (s / (2 * np.pi * 2000) + 1)
     gm, pm, w_pc, w_gc = control.margin(loop)
     f = np.logspace(0, 4, 2000)
-    m = margins(f, loop(2j * np.pi * f))
+    m = loop_margins(f, loop(2j * np.pi * f))
     assert m.gain_margin_db == pytest.approx(20 * np.log10(gm), abs=0.05)
     assert m.phase_margin_deg == pytest.approx(pm, abs=0.1)
     assert m.phase_crossover_hz == pytest.approx(w_pc / (2 * np.pi), rel=1e-3)
@@ -169,7 +169,7 @@ def test_margins_match_control_margin():
 
 def test_margins_without_phase_crossover():
     f = np.logspace(0, 3, 300)
-    m = margins(f, 100 / (2j * np.pi * f))  # integrator: PM = 90, GM = inf
+    m = loop_margins(f, 100 / (2j * np.pi * f))  # integrator: PM = 90, GM = inf
     assert m.phase_margin_deg == pytest.approx(90.0, abs=1e-6)
     assert m.gain_crossover_hz == pytest.approx(100 / (2 * np.pi), rel=1e-6)
     assert m.gain_margin_db == math.inf and math.isnan(m.phase_crossover_hz)

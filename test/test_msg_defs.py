@@ -10,9 +10,9 @@ import pytest
 import yaml
 from rosbags.typesys import Stores, get_typestore
 
-from msg_defs import convert
-from msg_defs.topics import (CONTRACT_TOPICS, EVENT_KINDS, TOPICS, Qos, get_topic, markdown_table,
-                             offered_qos_yaml, qos_profile, subscription_qos)
+from msg_defs import cdr, convert
+from experiment_runner.ros.qos import qos_profile, subscription_qos
+from msg_defs.topics import CONTRACT_TOPICS, EVENT_KINDS, TOPICS, Qos, get_topic, markdown_table, offered_qos_yaml
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 FAMILIES = [None, TS]
@@ -57,7 +57,7 @@ def test_qos_plain_data_and_rclpy_profile():
     assert subscription_qos("/experiment/trajectory").durability == DurabilityPolicy.TRANSIENT_LOCAL  # latched
     streams = {n for n, t in TOPICS.items() if t.stream}
     assert streams == {"/stage/reference", "/stage/command", "/stage/measured", "/stage/truth", "/stage/dither",
-                       "/clock"}
+                       "/clock", "/stage/external_force", "/source/channels"}
     assert qos_profile(Qos("best_effort", depth=3)).reliability == ReliabilityPolicy.BEST_EFFORT
     with pytest.raises(ValueError, match="reliability"):
         Qos("sometimes")
@@ -160,3 +160,59 @@ def test_events_are_documented_json():
     assert convert.parse_event('{"event": "run_end", "stamp_ns": 3}')["trial"] is None  # optional keys -> None
     assert convert.to_json({"a": math.nan, "b": [np.float64(1.5), np.int64(2), math.inf]}) == \
         '{"a":null,"b":[1.5,2,null]}'
+
+
+# --------------------------------------------------------------------------- CDR codec (msg_defs.cdr)
+JS = "sensor_msgs/msg/JointState"
+LAYOUTS = [(("table",), dict(position=[1e-6], velocity=[0.25])), (("motor",), dict(effort=[-3.5])),
+           (("table", "bearing"), dict(position=[5e-324, -0.0])), (("piezo_1", "piezo_2"), dict(effort=[0.1, 1e300])),
+           (("table", "body_1", "bearing"), dict(position=[1.0, 2.0, 3.0], velocity=[4.0, 5.0, 6.0],
+                                                 effort=[math.inf, -math.inf, math.nan])),
+           ((), {}), (("x" * 9,), dict(velocity=[7.0]))]
+
+
+def _bits(values):
+    return np.asarray(values, np.float64).view(np.int64).tolist()
+
+
+@pytest.mark.parametrize("names, arrays", LAYOUTS)
+@pytest.mark.parametrize("frame", ["", "base_link"])
+def test_cdr_joint_state_is_rosbags_canonical_cdr_and_reads_any_cdr(names, arrays, frame):
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import JointState
+    stamp = 1_234_567_890_123
+    ref = convert.joint_state(TS, stamp, list(names), **arrays)
+    ref.header.frame_id = frame
+    mine = cdr.joint_state(stamp, names, frame_id=frame, **arrays)
+    assert mine == bytes(TS.serialize_cdr(ref, JS))                      # byte for byte what rosbags writes
+    back = deserialize_message(mine, JointState)                         # what every rclpy subscriber gets
+    assert convert.stamp_ns(back) == stamp and tuple(back.name) == names and back.header.frame_id == frame
+    for key in ("position", "velocity", "effort"):
+        assert _bits(getattr(back, key)) == _bits(arrays.get(key, []))
+    fast = serialize_message(back)                                        # Fast CDR: padding and tail unset
+    for data in (mine, fast):
+        stamp_, names_, *values = cdr.read_joint_state(data)
+        assert (stamp_, names_) == (stamp, names) and cdr.stamp_ns(data) == stamp
+        assert [_bits(v) for v in values] == [_bits(arrays.get(k, [])) for k in ("position", "velocity", "effort")]
+        assert cdr.canonical(data) == mine
+    reader = cdr.JointStateReader()
+    for data in (fast, mine, mine, fast):                                 # general and learned paths agree
+        assert reader.canonical(data) == mine
+        got, want = reader.read(data), cdr.read_joint_state(data)
+        assert got[:2] == want[:2] and [_bits(v) for v in got[2:]] == [_bits(v) for v in want[2:]]
+
+
+def test_cdr_clock_nan_fill_and_bad_lengths():
+    from rclpy.serialization import serialize_message
+    for ns in (0, 1, 10**9, 123_456_789_012):
+        assert cdr.clock(ns) == bytes(TS.serialize_cdr(convert.clock_msg(TS, ns), "rosgraph_msgs/msg/Clock"))
+        assert cdr.stamp_ns(serialize_message(convert.clock_msg(None, ns))) == ns
+        assert cdr.canonical(serialize_message(convert.clock_msg(None, ns)), cdr.CLOCK) == cdr.clock(ns)
+    data = cdr.joint_state(5, ("table", "bearing"), position=(1.0, 2.0), effort=(3.0, 4.0))
+    stamp, names, pos, vel, eff = cdr.read_joint_state(cdr.nan_filled(data))
+    assert (stamp, names, vel) == (5, ("table", "bearing"), ()) and all(map(math.isnan, pos + eff))
+    assert math.isnan(cdr.first(cdr.joint_state(0, ("a",)), "position"))
+    with pytest.raises(ValueError, match="effort has 2 values for 1 names"):
+        cdr.joint_state(0, ("motor",), effort=(1.0, 2.0))
+    be = TS.serialize_cdr(convert.joint_state(TS, 9, ["m"], effort=[2.5]), JS, little_endian=False)
+    assert cdr.read_joint_state(be) == (9, ("m",), (), (), (2.5,))       # big endian read too

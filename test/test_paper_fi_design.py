@@ -75,6 +75,7 @@ def test_rotary_eq_d1_d2_from_equations_of_motion():
 
 
 # ----------------------------------------------------------------------------- fi_design claims
+@pytest.mark.slow
 def test_fi_design_plots(fi_out):
     out, _ = fi_out
     for name in ("fig_6_3_Ge.png", "fig_6_4_Gd.png", "fig_6_7_forces.png", "fig_6_8_gamma.png",
@@ -82,6 +83,7 @@ def test_fi_design_plots(fi_out):
         assert (out / name).stat().st_size > 10_000, name
 
 
+@pytest.mark.slow
 def test_ge_claim_honest_property(fi_out):
     """Fig. 6.3(b) is only partly reproduced: does NOT agree (optimum in k_fi, not a plateau)."""
     c = fi_out[1]["6.3.2/Ge-threshold"]
@@ -101,6 +103,7 @@ def test_ge_claim_honest_property(fi_out):
     assert n["max_closed_loop_pole_real"] < 0
 
 
+@pytest.mark.slow
 def test_gd_claim_agrees(fi_out):
     c = fi_out[1]["6.3.2/Gd-monotone"]
     assert c.agrees, c.note
@@ -110,6 +113,7 @@ def test_gd_claim_agrees(fi_out):
     assert all(v["agrees"] for v in n["sensitivity_c_f"].values())
 
 
+@pytest.mark.slow
 def test_gamma_claim_honest_property(fi_out):
     """Fig. 6.8: U shape and under/over-compensation reproduce; the optimum sits at ~0.02, not 0.05-0.1."""
     c = fi_out[1]["6.4.2/gamma-optimum"]
@@ -122,6 +126,7 @@ def test_gamma_claim_honest_property(fi_out):
     assert 0.04 <= n["eta_min_per_block_variant"] <= 0.126
 
 
+@pytest.mark.slow
 def test_kappa_claim_agrees(fi_out):
     c = fi_out[1]["6.4.2/kappa-eq4.2"]
     assert c.agrees, c.note
@@ -130,18 +135,21 @@ def test_kappa_claim_agrees(fi_out):
 
 
 # ----------------------------------------------------------------------------- rotary claims
+@pytest.mark.slow
 def test_rotary_plots(rot_out):
     out, _ = rot_out
     for name in ("fig_D5_Gd.png", "fig_D12_tracking_error.png"):
         assert (out / name).stat().st_size > 10_000, name
 
 
+@pytest.mark.slow
 def test_d5_claim_agrees(rot_out):
     c = rot_out[1]["D.2/Gd-lowpass"]
     assert c.agrees, c.note
     assert all(v < 0 for v in c.numbers["max_pole_real"].values())
 
 
+@pytest.mark.slow
 def test_d4_rms_claim(rot_out):
     c = rot_out[1]["D.4/rms-10rpm"]
     n = c.numbers

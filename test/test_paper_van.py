@@ -28,6 +28,7 @@ def b_claims(out):
     return {c.id: c for c in appendix_b.claims(out)}
 
 
+@pytest.mark.slow
 def test_claims_are_well_formed(van_claims, b_claims):
     claims = list(van_claims.values()) + list(b_claims.values())
     assert len(claims) == 4
@@ -37,6 +38,7 @@ def test_claims_are_well_formed(van_claims, b_claims):
         assert isinstance(c.agrees, bool)
 
 
+@pytest.mark.slow
 def test_fig_3_4_cliff_canyon_plain(van_claims):
     c = van_claims["3.2/fig3.4-cliff-canyon-plain"]
     assert c.agrees, c.note
@@ -55,6 +57,7 @@ def test_fig_3_4_cliff_canyon_plain(van_claims):
     assert max(meds) <= 1.15 * min(meds)                     # plain alike for every delta/step
 
 
+@pytest.mark.slow
 def test_fig_3_5_near_benchmark(van_claims):
     c = van_claims["3.2/fig3.5-near-benchmark"]
     assert c.agrees, c.note
@@ -65,6 +68,7 @@ def test_fig_3_5_near_benchmark(van_claims):
         assert np.all(np.array(ts) > 20 * bench)
 
 
+@pytest.mark.slow
 def test_fig_3_8_harmonic_cancelling(van_claims):
     c = van_claims["3.2/fig3.8-harmonic-cancelling"]
     hc = c.numbers["hc"]
@@ -78,6 +82,7 @@ def test_fig_3_8_harmonic_cancelling(van_claims):
     assert c.agrees, c.note
 
 
+@pytest.mark.slow
 def test_appendix_b_averaged_dynamics(b_claims):
     c = b_claims["B/averaged-vs-full"]
     assert c.agrees, c.note
@@ -97,6 +102,7 @@ def test_appendix_b_averaged_dynamics(b_claims):
 
 @pytest.mark.parametrize("name", ["fig_3_4_van_settling_maps.png", "fig_3_5_van_responses.png",
                                   "fig_3_8_van_hc.png", "fig_B1_averaged_vs_full.png"])
+@pytest.mark.slow
 def test_plots_exist(out, van_claims, b_claims, name):
     p = out / name
     assert p.is_file() and p.stat().st_size > 10_000

@@ -452,7 +452,7 @@ def _run_node(node: str, pfile, values: dict):
     import sys
     from pathlib import Path
 
-    from msg_defs.node_io import domain_env
+    from experiment_runner.ros.run import domain_env
     pfile.write_text(yaml.safe_dump({node: {"ros__parameters": values}}))
     env = domain_env(101 + os.getpid() % 100)          # a domain of its own (graph tests use 1..100)
     proc = subprocess.run([str(Path(sys.executable).parent / node), "--ros-args", "--params-file", str(pfile)],
@@ -460,6 +460,7 @@ def _run_node(node: str, pfile, values: dict):
     return proc.returncode, proc.stderr
 
 
+@pytest.mark.slow
 def test_node_parameter_files_are_checked_like_every_other_file(tmp_path):
     code, err = _run_node("plant_sim", tmp_path / "typo.yaml", {"input_timeot": 2.0})
     assert code == 2 and "Traceback" not in err
@@ -478,7 +479,7 @@ def test_node_parameter_files_are_checked_like_every_other_file(tmp_path):
 
 
 def test_a_node_started_by_hand_defaults_to_a_local_graph_on_an_explicit_domain():
-    from msg_defs.node_io import GRAPH_DEFAULTS, apply_graph_defaults
+    from experiment_runner.ros.run import GRAPH_DEFAULTS, apply_graph_defaults
     env = {}
     assert apply_graph_defaults(env) == GRAPH_DEFAULTS and env == GRAPH_DEFAULTS
     env = {"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}      # opened on purpose

@@ -491,8 +491,10 @@ PROBE = textwrap.dedent("""
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from msg_defs import convert
-    from msg_defs.topics import CLOCK, MEASURED, qos_profile
-    from experiment_runner.replay import replay
+    from msg_defs.topics import CLOCK, MEASURED
+    from experiment_runner.replay import check_metrics
+    from experiment_runner.ros.player import replay
+    from experiment_runner.ros.qos import qos_profile
 
     ctx = Context()
     rclpy.init(context=ctx)
@@ -507,7 +509,8 @@ PROBE = textwrap.dedent("""
     ex.add_node(node)
     th = threading.Thread(target=ex.spin, daemon=True)
     th.start()
-    out = replay(sys.argv[1], rate=float(sys.argv[2]), wait_for=1, check=True)
+    out = replay(sys.argv[1], rate=float(sys.argv[2]), wait_for=1)
+    out["check"] = check_metrics(sys.argv[1])
     deadline = time.monotonic() + 10
     while len(got["measured"]) < out["published"]["/stage/measured"] and time.monotonic() < deadline:
         time.sleep(0.05)

@@ -40,7 +40,6 @@ Limits (EMPS)
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
@@ -48,11 +47,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
+
+from experiment_runner.tabular import sha256
 
 __all__ = ["DataMissing", "data_root", "EmpsData", "load_emps", "convert_emps", "EMPS_PUBLISHED",
            "EMPS_PUBLISHED_ASYM", "EMPS_NOMINAL", "idim_ls", "run_emps", "run_realdata", "main_realdata",
-           "add_realdata_arguments", "main_convert", "add_convert_arguments", "rigid_quantities", "run_tribometer",
+           "add_realdata_arguments", "rigid_quantities", "run_tribometer",
            "to_markdown"]
 
 EMPS_NOMINAL = Path(__file__).with_name("nominal") / "emps_nominal.yaml"
@@ -97,14 +97,6 @@ def _need_file(path: Path, what: str) -> Path:
     if not path.is_file():
         raise DataMissing(f"{what}: {path} does not exist")
     return path
-
-
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 # =========================================================================== EMPS
@@ -159,51 +151,17 @@ def load_emps(path) -> EmpsData:
 def convert_emps(mat_path, out, overwrite: bool = True) -> Path:
     """Write ``DATA_EMPS.mat`` as a contract recording; returns the MCAP file.
 
-    Mapping (README): ``/stage/reference`` position ``qg`` and velocity (not in the
-    source: central difference of ``qg``, said so in ``/experiment/config``),
-    ``/stage/command`` effort ``gtau * vir`` [N], ``/stage/measured`` position ``qm``.
-    Stamps are ``k * dt`` with ``dt`` the mean period rounded to the ns (1 ms; the logged
-    times jitter by ~2e-8 s around it).
-    One trial (``trial_start`` / ``trial_end`` events around the record).
+    The table importer (:func:`experiment_runner.tabular.convert_table`) with the shipped
+    mapping :data:`experiment_runner.tabular.EMPS_MAPPING` (README): ``/stage/reference``
+    position ``qg`` and velocity (not in the source: central difference of ``qg``, said so in
+    ``/experiment/config``), ``/stage/command`` effort ``gtau * vir`` [N], ``/stage/measured``
+    position ``qm``, and the drive voltage ``vir`` [V] as logged on ``/source/channels``.
+    Stamps are ``k * 1 ms`` (the mean period; the logged times jitter by ~2e-8 s around it);
+    ``gtau``, ``kp``, ``kv`` are in the config (``provenance.scalars``). One trial.
     """
-    from experiment_runner.recording import McapRecorder, _typestore
-    from msg_defs import convert
-    from msg_defs.topics import COMMAND, EVENTS, MEASURED, MOTOR, REFERENCE, TABLE
-    d = load_emps(mat_path)
-    dt = round(d.dt, 9)
-    k = np.round((d.t - d.t[0]) / dt).astype(np.int64)
-    if np.any(np.diff(k) != 1):
-        raise ValueError(f"{d.path}: samples are not on a regular {dt} s grid")
-    stamps = k * int(round(dt * 1e9))
-    v_ref = np.gradient(d.qg, dt)
-    u = d.force
-    cfg = {"recording_contract": 1,
-           "run": {"source": "nanostage convert emps", "case": "EMPS DATA_EMPS.mat", "trials": 1,
-                   "rate": 1.0 / dt, "samples_per_trial": int(len(k))},
-           "provenance": {"file": d.path.name, "sha256": sha256(d.path),
-                          "dataset": "EMPS nonlinear system identification benchmark (ONERA / LS2N)"},
-           "mapping": {"/stage/reference.position": "qg [m]",
-                       "/stage/reference.velocity": "central difference of qg [m/s] (not in the source)",
-                       "/stage/command.effort": f"gtau * vir [N], gtau = {d.gtau:.6g} N/V",
-                       "/stage/measured.position": "qm [m] (motor encoder on the load side)"},
-           "controller": {"kind": "cascaded P/P (stage_control.cascaded)", "kp_per_s": d.kp,
-                          "kv_V_per_m_s": d.kv, "gtau_N_per_V": d.gtau,
-                          "velocity": "backward difference of qf(k) = (qm(k) + qm(k-1))/2"}}
-    ts = _typestore()
-    J = convert.joint_state
-    with McapRecorder(out, yaml.safe_dump(cfg, sort_keys=False), start_ns=int(stamps[0]), overwrite=overwrite) as rec:
-        w = rec.write
-        s0, s1 = int(stamps[0]), int(stamps[-1])
-        w(EVENTS.name, s0, convert.event_msg(ts, "run_start", stamp_ns=s0, case="EMPS", node="convert"))
-        w(EVENTS.name, s0, convert.event_msg(ts, "trial_start", stamp_ns=s0, trial=0, case="EMPS", node="convert"))
-        for i in range(len(k)):
-            s = int(stamps[i])
-            w(REFERENCE.name, s, J(ts, s, [TABLE], position=[d.qg[i]], velocity=[v_ref[i]]))
-            w(COMMAND.name, s, J(ts, s, [MOTOR], effort=[u[i]]))
-            w(MEASURED.name, s, J(ts, s, [TABLE], position=[d.qm[i]]))
-        w(EVENTS.name, s1, convert.event_msg(ts, "trial_end", stamp_ns=s1, trial=0, case="EMPS", node="convert"))
-        w(EVENTS.name, s1, convert.event_msg(ts, "run_end", stamp_ns=s1, case="EMPS", node="convert"))
-    return rec.path
+    from experiment_runner.tabular import EMPS_MAPPING, convert_table, load_mapping
+    return convert_table(mat_path, load_mapping(EMPS_MAPPING), out, overwrite=overwrite,
+                         source="nanostage convert emps")
 
 
 def idim_ls(d: EmpsData, cutoff: float = 100.0, decimate: int = 10, asymmetric: bool = False) -> dict:
@@ -732,20 +690,4 @@ def main_realdata(args) -> int:
         print(json.dumps(rep["json"], indent=1))
     else:
         print(f"{Path(args.out) / 'report.md'} ({rep['seconds']:.0f} s)")
-    return 0
-
-
-def add_convert_arguments(parser):
-    parser.add_argument("kind", choices=["emps"], help="source format (emps: DATA_EMPS.mat of the EMPS benchmark)")
-    parser.add_argument("source", help="source file")
-    parser.add_argument("--out", required=True, help="recording to write (bag directory; NAME.mcap -> NAME/NAME.mcap)")
-    return parser
-
-
-def main_convert(args) -> int:
-    try:
-        path = convert_emps(args.source, args.out)
-    except (DataMissing, ValueError) as err:
-        raise SystemExit(f"nanostage convert: {err}") from None
-    print(path)
     return 0

@@ -55,12 +55,37 @@ def _table(claims: list[Claim]) -> str:
     return "\n".join(lines)
 
 
+def selected_groups(only=None) -> list[str]:
+    """The claim groups whose name starts with one of ``only`` (all if ``only`` is empty).
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        An entry of ``only`` that starts no group's name (the message lists the groups).
+
+    Examples
+    --------
+    >>> selected_groups(["app"])
+    ['appendix_a', 'appendix_b']
+    """
+    unknown = [o for o in only or () if not any(name.startswith(o) for name in GROUPS)]
+    if unknown:
+        from stage_sim.config import ConfigError
+        raise ConfigError(f"--only {' '.join(unknown)}: no claim group starts with "
+                          f"{'it' if len(unknown) == 1 else 'them'}; groups: {', '.join(GROUPS)}")
+    return [name for name in GROUPS if not only or any(name.startswith(o) for o in only)]
+
+
 def collect(out: Path, only=None, progress=print) -> list[Claim]:
-    """Run the claim groups (all, or those whose name or claim id starts with ``only``)."""
+    """Run the claim groups (all, or those whose name starts with one of ``only``).
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        An entry of ``only`` that starts no group's name (the message lists the groups).
+    """
     claims: list[Claim] = []
-    for name in GROUPS:
-        if only and not any(name.startswith(o) for o in only):
-            continue
+    for name in selected_groups(only):
         t0 = time.perf_counter()
         module = importlib.import_module(f"{__name__}.{name}")
         group = module.claims(out)
@@ -72,6 +97,7 @@ def collect(out: Path, only=None, progress=print) -> list[Claim]:
 
 def run_paper(out="out/paper", as_json: bool = False, only=None) -> int:
     """Run every claim group; print the table (or JSON); write claims.md/json and plots."""
+    selected_groups(only)                  # a bad --only is refused before anything is written
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     import sys

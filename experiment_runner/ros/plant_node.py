@@ -1,6 +1,6 @@
 """``plant_sim`` node: the stage simulator on the ROS graph, in lockstep.
 
-A thin adapter around :class:`stage_sim.plant.PlantSim`: for every control sample it
+A thin adapter around :func:`stage_sim.plant.plant_step`: for every control sample it
 publishes ``/stage/measured``, ``/stage/truth`` and ``/clock``, waits until the
 servo command (and, where the stage has them, the dither forces and the SAI mode)
 for that sample has arrived, then advances one period.
@@ -18,16 +18,25 @@ when
 """
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
-from msg_defs import convert
-from msg_defs.node_io import NODE_OF_INPUT, SAI_COMMAND, JointStateOut, Lockstep, StageNode, finite, run_node
-from stage_sim.config import ConfigError, load_preset, preset_from_dict
-from stage_sim.plant import DIVERGED, OUT_OF_TRAVEL, PlantSim, SimulationError, build_plant
+
+from experiment_runner.ros.node import JointStateOut, Lockstep, StageNode, check_preset, finite
+from experiment_runner.ros.nodes import publisher_of
+from experiment_runner.ros.run import run_node
+from msg_defs import cdr, convert
+from msg_defs.topics import SAI_COMMAND
+from experiment_runner.batch import Models
+from stage_sim.config import load_preset, preset_from_dict
+from stage_sim.plant import DIVERGED, OUT_OF_TRAVEL, STATUS_TEXT, plant_step
 
 INPUT_TOPIC = {"command": "/stage/command", "dither": "/stage/dither", "sai": SAI_COMMAND.name}
 """Topic of each lockstep input of the plant."""
+
+TABLE, TABLE_BEARING = ("table",), ("table", "bearing")
+"""Joint names of ``/stage/measured`` without and with a bearing sensor."""
 
 RESEND_S = 0.25
 """Wall-clock wait for a sample's inputs after which its measurement is published again:
@@ -35,15 +44,30 @@ a message sent before its subscriber was matched (start-up) is lost even on a re
 topic; the controllers answer a repeated sample by repeating their answer."""
 
 
-def check_preset(name):
-    """Parameter validator: None if ``name`` is empty or a loadable preset, else why not."""
-    if not name:
-        return None
-    try:
-        load_preset(name)
-    except ConfigError as err:
-        return str(err)
-    return None
+class PlantTrial:
+    """One trial of the plant, stepped one control period at a time with
+    :func:`stage_sim.plant.plant_step` (one-trial arrays, allocated once), from the batch
+    engine's initial state (:meth:`experiment_runner.batch.Models.initial_state`)."""
+
+    def __init__(self, models: Models, x0: float, seed: int):
+        init = models.initial_state([x0])
+        self.pm = models.plant
+        self.state = tuple(init.plant)
+        self.meas = init.meas
+        self.seeds = np.array([seed], np.int64)
+        self.status = np.zeros(1, np.int64)
+        self.u, self.d0, self.d1, self.mode = (np.zeros(1) for _ in range(4))
+        self.k = 0
+
+    def step(self, u: float, d0: float, d1: float, mode: float) -> int:
+        """Apply ``u`` [N], dither ``d0, d1`` [N] and SAI ``mode`` over one period; the plant
+        status after it (0 ok, else :data:`stage_sim.plant.STATUS_TEXT`)."""
+        self.u[0], self.d0[0], self.d1[0], self.mode[0] = u, d0, d1, mode
+        plant_step(self.pm, *self.state, self.u, self.d0, self.d1, self.mode, self.k, self.seeds, self.meas,
+                   self.status)
+        self.k += 1
+        return int(self.status[0])
+
 
 
 class PlantNode(StageNode):
@@ -58,13 +82,12 @@ class PlantNode(StageNode):
         self.pub_measured = JointStateOut(self, "/stage/measured")
         self.pub_truth = JointStateOut(self, "/stage/truth")
         self.pub_clock = self.publisher("/clock")
-        self.clock = convert.clock_msg(None, 0)
         self.pub_isolator = JointStateOut(self, "/stage/isolator")
         self.join_runs(self._trajectory)
         self.subscribe("/experiment/events", self._event_in)
-        self.subscribe("/stage/command", lambda m: self._input(m, "command", m.effort[0]))
-        self.subscribe("/stage/dither", lambda m: self._input(m, "dither", (m.effort[0], m.effort[1])))
-        self.subscribe(SAI_COMMAND, lambda m: self._input(m, "sai", m.position[0]))
+        self.subscribe_samples("/stage/command", lambda t, n, p, v, e: self._input(t, "command", e[0]))
+        self.subscribe_samples("/stage/dither", lambda t, n, p, v, e: self._input(t, "dither", (e[0], e[1])))
+        self.subscribe_samples(SAI_COMMAND, lambda t, n, p, v, e: self._input(t, "sai", p[0]))
         self.preset = load_preset(self.preset_name) if self.preset_name else None
         self.listen_config(self._configure)
         self.sim = None
@@ -84,14 +107,15 @@ class PlantNode(StageNode):
 
     def _build(self):
         p = self.preset
-        self.pm = build_plant(p.stage, p.controller.rate, p.simulation.max_omega_h, p.simulation.max_substeps)
+        self.models = Models.from_preset(p)
+        self.pm = self.models.plant
         self.dt_ns = int(round(1e9 / p.controller.rate))
-        self.bodies = ["table"] + [f"body_{i}" for i in range(1, self.pm.n)]
+        bodies = ["table"] + [f"body_{i}" for i in range(1, self.pm.n)]
         if self.pm.bear_dof:
-            self.bodies[self.pm.bear_dof] = "bearing"
+            bodies[self.pm.bear_dof] = "bearing"
+        self.bodies = tuple(bodies)
         needed = ["command"] + (["dither"] if p.dither else []) + (["sai"] if p.sai_manager else [])
         self.lock = Lockstep(tuple(needed))
-        self.init_mode = 0.0 if p.sai_manager and p.sai_manager.rule != "always_compliant" else 1.0
         if self._held is not None:
             self._trajectory(self._held)
 
@@ -105,11 +129,10 @@ class PlantNode(StageNode):
         self.start = tr.start
         self.n = len(tr.x_ref)
         self.k = 0
-        self.mode = self.init_mode
+        self.mode = self.models.sai_mode
         self.lock.clear()
         self.ready = {}
-        self.sim = PlantSim(self.pm, 1, x0=tr.x_ref[0], sai_mode=self.mode,
-                            seeds=[self.preset.simulation.seed + tr.trial])
+        self.sim = PlantTrial(self.models, tr.x_ref[0], self.preset.simulation.seed + tr.trial)
         self._publish_isolator()
         self._publish_sample()
 
@@ -124,28 +147,28 @@ class PlantNode(StageNode):
 
     def _publish_sample(self):
         stamp = self._stamp(self.k)
-        y = self.sim.meas[:, 0]
-        names, pos = (["table"], [y[0]]) if np.isnan(y[1]) else (["table", "bearing"], list(y))
-        self.clock.clock.sec, self.clock.clock.nanosec = divmod(stamp, 1_000_000_000)
-        self.pub_clock.publish(self.clock)
+        y, yb = self.sim.meas[:, 0].tolist()
+        names, pos = (TABLE, (y,)) if math.isnan(yb) else (TABLE_BEARING, (y, yb))
+        self.pub_clock.publish(cdr.clock(stamp))
         self.pub_measured.publish(stamp, names, position=pos)
-        self.pub_truth.publish(stamp, self.bodies, position=self.sim.positions[:, 0],
-                               velocity=self.sim.velocities[:, 0])
+        z = self.sim.state[0][:, 0].tolist()
+        n = self.pm.n
+        self.pub_truth.publish(stamp, self.bodies, position=z[:n], velocity=z[n:])
         self.waiting_since = time.monotonic()
         self.resends = 0
 
     def _publish_isolator(self):
         if self.preset.stage.sai is not None:
-            self.pub_isolator.publish(self._stamp(self.k), ["isolator"], position=[self.mode])
+            self.pub_isolator.publish(self._stamp(self.k), ("isolator",), position=(self.mode,))
 
-    def _input(self, msg, name, value):
+    def _input(self, stamp, name, value):
         if self.sim is None or self.lock is None:
             return
-        key = convert.stamp_ns(msg) // self.dt_ns - self.start
+        key = stamp // self.dt_ns - self.start
         if key < self.k or key >= self.n:
             return
         if not finite(*(value if isinstance(value, tuple) else (value,))):
-            node = NODE_OF_INPUT[INPUT_TOPIC[name]]
+            node = publisher_of(INPUT_TOPIC[name])
             self._stop("non_finite_input", f"{name} {value} for sample {key} from {node}", node, key)
             return
         got = self.lock.put(key, name, value)
@@ -158,12 +181,11 @@ class PlantNode(StageNode):
             got = self.ready.pop(self.k)
             d0, d1 = got.get("dither", (0.0, 0.0))
             mode = got.get("sai", self.mode)
-            try:
-                self.sim.step(got["command"], d0, d1, mode)
-            except SimulationError as err:
-                status = int(self.sim.status[0])
+            status = self.sim.step(got["command"], d0, d1, mode)
+            if status:
                 cause = {DIVERGED: "diverged", OUT_OF_TRAVEL: "out_of_travel"}[status]
-                self._stop(cause, f"{err} (sample {self.k})", self.get_name(), self.k)
+                self._stop(cause, f"{STATUS_TEXT[status]} at t = {self.sim.k * self.pm.dt:.6f} s of trial "
+                                  f"{self.trial} (sample {self.k})", self.get_name(), self.k)
                 return
             self.k += 1
             if mode != self.mode:
@@ -182,7 +204,7 @@ class PlantNode(StageNode):
             self.resends += 1
             self.pub_measured.republish()
         if waited > self.timeout:
-            silent = sorted({NODE_OF_INPUT[INPUT_TOPIC[m]] for m in self.lock.missing(self.k)})
+            silent = sorted({publisher_of(INPUT_TOPIC[m]) for m in self.lock.missing(self.k)})
             self._stop("watchdog", f"no input for sample {self.k} within {self.timeout} s from: "
                                    f"{', '.join(silent)}", silent, self.k, silent=silent)
 

@@ -25,18 +25,19 @@ from pathlib import Path
 
 import yaml
 
-from msg_defs import convert
-from msg_defs.node_io import StageNode, run_node
-from msg_defs.topics import (CLOCK, COMMAND, CONFIG, DITHER, MEASURED, REFERENCE, TOPICS, TRAJECTORY, TRUTH,
-                             subscription_qos)
 from experiment_runner.recording import McapRecorder, bag_layout
+from experiment_runner.ros.node import StageNode
+from experiment_runner.ros.run import run_node
+from msg_defs import cdr, convert
+from msg_defs.topics import CLOCK, COMMAND, CONFIG, DITHER, MEASURED, REFERENCE, TOPICS, TRAJECTORY, TRUTH
 
 RECORDED = tuple(name for name in TOPICS if name != CONFIG.name)
 RAW = (REFERENCE.name, COMMAND.name, MEASURED.name, TRUTH.name, DITHER.name, CLOCK.name)
-"""Per-sample topics taken as serialized CDR and decoded with rosbags (no rclpy message
-objects: about half the recorder's cost per sample). The recorder asks for the samples
-published before discovery matched it with their publisher (up to 0.1 s of them), and
-makes its ``/experiment/trajectory`` subscription, which the sequencer waits for, last."""
+"""Per-sample topics taken as CDR bytes and written as they come once they are canonical
+(:mod:`msg_defs.cdr`: what the graph's nodes publish; another publisher's bytes are
+re-encoded), with no message object. The recorder asks for the samples published before
+discovery matched it with their publisher (up to 0.1 s of them), and makes its
+``/experiment/trajectory`` subscription, which the sequencer waits for, last."""
 
 
 DRAIN_IDLE_S = 0.3
@@ -61,34 +62,29 @@ class RecorderNode(StageNode):
         self.end_ns = None                  # last sample of the last trial that ended
         self.last_heard = time.monotonic()
         self.subscribe(CONFIG.name, self._config_in)
-        from rosbags.typesys import Stores, get_typestore
-        self._store = get_typestore(Stores.ROS2_JAZZY)
         for name in RECORDED:
             if name in RAW:
-                t = TOPICS[name]
-                self.create_subscription(convert.message_class(None, t.msg_type), name,
-                                         lambda b, t=t: self._write_raw(t, b), subscription_qos(t, record=True),
-                                         raw=True)
+                canonical = (cdr.JointStateReader().canonical if TOPICS[name].msg_type == cdr.JOINT_STATE
+                             else lambda data: cdr.canonical(data, cdr.CLOCK))
+                self.subscribe(name, lambda data, name=name, c=canonical: self._write_raw(name, data, c),
+                               record=True, raw=True)
             elif name != TRAJECTORY.name:
                 self.subscribe(name, lambda m, name=name: self._write(name, m), record=True)
         self.join_runs(lambda m: self._write(TRAJECTORY.name, m))
 
-    def _write_raw(self, topic, data: bytes):
-        """A per-sample message (JointState or Clock, stamp first) as a rosbags message;
+    def _write_raw(self, topic: str, data: bytes, canonical):
+        """A per-sample message (JointState or Clock, CDR bytes), written in its canonical CDR;
         a sample sent again (the lockstep's retry) is written once."""
-        md = self._store.get_msgdef(topic.msg_type)
-        # rclpy's CDR pads the end (rosbags' deserialize_cdr refuses that): decode the body
-        decode = md.deserialize_cdr_le if data[1] else md.deserialize_cdr_be
-        msg = decode(data[4:], 0, md.cls, self._store)[0]
-        stamp = convert.stamp_ns(msg)
-        last = self.last_ns.get(topic.name, -1)
+        stamp = cdr.stamp_ns(data)
+        last = self.last_ns.get(topic, -1)
         if stamp <= last:
             return
         # a gap in the stamps: samples that never came (after run_end nothing belongs to the run)
         if self.open_run and self.dt_ns and last >= 0 and stamp - last > self.dt_ns:
-            self.lost[topic.name] = self.lost.get(topic.name, 0) + (stamp - last) // self.dt_ns - 1
-        self.last_ns[topic.name] = stamp
-        self._write(topic.name, msg)
+            self.lost[topic] = self.lost.get(topic, 0) + (stamp - last) // self.dt_ns - 1
+        self.last_ns[topic] = stamp
+        self.now_ns = max(self.now_ns, stamp)
+        self._write(topic, canonical(data), stamp)
 
     def _config_in(self, msg):
         self.last_heard = time.monotonic()
@@ -114,9 +110,11 @@ class RecorderNode(StageNode):
         self.get_logger().warning(f"{bag} exists (a recorder before me?): recording to {free}")
         return free
 
-    def _write(self, name, msg):
+    def _write(self, name, msg, stamp=None):
         self.last_heard = time.monotonic()
-        if hasattr(msg, "header") or name == "/clock":
+        if stamp is not None:
+            pass
+        elif hasattr(msg, "header") or name == "/clock":
             stamp = convert.stamp_ns(msg)
             self.now_ns = max(self.now_ns, stamp)
         elif name == "/experiment/events":

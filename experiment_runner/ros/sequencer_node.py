@@ -12,16 +12,19 @@ and the executable exits 1.
 """
 from __future__ import annotations
 
+import math
 import sys
 import time
 
 import numpy as np
 import yaml
 
-from msg_defs import convert
-from msg_defs.node_io import NODE_OF_INPUT, StageNode, run_node
-from stage_sim.config import ConfigError
 from experiment_runner.experiment import build_trials, experiment_preset, load_experiment, trial_metrics
+from experiment_runner.ros.node import StageNode
+from experiment_runner.ros.nodes import JOINING, publisher_of
+from experiment_runner.ros.run import run_node
+from msg_defs import convert
+from stage_sim.config import ConfigError
 
 
 def _check_experiment(name):
@@ -30,10 +33,6 @@ def _check_experiment(name):
     except ConfigError as err:
         return str(err)
     return None
-
-
-WAITED_NODES = ("plant_sim", "servo_controller", "dither_generator", "sai_manager", "recorder")
-"""The subscribers of ``/experiment/trajectory`` the sequencer waits for (``wait_for_nodes``)."""
 
 
 class SequencerNode(StageNode):
@@ -45,10 +44,10 @@ class SequencerNode(StageNode):
                           "experiment name (shipped) or YAML path", check=_check_experiment)
         self.timeout = self.param("sample_timeout", 5.0, "wall-clock time without a new sample "
                                   "before the trial is aborted [s]", 0.01, 3600.0, attr="timeout")
-        self.wait_nodes = self.param("wait_for_nodes", 5, "subscribers of /experiment/trajectory "
-                                     "to wait for before starting (5: plant_sim, servo_controller, "
-                                     "dither_generator, sai_manager, recorder; fewer, and the "
-                                     "recorder may miss the first events)", 0, 100, attr="wait_nodes")
+        self.wait_nodes = self.param("wait_for_nodes", len(JOINING), "subscribers of /experiment/trajectory "
+                                     f"to wait for before starting ({len(JOINING)}: {', '.join(JOINING)}; "
+                                     "fewer, and the recorder may miss the first events)", 0, 100,
+                                     attr="wait_nodes")
         self.start_delay = self.param("start_delay", 1.0, "wall-clock time to wait once the nodes are "
                                       "there, so they discover each other too (what a publisher "
                                       "sends before its subscriber matched is lost) [s]", 0.0, 60.0,
@@ -66,8 +65,10 @@ class SequencerNode(StageNode):
         self.pub_traj = self.publisher("/experiment/trajectory")
         self.pub_results = self.publisher("/experiment/results")
         # every sample counts for the metrics: also those sent before discovery matched us (record)
-        self.subscribe("/stage/measured", lambda m: self._sample(m, "measured", m.position[0]), record=True)
-        self.subscribe("/stage/reference", lambda m: self._sample(m, "reference", m.position[0]), record=True)
+        self.subscribe_samples("/stage/measured", lambda t, n, p, v, e: self._sample(t, "measured", p[0]),
+                               record=True)
+        self.subscribe_samples("/stage/reference", lambda t, n, p, v, e: self._sample(t, "reference", p[0]),
+                               record=True)
         self.subscribe("/experiment/events", self._event_in)
         self.results: list[dict] = []
         self.done = False
@@ -95,7 +96,7 @@ class SequencerNode(StageNode):
                 # the loop reached the end, but records were lost on the way (not resent: no node waits for them)
                 stale = "reference" if np.isnan(self.xr).any() else "measured"
                 lost = int(np.isnan(self.xr if stale == "reference" else self.y).sum())
-                node = NODE_OF_INPUT[f"/stage/{stale}"]
+                node = publisher_of(f"/stage/{stale}")
                 self._abort(f"{lost} {stale} sample(s) of the trial never arrived (lost); its metrics "
                             "cannot be computed", node)
                 return
@@ -104,7 +105,7 @@ class SequencerNode(StageNode):
             # (a plant killed mid-publish may have reached us but not the servo)
             quiet = time.monotonic() - self.last_measured > self.timeout
             stale = "measured" if quiet or self.k_meas <= self.k_ref else "reference"
-            node = NODE_OF_INPUT["/stage/measured" if stale == "measured" else "/stage/reference"]
+            node = publisher_of(f"/stage/{stale}")
             self._abort(f"no {stale} sample after sample {max(self.k_meas, self.k_ref)} within "
                         f"{self.timeout} s", node)
 
@@ -122,7 +123,7 @@ class SequencerNode(StageNode):
             self.ready_since = None
             if now - self.t_created > self.start_timeout:
                 present = set(self.get_node_names())
-                missing = [n for n in WAITED_NODES if n not in present]
+                missing = [n for n in JOINING if n not in present]
                 self._abort(f"only {self.pub_traj.get_subscription_count()} of {self.wait_nodes} nodes "
                             f"after {self.start_timeout} s; missing: {', '.join(missing) or '?'}", missing)
             return
@@ -146,6 +147,7 @@ class SequencerNode(StageNode):
         n = len(tr.x_ref)
         self.y = np.full(n, np.nan)
         self.xr = np.full(n, np.nan)
+        self.unheard = {"measured": n, "reference": n}     # samples of each still nan
         self.k_meas = self.k_ref = -1
         settle = [s for s in tr.segments if s.kind == "settle"]
         extra = {}
@@ -158,27 +160,30 @@ class SequencerNode(StageNode):
         self.pub_traj.publish(convert.trajectory_to_msg(None, tr.x_ref, tr.v_ref, trial=tr.index,
                                                         case=tr.case, start=self.start, rate=self.rate))
 
-    def _sample(self, msg, name, value):
+    def _sample(self, stamp, name, value):
         if self.done or self.current < 0:
             return
-        k = convert.stamp_ns(msg) // self.dt_ns - self.start
+        k = stamp // self.dt_ns - self.start
         n = len(self.y)
         if not 0 <= k < n:
             return
+        now = time.monotonic()
         if name == "measured":
-            self.last_measured = time.monotonic()
+            self.last_measured = now
             if k < self.k_meas:             # not a resend (that is k_meas): a plant started afresh
                 self._abort(f"plant_sim published sample {k} of trial {self.trials[self.current].index} "
                             f"after sample {self.k_meas}: it restarted mid-run", "plant_sim")
                 return
-            self.y[k] = value
+            values = self.y
             self.k_meas = max(self.k_meas, k)
         else:
-            self.xr[k] = value
+            values = self.xr
             self.k_ref = max(self.k_ref, k)
-        self.last_progress = time.monotonic()
-        if self.k_meas == n - 1 and self.k_ref == n - 1 and not np.isnan(self.y).any() \
-                and not np.isnan(self.xr).any():
+        self.unheard[name] += math.isnan(value) - math.isnan(values[k])
+        values[k] = value
+        self.last_progress = now
+        if self.k_meas == n - 1 and self.k_ref == n - 1 and not self.unheard["measured"] \
+                and not self.unheard["reference"]:
             self._finish_trial()
 
     def _finish_trial(self):

@@ -12,207 +12,22 @@ from __future__ import annotations
 
 import array
 import math
-import os
-import time
 
 import numpy as np
 import yaml
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
-from msg_defs import convert
-from msg_defs.topics import TRAJECTORY, Qos, Topic, get_topic, qos_profile, subscription_qos
-
-SAI_COMMAND = Topic(
-    "/sai/command", "sensor_msgs/msg/JointState", "1, m", Qos("reliable", "volatile", 1000),
-    "every control sample, one sample ahead (SAI stages)",
-    'name ["isolator"], position [mode] (1 compliant, 0 stiff), effort [x_correction]: the SAI '
-    "manager's mode and Step II reference correction for the sample of its stamp")
-"""Internal lockstep topic of the graph (not part of a recording)."""
-
-NODE_OF_INPUT = {"/stage/command": "servo_controller", "/stage/dither": "dither_generator",
-                 "/sai/command": "sai_manager", "/stage/measured": "plant_sim",
-                 "/stage/reference": "servo_controller"}
-"""Which node publishes each lockstep input (to name a silent node)."""
-
+from experiment_runner.ros.qos import qos_profile, subscription_qos
+from experiment_runner.ros.run import params_source
+from msg_defs import cdr, convert
+from msg_defs.topics import FAULT_CAUSES, TRAJECTORY, Topic, get_topic
+from stage_sim.config import ConfigError, load_preset
 
 FAULT_MODES = ("drop", "delay", "nan")
 """What the test-only ``fault.*`` parameters can do to the messages of one topic."""
-
-
-def domain_env(domain_id: int | None = None) -> dict:
-    """Environment for an isolated graph: explicit domain, localhost-only discovery."""
-    env = dict(os.environ)
-    if domain_id is not None:
-        env["ROS_DOMAIN_ID"] = str(domain_id)
-    env.setdefault("ROS_DOMAIN_ID", "42")
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env.pop("ROS_LOCALHOST_ONLY", None)
-    return env
-
-
-GRAPH_DEFAULTS = {"ROS_DOMAIN_ID": "42", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
-"""What a node started by hand gets unless its environment says otherwise: an explicit
-domain and localhost-only discovery (``docs/security.md`` tells how to open the graph)."""
-
-
-def apply_graph_defaults(environ=os.environ) -> dict:
-    """Set :data:`GRAPH_DEFAULTS` in ``environ`` where it names neither (``ROS_LOCALHOST_ONLY``
-    counts as a discovery choice); return what was set."""
-    chosen = {}
-    if "ROS_DOMAIN_ID" not in environ:
-        chosen["ROS_DOMAIN_ID"] = GRAPH_DEFAULTS["ROS_DOMAIN_ID"]
-    if "ROS_AUTOMATIC_DISCOVERY_RANGE" not in environ and "ROS_LOCALHOST_ONLY" not in environ:
-        chosen["ROS_AUTOMATIC_DISCOVERY_RANGE"] = GRAPH_DEFAULTS["ROS_AUTOMATIC_DISCOVERY_RANGE"]
-    environ.update(chosen)
-    return chosen
-
-
-def _params_source(argv) -> str:
-    """Where a node's parameters come from, for error messages."""
-    files = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
-    return f"params file {', '.join(files)}" if files else "command line / defaults"
-
-
-def executor_kind(kind: str | None = None) -> str:
-    """``"events"`` (rclpy's C++ ``EventsExecutor``) or ``"single"`` (``SingleThreadedExecutor``):
-    ``kind``, else ``NANOSTAGE_EXECUTOR``, else ``"events"`` where rclpy has it."""
-    kind = kind or os.environ.get("NANOSTAGE_EXECUTOR") or "events"
-    if kind not in ("events", "single"):
-        raise ValueError(f"executor {kind!r}: expected 'events' or 'single'")
-    if kind == "events":
-        try:
-            from rclpy.experimental import EventsExecutor  # noqa: F401
-        except ImportError:
-            return "single"
-    return kind
-
-
-def make_executor(context=None, kind: str | None = None):
-    """The executor the nodes spin in (see :func:`executor_kind`).
-
-    The lockstep graph is callback-bound; the ``EventsExecutor`` dispatches callbacks
-    from C++ without rebuilding a wait set for each one (3-5x the callback rate of
-    the ``SingleThreadedExecutor``, whose wait set here holds ~100 entities).
-    """
-    if executor_kind(kind) == "events":
-        from rclpy.experimental import EventsExecutor
-        return EventsExecutor(context=context)
-    from rclpy.executors import SingleThreadedExecutor
-    return SingleThreadedExecutor(context=context)
-
-
-EXIT_GRACE_S = 5.0
-"""Wall-clock time a node gets, once it is told to stop (SIGINT) or its run is done, to tear
-down ROS before it ends itself: DDS teardown must never leave a node hanging. Its own
-clean-up (``on_exit``: e.g. closing a recording) always finishes first."""
-
-
-DRAIN_MIN_S, DRAIN_MAX_S = 0.5, 5.0
-"""Shortest and longest time a draining node (the recorder) keeps taking messages after it
-is told to stop [s]."""
-
-
-def run_node(factory, args=None, until=None, on_exit=None, drain=None):
-    """``main`` of a node executable: init, spin (until ``until(node)`` is true), clean up.
-
-    Ctrl-C / SIGINT ends it cleanly; ``on_exit(node)`` runs last (e.g. close a file) and may
-    return the process's exit status. Whatever hangs after that, the process ends within
-    :data:`EXIT_GRACE_S` of being stopped. ``drain(node)``: on SIGINT / SIGTERM the node keeps
-    spinning while this is true (at most :data:`DRAIN_MAX_S`): a recorder that is behind takes
-    the messages already on their way before it closes its file.
-    """
-    import signal
-    import sys
-    import threading
-
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-    from rclpy.signals import SignalHandlerOptions
-    import faulthandler
-    faulthandler.register(signal.SIGUSR1, all_threads=True)     # a hung node's stacks, on request
-    chosen = apply_graph_defaults()
-    # SIGINT / SIGTERM just set ``stop`` (no rclpy signal-handler thread shutting ROS down under
-    # a spinning executor): the loop ends within one spin, ROS is torn down from this thread,
-    # and a draining node keeps ROS up while it takes what is still on its way
-    stop = threading.Event()
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    status = [0]
-    stopping, cleanup = _exit_guard(rclpy.get_default_context(), status, stop,
-                                    EXIT_GRACE_S + (DRAIN_MAX_S if drain else 0.0))
-    node = None
-    try:
-        try:
-            node = factory()
-            _refuse_unknown_parameters(node)
-        except (ValueError, InvalidParameterValueException,
-                InvalidParameterTypeException) as err:                 # bad parameter: say which
-            print(f"error: {err}", file=sys.stderr)
-            if node is not None:
-                node.destroy_node()
-                node = None
-            rclpy.shutdown()
-            sys.exit(2)
-        if chosen:
-            node.get_logger().info(f"graph defaults {chosen} (set them to open the graph: docs/security.md)")
-        ex = make_executor()
-        ex.add_node(node)
-        while rclpy.ok() and not stop.is_set() and not (until and until(node)):
-            ex.spin_once(timeout_sec=0.1)
-        if drain is not None:                                      # at least DRAIN_MIN_S: it may just
-            t_stop = time.monotonic()                             # have been resumed (SIGCONT)
-            while rclpy.ok() and time.monotonic() < t_stop + DRAIN_MAX_S and (
-                    time.monotonic() < t_stop + DRAIN_MIN_S or drain(node)):
-                ex.spin_once(timeout_sec=0.05)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        stopping.set()
-        if node is not None:
-            if on_exit:
-                with cleanup:
-                    status[0] = on_exit(node) or 0
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
-    if status[0]:
-        sys.exit(status[0])
-
-
-def _exit_guard(context, status, stop, grace: float):
-    """Start a daemon thread that ends the process (with ``status[0]``) ``grace`` seconds after
-    ``context`` is shut down (rclpy's SIGINT handler), ``stop`` is set (ours) or the returned
-    event is set, unless it ended by itself; it waits while the returned lock (held by the
-    node's own clean-up) is taken."""
-    import sys
-    import threading
-    stopping, cleanup = threading.Event(), threading.Lock()
-
-    def guard():
-        while not stopping.wait(0.2) and not stop.is_set() and context.ok():
-            pass
-        time.sleep(grace)
-        with cleanup:
-            print(f"[run_node] ROS teardown did not finish {grace} s after stop: exiting", file=sys.stderr, flush=True)
-            os._exit(status[0])
-    threading.Thread(target=guard, name="exit_guard", daemon=True).start()
-    return stopping, cleanup
-
-
-def _refuse_unknown_parameters(node) -> None:
-    """``ValueError`` if a params file or ``-p`` sets a parameter the node does not have (a typo
-    would otherwise be ignored silently)."""
-    import sys
-    unknown = sorted(n for n in node._parameter_overrides
-                     if not node.has_parameter(n) and not n.startswith("qos_overrides."))
-    if unknown:
-        known = ", ".join(sorted(node._parameters))
-        lines = [f"  {n}: unknown parameter (got {node._parameter_overrides[n].value!r}); allowed: {known}"
-                 for n in unknown]
-        raise ValueError(f"{node.get_name()} ({_params_source(sys.argv)}): invalid parameters\n" + "\n".join(lines))
 
 
 class StageNode(Node):
@@ -258,12 +73,19 @@ class StageNode(Node):
             return FaultyPublisher(self, pub, **{k: v for k, v in self.fault.items() if k != "topic"})
         return pub
 
-    def subscribe(self, topic, callback, record: bool = False):
-        """Subscribe with the topic's QoS (:func:`msg_defs.topics.subscription_qos`; ``record``:
-        also get the per-sample messages sent before this subscription was matched)."""
+    def subscribe(self, topic, callback, record: bool = False, raw: bool = False):
+        """Subscribe with the topic's QoS (:func:`experiment_runner.ros.qos.subscription_qos`;
+        ``record``: also get the per-sample messages sent before this subscription was matched;
+        ``raw``: ``callback`` gets the CDR bytes, e.g. for :mod:`msg_defs.cdr`)."""
         t = get_topic(topic)
         return self.create_subscription(convert.message_class(None, t.msg_type), t.name, callback,
-                                        subscription_qos(t, record))
+                                        subscription_qos(t, record), raw=raw)
+
+    def subscribe_samples(self, topic, callback, record: bool = False):
+        """Subscribe to a per-sample JointState topic: ``callback(stamp_ns, names, position,
+        velocity, effort)`` (tuples), read from the CDR bytes (:class:`msg_defs.cdr.JointStateReader`)."""
+        read = cdr.JointStateReader().read
+        return self.subscribe(topic, lambda data: callback(*read(data)), record=record, raw=True)
 
     def join_runs(self, callback):
         """Subscribe ``callback`` to ``/experiment/trajectory`` -- the subscription the sequencer
@@ -304,11 +126,15 @@ class StageNode(Node):
                 self.add_post_set_parameters_callback(self._follow)
             self._live[name] = attr
         try:
-            value = self.declare_parameter(name, default, desc).value
+            if isinstance(default, list):           # a list of floats, possibly empty: typed statically
+                value = self.declare_parameter(name, Parameter.Type.DOUBLE_ARRAY, desc).value
+                value = default if value is None else list(value)
+            else:
+                value = self.declare_parameter(name, default, desc).value
         except (InvalidParameterValueException, InvalidParameterTypeException):
             given = self._parameter_overrides.get(name)
-            kind = {bool: "true/false", int: "an integer", float: "a number", str: "a string"}.get(
-                type(default), type(default).__name__)
+            kind = {bool: "true/false", int: "an integer", float: "a number", str: "a string",
+                    list: "a list of numbers with a decimal point"}.get(type(default), type(default).__name__)
             allowed = f"{kind} from {lo} to {hi}" if lo is not None else kind
             value = given.value if given else default
             problem = check(value) if check and isinstance(value, type(default)) else None
@@ -325,7 +151,7 @@ class StageNode(Node):
         import sys
 
         from stage_sim.validation import field_line
-        return (f"{self.get_name()} ({_params_source(sys.argv)}): invalid parameters\n"
+        return (f"{self.get_name()} ({params_source(sys.argv)}): invalid parameters\n"
                 + field_line(name, value, problem))
 
     def _validate(self, params):
@@ -355,12 +181,15 @@ class StageNode(Node):
         self.event("fault", reason=f"{cause}: {reason}", cause=cause, responsible=nodes, **fields)
 
 
-FAULT_CAUSES = ("watchdog", "non_finite_input", "diverged", "out_of_travel", "reference_out_of_travel",
-                "joined_mid_trial", "restarted", "recording_incomplete")
-"""``cause`` of a ``fault`` event: no input within the timeout (the plant holds zero force),
-a NaN/inf input, a non-finite or runaway state, the table outside its travel, a reference
-outside the travel (refused), a node that joined a trial after its first sample, a node
-that restarted mid-run, per-sample messages that never reached the recorder."""
+def check_preset(name):
+    """Parameter validator: None if ``name`` is empty or a loadable preset, else why not."""
+    if not name:
+        return None
+    try:
+        load_preset(name)
+    except ConfigError as err:
+        return str(err)
+    return None
 
 
 def finite(*values) -> bool:
@@ -394,10 +223,10 @@ class FaultyPublisher:
         if n < self.after or (self.count >= 0 and n >= self.after + self.count):
             self._pub.publish(msg)
         elif self.mode == "nan":
-            self._pub.publish(_nan_copy(msg))
+            self._pub.publish(cdr.nan_filled(msg) if isinstance(msg, bytes) else _nan_copy(msg))
         elif self.mode == "delay":
             from rclpy.serialization import serialize_message
-            data = serialize_message(msg)       # the message object may be refilled before it goes
+            data = msg if isinstance(msg, bytes) else serialize_message(msg)   # as it is now
             timer = None
 
             def later():
@@ -442,22 +271,16 @@ class Lockstep:
         self.pending.clear()
 
 
-def _floats(x) -> array.array:
-    """A float64[] field value (``array('d')``, what rclpy stores) from a sequence or array."""
-    if isinstance(x, np.ndarray):
-        return array.array("d", np.ascontiguousarray(x, dtype=np.float64).reshape(-1).tobytes())
-    return array.array("d", x)
-
-
 class JointStateOut:
-    """Publisher of ``sensor_msgs/JointState`` for per-sample topics: one message per joint-name
-    list is built once (:func:`msg_defs.convert.joint_state`) and refilled for every sample
-    (same content, ~10x cheaper than building a message each time)."""
+    """Publisher of a per-sample ``sensor_msgs/JointState`` topic, as canonical CDR bytes
+    (:func:`msg_defs.cdr.joint_state`): no message object is built, converted to C and
+    serialized for every sample, and what the subscribers (the recorder) get is already
+    what a recording holds."""
 
     def __init__(self, node: StageNode, topic):
         self.pub = node.publisher(topic)
-        self._msgs: dict[tuple, object] = {}
-        self.last = None                    # the message published last
+        self._pack = cdr.JointStateWriter().pack
+        self.last = None                    # the bytes published last
 
     def republish(self):
         """Publish the last message again (an answer to a sample the plant sent again)."""
@@ -465,16 +288,6 @@ class JointStateOut:
             self.pub.publish(self.last)
 
     def publish(self, stamp_ns: int, names, position=(), velocity=(), effort=()):
-        key = tuple(names)
-        msg = self._msgs.get(key)
-        if msg is None:
-            msg = self._msgs[key] = convert.joint_state(None, stamp_ns, key)
-        stamp = msg.header.stamp
-        stamp.sec, stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
-        for field, val in (("position", position), ("velocity", velocity), ("effort", effort)):
-            val = _floats(val)
-            if len(val) not in (0, len(key)):
-                raise ValueError(f"JointState {field} has {len(val)} values for {len(key)} names {list(key)}")
-            setattr(msg, field, val)
-        self.pub.publish(msg)
-        self.last = msg
+        """Publish one sample; ``names`` a tuple, the value sequences floats (empty or one per name)."""
+        self.last = self._pack(stamp_ns, names, position, velocity, effort)
+        self.pub.publish(self.last)

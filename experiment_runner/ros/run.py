@@ -1,0 +1,230 @@
+"""Running nodes: the graph's environment, the executor, and ``main`` of a node executable.
+
+* :func:`domain_env` / :func:`apply_graph_defaults`: an explicit ROS domain and
+  localhost-only discovery unless the environment says otherwise
+  (``docs/security.md`` tells how to open the graph);
+* :func:`make_executor`: rclpy's C++ ``EventsExecutor`` (default) or the
+  ``SingleThreadedExecutor``;
+* :func:`run_node`: init, spin, clean up -- every node module's ``main`` is one call of it.
+"""
+from __future__ import annotations
+
+import faulthandler
+import os
+import signal
+import sys
+import threading
+import time
+
+import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException
+from rclpy.signals import SignalHandlerOptions
+
+__all__ = ["domain_env", "GRAPH_DEFAULTS", "apply_graph_defaults", "DOMAIN_IDS", "check_domain_id",
+           "executor_kind", "make_executor", "run_node", "params_source", "EXIT_GRACE_S", "DRAIN_MIN_S",
+           "DRAIN_MAX_S"]
+
+
+DOMAIN_IDS = range(0, 233)
+"""ROS domain IDs a graph can use here: Fast DDS derives its UDP ports from the domain, and
+above 232 they leave the port range (the participant cannot be created: the process ends)."""
+
+
+def check_domain_id(value=None, environ=os.environ) -> int:
+    """The ROS domain a run will use (``value``, else ``ROS_DOMAIN_ID``, else 42), checked:
+    ``ValueError`` naming the value, where it came from and what is allowed.
+
+    >>> check_domain_id(7), check_domain_id(None, {"ROS_DOMAIN_ID": "12"}), check_domain_id(None, {})
+    (7, 12, 42)
+    >>> check_domain_id(300)
+    Traceback (most recent call last):
+    ...
+    ValueError: ROS domain ID (--domain-id): got 300; expected an integer from 0 to 232
+    """
+    source = "--domain-id" if value is not None else "environment variable ROS_DOMAIN_ID"
+    if value is None:
+        value = environ.get("ROS_DOMAIN_ID", GRAPH_DEFAULTS["ROS_DOMAIN_ID"])
+    try:
+        domain = int(str(value).strip())
+    except ValueError:
+        domain = None
+    if domain is None or domain not in DOMAIN_IDS:
+        raise ValueError(f"ROS domain ID ({source}): got {value!r}; expected an integer from "
+                         f"{DOMAIN_IDS.start} to {DOMAIN_IDS.stop - 1}")
+    return domain
+
+
+def domain_env(domain_id: int | None = None) -> dict:
+    """Environment for an isolated graph: explicit domain, localhost-only discovery."""
+    env = dict(os.environ)
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+    env.setdefault("ROS_DOMAIN_ID", "42")
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    return env
+
+
+GRAPH_DEFAULTS = {"ROS_DOMAIN_ID": "42", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+"""What a node started by hand gets unless its environment says otherwise: an explicit
+domain and localhost-only discovery (``docs/security.md`` tells how to open the graph)."""
+
+
+def apply_graph_defaults(environ=os.environ) -> dict:
+    """Set :data:`GRAPH_DEFAULTS` in ``environ`` where it names neither (``ROS_LOCALHOST_ONLY``
+    counts as a discovery choice); return what was set."""
+    chosen = {}
+    if "ROS_DOMAIN_ID" not in environ:
+        chosen["ROS_DOMAIN_ID"] = GRAPH_DEFAULTS["ROS_DOMAIN_ID"]
+    if "ROS_AUTOMATIC_DISCOVERY_RANGE" not in environ and "ROS_LOCALHOST_ONLY" not in environ:
+        chosen["ROS_AUTOMATIC_DISCOVERY_RANGE"] = GRAPH_DEFAULTS["ROS_AUTOMATIC_DISCOVERY_RANGE"]
+    environ.update(chosen)
+    return chosen
+
+
+def params_source(argv) -> str:
+    """Where a node's parameters come from, for error messages."""
+    files = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
+    return f"params file {', '.join(files)}" if files else "command line / defaults"
+
+
+def executor_kind(kind: str | None = None) -> str:
+    """``"events"`` (rclpy's C++ ``EventsExecutor``) or ``"single"`` (``SingleThreadedExecutor``):
+    ``kind``, else ``NANOSTAGE_EXECUTOR``, else ``"events"`` where rclpy has it."""
+    kind = kind or os.environ.get("NANOSTAGE_EXECUTOR") or "events"
+    if kind not in ("events", "single"):
+        raise ValueError(f"executor {kind!r}: expected 'events' or 'single'")
+    if kind == "events":
+        try:
+            from rclpy.experimental import EventsExecutor  # noqa: F401
+        except ImportError:
+            return "single"
+    return kind
+
+
+def make_executor(context=None, kind: str | None = None):
+    """The executor the nodes spin in (see :func:`executor_kind`).
+
+    The lockstep graph is callback-bound; the ``EventsExecutor`` dispatches callbacks
+    from C++ without rebuilding a wait set for each one (3-5x the callback rate of
+    the ``SingleThreadedExecutor``, whose wait set here holds ~100 entities).
+    """
+    if executor_kind(kind) == "events":
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor(context=context)
+    from rclpy.executors import SingleThreadedExecutor
+    return SingleThreadedExecutor(context=context)
+
+
+def spin_for(ex, seconds: float) -> None:
+    """Run ``ex``'s callbacks for ``seconds`` (wall clock), or until it is stopped.
+
+    One call for many callbacks: the ``EventsExecutor`` dispatches them in its C++ loop
+    (``spin_once`` returns to Python, re-takes its lock and releases the GIL for each one).
+    """
+    from rclpy.task import Future
+    ex.spin_until_future_complete(Future(), timeout_sec=seconds)
+
+
+EXIT_GRACE_S = 5.0
+"""Wall-clock time a node gets, once it is told to stop (SIGINT) or its run is done, to tear
+down ROS before it ends itself: DDS teardown must never leave a node hanging. Its own
+clean-up (``on_exit``: e.g. closing a recording) always finishes first."""
+
+
+DRAIN_MIN_S, DRAIN_MAX_S = 0.5, 5.0
+"""Shortest and longest time a draining node (the recorder) keeps taking messages after it
+is told to stop [s]."""
+
+
+def run_node(factory, args=None, until=None, on_exit=None, drain=None):
+    """``main`` of a node executable: init, spin (until ``until(node)`` is true), clean up.
+
+    Ctrl-C / SIGINT ends it cleanly; ``on_exit(node)`` runs last (e.g. close a file) and may
+    return the process's exit status. Whatever hangs after that, the process ends within
+    :data:`EXIT_GRACE_S` of being stopped. ``drain(node)``: on SIGINT / SIGTERM the node keeps
+    spinning while this is true (at most :data:`DRAIN_MAX_S`): a recorder that is behind takes
+    the messages already on their way before it closes its file.
+    """
+    faulthandler.register(signal.SIGUSR1, all_threads=True)     # a hung node's stacks, on request
+    chosen = apply_graph_defaults()
+    # SIGINT / SIGTERM just set ``stop`` (no rclpy signal-handler thread shutting ROS down under
+    # a spinning executor): the loop ends within one spin, ROS is torn down from this thread,
+    # and a draining node keeps ROS up while it takes what is still on its way
+    stop = threading.Event()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    status = [0]
+    stopping, cleanup = _exit_guard(rclpy.get_default_context(), status, stop,
+                                    EXIT_GRACE_S + (DRAIN_MAX_S if drain else 0.0))
+    node = None
+    try:
+        try:
+            node = factory()
+            _refuse_unknown_parameters(node)
+        except (ValueError, InvalidParameterValueException,
+                InvalidParameterTypeException) as err:                 # bad parameter: say which
+            print(f"error: {err}", file=sys.stderr)
+            if node is not None:
+                node.destroy_node()
+                node = None
+            rclpy.shutdown()
+            sys.exit(2)
+        if chosen:
+            node.get_logger().info(f"graph defaults {chosen} (set them to open the graph: docs/security.md)")
+        ex = make_executor()
+        ex.add_node(node)
+        while rclpy.ok() and not stop.is_set() and not (until and until(node)):
+            spin_for(ex, 0.05)
+        if drain is not None:                                      # at least DRAIN_MIN_S: it may just
+            t_stop = time.monotonic()                             # have been resumed (SIGCONT)
+            while rclpy.ok() and time.monotonic() < t_stop + DRAIN_MAX_S and (
+                    time.monotonic() < t_stop + DRAIN_MIN_S or drain(node)):
+                ex.spin_once(timeout_sec=0.05)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        stopping.set()
+        if node is not None:
+            if on_exit:
+                with cleanup:
+                    status[0] = on_exit(node) or 0
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    if status[0]:
+        sys.exit(status[0])
+
+
+def _exit_guard(context, status, stop, grace: float):
+    """Start a daemon thread that ends the process (with ``status[0]``) ``grace`` seconds after
+    ``context`` is shut down (rclpy's SIGINT handler), ``stop`` is set (ours) or the returned
+    event is set, unless it ended by itself; it waits while the returned lock (held by the
+    node's own clean-up) is taken."""
+    stopping, cleanup = threading.Event(), threading.Lock()
+
+    def guard():
+        while not stopping.wait(0.2) and not stop.is_set() and context.ok():
+            pass
+        time.sleep(grace)
+        with cleanup:
+            print(f"[run_node] ROS teardown did not finish {grace} s after stop: exiting", file=sys.stderr, flush=True)
+            os._exit(status[0])
+    threading.Thread(target=guard, name="exit_guard", daemon=True).start()
+    return stopping, cleanup
+
+
+def _refuse_unknown_parameters(node) -> None:
+    """``ValueError`` if a params file or ``-p`` sets a parameter the node does not have (a typo
+    would otherwise be ignored silently)."""
+    unknown = sorted(n for n in node._parameter_overrides
+                     if not node.has_parameter(n) and not n.startswith("qos_overrides."))
+    if unknown:
+        known = ", ".join(sorted(node._parameters))
+        lines = [f"  {n}: unknown parameter (got {node._parameter_overrides[n].value!r}); allowed: {known}"
+                 for n in unknown]
+        raise ValueError(f"{node.get_name()} ({params_source(sys.argv)}): invalid parameters\n" + "\n".join(lines))
+
+

@@ -1,0 +1,84 @@
+"""The layers hold: the import contracts of ``.importlinter`` are kept, and they do fail
+when a core module imports rclpy or the ROS layer; the table of nodes is what is installed."""
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from experiment_runner.ros.nodes import JOINING, NODE_NAMES, NODES, console_scripts, node, publisher_of
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("stage_sim", "stage_control", "msg_defs", "experiment_runner")
+LINT = Path(sys.executable).parent / "lint-imports"
+
+
+def _lint(cwd: Path) -> subprocess.CompletedProcess:
+    """``lint-imports`` on the packages found in ``cwd`` with the contracts of ``cwd/.importlinter``."""
+    env = {**os.environ, "PYTHONPATH": str(cwd)}
+    return subprocess.run([str(LINT), "--config", str(cwd / ".importlinter"), "--no-cache"], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_the_import_contracts_are_kept():
+    out = _lint(ROOT)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "BROKEN" not in out.stdout and " 0 broken" in out.stdout
+
+
+@pytest.fixture
+def source_copy(tmp_path):
+    """The four packages' Python files and the contracts, copied to ``tmp_path``."""
+    for pkg in PACKAGES:
+        shutil.copytree(ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("*.yaml", "__pycache__", "*.md"))
+    shutil.copy(ROOT / ".importlinter", tmp_path / ".importlinter")
+    return tmp_path
+
+
+@pytest.mark.parametrize("module, line, broken", [
+    ("stage_sim/plant.py", "import rclpy", ["The core imports no rclpy", "Only the ROS layer imports rclpy"]),
+    ("experiment_runner/recording.py", "from rclpy.serialization import serialize_message",
+     ["The core imports no rclpy", "Only the ROS layer imports rclpy"]),
+    ("msg_defs/convert.py", "from experiment_runner.ros.node import StageNode", ["The core imports no rclpy"]),
+    ("experiment_runner/ros/servo_node.py", "from experiment_runner.ros.plant_node import PlantNode",
+     ["no node imports another"]),
+    ("msg_defs/topics.py", "from msg_defs.convert import stamp_ns", ["msg_defs: conversions above"]),
+])
+def test_a_broken_layer_breaks_its_contract(source_copy, module, line, broken):
+    path = source_copy / module
+    path.write_text(path.read_text() + f"\n{line}  # the violation under test\n")
+    out = _lint(source_copy)
+    assert out.returncode != 0
+    report = out.stdout.split("Broken contracts")[-1]
+    for name in broken:
+        assert name in report, out.stdout
+    assert module.replace("/", ".").removesuffix(".py") in report
+
+
+def test_the_node_table_is_what_setup_installs():
+    scripts = {ep.name: ep.value for ep in importlib.metadata.entry_points(group="console_scripts")
+               if ep.dist is not None and ep.dist.name == "nanostage"}
+    for entry in console_scripts():
+        name, target = (part.strip() for part in entry.split("="))
+        assert scripts.get(name) == target, f"{name}: installed {scripts.get(name)!r}, table {target!r} " \
+                                            "(re-run scripts/bootstrap.sh)"
+        assert (Path(sys.executable).parent / name).exists()
+    assert set(scripts) == set(NODE_NAMES) | {"nanostage"}
+
+
+def test_the_node_table_names_each_node_class_and_its_topics():
+    for spec in NODES:
+        mod = importlib.import_module(spec.module)
+        assert callable(mod.main)
+        assert getattr(mod, spec.cls).__module__ == spec.module
+    assert NODE_NAMES[-1] == "experiment_sequencer"             # started last: it starts the run
+    assert "experiment_sequencer" not in JOINING and "recorder" in JOINING
+    assert publisher_of("/stage/measured") == "plant_sim" and publisher_of("/sai/command") == "sai_manager"
+    with pytest.raises(KeyError, match="known: plant_sim"):
+        node("plant_simulator")
