@@ -21,7 +21,13 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
     parser.add_argument("--list-effects", action="store_true", help="print the library of hypotheses and exit")
     parser.add_argument("--selftest", action="store_true",
                         help="concealed-data self-test: synthesise recordings with known effects and diagnose them")
-    parser.add_argument("--only", nargs="*", default=None, help="self-test: run only cases whose name starts so")
+    parser.add_argument("--power", action="store_true",
+                        help="with --selftest: the power study (randomized concealed-effect cases and negative "
+                             "controls; detection rate vs effect size, false-positive rate)")
+    parser.add_argument("--cases", type=int, default=None,
+                        help="power study: number of cases (default 150: 45 negative controls, 15 pairs, 90 single effects)")
+    parser.add_argument("--only", nargs="*", default=None, help="self-test: run only cases whose name starts so "
+                                                                "(power study: whose name contains it)")
     parser.add_argument("--keep", default=None, help="self-test: keep recordings and reports in this folder")
     parser.add_argument("--effects", default=None, help="comma-separated effect keys to consider (default all)")
     parser.add_argument("--bandwidth", type=float, default=None, help="force-observer bandwidth [Hz] (default rate/25)")
@@ -58,6 +64,8 @@ def main_diagnose(args) -> int:
         from .hypotheses import describe
         print(json.dumps(describe(as_json=True), indent=1) if args.json else describe())
         return 0
+    if args.selftest and args.power:
+        return _main_power(args)
     if args.selftest:
         from .selftest import run_selftest
         s = run_selftest(only=args.only, as_json=args.json, keep=args.keep, verbose=args.verbose,
@@ -90,6 +98,8 @@ def main_diagnose(args) -> int:
     if args.json:
         print(json.dumps(jsonable(rep), indent=1))
         return 0
+    for line in replay_lines(rep):
+        print(line)
     print(f"verdict: {rep['verdict']}")
     for i, f in enumerate(rep["found"], 1):
         ps = ", ".join(f"{p['name']} = {p['value']:.4g}" + (f" ± {p['sigma']:.2g}" if p.get("sigma") else "")
@@ -104,6 +114,45 @@ def main_diagnose(args) -> int:
     print(f"report: {out / 'report.md'}   improved preset: {out / 'improved_preset.yaml'}   "
           f"({rep['timing_s']['total_s']:.1f} s)")
     return 0
+
+
+def _main_power(args) -> int:
+    from pathlib import Path
+
+    from .power import DEFAULT_CASES, run_power
+    out = Path(args.out) if args.out else Path("out/diagnose/power")
+    s = run_power(args.cases or DEFAULT_CASES, workers=args.workers if args.workers is not None else 2,
+                  cluster=args.cluster, out=out, keep=args.keep, verbose=args.verbose and not args.json,
+                  only=args.only)
+    if args.json:
+        print(json.dumps(_clean(s), indent=1))
+        return 0
+    p = s["power"]
+
+    def pct(x):
+        return "-" if x is None else f"{100 * x:.1f} %"
+    print(f"power study: {s['cases']} cases ({s['negatives']} negative controls), {s['wall_s']:.0f} s")
+    print(f"  named first  {pct(p['named_first_rate'])} of {p['named_first_cases']} single effects >= 3x the floor "
+          f"(goal >= 95 %)")
+    print(f"  pairs        {pct(p['pair_rate'])} of {p['pair_cases']} pairs (goal >= 90 %)")
+    print(f"  parameters   {pct(p['params_rate'])} within +-20 % of {p['params_cases']}")
+    print(f"  false pos.   {pct(s['false_positive_rate'])} of {s['negatives']} negative controls (goal <= 5 %)")
+    print(f"report: {out / 'report.md'}")
+    return 0
+
+
+def replay_lines(rep: dict) -> list[str]:
+    """The headline: held-out closed-loop replay error, nominal -> improved, against the run-to-run
+    floor (what stdout and report.md lead with)."""
+    r = rep["replay"]
+    c, p = r["command_rms_N"], r["position_rms_m"]
+    st = r["stable"]
+    return [f"held-out closed-loop replay ({len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples, "
+            f"{r['reference']} reference):",
+            f"  command error RMS  {c['nominal']:.4g} N -> {c['improved']:.4g} N   (run-to-run floor {c['floor']:.3g} N)",
+            f"  position error RMS {p['nominal']:.4g} m -> {p['improved']:.4g} m   (run-to-run floor {p['floor']:.3g} m)",
+            f"  error / floor      {r['floor_ratio']['nominal']:.3g}x -> {r['floor_ratio']['improved']:.3g}x"
+            + ("" if st["improved"] else "   IMPROVED MODEL UNSTABLE") + ("" if st["nominal"] else "   (nominal unstable)")]
 
 
 def _clean(o):

@@ -22,7 +22,7 @@ from scipy import signal
 
 from msg_defs.topics import ISOLATOR_JOINT, PIEZOS
 
-__all__ = ["DiagData", "load_data", "smooth"]
+__all__ = ["DiagData", "load_data", "from_trials", "smooth"]
 
 
 @dataclass
@@ -126,37 +126,47 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
         notes.append("no trial events: the whole record is one trial")
     if max_trials is not None:
         slices = slices[:max_trials]
-    T = max(s1 - s0 for _, s0, s1 in slices)
-    B = len(slices)
-    pick = lambda a: _stack([a[s0:s1] for _, s0, s1 in slices], T)  # noqa: E731
-    lengths = np.array([s1 - s0 for _, s0, s1 in slices])
+    d0 = d1 = mode = None
+    if rec.dither is not None and len(rec.dither):
+        d0, d1 = (_at_samples(rec.dither, rec.stamp_ns, name, "effort") for name in PIEZOS)
+        notes.append("dither forces from /stage/dither")
+    if rec.isolator is not None and len(rec.isolator):
+        mode = _at_samples(rec.isolator, rec.stamp_ns, ISOLATOR_JOINT, "position", hold=True)
+        notes.append("SAI mode from /stage/isolator")
+    cut = lambda a: None if a is None else [a[s0:s1] for _, s0, s1 in slices]  # noqa: E731
+    return from_trials(rate, [rec.t[s0] for _, s0, _ in slices], cut(rec.x_ref), cut(v_ref), cut(rec.u), cut(rec.y),
+                       trial_ids=[s[0] for s in slices], source=str(rec.path), notes=notes, burn_in=burn_in,
+                       d0=cut(d0), d1=cut(d1), mode=cut(mode))
+
+
+def from_trials(rate: float, t0, x_ref, v_ref, u, y, trial_ids=None, source: str = "", notes=None,
+                burn_in: float = 0.005, d0=None, d1=None, mode=None) -> DiagData:
+    """:class:`DiagData` of trials given as lists of 1-D arrays (one per trial; ``d0, d1, mode``
+    optional), stacked, masked and split into fit and held-out sets as :func:`load_data` does."""
+    B = len(u)
+    T = max(len(a) for a in u)
+    lengths = np.array([len(a) for a in u])
     valid = np.arange(T)[:, None] < lengths[None, :]
     burn = int(round(burn_in * rate))
     usable = valid & (np.arange(T)[:, None] >= burn)
     fit = np.zeros_like(valid)
     held = np.zeros_like(valid)
+    trial_ids = list(range(B)) if trial_ids is None else list(trial_ids)
     if B >= 2:
         hold_cols = [b for b in range(B) if b % 3 == 2] or [B - 1]
         for b in range(B):
             (held if b in hold_cols else fit)[:, b] = usable[:, b]
-        split = f"by trial: held out {', '.join(str(slices[b][0]) for b in hold_cols)} of {B}"
+        split = f"by trial: held out {', '.join(str(trial_ids[b]) for b in hold_cols)} of {B}"
     else:
         blocks = np.minimum((np.arange(T) * 6) // max(1, lengths[0]), 5)
         h = (blocks % 3 == 2)[:, None]
         held = usable & h
         fit = usable & ~h
         split = "one trial: blocks 3 and 6 of 6 held out"
-    d0 = d1 = mode = None
-    if rec.dither is not None and len(rec.dither):
-        d0, d1 = (pick(_at_samples(rec.dither, rec.stamp_ns, name, "effort")) for name in PIEZOS)
-        notes.append("dither forces from /stage/dither")
-    if rec.isolator is not None and len(rec.isolator):
-        mode = pick(_at_samples(rec.isolator, rec.stamp_ns, ISOLATOR_JOINT, "position", hold=True))
-        notes.append("SAI mode from /stage/isolator")
-    return DiagData(rate=rate, t0=np.array([rec.t[s0] for _, s0, _ in slices]), x_ref=pick(rec.x_ref),
-                    v_ref=pick(v_ref), u=pick(rec.u), y=pick(rec.y), valid=valid, fit=fit, held=held,
-                    lengths=lengths, trial_ids=[s[0] for s in slices], source=str(rec.path), split=split,
-                    notes=notes, d0=d0, d1=d1, mode=mode)
+    st = lambda a: None if a is None else _stack(a, T)  # noqa: E731
+    return DiagData(rate=float(rate), t0=np.asarray(t0, float), x_ref=st(x_ref), v_ref=st(v_ref), u=st(u), y=st(y),
+                    valid=valid, fit=fit, held=held, lengths=lengths, trial_ids=trial_ids, source=source,
+                    split=split, notes=list(notes or []), d0=st(d0), d1=st(d1), mode=st(mode))
 
 
 def _at_samples(series, stamp_ns, joint: str, field: str, hold: bool = False) -> np.ndarray:

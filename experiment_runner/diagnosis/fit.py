@@ -218,7 +218,7 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
                 best = (c, v, spec)
         c, v, spec = best
         theta = np.array([float(v)])
-        sigma = np.array([0.0])
+        sigma = np.array([np.nan])        # an integer found by search: no standard error (not "± 0")
         corr = None
     else:
         tr = _Transform(params)
@@ -259,6 +259,8 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
         # correlation of the whitened residual inflates the variance
         infl = npts / max(1.0, n_eff(best["fun"][:, None], np.ones((npts, 1), bool)))
         try:
+            if not np.all(np.isfinite(Jm)):
+                raise np.linalg.LinAlgError("non-finite Jacobian")     # LAPACK would print to stdout
             cov_z = np.linalg.pinv(Jm.T @ Jm) * s2 * infl
             dz = tr.dtheta_dz(theta)
             cov = cov_z * np.outer(dz, dz)
@@ -268,8 +270,13 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
         except np.linalg.LinAlgError:
             sigma = np.full(len(theta), np.nan)
             corr = None
-    on_bound = [p.name for p, v in zip(params, theta) if effect.kind != "integer"
-                and (abs(v - p.lo) <= 1e-6 * max(abs(p.hi - p.lo), 1e-300) or abs(v - p.hi) <= 1e-6 * abs(p.hi - p.lo))]
+    # at a bound (within 0.1 % of the range in the optimiser's variable, log or linear): "not identified"
+    on_bound = []
+    if effect.kind != "integer":
+        zlo, zhi = tr.bounds()
+        tol = 1e-3 * np.maximum(np.abs(zhi - zlo), 1e-300)
+        on_bound = [p.name for p, z, a, b, t in zip(params, tr.to_z(theta), zlo, zhi, tol)
+                    if abs(b - z) <= t or (abs(z - a) <= t and not getattr(p, "physical_lo", False))]
     J_fit, J_held, ne = ev.both(spec)
     return FitResult(key=effect.key, title=effect.title, names=names, units=units, theta=np.asarray(theta, float),
                      sigma=np.asarray(sigma, float), corr=corr, spec=spec, J_fit=J_fit, J_held=J_held, n_eff_held=ne,
@@ -341,7 +348,7 @@ class _Joint(Effect):
         s = spec
         for k, (e, _) in enumerate(self.parts):
             ps = e.params(s, ctx)
-            out += [Param(f"{e.key}.{p.name}", p.unit, p.lo, p.hi, p.x0, p.log) for p in ps]
+            out += [Param(f"{e.key}.{p.name}", p.unit, p.lo, p.hi, p.x0, p.log, physical_lo=p.physical_lo) for p in ps]
             if self.thetas is not None:
                 # e.g. the asymmetry's bounds scale with the Coulomb force an earlier part added
                 s = e.apply(s, self.thetas[k])
@@ -518,6 +525,9 @@ def sparse_regression(features: dict, target: np.ndarray, threshold: float = 0.0
     if not names or not len(target):
         return {"terms": {}, "explained": 0.0}
     X = np.column_stack([features[n] for n in names])
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(target))):
+        # a non-finite feature (e.g. an observer that diverged): no regression (LAPACK would print to stdout)
+        return {"terms": {}, "explained": 0.0, "note": "non-finite features or residual"}
     sc = np.sqrt(np.mean(X ** 2, axis=0))
     sc[sc == 0] = 1.0
     Xs = X / sc

@@ -41,6 +41,8 @@ class Param:
     x0: float
     log: bool = False
     doc: str = ""
+    physical_lo: bool = False     # the lower bound is a physical limit (a capacity >= 0): reaching it is a
+                                  # result (the element is absent), not "not identified"
 
     def clip(self, v):
         return float(min(max(v, self.lo), self.hi))
@@ -272,7 +274,7 @@ class Gms(Effect):
     def params(self, spec, ctx):
         fc = max(coulomb_total(spec.preset), 1e-3)
         d = self.deltas(ctx)
-        return [Param(f"F_{i + 1}", "N", 1e-4 * fc, 3 * fc, fc / self.N,
+        return [Param(f"F_{i + 1}", "N", 1e-4 * fc, 3 * fc, fc / self.N, physical_lo=True,
                       doc=f"capacity of the block slipping after {d[i] * 1e6:.3g} um") for i in range(self.N)]
 
     def starts(self, spec, ctx):
@@ -521,9 +523,13 @@ class PositionFriction(Effect):
     def params(self, spec, ctx):
         fc = max(coulomb_total(spec.preset), ctx.get("r_rms", 0.1))
         hs = max(ctx.get("x_half_span", 1e-3), 1e-9)
-        return [Param("dF_0", "N", -0.9 * fc, 3 * fc, 0.0, doc="friction change at the centre of the recorded travel"),
-                Param("g_1", "N/m", -3 * fc / hs, 3 * fc / hs, 0.0, doc="friction slope along the travel"),
-                Param("g_2", "N/m^2", -3 * fc / hs ** 2, 3 * fc / hs ** 2, 0.0, doc="friction curvature")]
+        slope = [Param("g_1", "N/m", -3 * fc / hs, 3 * fc / hs, 0.0, doc="friction slope along the travel"),
+                 Param("g_2", "N/m^2", -3 * fc / hs ** 2, 3 * fc / hs ** 2, 0.0, doc="friction curvature")]
+        if ctx.get("level_fitted"):
+            # the Coulomb level is already an adopted effect: dF_0 would be the same parameter twice
+            return slope
+        return [Param("dF_0", "N", -0.9 * fc, 3 * fc, 0.0, doc="friction change at the centre of the recorded travel")
+                ] + slope
 
     def nominal(self, spec):
         return {"dF_0": 0.0, "g_1": 0.0, "g_2": 0.0}
@@ -533,7 +539,7 @@ class PositionFriction(Effect):
 
     def apply(self, spec, theta):
         c = self._c
-        df0, g1, g2 = (float(v) for v in theta)
+        df0, g1, g2 = (float(v) for v in theta) if len(theta) == 3 else (0.0, float(theta[0]), float(theta[1]))
 
         def fn(node, fr, w):
             # re-centre an existing variation at c: g1' (x-c0) + g2' (x-c0)^2 about c

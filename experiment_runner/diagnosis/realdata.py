@@ -31,8 +31,9 @@ Limits (EMPS)
   YAML). The faithful loop (:mod:`stage_control.cascaded`) is used for the comparison with
   the README; putting it into the preset schema would need a controller kind in
   ``stage_sim.config`` / ``stage_control.servo`` (not done here).
-* ``force_constant`` is left out of the hypotheses (:data:`EMPS_EXCLUDED`, reason there);
-  the selection runs with :data:`EMPS_OPTIONS` (``min_share = 0``, reason there).
+* The diagnosis runs with the defaults of ``nanostage diagnose`` (the same path as the CLI):
+  the whole library, the force constant included (it stays at the data sheet's value unless
+  the data demand otherwise, see :mod:`.pipeline`).
 * The floor of a perfect model here is quantization only; the real residual stays far
   above it (the verdict says "residual remains"): the comparison is on the parameters and
   on held-out prediction.
@@ -62,19 +63,10 @@ EMPS_PUBLISHED = {"M": (95.1089, 0.0011), "Fv": (203.5034, 0.0056), "Fc": (20.39
                   "offset": (-3.1648, 0.014)}
 EMPS_PUBLISHED_ASYM = {"M": 95.1540, "Fv+": 166.7061, "Fc+": 20.1440, "Fv-": 240.4236, "Fc-": 20.6277}
 EMPS_SHA256 = "6cf6814ae14618795da0101aae2bb97ff0c6351b0501b5492751b02b07facf7e"
-# Diagnosis options for EMPS (reported): one 24.8 s trial, so the fit-set cap must cover it;
-# up to six effects; min_share 0: the default (0.25) asks each effect after the first to
-# explain a quarter of the *remaining* excess over the noise floor. On a simulation that floor
-# is reachable; on real data it is quantization only and the unmodelled rest (drive noise,
-# unknown dynamics) keeps the excess large, so a real term (EMPS: the viscous friction,
-# 10 % of the excess at its step) is refused. Each step still has to beat run-to-run noise
-# (the threshold) on held-out data.
-EMPS_OPTIONS = {"max_steps": 6, "max_fit_seconds": 30.0, "min_share": 0.0}
-# Hypotheses left out for EMPS, with the reason (reported).
-EMPS_EXCLUDED = {"force_constant": "the command is gtau*vir with the benchmark's drive gain; on a rigid axis a "
-                                   "force-constant ratio r is the same model as mass and friction divided by r "
-                                   "(r u = M qdd + F  <=>  u = (M/r) qdd + F/r): the data cannot separate them, "
-                                   "so the given gain is trusted and the mass is fitted"}
+# EMPS runs the diagnosis with the defaults of `nanostage diagnose` (no dataset options): the
+# replay judge decides (pipeline), the data-sheet force constant (gtau) is adopted last among
+# candidates the replay cannot tell apart (a rigid axis: r u = M qdd + F <=> u = (M/r) qdd + F/r),
+# so it moves only if the data demand it.
 
 
 class DataMissing(FileNotFoundError):
@@ -361,7 +353,6 @@ def run_emps(root: Path, out: Path, structure_check: bool = True, plots: bool = 
     from stage_control.cascaded import CascadedPP, cascaded_command
     from stage_sim.config import load_preset
 
-    from .hypotheses import LIBRARY
     from .pipeline import Options, diagnose
     T0 = time.perf_counter()
     out = Path(out)
@@ -382,18 +373,17 @@ def run_emps(root: Path, out: Path, structure_check: bool = True, plots: bool = 
     vir = cascaded_command(ctrl, rec.x_ref, rec.y)
     conv["controller_law_rel_error"] = float(np.linalg.norm(vir - d.vir) / np.linalg.norm(d.vir))
     nominal = load_preset(EMPS_NOMINAL)
-    effects = [k for k, e in LIBRARY.items() if e.kind in ("deterministic", "integer") and k not in EMPS_EXCLUDED]
-    opts = dict(EMPS_OPTIONS, verbose=verbose)
+    opts = {"verbose": verbose}
     t = time.perf_counter()
     rep = diagnose(rec_path, EMPS_NOMINAL, out=out / "diagnosis",
-                   options=Options(plots=plots, effects=effects, **opts))
+                   options=Options(plots=plots, **opts))
     spec = rep.pop("_improved_spec")
     t_diag = time.perf_counter() - t
     v = np.gradient(d.qm, d.dt)
     v = signal.sosfiltfilt(signal.butter(4, 0.2, output="sos"), v)      # 100 Hz, as the IDIM recipe
     mapped = rigid_quantities(rep, spec, d.qm, v)
     runs = {"diagnosis": {"report": rep, "mapped": mapped, "seconds": t_diag,
-                          "effects": f"the library but {', '.join(EMPS_EXCLUDED)}"}}
+                          "effects": "the whole library (CLI defaults)"}}
     if structure_check:
         for key, effs in (("published_structure", ["mass", "coulomb", "viscous", "offset"]),
                           ("published_structure_asymmetric", ["mass", "coulomb", "viscous", "friction_asymmetry"])):
@@ -413,8 +403,7 @@ def run_emps(root: Path, out: Path, structure_check: bool = True, plots: bool = 
         "dataset": "emps", "source": str(mat), "sha256": digest, "notes": notes, "conversion": conv,
         "nominal": {"file": str(EMPS_NOMINAL), "mass_kg": nominal.stage.table.mass,
                     "friction": "none", "offset": "none"},
-        "excluded_hypotheses": EMPS_EXCLUDED,
-        "diagnosis_options": EMPS_OPTIONS,
+        "diagnosis_options": "the defaults of nanostage diagnose",
         "published": {k: {"value": v_[0], "rel_std": v_[1]} for k, v_ in EMPS_PUBLISHED.items()},
         "published_asymmetric": dict(EMPS_PUBLISHED_ASYM),
         "idim_ls_recomputed": idim,
@@ -597,9 +586,7 @@ def to_markdown(rep: dict) -> str:
               "no offset. The diagnosis (effect library, forward selection on held-out data, joint fit) found: "
               f"**{', '.join(diag['found'])}** ({diag['verdict']}, {diag['seconds']:.0f} s). "
               f"Full report: `{e['diagnosis_report']}`.", "",
-              *[f"Left out: `{k}`: {why}." for k, why in e["excluded_hypotheses"].items()], "",
-              f"Options: {', '.join(f'{k} = {v}' for k, v in e['diagnosis_options'].items())} (why: "
-              "`realdata.EMPS_OPTIONS`).", "",
+              "Options: the defaults of `nanostage diagnose` (the same path as the CLI).", "",
               "| quantity | published (IDIM-LS) | published asym. | diagnosis (± 1σ) | vs published | IDIM-LS recomputed here |",
               "|---|---|---|---|---|---|"]
         rows = [("M [kg]", "M", P["M"]["value"], A["M"]), ("Fc [N]", "Fc", P["Fc"]["value"], None),

@@ -40,8 +40,13 @@ Files written to the output folder ``DIR``
                         excess energy), bands [{f_lo_hz, f_hi_hz, rms_N, floor_rms_N, ratio,
                         excess_share}], peaks, lines_hz, state {variable: {explained_share}},
                         ripple_periods_m
-``selection``           steps [{step, J_held_before, threshold, accepted, confounded_with,
-                        candidates [{effect, J_fit, J_held, score, improvement, significant,
+``replay``              the headline: held-out closed-loop replay error RMS {command_rms_N,
+                        position_rms_m: {nominal, improved, floor_nominal, floor}}, floor_ratio,
+                        consistency_z {nominal, improved, critical}, stable, held_out_trials
+``selection``           steps [{step, replay_D_before, J_held_before, floor_rms, accepted,
+                        confounded_with, candidates [{effect, replay {D_before, D_after,
+                        improvement, threshold, block_se, stable, beyond_floor, why}, improvement,
+                        threshold, significant (adoptable), why, J_fit, J_held, J_improvement,
                         params, derived, on_bound, evals, seconds}]}], J_held_start, J_held_final,
                         adequate_final
 ``joint_fit``           effects, J_fit, J_held, params, correlation, confounded_parameters, used
@@ -102,7 +107,21 @@ def to_markdown(rep: dict) -> str:
     L = []
     rc = rep["recording"]
     L.append(f"# Diagnosis: {Path(rc['source']).name} against `{rep['nominal']['name']}`\n")
-    L.append(f"**Verdict: {rep['verdict']}.**\n")
+    r = rep["replay"]
+    L.append("**Held-out closed-loop replay** (what the user gets: the recorded reference through the model and its "
+             f"controller, compared with the recorded command and measurement; {r['reference']} reference; "
+             f"{len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples):\n")
+    L.append("| replay error RMS | nominal | improved | run-to-run floor (nominal) | run-to-run floor (improved) |")
+    L.append("|---|---|---|---|---|")
+    for k, name in (("command_rms_N", "command [N]"), ("position_rms_m", "position [m]")):
+        x = r[k]
+        L.append(f"| {name} | {_fmt(x['nominal'])} | {_fmt(x['improved'])} | {_fmt(x['floor_nominal'])} | "
+                 f"{_fmt(x['floor'])} |")
+    L.append(f"| error / floor | {_fmt(r['floor_ratio']['nominal'])}x | {_fmt(r['floor_ratio']['improved'])}x | 1 | 1 |")
+    L.append(f"| stable | {r['stable']['nominal']} | {r['stable']['improved']} |  |  |\n")
+    L.append(f"**Verdict: {rep['verdict']}.** An effect is adopted only if the improved model's replay is stable and "
+             f"better beyond the run-to-run floor of the model before it (re-estimated after every adoption); the force "
+             f"residual only locates and proposes.\n")
     L.append(f"Recording: {rc['trials']} trial(s), {rc['duration_s']:.3g} s at {rc['rate_hz']:.6g} Hz; "
              f"{rc['split']}. Force observer bandwidth {rep['observer']['bandwidth_hz']:.4g} Hz; "
              f"force residuals below are band-limited to {rep['observer']['band_hz']:.4g} Hz. "
@@ -166,15 +185,21 @@ def to_markdown(rep: dict) -> str:
             for s in loc["segments"][:5]))
     L.append("\n## Candidates\n")
     for st in rep["selection"]["steps"]:
-        L.append(f"Step {st['step']}: J_held before {_fmt(st['J_held_before'])}, real improvement needs > "
-                 f"{_fmt(st['threshold'])}; accepted: **{st['accepted'] or 'none'}**"
-                 + (f" (confounded with {', '.join(st['confounded_with'])})" if st["confounded_with"] else "") + "\n")
-        L.append("| effect | J_fit | J_held | improvement | parameters |")
-        L.append("|---|---|---|---|---|")
+        if st.get("stopped"):
+            L.append(f"Step {st['step']}: stopped: {st['stopped']} (z {_fmt(st.get('replay_z_before'))} <= "
+                     f"{_fmt(st.get('z_critical'))}).\n")
+            continue
+        L.append(f"Step {st['step']}: replay D before {_fmt(st.get('replay_D_before'))} (2 = at the run-to-run floor), "
+                 f"J_held before {_fmt(st['J_held_before'])}; accepted: **{st['accepted'] or 'none'}**"
+                 + (f" (confounded with {', '.join(st['confounded_with'])}: not adopted)" if st["confounded_with"] else "")
+                 + "\n")
+        L.append("| effect | replay D after | improvement | floor threshold | block SE | decision | J_held | parameters |")
+        L.append("|---|---|---|---|---|---|---|---|")
         for c in st["candidates"]:
             ps = ", ".join(f"{p['name']}={_fmt(p['value'])}" for p in c["params"])
-            L.append(f"| {c['effect']} | {_fmt(c['J_fit'])} | {_fmt(c['J_held'])} | {_fmt(c['improvement'])}"
-                     f"{' ✓' if c['significant'] else ''} | {ps} |")
+            L.append(f"| {c['effect']} | {_fmt(c['replay']['D_after'])} | {_fmt(c['improvement'])} | "
+                     f"{_fmt(c['threshold'])} | {_fmt(c['block_se'])} | {'✓ ' if c['significant'] else ''}{c['why']} | "
+                     f"{_fmt(c['J_held'])} | {ps} |")
         L.append("")
     jf = rep.get("joint_fit")
     if jf:
