@@ -434,6 +434,7 @@ def emps_file():
     return path
 
 
+@pytest.mark.slow
 def test_convert_emps_is_the_table_importer_and_gives_the_same_recording(emps_file, tmp_path, capsys):
     from scipy.io import loadmat
     m = loadmat(emps_file)
