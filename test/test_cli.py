@@ -135,6 +135,7 @@ def test_paper_unknown_claim_group_exits_2_listing_the_groups(tmp_path, capsys):
     (["design", "fi_stage", "--rms", "-2"], "--rms -2"),
     (["synth", "no_such_truth", "fi_p2p_5um", "--out", "x.mcap"], "no_such_truth: no such preset file"),
     (["diagnose", "no_such.mcap", "--out", "d"], "no_such.mcap: no such file or directory"),
+    (["realdata", "--data", "no_such_dir", "--out", "r"], "real data folder not found; tried no_such_dir"),
 ])
 def test_other_commands_bad_input_exits_2_naming_it(tmp_path, capsys, monkeypatch, argv, expected):
     monkeypatch.chdir(tmp_path)

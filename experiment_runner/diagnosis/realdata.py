@@ -41,6 +41,7 @@ Limits (EMPS)
 from __future__ import annotations
 
 import json
+import sys
 import math
 import time
 from dataclasses import dataclass
@@ -684,8 +685,9 @@ def main_realdata(args) -> int:
     try:
         rep = run_realdata(args.out, data=args.data, only=args.only, structure_check=not args.no_structure_check,
                            plots=not args.no_plots, verbose=args.verbose)
-    except DataMissing as err:
-        raise SystemExit(f"nanostage realdata: {err}") from None
+    except DataMissing as err:                     # a user error: the message and exit 2, as every command
+        print(f"nanostage realdata: {err}", file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps(rep["json"], indent=1))
     else:
