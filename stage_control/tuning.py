@@ -245,7 +245,7 @@ def _crossovers(freqs_hz, L):
 
     def phase(x):
         return float(np.interp(math.log(x), lw, ph))
-    return f, L, wgc, w180, mag, phase
+    return wgc, w180, mag, phase
 
 class LoopMargins(NamedTuple):
     """Margins of a measured loop at its last gain crossover (see :func:`loop_margins`)."""
@@ -293,7 +293,11 @@ def loop_margins(freqs_hz, L) -> LoopMargins:
     >>> [tuple(round(v, 1) for v in loop_margins(f, K / (s * (s + 1) * (s + 10)))[:2]) for K in (11, 220)]
     [(20.0, 45.2), (-6.0, -11.2)]
     """
-    f, L, wgc, w180, mag, phase = _crossovers(freqs_hz, L)
+    return _margins_at(*_crossovers(freqs_hz, L))
+
+
+def _margins_at(wgc, w180, mag, phase) -> LoopMargins:
+    """:func:`loop_margins` from the crossovers :func:`_crossovers` found."""
     if wgc.size == 0:
         return LoopMargins(math.nan, math.nan, math.nan, math.nan, 0)
     wc = float(wgc[-1])
@@ -308,7 +312,6 @@ def loop_margins(freqs_hz, L) -> LoopMargins:
         wp = float(below[-1]) if below.size else math.nan
     gm = -20.0 * math.log10(mag(wp)) if math.isfinite(wp) else (math.inf if pm > 0 else math.nan)
     return LoopMargins(float(gm), float(pm), wp / (2 * np.pi), wc / (2 * np.pi), int(wgc.size))
-
 
 
 # --------------------------------------------------------------------------- analysis
@@ -419,11 +422,11 @@ def margins(mass: float, gains: Mapping[str, Optional[float]],
     (True, True)
     """
     L = _loop_frf(mass, gains, delay, pade_order)
-    m = loop_margins(FREQUENCY_GRID_HZ, L)
+    wgc, w180, mag, phase = _crossovers(FREQUENCY_GRID_HZ, L)            # searched once
+    m = _margins_at(wgc, w180, mag, phase)
     # With an integrator on a double integrator the phase is below -180 deg at low
     # frequency, where |L| > 1: that crossing gives a *lower* gain margin (< 1, how far the
     # gain may drop), the largest 1/|L| there.
-    _, _, wgc, w180, mag, _ = _crossovers(FREQUENCY_GRID_HZ, L)
     below = [1.0 / mag(w) for w in w180 if wgc.size and w < wgc[-1] and mag(w) > 1.0]
     gm_db = m.gain_margin_db
     return {
