@@ -245,7 +245,11 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
             r0 = fun(z0)
             scored.append((float(r0 @ r0), z0, r0))
         scored.sort(key=lambda s: s[0])
-        for c0, z0, r0 in scored[:2 if len(params) <= 4 else 1]:
+        n_run = 2 if len(params) <= 4 else 1
+        # starts the cost cannot rank (e.g. a ripple at zero amplitude: every period costs the same) are all
+        # run, up to four
+        ties = sum(1 for s in scored if s[0] <= scored[0][0] * (1 + 1e-9))
+        for c0, z0, r0 in scored[:max(n_run, min(ties, 4))]:
             sol = gauss_newton(fun, z0, lo, hi, r0=r0, max_iter=iters)
             if best is None or sol["cost"] < best["cost"]:
                 best = sol

@@ -251,7 +251,15 @@ def ripple_periods(x, rl, v, mask, lam_min, lam_max, n: int = 300, top: int = 3)
             order.append(i)
         if len(order) >= top:
             break
-    return [float(lam[i]) for i in order], {"period_m": lam, "power": p}
+    # each peak refined on a fine grid between its neighbours (over N periods of the record the grid's
+    # spacing would leave a phase drift of 2 pi N dlam/lam)
+    xc = xs - xs.mean()
+    best = []
+    for i in order:
+        fine = np.logspace(np.log10(lam[max(i - 1, 0)]), np.log10(lam[min(i + 1, n - 1)]), 41)
+        pf = _lomb_scargle(xc, rs, 2 * np.pi / fine)
+        best.append(float(fine[int(np.argmax(pf))]))
+    return best, {"period_m": lam, "power": p}
 
 
 def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None = None) -> tuple[dict, dict, dict]:
@@ -299,7 +307,12 @@ def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None 
     # per-trial strokes, for the ripple search range and the pre-motion scale
     strokes = [float(np.ptp(data.y[data.valid[:, b], b])) for b in range(data.shape[1])]
     lam_max = 0.5 * float(np.median(strokes)) if strokes else 0.0
-    lam_min = max(2 * vmax / max(f_band, 1e-9), 1e-7)
+    # shortest period the observer's band shows: at the slower quarter of the moving samples (a ripple
+    # too fast for the band at full speed is seen near reversals and at the ends of moves)
+    moving = np.abs(data.vs[mask])
+    moving = moving[moving > 0.05 * vmax]
+    v_slow = float(np.quantile(moving, 0.25)) if len(moving) else vmax
+    lam_min = max(2 * v_slow / max(f_band, 1e-9), 1e-7)
     periods, pgram = ripple_periods(res.x, rl, data.vs, mask, lam_min, lam_max)
     xs = res.x[mask]
     ctx = {"u_max": float(np.max(np.abs(data.u[data.valid]))), "v_max": vmax,

@@ -48,9 +48,14 @@ KNOWN = frozenset({"force_constant"})
 # the model's servo on the recorded reference and measurement must reproduce the recorded command
 # to this relative RMS, else the replay follows the equivalent reference (judge.equivalent_reference)
 CONTROLLER_TOL = 0.02
-# when no candidate is adoptable, this many of the force observer's best proposals are refined by the
-# replay (output error on the fit samples) and judged again
-REFINE_PROPOSALS = 3
+# candidates are refined by the replay (output error on the fit samples) before they are compared: the
+# stable ones with at most REFINE_MAX_PARAMS parameters among the REFINE_PROPOSALS best replays and the
+# REFINE_PROPOSALS best force-observer fits, larger ones among the REFINE_TOP best replays;
+# from the second step on together with the adopted effects if REFINE_JOINT_MAX parameters are not exceeded
+REFINE_MAX_PARAMS = 3
+REFINE_PROPOSALS = 4
+REFINE_TOP = 2
+REFINE_JOINT_MAX = 8
 
 
 @dataclass
@@ -141,11 +146,11 @@ def _task_state(token: str, blob: bytes) -> dict:
 
 
 def _candidate_task(token: str, blob: bytes, key: str, current: ModelSpec, selected: list, J_fit_cur: float,
-                    floor: NoiseFloor):
+                    floor: NoiseFloor, ctx: dict):
     """Executor task: :func:`_fit_candidate` of effect ``key`` against noise ``floor``.
 
-    ``blob`` is the pickled recording (smoothed, masked), observer bandwidth, fit-set cap,
-    locate context and base model of diagnosis ``token``. BLAS runs single-threaded, as in
+    ``blob`` is the pickled recording (smoothed, masked), observer bandwidth, fit-set cap
+    and base model of diagnosis ``token``; ``ctx`` the locate context of this step. BLAS runs single-threaded, as in
     :func:`diagnose`. Returns ``(FitResult or None, error repr or None, evaluations,
     evaluation seconds)``.
     """
@@ -154,10 +159,10 @@ def _candidate_task(token: str, blob: bytes, key: str, current: ModelSpec, selec
     ev = Evaluator(st["obs"], floor, st["max_fit_seconds"])
     e = get_effect(key)
     if hasattr(e, "bind"):
-        e.bind(st["ctx"])
+        e.bind(ctx)
     with threadpool_limits(limits=1, user_api="blas"):
         try:
-            f, err = _fit_candidate(e, current, selected, J_fit_cur, ev, st["ctx"], st["base"], st["own_floor"],
+            f, err = _fit_candidate(e, current, selected, J_fit_cur, ev, ctx, st["base"], st["own_floor"],
                                     st["floor_seed"]), None
         except Exception as exc:     # noqa: BLE001 - one bad candidate must not stop the diagnosis
             f, err = None, repr(exc)
@@ -177,28 +182,55 @@ def _spec_without(selected: list, base: ModelSpec) -> ModelSpec:
     return spec
 
 
-def _refine_by_replay(bf: FitResult, spec: ModelSpec, selected: list, base: ModelSpec, ctx: dict,
-                      fj: ReplayJudge, jfl, max_nfev: int = 12, keep_bounds: bool = False):
-    """Output-error refinement of the adopted effect ``bf``'s own parameters: least squares of the
-    closed-loop replay error on the *fit* samples (``fj``), command and position in units of the
-    current run-to-run floor ``jfl``, started at the force-observer fit (the others held).
-    Returns (spec, theta, sigma) or None (no gain, a bound reached, or a failure). ``sigma``: from
-    the replay Jacobian, scaled by the residual's mean square (the replay's own scatter)."""
+def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict, fj: ReplayJudge, jfl,
+                      max_nfev: int = 8, with_selected: bool = False) -> dict | None:
+    """Output-error refinement of candidate ``bf``: least squares of the closed-loop replay error on
+    the *fit* samples (``fj``), command and position in units of the current run-to-run floor
+    ``jfl``, started at the force-observer fit. The force observer's fit is off where the replay
+    is sensitive when the observer's residual weighs the data differently (a ripple phase, a
+    Coulomb level against a friction slope): candidates are compared at their replay optimum.
+
+    With ``with_selected`` the adopted deterministic effects (``selected``) are refined with it
+    (joint output error: a second effect is credited with what it adds once the first is
+    re-fitted in its presence), else they are held at their values.
+
+    Returns None (no gain, or a failure) or a dict: ``spec``, ``theta``/``sigma``/``at_bound``
+    of the candidate's own parameters, and ``joint`` (a :class:`FitResult` over the selected
+    effects' and the candidate's parameters, or None). ``sigma``: from the replay Jacobian,
+    scaled by the residual's mean square (the replay's own scatter)."""
     from scipy.optimize import least_squares
 
-    from .fit import _Transform
+    from .fit import _Joint, _Transform
     try:
         e = get_effect(bf.key)
         if hasattr(e, "bind"):
             e.bind(ctx)
-        prev = _spec_without(selected, base)
-        ps = e.params(prev, ctx)
-        if len(ps) != len(bf.theta):
+        cont = [f for f in selected if LIBRARY[f.key].kind == "deterministic"] if with_selected else []
+        prev = base
+        for f in selected:
+            if LIBRARY[f.key].kind != "deterministic":
+                prev = LIBRARY[f.key].apply(prev, f.theta)
+        if not with_selected:
+            for f in selected:
+                if LIBRARY[f.key].kind == "deterministic":
+                    prev = LIBRARY[f.key].apply(prev, f.theta)
+        parts = [(LIBRARY[f.key], len(f.theta)) for f in cont] + [(e, len(bf.theta))]
+        for pe, _ in parts:
+            if hasattr(pe, "bind"):
+                pe.bind(ctx)
+        th = [np.asarray(f.theta, float) for f in cont]
+        if cont and bf.joint is not None and len(bf.joint.theta) == sum(map(len, th)) + len(bf.theta):
+            # start the adopted effects where the observer's joint fit with this candidate left them
+            th = np.split(np.asarray(bf.joint.theta, float), np.cumsum([len(t) for t in th]))[:len(th)]
+        model = _Joint(parts, th + [np.asarray(bf.theta, float)])
+        ps = model.params(prev, ctx)
+        theta0 = np.concatenate(th + [np.asarray(bf.theta, float)])
+        if len(ps) != len(theta0):
             return None
         tr = _Transform(ps)
         lo, hi = tr.bounds()
         eps = 1e-6 * (hi - lo)
-        z0 = np.clip(tr.to_z(bf.theta), lo + eps, hi - eps)
+        z0 = np.clip(tr.to_z(theta0), lo + eps, hi - eps)
         m = fj.mask
         su, sy = jfl.sigma_u, jfl.sigma_y
         bad = np.full(2 * int(m.sum()), 1e3)
@@ -207,22 +239,22 @@ def _refine_by_replay(bf: FitResult, spec: ModelSpec, selected: list, base: Mode
             th = tr.to_theta(z)
             if not np.all(np.isfinite(th)):
                 return bad
-            rp = fj.replay(e.apply(prev, th))
+            rp = fj.replay(model.apply(prev, th))
             if not rp.ok:
                 return bad
             r = np.concatenate([((fj.u - rp.u) / su)[m], ((fj.y - rp.y) / sy)[m]])
             return r if np.all(np.isfinite(r)) else bad
 
         r0 = res(z0)
-        out = least_squares(res, z0, bounds=(lo, hi), max_nfev=max_nfev * (len(z0) + 1), x_scale="jac",
+        if r0 is bad:
+            return None
+        out = least_squares(res, z0, bounds=(lo, hi), max_nfev=max_nfev, x_scale="jac",
                             diff_step=2e-2)
         if not out.success and out.status < 0 or out.cost >= 0.5 * float(r0 @ r0):
             return None
         tol = 1e-3 * (hi - lo)
         at = [p.name for p, z, a, b, t in zip(ps, out.x, lo, hi, tol)
               if abs(b - z) <= t or (abs(z - a) <= t and not p.physical_lo)]
-        if at and not keep_bounds:
-            return None
         theta = tr.to_theta(out.x)
         J = out.jac
         if not (np.all(np.isfinite(J)) and np.all(np.isfinite(theta))):
@@ -230,11 +262,38 @@ def _refine_by_replay(bf: FitResult, spec: ModelSpec, selected: list, base: Mode
         s2 = 2 * out.cost / max(len(out.fun) - len(theta), 1)
         cov_z = np.linalg.pinv(J.T @ J) * s2
         sigma = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * np.abs(tr.dtheta_dz(theta))
-        if keep_bounds:
-            return e.apply(prev, theta), np.asarray(theta, float), sigma, at
-        return e.apply(prev, theta), np.asarray(theta, float), sigma
+        spec = model.apply(prev, theta)
+        k = len(theta) - len(bf.theta)
+        own = bf.key + "."
+        joint = None
+        if cont:
+            joint = dataclasses.replace(bf, key=model.key, title=model.title, names=[p.name for p in ps],
+                                        units=[p.unit for p in ps], theta=np.asarray(theta, float),
+                                        sigma=np.asarray(sigma, float), corr=None, spec=spec, on_bound=at,
+                                        nominal={}, derived={}, joint=None)
+        return {"spec": spec, "theta": np.asarray(theta[k:], float), "sigma": np.asarray(sigma[k:], float),
+                "at_bound": [n[len(own):] for n in at[:] if n.startswith(own)], "joint": joint}
     except Exception:   # noqa: BLE001 - the refinement is an improvement, never a failure of the diagnosis
         return None
+
+
+PROPOSAL_KEYS = ("ripple_period", "peak_hz", "line_hz")
+
+
+def _proposals(data: DiagData, res, floor: "_Floor", f_o: float, f_band: float, ctx: dict) -> dict:
+    """The locate context's proposal entries (:data:`PROPOSAL_KEYS`) from the force residual ``res``
+    of the current model (its floor ``floor``): new findings first, then the earlier ones not within
+    15 % of them (at most three periods; peaks and lines as located)."""
+    try:
+        _, _, c = locate(data, res, floor.resA, floor.simA, f_o, f_band)
+    except Exception:     # noqa: BLE001 - the earlier proposals stay
+        return {}
+    out = {}
+    for k in PROPOSAL_KEYS:
+        new = list(c.get(k) or [])
+        old = [v for v in (ctx.get(k) or []) if all(abs(math.log(v / w)) > 0.15 for w in new if v > 0 and w > 0)]
+        out[k] = (new + old)[:3] if k == "ripple_period" else new + old
+    return out
 
 
 def ctx_for(ctx: dict, selected: list) -> dict:
@@ -432,7 +491,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         # collected in this order on every path (ties of the score below keep it)
         todo.sort(key=lambda e: -len(e.params(current, ctx)))
         if ex is not None:
-            args = (current, selected, J_fit_cur, ev.floor)
+            args = (current, selected, J_fit_cur, ev.floor, dict(ctx))
             out = [None] * len(todo)
             for i, (f, err, n, sec) in ex.map(_candidate_task, ((i, (token, blob, e.key) + args)
                                                                  for i, e in enumerate(todo))):
@@ -480,22 +539,76 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                 why = f"not identified: {', '.join(bound)} at its bound"
             elif c.accepted and _unidentified(f):
                 why = "not identified: every parameter's standard error exceeds its value"
+            elif c.accepted and LIBRARY[f.key].kind == "integer" and all(
+                    f.nominal.get(n) is not None and float(f.nominal[n]) == float(v) for n, v in zip(f.names, f.theta)):
+                # the improvement is the re-fit of the others, not this effect
+                why = "no change: the current model's value"
             out.append({"fit": f, "rp": rp, "cmp": c, "on_bound": bound, "ok": c.accepted and why == c.why,
                         "why": why})
         return out
 
-    def refine_and_judge(f, selected, jfl, s0) -> list:
-        """Candidate ``f`` refined by the replay (:func:`_refine_by_replay`), judged: [row] or []."""
-        if LIBRARY[f.key].kind != "deterministic":
-            return []
-        ref = _refine_by_replay(f, f.spec, selected, base, ctx_for(ctx, selected), fit_judge, jfl, keep_bounds=True)
-        if ref is None:
-            return []
-        f2 = dataclasses.replace(f, spec=ref[0], theta=ref[1], sigma=ref[2], on_bound=ref[3],
-                                 derived=LIBRARY[f.key].derived(base, ref[1]), joint=None)
+    def refine_integer(j, selected, jfl, s0, reach: int = 2):
+        """An integer candidate (delay) re-chosen by the replay of the fit samples among the values within
+        ``reach`` of the force observer's pick (the others held); its row judged again if it moved."""
+        f = j["fit"]
+        e = get_effect(f.key)
+        prev = _spec_without(selected, base)
+        p = e.params(prev, ctx_for(ctx, selected))[0]
+        v0 = int(round(f.theta[0]))
+        best = (float("inf"), v0, f.spec)
+        for v in range(max(int(p.lo), v0 - reach), min(int(p.hi), v0 + reach) + 1):
+            sp = f.spec if v == v0 else e.apply(prev, [v])
+            rp = fit_judge.replay(sp)
+            d = fit_judge.D(rp, jfl) if rp.ok else float("inf")
+            if d < best[0]:
+                best = (d, v, sp)
+        if best[1] == v0:
+            return j
+        f2 = dataclasses.replace(f, spec=best[2], theta=np.array([float(best[1])]), joint=None)
+        f2.refined = True
         j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
-        j2["why"] += " (refined by the replay)"
-        return [j2]
+        j2["why"] += " (chosen by the replay)"
+        return j2
+
+    def refine_rows(judged, selected, jfl, s0) -> list:
+        """Every stable candidate refined by the replay (:func:`_refine_by_replay`) and judged again
+        before candidates are compared: the force observer proposes and gives the start, the replay
+        of the fit samples sets the values (at the observer's values a flexible wrong effect can
+        beat the right one whose fit is off where the replay is sensitive). Candidates with more
+        than ``REFINE_MAX_PARAMS`` parameters are refined only among the ``REFINE_TOP`` best replays.
+        From the second step on, the adopted effects are refined with the candidate (at most
+        ``REFINE_JOINT_MAX`` parameters in all). A refined row replaces the observer's."""
+        if fit_judge is None:
+            return judged
+        judged = [refine_integer(j, selected, jfl, s0) if LIBRARY[j["fit"].key].kind == "integer" else j
+                  for j in judged]
+        stable = [j for j in judged if j["cmp"].stable and LIBRARY[j["fit"].key].kind == "deterministic"]
+        by_replay = sorted(stable, key=lambda j: j["cmp"].D_after)
+        by_observer = sorted(stable, key=lambda j: j["fit"].J_held)
+        top = {id(j) for j in by_replay[:REFINE_TOP]}
+        small = [j for j in by_replay[:REFINE_PROPOSALS] + by_observer[:REFINE_PROPOSALS]
+                 if len(j["fit"].theta) <= REFINE_MAX_PARAMS]
+        stable = [j for j in stable if any(j is x for x in small) or id(j) in top]
+        n_sel = sum(len(f.theta) for f in selected if LIBRARY[f.key].kind == "deterministic")
+        c2 = ctx_for(ctx, selected)
+        out = []
+        for j in judged:
+            f = j["fit"]
+            if any(j is x for x in stable):
+                ref = _refine_by_replay(f, selected, base, c2, fit_judge, jfl,
+                                        max_nfev=8 if len(f.theta) <= REFINE_MAX_PARAMS else 3,
+                                        with_selected=0 < n_sel and n_sel + len(f.theta) <= REFINE_JOINT_MAX)
+                if ref is not None:
+                    f2 = dataclasses.replace(f, spec=ref["spec"], theta=ref["theta"], sigma=ref["sigma"],
+                                             on_bound=ref["at_bound"], derived=LIBRARY[f.key].derived(base, ref["theta"]),
+                                             joint=ref["joint"])
+                    f2.refined = True
+                    j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
+                    j2["why"] += " (refined by the replay)"
+                    out.append(j2)
+                    continue
+            out.append(j)
+        return out
 
     def forward():
         """Forward selection from ``base``: each step fits every candidate (re-fitting the
@@ -523,16 +636,35 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             rp = judge.replay(spec)
             return judge.D(rp, path["jfl"]) if rp.ok else float("inf")
 
+        def fit_D(spec):
+            """Replay error on the fit samples (floor units of the current model)."""
+            if fit_judge is None:
+                return replay_D(spec)
+            rp = fit_judge.replay(spec)
+            return fit_judge.D(rp, path["jfl"]) if rp.ok else float("inf")
+
+        def renew_floor(spec):
+            """The noise floors of the current model ``spec`` re-estimated (after every change)."""
+            path["floor"] = _Floor(spec, data, obs.f_o, opt.floor_seeds, data.smooth_hz)
+            ev.floor = path["floor"].floor
+            path["J_fit"], path["J_cur"], _ = ev.both(spec)
+            path["jfl"] = judge.floor(spec)
+
         for step in range(1, opt.max_steps + 1):
+            refitted = False
             for _ in range(3 if step > 1 else 0):
                 # continue the fit of the selected effects alone first: a candidate is credited only
-                # with what it adds to them (kept only if the replay is not worse)
+                # with what it adds to them (kept if the replay of the fit samples is better and the
+                # held-out replay not worse)
                 rf = joint_fit(selected, base, ev, ctx_for(ctx, selected), min_effects=1, max_iter=8)
-                if rf is None or not rf.J_held < path["J_cur"] - thr(path["J_cur"]) or rf.on_bound \
+                if rf is None or rf.on_bound or not fit_D(rf.spec) < fit_D(path["current"]) \
                         or replay_D(rf.spec) > replay_D(path["current"]):
                     break
                 adopt(rf)
                 path.update(current=rf.spec, J_cur=rf.J_held, J_fit=rf.J_fit)
+                refitted = True
+            if refitted:
+                renew_floor(path["current"])
             current, J_cur, jfl = path["current"], path["J_cur"], path["jfl"]
             z_cur = judge.consistency(jfl.replay, jfl)
             if z_cur <= judge.t_q:
@@ -551,25 +683,8 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             s0 = judge.sim_blocks(jfl.replay, jfl)
             judged = judge_rows(fits, jfl, s0, first=not selected)
             D_cur = judge.D(jfl.replay, jfl)
-            # the best replay among the stable, improving candidates is not adoptable (a bound, its misfit
-            # within the data's noise test): the force observer's fit may be off where the replay is
-            # sensitive; refine it by the replay and judge it again (adoptable only off its bounds)
+            judged = refine_rows(judged, selected, jfl, s0)
             pen = lambda j: j["cmp"].D_after * (1 + opt.complexity * len(j["fit"].theta))  # noqa: E731
-            near = [j for j in judged if j["cmp"].stable and j["cmp"].T > 0 and not j["ok"]]
-            D_ok = min((j["cmp"].D_after for j in judged if j["ok"]), default=float("inf"))
-            jn = min(near, key=lambda j: j["cmp"].D_after) if near else None
-            if jn is not None and fit_judge is not None and jn["cmp"].D_after < 1.25 * D_ok:
-                judged += refine_and_judge(jn["fit"], selected, jfl, s0)
-            # nothing adoptable although the replay is beyond its floor: the force observer's fits may be
-            # off where the replay is sensitive (a ripple phase, a second effect on top of the first);
-            # the observer's three best proposals are refined by the replay and judged again
-            if fit_judge is not None and not any(j["ok"] for j in judged):
-                tried = {jn["fit"].key} if jn is not None else set()
-                props = sorted([j for j in judged if j["fit"].key not in tried
-                                and LIBRARY[j["fit"].key].kind == "deterministic"],
-                               key=lambda j: j["fit"].J_held)[:REFINE_PROPOSALS]
-                for jp in props:
-                    judged += refine_and_judge(jp["fit"], selected, jfl, s0)
             # ranked by the replay with the selection's complexity penalty per parameter (a 12-block GMS
             # must do clearly better than the one Coulomb level it contains)
             ok = sorted([j for j in judged if j["ok"]], key=pen)
@@ -628,9 +743,16 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                     adopt(refit)
                     new_spec = refit.spec
             if fit_judge is not None and LIBRARY[bf.key].kind == "deterministic":
-                ref = _refine_by_replay(bf, new_spec, selected, base, ctx_for(ctx, selected), fit_judge, path["jfl"])
-                if ref is not None and replay_D(ref[0]) < replay_D(new_spec):
-                    new_spec, bf.theta, bf.sigma = ref
+                # the adopted effects refined together by the replay of the fit samples (output error),
+                # kept off their bounds and if the held-out replay is not worse
+                n_sel = sum(len(f.theta) for f in selected if LIBRARY[f.key].kind == "deterministic")
+                ref = _refine_by_replay(bf, selected, base, ctx_for(ctx, selected), fit_judge, path["jfl"],
+                                        with_selected=0 < n_sel and n_sel + len(bf.theta) <= REFINE_JOINT_MAX)
+                if ref is not None and not (ref["joint"].on_bound if ref["joint"] is not None else ref["at_bound"]) \
+                        and replay_D(ref["spec"]) <= replay_D(new_spec):
+                    if ref["joint"] is not None:
+                        adopt(ref["joint"])
+                    new_spec, bf.theta, bf.sigma = ref["spec"], ref["theta"], ref["sigma"]
                     bf.derived = LIBRARY[bf.key].derived(base, bf.theta)
                     bf.refined = True
             selected.append(bf)
@@ -649,17 +771,17 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                                   "J_held": bf.J_held, "replay": best["cmp"].row(),
                                   "refined_by_replay": bool(getattr(bf, "refined", False))})
             path["current"] = new_spec
-            path["floor"] = _Floor(new_spec, data, obs.f_o, opt.floor_seeds, data.smooth_hz)
-            ev.floor = path["floor"].floor
-            path["J_fit"], path["J_cur"], _ = ev.both(new_spec)
-            path["jfl"] = judge.floor(new_spec)         # the run-to-run floor re-estimated after every adoption
+            renew_floor(new_spec)         # the run-to-run floor re-estimated after every adoption
+            # the next proposals come from what the adopted model leaves: ripple periods, spectral peaks and
+            # lines located again in its force residual (the nominal's was dominated by the adopted effect)
+            ctx.update(_proposals(data, obs.run(new_spec), path["floor"], obs.f_o, f_band, ctx))
         return path
 
     # candidate fits as executor tasks (local processes / Dask): what every task needs, once
     token, blob = None, None
     if ex is not None:
         token = uuid.uuid4().hex
-        blob = pickle.dumps({"data": data, "f_o": obs.f_o, "max_fit_seconds": opt.max_fit_seconds, "ctx": ctx,
+        blob = pickle.dumps({"data": data, "f_o": obs.f_o, "max_fit_seconds": opt.max_fit_seconds,
                              "base": base, "own_floor": opt.own_floor, "floor_seed": opt.floor_seeds[0]},
                             protocol=pickle.HIGHEST_PROTOCOL)
     path = forward()
@@ -731,7 +853,9 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                 z_old = judge.consistency(jfl.replay, jfl)
                 z_new = judge.consistency(jfl.replay, jfl2, norm=jfl)
                 ninfo.update({"replay_z_before": z_old, "replay_z_after": z_new, "z_critical": judge.t_q})
-                if abs(z_old) > judge.t_q and abs(z_new) < abs(z_old) - judge.t_q:
+                # (a deterministic remnant the effects left also makes the replay inconsistent: a noise level
+                # is adopted only if it makes the data consistent with the model's own recordings)
+                if abs(z_old) > judge.t_q and abs(z_new) < abs(z_old) - judge.t_q and abs(z_new) <= judge.t_q:
                     ninfo["found"] = True
                     found.append({"effect": "noise_level", "title": LIBRARY["noise_level"].title, "kind": "stochastic",
                                   "step": len(steps) + 1,
