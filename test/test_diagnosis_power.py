@@ -52,6 +52,25 @@ def test_reduced_power_study_json(tmp_path):
     assert (tmp_path / "power_detection.png").is_file()
 
 
+def test_replay_refined_candidates_name_the_simpler_true_effect():
+    """Power-study case 54: a +0.3 % Coulomb change (F_C 5.311 -> 5.327 N) concealed in one
+    point-to-point trial of the rigid GMS stage at 1 kHz, 6x the run-to-run floor in the replay.
+    At the force observer's values position-dependent friction (3 parameters) replayed better
+    than the Coulomb level (whose observer fit is off where the replay is sensitive) and was
+    adopted instead. With every candidate refined by the replay before candidates are compared,
+    the Coulomb level reaches the floor, the friction slope adds nothing beyond it, and the
+    simpler true effect is named first, its value within 2 % (the issue asks 20 %)."""
+    from experiment_runner.diagnosis.power import run_case
+    case = make_cases(150)[54]
+    assert case.effects == ("coulomb",)
+    r = run_case(case)
+    assert "error" not in r, r.get("traceback")
+    assert r["replay_change"]["truth"] >= 3
+    assert r["named"][0] == "coulomb" and r["named_first"], r["named"]
+    chk = r["params"]["coulomb"]["checks"]["F_C"]
+    assert chk["estimate"] == pytest.approx(chk["truth"], rel=0.02)
+
+
 def test_estimator_fit_predict_score():
     from experiment_runner.diagnosis.estimator import Diagnosis
     from experiment_runner.diagnosis.model import ModelSpec

@@ -161,6 +161,8 @@ class FitResult:
     note: str = ""
     on_bound: list = field(default_factory=list)
     joint: "FitResult | None" = None    # fitted together with the selected effects (fit_with)
+    replaces: str | None = None          # an adopted effect of its exclusive group this one replaces
+    refined: bool = False                # values from the closed-loop replay (output error), not the observer
 
     def params(self) -> list[dict]:
         return [{"name": n, "unit": u, "value": float(v), "sigma": float(s) if np.isfinite(s) else None,

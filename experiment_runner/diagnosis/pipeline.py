@@ -183,7 +183,7 @@ def _spec_without(selected: list, base: ModelSpec) -> ModelSpec:
 
 
 def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict, fj: ReplayJudge, jfl,
-                      max_nfev: int = 8, with_selected: bool = False) -> dict | None:
+                      max_nfev: int = 8, with_selected: bool = False, start=None) -> dict | None:
     """Output-error refinement of candidate ``bf``: least squares of the closed-loop replay error on
     the *fit* samples (``fj``), command and position in units of the current run-to-run floor
     ``jfl``, started at the force-observer fit. The force observer's fit is off where the replay
@@ -192,7 +192,8 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
 
     With ``with_selected`` the adopted deterministic effects (``selected``) are refined with it
     (joint output error: a second effect is credited with what it adds once the first is
-    re-fitted in its presence), else they are held at their values.
+    re-fitted in its presence), else they are held at their values. ``start``: the candidate's
+    own start values instead of the observer's fit.
 
     Returns None (no gain, or a failure) or a dict: ``spec``, ``theta``/``sigma``/``at_bound``
     of the candidate's own parameters, and ``joint`` (a :class:`FitResult` over the selected
@@ -222,9 +223,10 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
         if cont and bf.joint is not None and len(bf.joint.theta) == sum(map(len, th)) + len(bf.theta):
             # start the adopted effects where the observer's joint fit with this candidate left them
             th = np.split(np.asarray(bf.joint.theta, float), np.cumsum([len(t) for t in th]))[:len(th)]
-        model = _Joint(parts, th + [np.asarray(bf.theta, float)])
+        own0 = np.asarray(bf.theta if start is None else start, float)
+        model = _Joint(parts, th + [own0])
         ps = model.params(prev, ctx)
-        theta0 = np.concatenate(th + [np.asarray(bf.theta, float)])
+        theta0 = np.concatenate(th + [own0])
         if len(ps) != len(theta0):
             return None
         tr = _Transform(ps)
@@ -470,45 +472,68 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
 
     keys = opt.effects or [k for k, e in LIBRARY.items() if e.kind in ("deterministic", "integer")]
 
-    def candidates(current, selected):
+    def candidates(current, selected, banned):
+        """(effect, key of the adopted effect it replaces or None) for every candidate of this step. A
+        member of an exclusive group (alternative friction models) whose one adopted member is the only
+        conflict is a *replacement*: fitted on the model without that member (the more flexible member
+        the data preferred first may not be the physics: Dahl for a GMS, Dahl for a Stribeck curve)."""
         taken = {f.key for f in selected}
-        excl = set().union(*[g for g in EXCLUSIVE if g & taken]) if taken else set()
-        if "position_friction" in taken:
-            excl.add("coulomb")          # its level dF_0 is the Coulomb level
         todo = []
         for k in keys:
             e = get_effect(k)
-            if k in taken or k in excl or e.kind not in ("deterministic", "integer") or e.applicable(current) is not None:
+            if k in taken or k in banned or e.kind not in ("deterministic", "integer"):
+                continue
+            clash = {t for g in EXCLUSIVE if k in g for t in g & taken if t != k}
+            if k == "coulomb" and "position_friction" in taken:
+                continue                 # its level dF_0 is the Coulomb level
+            if len(clash) > 1:
+                continue
+            rep = next(iter(clash)) if clash else None
+            cur = current if rep is None else _spec_without([f for f in selected if f.key != rep], base)
+            if e.applicable(cur) is not None:
                 continue
             if hasattr(e, "bind"):
                 e.bind(ctx)
-            todo.append(e)
+            todo.append((e, rep))
         return todo
 
     def fit_all(todo, current, selected, J_fit_cur):
         """Fit every candidate (with the selected effects re-fitted, from step 2 on)."""
         # slow (multi-parameter, stiff) candidates first for a better balance; the fits are
         # collected in this order on every path (ties of the score below keep it)
-        todo.sort(key=lambda e: -len(e.params(current, ctx)))
+        todo.sort(key=lambda er: -len(er[0].params(current, ctx)))
+
+        def on(rep):
+            """(model, selected effects) a candidate replacing ``rep`` (or none) is fitted on."""
+            if rep is None:
+                return current, selected
+            sel = [f for f in selected if f.key != rep]
+            return _spec_without(sel, base), sel
+
         if ex is not None:
-            args = (current, selected, J_fit_cur, ev.floor, dict(ctx))
             out = [None] * len(todo)
-            for i, (f, err, n, sec) in ex.map(_candidate_task, ((i, (token, blob, e.key) + args)
-                                                                 for i, e in enumerate(todo))):
+            for i, (f, err, n, sec) in ex.map(_candidate_task, ((i, (token, blob, e.key) + on(rep)
+                                                                  + (J_fit_cur, ev.floor, dict(ctx)))
+                                                                 for i, (e, rep) in enumerate(todo))):
                 ev.evals += n
                 ev.seconds += sec
                 if err is not None:
-                    _log(opt, f"fit {todo[i].key} failed: {err}")
+                    _log(opt, f"fit {todo[i][0].key} failed: {err}")
                 out[i] = f
+                if f is not None:
+                    f.replaces = todo[i][1]
             fits = [f for f in out if f is not None]
         else:
-            def _one(e):
+            def _one(er):
+                e, rep = er
                 try:
-                    return _fit_candidate(e, current, selected, J_fit_cur, ev, ctx, base, opt.own_floor,
-                                          opt.floor_seeds[0])
+                    f = _fit_candidate(e, *on(rep), J_fit_cur, ev, ctx, base, opt.own_floor, opt.floor_seeds[0])
                 except Exception as err:     # noqa: BLE001 - one bad candidate must not stop the diagnosis
                     _log(opt, f"fit {e.key} failed: {err!r}")
                     return None
+                if f is not None:
+                    f.replaces = rep
+                return f
             # the compiled kernels release the GIL: candidates are fitted on parallel threads
             current.compiled()
             if opt.n_jobs > 1 and len(todo) > 1:
@@ -564,11 +589,30 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                 best = (d, v, sp)
         if best[1] == v0:
             return j
-        f2 = dataclasses.replace(f, spec=best[2], theta=np.array([float(best[1])]), joint=None)
-        f2.refined = True
+        f2 = dataclasses.replace(f, spec=best[2], theta=np.array([float(best[1])]), joint=None, refined=True)
         j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
         j2["why"] += " (chosen by the replay)"
         return j2
+
+    def replay_start(f, sel, jfl):
+        """Start of the replay refinement of a candidate the observer left at a bound (where the replay
+        may not move it: a Stribeck curve at v_s -> 0 is flat in both parameters): the best of the
+        effect's own starts by the replay of the fit samples."""
+        e = get_effect(f.key)
+        prev = _spec_without(sel, base)
+        c2 = ctx_for(ctx, sel)
+        ps = e.params(prev, c2)
+        best = (float("inf"), None)
+        for th in e.starts(prev, c2):
+            th = [p.clip(v) for p, v in zip(ps, th)]
+            try:
+                rp = fit_judge.replay(e.apply(prev, th))
+            except Exception:     # noqa: BLE001 - an invalid start is no start
+                continue
+            d = fit_judge.D(rp, jfl) if rp.ok else float("inf")
+            if d < best[0]:
+                best = (d, th)
+        return best[1]
 
     def refine_rows(judged, selected, jfl, s0) -> list:
         """Every stable candidate refined by the replay (:func:`_refine_by_replay`) and judged again
@@ -589,20 +633,20 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         small = [j for j in by_replay[:REFINE_PROPOSALS] + by_observer[:REFINE_PROPOSALS]
                  if len(j["fit"].theta) <= REFINE_MAX_PARAMS]
         stable = [j for j in stable if any(j is x for x in small) or id(j) in top]
-        n_sel = sum(len(f.theta) for f in selected if LIBRARY[f.key].kind == "deterministic")
-        c2 = ctx_for(ctx, selected)
         out = []
         for j in judged:
             f = j["fit"]
             if any(j is x for x in stable):
-                ref = _refine_by_replay(f, selected, base, c2, fit_judge, jfl,
+                sel = [s for s in selected if s.key != f.replaces]
+                n_sel = sum(len(s.theta) for s in sel if LIBRARY[s.key].kind == "deterministic")
+                ref = _refine_by_replay(f, sel, base, ctx_for(ctx, sel), fit_judge, jfl,
+                                        start=replay_start(f, sel, jfl) if f.on_bound else None,
                                         max_nfev=8 if len(f.theta) <= REFINE_MAX_PARAMS else 3,
                                         with_selected=0 < n_sel and n_sel + len(f.theta) <= REFINE_JOINT_MAX)
                 if ref is not None:
                     f2 = dataclasses.replace(f, spec=ref["spec"], theta=ref["theta"], sigma=ref["sigma"],
                                              on_bound=ref["at_bound"], derived=LIBRARY[f.key].derived(base, ref["theta"]),
-                                             joint=ref["joint"])
-                    f2.refined = True
+                                             joint=ref["joint"], refined=True)
                     j2 = judge_rows([f2], jfl, s0, first=not selected)[0]
                     j2["why"] += " (refined by the replay)"
                     out.append(j2)
@@ -676,7 +720,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                                       "stopped": "replay within the run-to-run floor"})
                 _log(opt, f"step {step}: replay z {z_cur:.3g} <= {judge.t_q:.3g}: within the floor, stop")
                 break
-            todo = [e for e in candidates(current, selected) if e.key not in path["banned"]]
+            todo = candidates(current, selected, path["banned"])
             fits = fit_all(todo, current, selected, path["J_fit"])
             if not fits:
                 break
@@ -732,6 +776,14 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             if best is None:
                 break
             bf = best["fit"]
+            gone = None
+            if bf.replaces is not None:
+                # a replacement: the member of its exclusive group adopted earlier leaves the model (and
+                # does not come back)
+                i = next(i for i, f in enumerate(selected) if f.key == bf.replaces)
+                selected.pop(i)
+                gone = path["found"].pop(i)
+                path["banned"].add(bf.replaces)
             new_spec = bf.spec
             if bf.joint is not None:
                 adopt(bf.joint)             # the selected effects were re-fitted with this one
@@ -769,7 +821,9 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                                   "params": bf.params(), "derived": bf.derived, "expressible": bf.expressible,
                                   "confounded_with": [j["fit"].key for j in conf], "alternatives": alts,
                                   "J_held": bf.J_held, "replay": best["cmp"].row(),
-                                  "refined_by_replay": bool(getattr(bf, "refined", False))})
+                                  "refined_by_replay": bool(bf.refined),
+                                  "replaces": None if gone is None else {"effect": gone["effect"], "step": gone["step"],
+                                                                         "params": gone["params"]}})
             path["current"] = new_spec
             renew_floor(new_spec)         # the run-to-run floor re-estimated after every adoption
             # the next proposals come from what the adopted model leaves: ripple periods, spectral peaks and
