@@ -489,7 +489,10 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             if len(clash) > 1:
                 continue
             rep = next(iter(clash)) if clash else None
-            cur = current if rep is None else _spec_without([f for f in selected if f.key != rep], base)
+            try:
+                cur = current if rep is None else _spec_without([f for f in selected if f.key != rep], base)
+            except Exception:     # noqa: BLE001 - e.g. an asymmetry larger than the friction left without rep
+                continue
             if e.applicable(cur) is not None:
                 continue
             if hasattr(e, "bind"):
@@ -577,7 +580,10 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         ``reach`` of the force observer's pick (the others held); its row judged again if it moved."""
         f = j["fit"]
         e = get_effect(f.key)
-        prev = _spec_without(selected, base)
+        try:
+            prev = _spec_without(selected, base)
+        except Exception:     # noqa: BLE001 - the observer's pick stays
+            return j
         p = e.params(prev, ctx_for(ctx, selected))[0]
         v0 = int(round(f.theta[0]))
         best = (float("inf"), v0, f.spec)
@@ -599,9 +605,12 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         may not move it: a Stribeck curve at v_s -> 0 is flat in both parameters): the best of the
         effect's own starts by the replay of the fit samples."""
         e = get_effect(f.key)
-        prev = _spec_without(sel, base)
         c2 = ctx_for(ctx, sel)
-        ps = e.params(prev, c2)
+        try:
+            prev = _spec_without(sel, base)
+            ps = e.params(prev, c2)
+        except Exception:     # noqa: BLE001 - no start of its own: the observer's
+            return None
         best = (float("inf"), None)
         for th in e.starts(prev, c2):
             th = [p.clip(v) for p, v in zip(ps, th)]
