@@ -24,7 +24,9 @@ Files written to the output folder ``DIR``
                         from the Jacobian), nominal}], ``derived`` (physical summaries, e.g. x_50),
                         ``expressible`` (in a preset), ``confounded_with`` (keys that explain the
                         held-out data as well), ``params_joint`` (after the joint fit), ``held_out``
-                        (stochastic effects: their own held-out metric)
+                        (stochastic effects: their own held-out metric), ``refined_by_replay``
+                        (values from the replay's output error), ``replaces`` (the member of its
+                        exclusive group adopted earlier and replaced by it: effect, step, params)
 ``recording``           source, rate_hz, trials, samples, duration_s, split, fit_trials,
                         held_out_trials, notes
 ``nominal``             name and source of the nominal model
