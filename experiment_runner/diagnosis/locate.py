@@ -251,13 +251,19 @@ def ripple_periods(x, rl, v, mask, lam_min, lam_max, n: int = 300, top: int = 3)
             order.append(i)
         if len(order) >= top:
             break
-    # each peak refined on a fine grid between its neighbours (over N periods of the record the grid's
-    # spacing would leave a phase drift of 2 pi N dlam/lam)
+    # each peak refined on a fine grid over its whole neighbourhood (the same +-15 % that separates
+    # peaks): trials at separate positions make the periodogram a comb of side lobes spaced by
+    # lam/span (span: the whole range of recorded positions) under the envelope of one stroke, so the
+    # coarse grid lands on any tooth; the fine grid's spacing lam/(4 span) leaves a phase drift of
+    # at most pi/2 over the span, and the highest tooth is the coherent period
     xc = xs - xs.mean()
+    span = max(float(np.ptp(xs)), 1e-12)
     best = []
     for i in order:
-        fine = np.logspace(np.log10(lam[max(i - 1, 0)]), np.log10(lam[min(i + 1, n - 1)]), 41)
-        pf = _lomb_scargle(xc, rs, 2 * np.pi / fine)
+        lo, hi = lam[i] * np.exp(-0.15), lam[i] * np.exp(0.15)
+        m_f = int(np.clip(0.3 / (lam[i] / (4 * span)), 41, 4000))
+        fine = np.logspace(np.log10(max(lo, lam_min)), np.log10(min(hi, lam_max)), m_f)
+        pf = np.concatenate([_lomb_scargle(xc, rs, 2 * np.pi / fine[k:k + 256]) for k in range(0, m_f, 256)])
         best.append(float(fine[int(np.argmax(pf))]))
     return best, {"period_m": lam, "power": p}
 

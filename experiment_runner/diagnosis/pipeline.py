@@ -703,6 +703,59 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
             path["J_fit"], path["J_cur"], _ = ev.both(spec)
             path["jfl"] = judge.floor(spec)
 
+        def backward(last) -> bool:
+            """Backward elimination after the adoption of ``last``: each earlier adopted deterministic
+            effect is re-tested by removing it (the others, ``last`` with them, refined by the replay
+            without it when that is better): if the model with it does not replay the held-out data
+            better beyond the current floor (the same test as its adoption), the later effects made it
+            redundant (e.g. a mass error adopted where a structural mode replayed as well, the mode
+            adopted next): it is withdrawn and not proposed again. Returns whether one was."""
+            changed = False
+            for e in [s for s in selected if s is not last and LIBRARY[s.key].kind == "deterministic"]:
+                rest = [s for s in selected if s is not e]
+                try:
+                    spec_wo = _spec_without(rest, base)
+                except Exception:     # noqa: BLE001 - not a valid model without it: it stays
+                    continue
+                best_wo = (fit_D(spec_wo), spec_wo, None)
+                others = [s for s in rest if s is not last]
+                if fit_judge is not None and LIBRARY[last.key].kind == "deterministic":
+                    n_o = sum(len(s.theta) for s in others if LIBRARY[s.key].kind == "deterministic")
+                    ref = _refine_by_replay(last, others, base, ctx_for(ctx, others), fit_judge, path["jfl"],
+                                            with_selected=0 < n_o and n_o + len(last.theta) <= REFINE_JOINT_MAX)
+                    if ref is not None and not (ref["joint"].on_bound if ref["joint"] is not None
+                                                else ref["at_bound"]):
+                        d = fit_D(ref["spec"])
+                        if d < best_wo[0]:
+                            best_wo = (d, ref["spec"], ref)
+                # the adoption test of ``e`` on top of the model without it: the floor (simulated
+                # recordings) of the model without it, the current model's replay as the candidate
+                fl_wo = judge.floor(best_wo[1])
+                if not fl_wo.replay.ok:
+                    continue
+                c = judge.compare(fl_wo, path["jfl"].replay)
+                if c.accepted:
+                    continue          # the data demand it on top of the later effects
+                i = next(k for k, s in enumerate(selected) if s is e)
+                selected.pop(i)
+                gone = path["found"].pop(i)
+                path["banned"].add(e.key)
+                ref = best_wo[2]
+                if ref is not None:
+                    if ref["joint"] is not None:
+                        adopt(ref["joint"])
+                    else:
+                        last.theta, last.sigma = ref["theta"], ref["sigma"]
+                        path["found"][-1]["params"] = last.params()
+                        path["found"][-1]["derived"] = LIBRARY[last.key].derived(base, last.theta)
+                path["current"] = best_wo[1]
+                path["found"][-1].setdefault("withdraws", []).append(
+                    {"effect": gone["effect"], "step": gone["step"], "params": gone["params"],
+                     "replay": c.row(), "why": f"redundant after {last.key}: {c.why}"})
+                _log(opt, f"backward: {gone['effect']} withdrawn after {last.key} ({c.why})")
+                changed = True
+            return changed
+
         for step in range(1, opt.max_steps + 1):
             refitted = False
             for _ in range(3 if step > 1 else 0):
@@ -835,6 +888,8 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                                                                          "params": gone["params"]}})
             path["current"] = new_spec
             renew_floor(new_spec)         # the run-to-run floor re-estimated after every adoption
+            if backward(bf):
+                renew_floor(path["current"])
             # the next proposals come from what the adopted model leaves: ripple periods, spectral peaks and
             # lines located again in its force residual (the nominal's was dominated by the adopted effect)
             ctx.update(_proposals(data, obs.run(new_spec), path["floor"], obs.f_o, f_band, ctx))

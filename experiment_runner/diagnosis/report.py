@@ -26,7 +26,9 @@ Files written to the output folder ``DIR``
                         held-out data as well), ``params_joint`` (after the joint fit), ``held_out``
                         (stochastic effects: their own held-out metric), ``refined_by_replay``
                         (values from the replay's output error), ``replaces`` (the member of its
-                        exclusive group adopted earlier and replaced by it: effect, step, params)
+                        exclusive group adopted earlier and replaced by it: effect, step, params),
+                        ``withdraws`` (earlier adopted effects this one made redundant, withdrawn by
+                        the backward test: effect, step, params, replay, why)
 ``recording``           source, rate_hz, trials, samples, duration_s, split, fit_trials,
                         held_out_trials, notes
 ``nominal``             name and source of the nominal model
