@@ -1,0 +1,207 @@
+"""Micrometre settling physics of the Ch. 4 No FI stage (issue 13, item 3): a standalone study.
+
+The seed's App. C.1 step sequence (Fig. C.2, 8 steps of 5 µm forward, 8 back, ±25 nm window)
+shows the No FI settling time *growing* with every same-direction step: 47.8 ms at the first,
+85 ms at the eighth, 69.1 ms mean over the 16; the 50 µm steps take 237 ms (first) and 214 ms
+(eighth), much longer than the 5 mm step of Table 4.2 (44 ms). A rate-independent friction
+model (the seed's GMS with Coulomb slip, Eq. 4.4; Dahl) cannot make the n-th same-direction step
+slower than the first: after a same-direction stop the saturated blocks stay saturated and the
+next step is, if anything, easier.
+
+This module tests one candidate for the missing physics against those numbers, without touching
+the simulator's friction laws: **rate-dependent slip of the Maxwell-slip elements** (logarithmic
+creep). Each GMS block ``i`` (Table 4.4: ``k_i``, ``α_i``) is a spring in series with a slider
+whose slip velocity depends on its force — the rate-and-state / thermally activated form
+(Dieterich's direct effect; Prandtl-Eyring creep)::
+
+    df_i/dt = k_i (v - w_i),      w_i = v_r sgn(f_i) exp((|f_i|/(α_i F_C) - 1)/a)
+
+``a`` is the rate sensitivity (Δf/f per e-fold of slip velocity) and ``v_r`` the slip velocity
+at which a block carries exactly its Coulomb share ``α_i F_C``; ``a → 0`` is the seed's GMS
+(stick below ``α_i F_C``, Coulomb slip at it). ``v_r`` is not free: F_C is "the constant force
+required to sustain gross motion" (Sec. 4.4.3), so ``v_r`` is the gross-motion speed of the
+identification, taken as the peak speed of the seed's 5 mm move (2·5 mm/125 ms = 80 mm/s); it
+enters only through ``ln``. The one unknown is ``a``.
+
+Its consequence for settling: a forward move that ends without a reversal (the 5 µm and 50 µm
+moves do) leaves the slipped blocks at their threshold; at rest their force relaxes
+logarithmically, ``f(t) ≈ α_i F_C (1 - a ln(1 + t/t_c))``, and the PID's integral has to follow
+the relaxing friction: a ramp it tracks with a lag ``e ≈ (dF/dt)/K_I = a F_sat/(K_I t)``. The
+force stored in slipped blocks, ``F_sat``, grows with every same-direction step (the virgin
+curve: ~0.8 N of saturated blocks after 5 µm, ~4.6 N after 40 µm) — so the settling time grows
+with the step count, saturates once ``F_sat`` ≈ F_C (50 µm), and vanishes after a reversal (the
+5 mm move overshoots, unloading every block).
+
+The closed loop here is a standalone copy of the Ch. 4 No FI stage: rigid 2 kg (the preset's
+moving mass; the ~400 Hz mode is left out), the preset's PID discretised as in
+:mod:`stage_control.servo` (backward Euler integral and filtered derivative on the error, 10 kHz,
+zero-order hold), 4.88 nm encoder, no noise. Its ``a = 0`` case is checked against the engine
+(:func:`engine_sequence`) on the same step sequence.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from experiment_runner.batch import simulate
+from experiment_runner.metrics import settling_time
+from experiment_runner.profiles import point_to_point, step_sequence
+from stage_sim.config import load_preset, with_overrides
+
+PRESET = "fi_stage_nofi_gms"        # Ch. 4 No FI stage with the Table 4.4 GMS bearings
+WINDOW = 25e-9                      # App. C.1 / Sec. 4.4.1: ±25 nm
+DWELL = 0.4                         # rest after each step [s] (not stated; > the 237 ms of Fig. C.3)
+V_R = 2 * 5e-3 / 0.125              # gross-motion speed of the 5 mm move [m/s] (Sec. 3.4.1)
+N_SUB = 10                          # plant sub-steps per control sample (k_sigma/m: ω h = 0.01)
+
+# seed numbers this study is judged against (App. C.1, Fig. C.2/C.3; Table 4.2)
+SEED = {"5um_first": 0.0478, "5um_eighth": 0.085, "5um_mean16": 0.0691,
+        "50um_first": 0.237, "50um_eighth": 0.214, "5mm": 0.044}
+
+
+def stage():
+    """Mass [kg], PID (kp, ki, kd, wd [rad/s]), GMS (k [N/m], alpha, F_C [N]), dt, encoder q [m]."""
+    p = load_preset(PRESET)
+    st, pid = p.stage, p.controller.pid
+    m = st.table.mass * (1.0 + sum(md.mass_ratio for md in st.modes)) + sum(b.mass for b in st.bearings)
+    fr = [b.friction for b in st.bearings]
+    k = np.concatenate([np.asarray(f.k, float) for f in fr])
+    alpha = np.concatenate([np.asarray(f.alpha, float) * f.f_c for f in fr])   # block limits [N]
+    f_c = float(sum(f.f_c for f in fr))
+    wd = 2.0 * math.pi * pid.derivative_cutoff
+    return (m, (pid.kp, pid.ki, pid.kd, wd), (k, alpha / f_c, f_c), 1.0 / p.controller.rate,
+            st.encoder.resolution)
+
+
+@njit(cache=True)
+def _block_update(f_old, dx, k, lim, a, v_r, h):
+    """Implicit step of one rate-dependent block: f = f_old + k dx - k h w(f); returns f."""
+    f_tr = f_old + k * dx
+    if a <= 0.0:                                 # seed's GMS: Coulomb slip at the limit
+        return min(max(f_tr, -lim), lim)
+    s = 1.0 if f_tr >= 0.0 else -1.0
+    y_tr = abs(f_tr)
+    c = k * h * v_r                              # force relaxed per unit exp(...) in one step
+    if c * math.exp((y_tr / lim - 1.0) / a) < 1e-12 * lim:
+        return f_tr                              # creep negligible: elastic predictor stands
+    lo, hi = 0.0, y_tr                           # root of g(y) = y - y_tr + c exp((y/lim - 1)/a)
+    y = min(y_tr, lim)
+    for _ in range(60):
+        ex = c * math.exp((y / lim - 1.0) / a)
+        g = y - y_tr + ex
+        if g > 0.0:
+            hi = y
+        else:
+            lo = y
+        y_new = y - g / (1.0 + ex / (a * lim))
+        if not (lo < y_new < hi):
+            y_new = 0.5 * (lo + hi)
+        if abs(y_new - y) < 1e-15 * lim + 1e-18:
+            y = y_new
+            break
+        y = y_new
+    return s * y
+
+
+@njit(cache=True)
+def closed_loop(x_ref, m, kp, ki, kd, wd, dt, q, k, lim, a, v_r, n_sub):
+    """Rigid stage + rate-dependent GMS under the discrete PID; measured and true position [m]."""
+    n = x_ref.size
+    nb = k.size
+    f = np.zeros(nb)
+    x, v = x_ref[0], 0.0
+    integ, ud, e_prev = 0.0, 0.0, 0.0
+    y_out = np.empty(n)
+    x_out = np.empty(n)
+    h = dt / n_sub
+    for t in range(n):
+        xm = x if q <= 0.0 else q * math.floor(x / q + 0.5)
+        e = x_ref[t] - xm
+        if t == 0:
+            e_prev = e
+        ud = (ud + kd * wd * (e - e_prev)) / (1.0 + wd * dt)
+        integ += ki * dt * e
+        u = kp * e + integ + ud
+        e_prev = e
+        y_out[t] = xm
+        x_out[t] = x
+        for _ in range(n_sub):
+            F = 0.0
+            for i in range(nb):
+                F += f[i]
+            v += h * (u - F) / m
+            dx = h * v
+            x += dx
+            for i in range(nb):
+                f[i] = _block_update(f[i], dx, k[i], lim[i], a, v_r, h)
+    return y_out, x_out
+
+
+def _settling(t, y, ref):
+    """Settling time [s] of every settle segment of ``ref`` (nan if not settled by its end)."""
+    out = []
+    for s in ref.select("settle"):
+        t0, t1 = t[s.start], t[s.stop - 1]
+        out.append(float(settling_time(t, y, s.target, t0, WINDOW, t1)))
+    return np.array(out)
+
+
+def standalone_sequence(step, a, n_forward=8, n_backward=8, dwell=DWELL, v_r=V_R):
+    """Settling time [s] per step of the App. C.1 sequence on the standalone loop."""
+    m, (kp, ki, kd, wd), (k, alpha, f_c), dt, q = stage()
+    ref = step_sequence(step, n_forward, n_backward, dwell=dwell, shape="triangular")
+    y, _ = closed_loop(ref.x, m, kp, ki, kd, wd, dt, q, k, alpha * f_c, a, v_r, N_SUB)
+    return _settling(ref.t, y, ref)
+
+
+def standalone_single(step, a, dwell=DWELL, v_r=V_R):
+    """Settling time [s] of one move from the virgin state on the standalone loop."""
+    m, (kp, ki, kd, wd), (k, alpha, f_c), dt, q = stage()
+    ref = point_to_point(step, dwell=dwell, shape="triangular")
+    y, _ = closed_loop(ref.x, m, kp, ki, kd, wd, dt, q, k, alpha * f_c, a, v_r, N_SUB)
+    return float(_settling(ref.t, y, ref)[0])
+
+
+def engine_sequence(step, n_forward=8, n_backward=8, dwell=DWELL):
+    """Settling time [s] per step of the sequence on the engine (preset, drive noise off)."""
+    p = with_overrides(load_preset(PRESET), {"stage.drive.noise_current_rms": 0.0})
+    ref = step_sequence(step, n_forward, n_backward, dwell=dwell, shape="triangular")
+    r = simulate(p, ref.x, ref.v, x0=0.0)
+    return _settling(r.t, r.y[0], ref)
+
+
+def saturated_force(x, k=None, alpha=None, f_c=None):
+    """Force [N] carried by fully slipped blocks on the virgin curve after a displacement ``x`` [m]."""
+    if k is None:
+        _, _, (k, alpha, f_c), _, _ = stage()
+    lim = alpha * f_c
+    return float(lim[k * x >= lim].sum())
+
+
+def study(a_values=(0.0, 0.01, 0.02, 0.03, 0.05)):
+    """Engine vs standalone at a = 0, then the App. C.1 numbers for each rate sensitivity ``a``."""
+    rows = {"engine_a0": {"5um": engine_sequence(5e-6), "50um": engine_sequence(5e-5)}}
+    for a in a_values:
+        rows[a] = {"5um": standalone_sequence(5e-6, a), "50um": standalone_sequence(5e-5, a),
+                   "5mm": standalone_single(5e-3, a), "5um_single": standalone_single(5e-6, a)}
+    return rows
+
+
+def _fmt(s):
+    return "  ".join("  -  " if not np.isfinite(v) else f"{v * 1e3:5.1f}" for v in s)
+
+
+if __name__ == "__main__":                      # python -m experiment_runner.paper.micro
+    res = study()
+    print("F_sat after n x 5 um (virgin curve):",
+          ", ".join(f"{saturated_force(n * 5e-6):.2f}" for n in range(1, 9)), "N")
+    for key, r in res.items():
+        print(f"--- a = {key}")
+        for name, s in r.items():
+            s = np.atleast_1d(s)
+            extra = (f"  first {s[0] * 1e3:.1f}, 8th {s[7] * 1e3:.1f}, mean16 {np.nanmean(s) * 1e3:.1f} ms"
+                     if s.size == 16 else "")
+            print(f"  {name:10s} {_fmt(s)}{extra}")
+    print("seed:", {k: v * 1e3 for k, v in SEED.items()})
