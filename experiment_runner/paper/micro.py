@@ -51,6 +51,7 @@ from experiment_runner.profiles import point_to_point, step_sequence
 from stage_sim.config import load_preset, with_overrides
 
 PRESET = "fi_stage_nofi_gms"        # Ch. 4 No FI stage with the Table 4.4 GMS bearings
+PRESET_FI = "fi_stage_gms"          # the same stage with the FIs (k_fi = 8.27e4 N/m, Table 4.3)
 WINDOW = 25e-9                      # App. C.1 / Sec. 4.4.1: ±25 nm
 DWELL = 0.4                         # rest after each step [s] (not stated; > the 237 ms of Fig. C.3)
 V_R = 2 * 5e-3 / 0.125              # gross-motion speed of the 5 mm move [m/s] (Sec. 3.4.1)
@@ -61,18 +62,23 @@ SEED = {"5um_first": 0.0478, "5um_eighth": 0.085, "5um_mean16": 0.0691,
         "50um_first": 0.237, "50um_eighth": 0.214, "5mm": 0.044}
 
 
-def stage():
-    """Mass [kg], PID (kp, ki, kd, wd [rad/s]), GMS (k [N/m], alpha, F_C [N]), dt, encoder q [m]."""
-    p = load_preset(PRESET)
+def stage(preset=PRESET):
+    """Table mass (incl. appended mode mass) and bearing mass [kg], FI (k_fi [N/m], c_fi [N s/m];
+    0 for No FI), PID (kp, ki, kd, wd [rad/s]), GMS (k [N/m], alpha, F_C [N]), dt [s], encoder q [m]."""
+    p = load_preset(preset)
     st, pid = p.stage, p.controller.pid
-    m = st.table.mass * (1.0 + sum(md.mass_ratio for md in st.modes)) + sum(b.mass for b in st.bearings)
+    m_t = st.table.mass * (1.0 + sum(md.mass_ratio for md in st.modes))
+    m_b = sum(b.mass for b in st.bearings)
+    joints = [b.joint for b in st.bearings if b.joint is not None]
+    k_fi = sum(j.stiffness for j in joints)
+    c_fi = sum(j.damping for j in joints)
     fr = [b.friction for b in st.bearings]
     k = np.concatenate([np.asarray(f.k, float) for f in fr])
-    alpha = np.concatenate([np.asarray(f.alpha, float) * f.f_c for f in fr])   # block limits [N]
     f_c = float(sum(f.f_c for f in fr))
+    alpha = np.concatenate([np.asarray(f.alpha, float) * f.f_c for f in fr]) / f_c
     wd = 2.0 * math.pi * pid.derivative_cutoff
-    return (m, (pid.kp, pid.ki, pid.kd, wd), (k, alpha / f_c, f_c), 1.0 / p.controller.rate,
-            st.encoder.resolution)
+    return (m_t, m_b, k_fi, c_fi, (pid.kp, pid.ki, pid.kd, wd), (k, alpha, f_c),
+            1.0 / p.controller.rate, st.encoder.resolution)
 
 
 @njit(cache=True)
@@ -106,18 +112,25 @@ def _block_update(f_old, dx, k, lim, a, v_r, h):
 
 
 @njit(cache=True)
-def closed_loop(x_ref, m, kp, ki, kd, wd, dt, q, k, lim, a, v_r, n_sub):
-    """Rigid stage + rate-dependent GMS under the discrete PID; measured and true position [m]."""
+def closed_loop(x_ref, m_t, m_b, k_fi, c_fi, kp, ki, kd, wd, dt, q, k, lim, a, v_r, n_sub):
+    """Stage + rate-dependent GMS bearings under the discrete PID.
+
+    ``k_fi > 0``: table ``m_t`` on the bearings ``m_b`` through the FI (``k_fi``, ``c_fi``);
+    otherwise one rigid mass ``m_t + m_b`` (No FI). Returns the measured table position, the
+    true table and bearing positions [m] at the control samples."""
     n = x_ref.size
     nb = k.size
     f = np.zeros(nb)
-    x, v = x_ref[0], 0.0
+    rigid = k_fi <= 0.0
+    m_all = m_t + m_b
+    xt, vt, xb, vb = x_ref[0], 0.0, x_ref[0], 0.0
     integ, ud, e_prev = 0.0, 0.0, 0.0
     y_out = np.empty(n)
-    x_out = np.empty(n)
+    xt_out = np.empty(n)
+    xb_out = np.empty(n)
     h = dt / n_sub
     for t in range(n):
-        xm = x if q <= 0.0 else q * math.floor(x / q + 0.5)
+        xm = xt if q <= 0.0 else q * math.floor(xt / q + 0.5)
         e = x_ref[t] - xm
         if t == 0:
             e_prev = e
@@ -126,17 +139,27 @@ def closed_loop(x_ref, m, kp, ki, kd, wd, dt, q, k, lim, a, v_r, n_sub):
         u = kp * e + integ + ud
         e_prev = e
         y_out[t] = xm
-        x_out[t] = x
+        xt_out[t] = xt
+        xb_out[t] = xb
         for _ in range(n_sub):
             F = 0.0
             for i in range(nb):
                 F += f[i]
-            v += h * (u - F) / m
-            dx = h * v
-            x += dx
+            if rigid:
+                vt += h * (u - F) / m_all
+                dxb = h * vt
+                xt += dxb
+                xb = xt
+            else:
+                f_fi = k_fi * (xt - xb) + c_fi * (vt - vb)
+                vt += h * (u - f_fi) / m_t
+                vb += h * (f_fi - F) / m_b
+                xt += h * vt
+                dxb = h * vb
+                xb += dxb
             for i in range(nb):
-                f[i] = _block_update(f[i], dx, k[i], lim[i], a, v_r, h)
-    return y_out, x_out
+                f[i] = _block_update(f[i], dxb, k[i], lim[i], a, v_r, h)
+    return y_out, xt_out, xb_out
 
 
 def _settling(t, y, ref):
@@ -148,25 +171,28 @@ def _settling(t, y, ref):
     return np.array(out)
 
 
-def standalone_sequence(step, a, n_forward=8, n_backward=8, dwell=DWELL, v_r=V_R):
+def _standalone(ref, a, preset, v_r):
+    m_t, m_b, k_fi, c_fi, (kp, ki, kd, wd), (k, alpha, f_c), dt, q = stage(preset)
+    y, _, xb = closed_loop(ref.x, m_t, m_b, k_fi, c_fi, kp, ki, kd, wd, dt, q, k, alpha * f_c, a, v_r,
+                           N_SUB)
+    return _settling(ref.t, y, ref), xb
+
+
+def standalone_sequence(step, a, n_forward=8, n_backward=8, dwell=DWELL, v_r=V_R, preset=PRESET):
     """Settling time [s] per step of the App. C.1 sequence on the standalone loop."""
-    m, (kp, ki, kd, wd), (k, alpha, f_c), dt, q = stage()
     ref = step_sequence(step, n_forward, n_backward, dwell=dwell, shape="triangular")
-    y, _ = closed_loop(ref.x, m, kp, ki, kd, wd, dt, q, k, alpha * f_c, a, v_r, N_SUB)
-    return _settling(ref.t, y, ref)
+    return _standalone(ref, a, preset, v_r)[0]
 
 
-def standalone_single(step, a, dwell=DWELL, v_r=V_R):
+def standalone_single(step, a, dwell=DWELL, v_r=V_R, preset=PRESET):
     """Settling time [s] of one move from the virgin state on the standalone loop."""
-    m, (kp, ki, kd, wd), (k, alpha, f_c), dt, q = stage()
     ref = point_to_point(step, dwell=dwell, shape="triangular")
-    y, _ = closed_loop(ref.x, m, kp, ki, kd, wd, dt, q, k, alpha * f_c, a, v_r, N_SUB)
-    return float(_settling(ref.t, y, ref)[0])
+    return float(_standalone(ref, a, preset, v_r)[0][0])
 
 
-def engine_sequence(step, n_forward=8, n_backward=8, dwell=DWELL):
+def engine_sequence(step, n_forward=8, n_backward=8, dwell=DWELL, preset=PRESET):
     """Settling time [s] per step of the sequence on the engine (preset, drive noise off)."""
-    p = with_overrides(load_preset(PRESET), {"stage.drive.noise_current_rms": 0.0})
+    p = with_overrides(load_preset(preset), {"stage.drive.noise_current_rms": 0.0})
     ref = step_sequence(step, n_forward, n_backward, dwell=dwell, shape="triangular")
     r = simulate(p, ref.x, ref.v, x0=0.0)
     return _settling(r.t, r.y[0], ref)
@@ -175,7 +201,7 @@ def engine_sequence(step, n_forward=8, n_backward=8, dwell=DWELL):
 def saturated_force(x, k=None, alpha=None, f_c=None):
     """Force [N] carried by fully slipped blocks on the virgin curve after a displacement ``x`` [m]."""
     if k is None:
-        _, _, (k, alpha, f_c), _, _ = stage()
+        _, _, _, _, _, (k, alpha, f_c), _, _ = stage()
     lim = alpha * f_c
     return float(lim[k * x >= lim].sum())
 
