@@ -55,6 +55,7 @@ PRESET_FI = "fi_stage_gms"          # the same stage with the FIs (k_fi = 8.27e4
 WINDOW = 25e-9                      # App. C.1 / Sec. 4.4.1: ±25 nm
 DWELL = 0.4                         # rest after each step [s] (not stated; > the 237 ms of Fig. C.3)
 V_R = 2 * 5e-3 / 0.125              # gross-motion speed of the 5 mm move [m/s] (Sec. 3.4.1)
+THETA0 = 1.0                        # aging state at the start: 1 s at rest before the record [s]
 N_SUB = 10                          # plant sub-steps per control sample (k_sigma/m: ω h = 0.01)
 
 # seed numbers this study is judged against (App. C.1, Fig. C.2/C.3; Table 4.2)
@@ -82,14 +83,17 @@ def stage(preset=PRESET):
 
 
 @njit(cache=True)
-def _block_update(f_old, dx, k, lim, a, v_r, h):
-    """Implicit step of one rate-dependent block: f = f_old + k dx - k h w(f); returns f."""
+def _block_update(f_old, dx, k, lim, a, v_r, h, c_state=1.0):
+    """Implicit step of one rate-dependent block: ``f = f_old + k dx - k h w(f)``; returns f.
+
+    ``w = v_r c_state exp((|f|/lim - 1)/a) sgn(f)``; ``c_state`` carries the aging state of
+    :func:`closed_loop` (1 without it)."""
     f_tr = f_old + k * dx
     if a <= 0.0:                                 # seed's GMS: Coulomb slip at the limit
         return min(max(f_tr, -lim), lim)
     s = 1.0 if f_tr >= 0.0 else -1.0
     y_tr = abs(f_tr)
-    c = k * h * v_r                              # force relaxed per unit exp(...) in one step
+    c = k * h * v_r * c_state                    # force relaxed per unit exp(...) in one step
     if c * math.exp((y_tr / lim - 1.0) / a) < 1e-12 * lim:
         return f_tr                              # creep negligible: elastic predictor stands
     lo, hi = 0.0, y_tr                           # root of g(y) = y - y_tr + c exp((y/lim - 1)/a)
@@ -112,8 +116,16 @@ def _block_update(f_old, dx, k, lim, a, v_r, h):
 
 
 @njit(cache=True)
-def closed_loop(x_ref, m_t, m_b, k_fi, c_fi, kp, ki, kd, wd, dt, q, k, lim, a, v_r, n_sub):
+def closed_loop(x_ref, m_t, m_b, k_fi, c_fi, kp, ki, kd, wd, dt, q, k, lim, a, v_r, n_sub,
+                b=0.0, theta0=1.0):
     """Stage + rate-dependent GMS bearings under the discrete PID.
+
+    ``b > 0`` adds the aging state of rate-and-state friction to every slider (Dieterich's
+    aging law): ``w = v_r (L_i/(v_r θ_i))^(b/a) exp((|f|/lim - 1)/a)``,
+    ``dθ_i/dt = 1 - |w| θ_i/L_i``, ``L_i = lim_i/k_i`` (the block's own pre-sliding distance),
+    ``θ_i(0) = theta0`` [s] (time at rest before the record). Steady sliding then carries
+    ``lim (1 + (a - b) ln(w/v_r))``: ``b = a`` keeps the seed's rate-independent Coulomb slip
+    and adds only the transients (relaxation after a stop, strengthening with dwell time).
 
     ``k_fi > 0``: table ``m_t`` on the bearings ``m_b`` through the FI (``k_fi``, ``c_fi``);
     otherwise one rigid mass ``m_t + m_b`` (No FI). Returns the measured table position, the
@@ -121,6 +133,8 @@ def closed_loop(x_ref, m_t, m_b, k_fi, c_fi, kp, ki, kd, wd, dt, q, k, lim, a, v
     n = x_ref.size
     nb = k.size
     f = np.zeros(nb)
+    theta = np.full(nb, theta0)
+    ell = lim / k
     rigid = k_fi <= 0.0
     m_all = m_t + m_b
     xt, vt, xb, vb = x_ref[0], 0.0, x_ref[0], 0.0
@@ -158,7 +172,13 @@ def closed_loop(x_ref, m_t, m_b, k_fi, c_fi, kp, ki, kd, wd, dt, q, k, lim, a, v
                 dxb = h * vb
                 xb += dxb
             for i in range(nb):
-                f[i] = _block_update(f[i], dxb, k[i], lim[i], a, v_r, h)
+                if b > 0.0:
+                    cs = (ell[i] / (v_r * theta[i])) ** (b / a)
+                    f[i] = _block_update(f[i], dxb, k[i], lim[i], a, v_r, h, cs)
+                    w = v_r * cs * math.exp((abs(f[i]) / lim[i] - 1.0) / a)
+                    theta[i] = (theta[i] + h) / (1.0 + h * w / ell[i])
+                else:
+                    f[i] = _block_update(f[i], dxb, k[i], lim[i], a, v_r, h)
     return y_out, xt_out, xb_out
 
 
@@ -171,23 +191,24 @@ def _settling(t, y, ref):
     return np.array(out)
 
 
-def _standalone(ref, a, preset, v_r):
+def _standalone(ref, a, preset, v_r, b=0.0, theta0=THETA0):
     m_t, m_b, k_fi, c_fi, (kp, ki, kd, wd), (k, alpha, f_c), dt, q = stage(preset)
     y, _, xb = closed_loop(ref.x, m_t, m_b, k_fi, c_fi, kp, ki, kd, wd, dt, q, k, alpha * f_c, a, v_r,
-                           N_SUB)
+                           N_SUB, b, theta0)
     return _settling(ref.t, y, ref), xb
 
 
-def standalone_sequence(step, a, n_forward=8, n_backward=8, dwell=DWELL, v_r=V_R, preset=PRESET):
+def standalone_sequence(step, a, n_forward=8, n_backward=8, dwell=DWELL, v_r=V_R, preset=PRESET, b=0.0,
+                        theta0=THETA0):
     """Settling time [s] per step of the App. C.1 sequence on the standalone loop."""
     ref = step_sequence(step, n_forward, n_backward, dwell=dwell, shape="triangular")
-    return _standalone(ref, a, preset, v_r)[0]
+    return _standalone(ref, a, preset, v_r, b, theta0)[0]
 
 
-def standalone_single(step, a, dwell=DWELL, v_r=V_R, preset=PRESET):
+def standalone_single(step, a, dwell=DWELL, v_r=V_R, preset=PRESET, b=0.0, theta0=THETA0):
     """Settling time [s] of one move from the virgin state on the standalone loop."""
     ref = point_to_point(step, dwell=dwell, shape="triangular")
-    return float(_standalone(ref, a, preset, v_r)[0][0])
+    return float(_standalone(ref, a, preset, v_r, b, theta0)[0][0])
 
 
 def engine_sequence(step, n_forward=8, n_backward=8, dwell=DWELL, preset=PRESET):
@@ -206,28 +227,40 @@ def saturated_force(x, k=None, alpha=None, f_c=None):
     return float(lim[k * x >= lim].sum())
 
 
-def study(a_values=(0.0, 0.01, 0.02, 0.03, 0.05)):
-    """Engine vs standalone at a = 0, then the App. C.1 numbers for each rate sensitivity ``a``."""
-    rows = {"engine_a0": {"5um": engine_sequence(5e-6), "50um": engine_sequence(5e-5)}}
-    for a in a_values:
-        rows[a] = {"5um": standalone_sequence(5e-6, a), "50um": standalone_sequence(5e-5, a),
-                   "5mm": standalone_single(5e-3, a), "5um_single": standalone_single(5e-6, a)}
-    return rows
+MODELS = {"GMS (seed, a = 0)": (0.0, 0.0), "creep only (a = 0.02, b = 0)": (0.02, 0.0),
+          "rate-and-state (a = b = 0.02)": (0.02, 0.02)}
 
 
-def _fmt(s):
-    return "  ".join("  -  " if not np.isfinite(v) else f"{v * 1e3:5.1f}" for v in s)
+def study(models=MODELS):
+    """The App. C.1 / Table 4.2 numbers of each model (settling times [s]).
+
+    Per model: the 5 µm and 50 µm sequences (8 forward, 8 back) and a 5 mm move, No FI and FI."""
+    out = {}
+    for name, (a, b) in models.items():
+        row = {}
+        for label, preset in (("nofi", PRESET), ("fi", PRESET_FI)):
+            row[f"{label}_5um"] = standalone_sequence(5e-6, a, b=b, preset=preset)
+            row[f"{label}_50um"] = standalone_sequence(5e-5, a, b=b, preset=preset)
+            row[f"{label}_5mm"] = standalone_single(5e-3, a, b=b, preset=preset)
+        out[name] = row
+    return out
+
+
+def _summary(row):
+    s5, s50, f5, f50 = row["nofi_5um"], row["nofi_50um"], row["fi_5um"], row["fi_50um"]
+    return (f"No FI 5 µm {s5[0] * 1e3:.1f} → {s5[7] * 1e3:.1f} ms (mean16 {np.nanmean(s5) * 1e3:.1f}), "
+            f"50 µm {s50[0] * 1e3:.0f} → {s50[7] * 1e3:.0f}, 5 mm {row['nofi_5mm'] * 1e3:.1f}; "
+            f"FI 5 µm {f5[0] * 1e3:.1f} → {f5[7] * 1e3:.1f} (mean16 {np.nanmean(f5) * 1e3:.1f}), "
+            f"50 µm {f50[0] * 1e3:.0f} → {f50[7] * 1e3:.0f}, 5 mm {row['fi_5mm'] * 1e3:.1f}")
 
 
 if __name__ == "__main__":                      # python -m experiment_runner.paper.micro
-    res = study()
-    print("F_sat after n x 5 um (virgin curve):",
+    print("force in slipped blocks after n x 5 µm (virgin curve):",
           ", ".join(f"{saturated_force(n * 5e-6):.2f}" for n in range(1, 9)), "N")
-    for key, r in res.items():
-        print(f"--- a = {key}")
-        for name, s in r.items():
-            s = np.atleast_1d(s)
-            extra = (f"  first {s[0] * 1e3:.1f}, 8th {s[7] * 1e3:.1f}, mean16 {np.nanmean(s) * 1e3:.1f} ms"
-                     if s.size == 16 else "")
-            print(f"  {name:10s} {_fmt(s)}{extra}")
-    print("seed:", {k: v * 1e3 for k, v in SEED.items()})
+    for name, row in study().items():
+        print(f"{name}: {_summary(row)}")
+        for key, v in row.items():
+            if np.ndim(v):
+                print(f"    {key:10s} {_fmt(v)}")
+    print("seed: No FI 5 µm 47.8 → 85 ms (mean16 69.1), 50 µm 237 → 214, 5 mm 44 (Table 4.2); "
+          "FI 5 µm 10.5 → 10.2 (mean16 10.3), 50 µm 43.6 → 453, 5 mm 16 (Table 4.2)")
