@@ -1,42 +1,45 @@
-"""Micrometre settling physics of the Ch. 4 No FI stage (issue 13, item 3): a standalone study.
+"""Micrometre settling physics of the Ch. 4 stage (issue 13, item 3): a standalone study.
+
+Run: ``python -m experiment_runner.paper.micro`` (~5 min; prints the table of docs/headline.md).
 
 The seed's App. C.1 step sequence (Fig. C.2, 8 steps of 5 µm forward, 8 back, ±25 nm window)
 shows the No FI settling time *growing* with every same-direction step: 47.8 ms at the first,
-85 ms at the eighth, 69.1 ms mean over the 16; the 50 µm steps take 237 ms (first) and 214 ms
-(eighth), much longer than the 5 mm step of Table 4.2 (44 ms). A rate-independent friction
-model (the seed's GMS with Coulomb slip, Eq. 4.4; Dahl) cannot make the n-th same-direction step
-slower than the first: after a same-direction stop the saturated blocks stay saturated and the
-next step is, if anything, easier.
+85 ms at the eighth, 69.1 ms mean over the 16; its 50 µm steps take 237 ms (first) and 214 ms
+(eighth), far longer than the 5 mm move of Table 4.2 (44 ms). A rate-independent friction
+model (the seed's GMS with Coulomb slip, Eq. 4.4; Dahl) makes the n-th same-direction step
+*faster* than the first (after a same-direction stop the slipped blocks stay at their limit).
 
-This module tests one candidate for the missing physics against those numbers, without touching
-the simulator's friction laws: **rate-dependent slip of the Maxwell-slip elements** (logarithmic
-creep). Each GMS block ``i`` (Table 4.4: ``k_i``, ``α_i``) is a spring in series with a slider
-whose slip velocity depends on its force — the rate-and-state / thermally activated form
-(Dieterich's direct effect; Prandtl-Eyring creep)::
+Candidate physics, tested here without touching the simulator's friction laws: each GMS block
+``i`` (Table 4.4: ``k_i``, limit ``lim_i = α_i F_C``) keeps its spring, and its Coulomb slider
+becomes a **rate-and-state slider** (Dieterich-Ruina, aging law)::
 
-    df_i/dt = k_i (v - w_i),      w_i = v_r sgn(f_i) exp((|f_i|/(α_i F_C) - 1)/a)
+    df_i/dt = k_i (v - w_i)
+    w_i     = v_r (L_i/(v_r θ_i))^(b/a) exp((|f_i|/lim_i - 1)/a) sgn(f_i)
+    dθ_i/dt = 1 - |w_i| θ_i / L_i,          L_i = lim_i / k_i
 
-``a`` is the rate sensitivity (Δf/f per e-fold of slip velocity) and ``v_r`` the slip velocity
-at which a block carries exactly its Coulomb share ``α_i F_C``; ``a → 0`` is the seed's GMS
-(stick below ``α_i F_C``, Coulomb slip at it). ``v_r`` is not free: F_C is "the constant force
-required to sustain gross motion" (Sec. 4.4.3), so ``v_r`` is the gross-motion speed of the
-identification, taken as the peak speed of the seed's 5 mm move (2·5 mm/125 ms = 80 mm/s); it
-enters only through ``ln``. The one unknown is ``a``.
+so a slipping block carries ``lim_i [1 + a ln(w/v_r) + b ln(v_r θ/L_i)]``: the *direct effect*
+``a`` (force relaxes — creeps — as the slip slows) and the *aging* ``b`` (the contact
+strengthens with time at rest, θ ≈ dwell time). Steady sliding carries
+``lim_i [1 + (a - b) ln(w/v_r)]``; the seed models gross motion by Coulomb friction (Sec. 4.4.3),
+so ``b = a``: then the steady slip force is exactly ``lim_i`` at any speed, and ``v_r`` drops out
+exactly. ``L_i`` is the block's own pre-sliding distance (no new parameter); ``θ_i(0)`` = 1 s at
+rest before the record (0.1-10 s: the eighth 5 µm step moves by < 0.1 ms). One unknown: ``a``.
+``a → 0`` is the seed's GMS; ``b = 0`` is pure logarithmic creep (relaxation without aging).
 
-Its consequence for settling: a forward move that ends without a reversal (the 5 µm and 50 µm
-moves do) leaves the slipped blocks at their threshold; at rest their force relaxes
-logarithmically, ``f(t) ≈ α_i F_C (1 - a ln(1 + t/t_c))``, and the PID's integral has to follow
-the relaxing friction: a ramp it tracks with a lag ``e ≈ (dF/dt)/K_I = a F_sat/(K_I t)``. The
-force stored in slipped blocks, ``F_sat``, grows with every same-direction step (the virgin
-curve: ~0.8 N of saturated blocks after 5 µm, ~4.6 N after 40 µm) — so the settling time grows
-with the step count, saturates once ``F_sat`` ≈ F_C (50 µm), and vanishes after a reversal (the
-5 mm move overshoots, unloading every block).
+Mechanism: a forward move that ends without a reversal leaves the slipped blocks at their
+limit; at rest their force relaxes (direct effect) and the PID's integral must follow the
+relaxing friction, a ramp it tracks with a lag. The force stored in slipped blocks grows with
+every same-direction step (the virgin curve: 0.8 N after 5 µm, 3.3 N after 40 µm), and so does
+the lag: the settling time grows with the step count. Aging arrests the relaxation (the
+relaxed force grows as ln ln t instead of ln t), which is what keeps the 5 mm move, whose blocks
+all slip, from over-running the target.
 
-The closed loop here is a standalone copy of the Ch. 4 No FI stage: rigid 2 kg (the preset's
-moving mass; the ~400 Hz mode is left out), the preset's PID discretised as in
-:mod:`stage_control.servo` (backward Euler integral and filtered derivative on the error, 10 kHz,
-zero-order hold), 4.88 nm encoder, no noise. Its ``a = 0`` case is checked against the engine
-(:func:`engine_sequence`) on the same step sequence.
+The closed loop here is a standalone copy of the Ch. 4 stage: rigid table (its appended mode
+mass included, the ~400 Hz mode itself left out), bearings through the FI for ``fi_stage_gms``
+or rigidly for ``fi_stage_nofi_gms``, the preset's PID discretised as in
+:mod:`stage_control.servo` (backward Euler integral and filtered derivative on the error,
+10 kHz, zero-order hold), 4.88 nm encoder, no noise. Its ``a = 0`` case reproduces the engine
+(:func:`engine_sequence`) step by step to 0.5 ms.
 """
 from __future__ import annotations
 
@@ -116,6 +119,19 @@ def _block_update(f_old, dx, k, lim, a, v_r, h, c_state=1.0):
 
 
 @njit(cache=True)
+def slider_step(f, theta, dx, k, lim, ell, a, b, v_r, h):
+    """One step ``h`` of a GMS block with a rate-and-state slider; returns ``(f, θ)``.
+
+    ``b = 0``: rate dependence only (``θ`` unused); ``a = 0``: the seed's Coulomb block."""
+    if b <= 0.0 or a <= 0.0:
+        return _block_update(f, dx, k, lim, a, v_r, h), theta
+    cs = (ell / (v_r * theta)) ** (b / a)
+    f = _block_update(f, dx, k, lim, a, v_r, h, cs)
+    w = v_r * cs * math.exp((abs(f) / lim - 1.0) / a)
+    return f, (theta + h) / (1.0 + h * w / ell)
+
+
+@njit(cache=True)
 def closed_loop(x_ref, m_t, m_b, k_fi, c_fi, kp, ki, kd, wd, dt, q, k, lim, a, v_r, n_sub,
                 b=0.0, theta0=1.0):
     """Stage + rate-dependent GMS bearings under the discrete PID.
@@ -172,13 +188,7 @@ def closed_loop(x_ref, m_t, m_b, k_fi, c_fi, kp, ki, kd, wd, dt, q, k, lim, a, v
                 dxb = h * vb
                 xb += dxb
             for i in range(nb):
-                if b > 0.0:
-                    cs = (ell[i] / (v_r * theta[i])) ** (b / a)
-                    f[i] = _block_update(f[i], dxb, k[i], lim[i], a, v_r, h, cs)
-                    w = v_r * cs * math.exp((abs(f[i]) / lim[i] - 1.0) / a)
-                    theta[i] = (theta[i] + h) / (1.0 + h * w / ell[i])
-                else:
-                    f[i] = _block_update(f[i], dxb, k[i], lim[i], a, v_r, h)
+                f[i], theta[i] = slider_step(f[i], theta[i], dxb, k[i], lim[i], ell[i], a, b, v_r, h)
     return y_out, xt_out, xb_out
 
 
@@ -244,6 +254,10 @@ def study(models=MODELS):
             row[f"{label}_5mm"] = standalone_single(5e-3, a, b=b, preset=preset)
         out[name] = row
     return out
+
+
+def _fmt(s):
+    return "  ".join("  -  " if not np.isfinite(v) else f"{v * 1e3:5.1f}" for v in s)
 
 
 def _summary(row):
