@@ -1,6 +1,6 @@
 """Micrometre settling physics of the Ch. 4 stage (issue 13, item 3): a standalone study.
 
-Run: ``python -m experiment_runner.paper.micro`` (~5 min; prints the table of docs/headline.md).
+Run: ``python -m experiment_runner.paper.micro`` (~6 min; prints the tables of docs/headline.md).
 
 The seed's App. C.1 step sequence (Fig. C.2, 8 steps of 5 µm forward, 8 back, ±25 nm window)
 shows the No FI settling time *growing* with every same-direction step: 47.8 ms at the first,
@@ -256,6 +256,27 @@ def study(models=MODELS):
     return out
 
 
+PREV_MOVES = (5e-3, -5e-3)          # the move that brought the stage to its "random position"
+
+
+def history(step, a, b=None, preset=PRESET, prev_moves=PREV_MOVES, dwell=DWELL):
+    """Settling time [s] of ``step`` after each previous move in ``prev_moves`` [m] (and its dwell).
+
+    Table 4.2's trials start "at random positions of the table", i.e. after a move of unknown
+    size and direction; with a rate-dependent slider the direction matters (b defaults to a)."""
+    b = a if b is None else b
+    out = []
+    for p in prev_moves:
+        ref = _two_moves(p, step, dwell)
+        out.append(_standalone(ref, a, preset, V_R, b)[0][1])
+    return np.array(out)
+
+
+def _two_moves(first, second, dwell):
+    from experiment_runner.profiles import DT, _steps
+    return _steps([first, second], 0.0, 0.005, dwell, DT, None, "triangular")
+
+
 def _fmt(s):
     return "  ".join("  -  " if not np.isfinite(v) else f"{v * 1e3:5.1f}" for v in s)
 
@@ -276,5 +297,10 @@ if __name__ == "__main__":                      # python -m experiment_runner.pa
         for key, v in row.items():
             if np.ndim(v):
                 print(f"    {key:10s} {_fmt(v)}")
+    for name, (a, b) in MODELS.items():
+        h5, h5m = history(5e-6, a, b), history(5e-3, a, b)
+        print(f"{name}, after a +5 mm / -5 mm move: No FI 5 µm {h5[0] * 1e3:.1f} / {h5[1] * 1e3:.1f} ms "
+              f"(mean {h5.mean() * 1e3:.1f}; Table 4.2: 62), 5 mm {h5m[0] * 1e3:.1f} / {h5m[1] * 1e3:.1f} ms "
+              f"(Table 4.2: 44)")
     print("seed: No FI 5 µm 47.8 → 85 ms (mean16 69.1), 50 µm 237 → 214, 5 mm 44 (Table 4.2); "
           "FI 5 µm 10.5 → 10.2 (mean16 10.3), 50 µm 43.6 → 453, 5 mm 16 (Table 4.2)")
