@@ -99,3 +99,14 @@ def test_aging_strengthens_a_held_block():
         f_creep, _ = micro.slider_step(f_creep, 1.0, 0.0, k, lim, lim / k, a, 0.0, 0.08, h)
     assert th > 0.19                                          # θ grows ~ t at rest
     assert lim - f_age < 0.5 * (lim - f_creep)
+
+
+@pytest.mark.slow
+def test_history_dependence_of_a_5um_step():
+    """Rate-and-state: a 5 um step after a same-direction 5 mm move is much slower than after an
+    opposite one (the slipped blocks relax while the PID holds); the seed's GMS barely cares."""
+    gms = micro.history(5e-6, 0.0)
+    rs = micro.history(5e-6, 0.02)
+    assert abs(gms[0] / gms[1] - 1) < 0.15
+    assert rs[0] > 2.0 * rs[1]
+    assert 0.062 * 0.85 <= rs.mean() <= 0.062 * 1.3          # Table 4.2 No FI 5 um: 62 ms
