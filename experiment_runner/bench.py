@@ -41,6 +41,10 @@ import numba
 import numpy as np
 
 from experiment_runner.batch import Models, simulate
+from experiment_runner.campaigns.runner import main_job
+from experiment_runner.campaigns.spec import Campaign, case_preset, conditions, load_campaign
+from experiment_runner.campaigns.stream import TrialStream, code_fingerprint, run_trials
+from experiment_runner.executor import cpu_count, make_executor
 from experiment_runner.profiles import point_to_point
 from stage_sim.config import load_preset
 
@@ -100,12 +104,9 @@ def run_graph_bench(quick: bool = False) -> dict:
 def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table_4_2") -> float:
     """Campaign trials per wall-clock second on ``workers`` local processes (1: in this process),
     as ``nanostage campaign --workers`` runs them: chunks on the executor, metrics streamed to
-    disk (:func:`experiment_runner.stream.run_trials`); every case and condition of ``campaign``
+    disk (:func:`experiment_runner.campaigns.stream.run_trials`); every case and condition of ``campaign``
     with ``trials`` trials each, no calibration. The pool is started and warm (numba kernels
     loaded, models built) before the clock starts."""
-    from experiment_runner.campaign import Campaign, case_preset, conditions, load_campaign
-    from experiment_runner.executor import make_executor
-    from experiment_runner.stream import TrialStream, code_fingerprint, run_trials
     camp = load_campaign(campaign)
     jobs = [(c, cond, case_preset(camp, c, None, cond)) for c in camp.cases for cond in conditions(camp)]
     timed = Campaign.model_validate({**camp.model_dump(), "trials": trials})
@@ -125,8 +126,6 @@ def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table
 def main_job_seconds() -> float:
     """Wall time [s] of the README's main job (``nanostage campaign --main``: calibration,
     every trial, the graph runs, report and plots) in a temporary folder."""
-    from experiment_runner.campaign import main_job
-    from experiment_runner.executor import cpu_count
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         main_job(tmp, progress=False, resume=False, workers=cpu_count())     # as the CLI runs it

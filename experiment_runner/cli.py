@@ -47,7 +47,7 @@ MODULE_COMMANDS = [
     ("replay", "republish a recording on its topics with /clock (like ros2 bag play)",
      "experiment_runner.replay", "add_replay_arguments", "main_replay"),
     ("campaign", "the seed's experiments as campaigns: calibrate, simulate, report",
-     "experiment_runner.campaign", "add_campaign_arguments", "main_campaign"),
+     "experiment_runner.campaigns.cli", "add_campaign_arguments", "main_campaign"),
     ("diagnose", "locate, name and fit what a nominal model misses in a recording",
      "experiment_runner.diagnosis.cli", "add_diagnose_arguments", "main_diagnose"),
     ("synth", "simulate an experiment on a concealed truth into a recording",

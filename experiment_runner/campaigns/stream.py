@@ -22,7 +22,7 @@ other settings or other model code is refused (:class:`~stage_sim.config.ConfigE
 never mixed in.
 
 Trial ``i`` is simulated and judged exactly as by
-:func:`experiment_runner.campaign.simulate_case`: the batch engine's noise is a pure
+:func:`experiment_runner.campaigns.trials.simulate_trials`: the batch engine's noise is a pure
 function of (trial seed, sample, channel) and trials do not interact, so a trial's
 result does not depend on which chunk, process or machine ran it.
 """
@@ -33,12 +33,16 @@ import hashlib
 import json
 import math
 import os
+import socket
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from stage_sim.config import ConfigError
+from experiment_runner.batch import Models
+from experiment_runner.campaigns.spec import Campaign, conditions
+from experiment_runner.campaigns.trials import metric_record, plain, reference, simulate_trials
+from stage_sim.config import ConfigError, Preset
 
 __all__ = ["TrialStream", "run_trials", "simulate_trials", "representative_trial", "chunk_task",
            "campaign_key", "code_fingerprint", "STREAM_NAME", "CODE_MODULES"]
@@ -46,12 +50,12 @@ __all__ = ["TrialStream", "run_trials", "simulate_trials", "representative_trial
 FORMAT = "nanostage-trials"
 VERSION = 1
 STREAM_NAME = "trials.jsonl"
-_ROOT = Path(__file__).resolve().parent.parent
+_ROOT = Path(__file__).resolve().parents[2]
 CODE_MODULES = ("stage_sim/config.py", "stage_sim/friction.py", "stage_sim/plant.py",
                 "stage_control/dither.py", "stage_control/filters.py", "stage_control/sai.py",
                 "stage_control/servo.py", "experiment_runner/batch.py", "experiment_runner/metrics.py",
                 "experiment_runner/experiment.py", "experiment_runner/profiles.py",
-                "experiment_runner/stream.py")
+                "experiment_runner/campaigns/trials.py", "experiment_runner/campaigns/stream.py")
 """Source files (relative to the repository) whose content decides a trial's result."""
 CHUNK_BYTES = 64e6
 """Budget of one chunk's recorded trajectories [bytes] (about 13 float64 signals per sample)."""
@@ -78,7 +82,7 @@ def campaign_key(camp, presets: dict) -> str:
 
     Parameters
     ----------
-    camp : experiment_runner.campaign.Campaign
+    camp : experiment_runner.campaigns.spec.Campaign
         The campaign as run (trial count and dwell overrides applied).
     presets : dict
         ``(case name, condition key) -> Preset`` as run (overrides, calibration, sweep applied).
@@ -219,56 +223,14 @@ class TrialStream:
         self.close()
 
 
-# =========================================================================== trials
-def simulate_trials(camp, case, cond, preset, indices, correction=None, models=None):
-    """Trials ``indices`` of ``case`` at ``cond`` on the batch engine.
-
-    Returns
-    -------
-    ref : profiles.Reference
-        The shared (start-at-0) reference.
-    trials : list of experiment.Trial
-        As :func:`experiment_runner.campaign.make_trials` gives them (index, start, seed).
-    res : batch.BatchResult
-        Row ``j`` is trial ``indices[j]``; not checked (failed trials have a status).
-    """
-    from experiment_runner.batch import simulate
-    from experiment_runner.campaign import reference, start_position
-    from experiment_runner.experiment import Trial
-    ref = reference(camp, cond, preset.controller.rate)
-    base = preset.simulation.seed
-    trials = []
-    for i in indices:
-        x0 = start_position(camp, preset, ref, int(i))
-        trials.append(Trial(case=case.name, index=int(i), x_ref=ref.x + x0, v_ref=np.asarray(ref.v),
-                            seed=base + int(i), window=camp.test.window, segments=tuple(ref.segments)))
-    x0 = np.array([tr.x_ref[0] - ref.x[0] for tr in trials])
-    res = simulate(preset, ref.x, ref.v, n_trials=len(trials), x0=x0, seeds=[tr.seed for tr in trials],
-                   correction=correction, models=models, check=False)
-    return ref, trials, res
-
-
-def _metric_record(trial, res, j, rate) -> dict:
-    """Per-trial metrics as :func:`experiment_runner.campaign.simulate_case` gives them."""
-    from experiment_runner.campaign import METRIC_INFO
-    from experiment_runner.experiment import trial_metrics
-    from stage_sim.plant import STATUS_TEXT
-    if res.status[j] != 0:
-        return {"trial": trial.index, "case": trial.case, **{k: None for k in METRIC_INFO},
-                "failed": STATUS_TEXT[int(res.status[j])]}
-    return trial_metrics(trial, res.y[j], res.x_ref[j], rate)
-
-
+# =========================================================================== chunks
 @functools.lru_cache(maxsize=8)
 def _campaign(camp_json: str):
-    from experiment_runner.campaign import Campaign
     return Campaign.model_validate_json(camp_json)
 
 
 @functools.lru_cache(maxsize=8)
 def _preset_models(preset_json: str):
-    from experiment_runner.batch import Models
-    from stage_sim.config import Preset
     preset = Preset.model_validate_json(preset_json)
     return preset, Models.from_preset(preset)
 
@@ -297,9 +259,7 @@ def chunk_task(camp_json: str, case_name: str, cond_key: str, preset_json: str,
     list of dict
         One stream record per trial: case, condition, trial, x0_m [m], metrics.
     """
-    from experiment_runner.campaign import conditions
     if code != code_fingerprint():
-        import socket
         raise RuntimeError(f"worker on {socket.gethostname()} (pid {os.getpid()}) runs other model code "
                            f"({code_fingerprint()}) than the campaign ({code}): install the same version")
     camp = _campaign(camp_json)
@@ -310,19 +270,7 @@ def chunk_task(camp_json: str, case_name: str, cond_key: str, preset_json: str,
     ref, trials, res = simulate_trials(camp, case, cond, preset, indices, corr, models)
     rate = preset.controller.rate
     return [{"case": case_name, "condition": cond_key, "trial": tr.index, "x0_m": float(tr.x_ref[0] - ref.x[0]),
-             "metrics": _plain(_metric_record(tr, res, j, rate))} for j, tr in enumerate(trials)]
-
-
-def _plain(d: dict) -> dict:
-    """numpy scalars -> Python numbers (JSON)."""
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, np.integer):
-            v = int(v)
-        elif isinstance(v, np.floating):
-            v = float(v)
-        out[k] = v
-    return out
+             "metrics": plain(metric_record(tr, res, j, rate))} for j, tr in enumerate(trials)]
 
 
 def chunk_size(n: int, samples: int, workers: int) -> int:
@@ -353,11 +301,10 @@ def run_trials(camp, case, cond, preset, correction, executor, stream: TrialStre
     Returns
     -------
     metrics : list of dict
-        Per trial ``0 .. n-1``, as :func:`experiment_runner.campaign.simulate_case`.
+        Per trial ``0 .. n-1``, as :func:`experiment_runner.campaigns.trials.simulate_trials`.
     x0 : list of float
         Start position of every trial [m].
     """
-    from experiment_runner.campaign import reference
     n = camp.trials
     todo = sorted(set(range(n)) - stream.done(case.name, cond.key))
     if todo:
@@ -390,7 +337,7 @@ def representative_trial(camp, case, cond, preset, index: int, correction, metri
         outside :data:`CODE_MODULES` changed; rerun with ``--restart``).
     """
     ref, (trial,), res = simulate_trials(camp, case, cond, preset, [index], correction)
-    again = _plain(_metric_record(trial, res, 0, preset.controller.rate))
+    again = plain(metric_record(trial, res, 0, preset.controller.rate))
     if json.dumps(again, sort_keys=True) != json.dumps(metrics, sort_keys=True):
         raise RuntimeError(f"trial {index} of {case.name} at {cond.key} gives {again}, the stream has {metrics}: "
                            "the stream is stale; rerun with --restart")
