@@ -1,6 +1,6 @@
 """Where independent tasks run: in this process, on a local process pool, or on Dask.
 
-Campaign trial chunks (:mod:`experiment_runner.stream`), design sweeps and diagnosis
+Campaign trial chunks (:mod:`experiment_runner.campaigns.stream`), design sweeps and diagnosis
 candidate fits are lists of independent tasks: a plain, picklable, module-level function
 called with small arguments (preset JSON, trial indices, seeds, parameter values).
 :func:`make_executor` returns one object with one method, :meth:`Executor.map`, that runs

@@ -20,6 +20,8 @@ import pytest
 import yaml
 
 from experiment_runner.campaigns.calibration import calibration_fingerprint
+from experiment_runner.campaigns.kinds import KINDS, kind_of, schemas
+from experiment_runner.campaigns.registry import METRICS
 from experiment_runner.campaigns.runner import run_campaign
 from experiment_runner.campaigns.spec import CAMPAIGN_DIR, Calibration, CalibrationFrom, Campaign, cal_parameters, calibration_source, case_preset, conditions, list_campaigns, load_campaign
 from stage_sim.config import ConfigError
@@ -236,3 +238,17 @@ def test_sai_reversal_window_follows_the_speed():
 def test_new_campaigns_are_listed():
     assert {"table_6_3", "circle_3_19", "circle_4_11", "circle_5_14", "ff_4_16", "ff_6_5", "steps_c1",
             "steps_c12"} <= set(list_campaigns())
+
+
+def test_every_test_schema_has_its_kind_and_metrics():
+    """The ``test`` union and :data:`KINDS` list the same kinds; each kind reports its schema's metrics,
+    every one of them in the metric registry; each shipped campaign's conditions come from its schema."""
+    assert {s.model_fields["kind"].annotation.__args__[0] for s in schemas()} == set(KINDS)
+    for name, kind in KINDS.items():
+        assert kind.name == name and kind.test in schemas()
+        assert kind.metrics == kind.test.METRICS and set(kind.metrics) <= set(METRICS)
+    for n in list_campaigns():
+        camp = load_campaign(n, check_presets=False)
+        assert kind_of(camp).test is type(camp.test)
+        base = camp.test.conditions()
+        assert len(conditions(camp)) == len(base) * (len(camp.sweep.values) if camp.sweep else 1)

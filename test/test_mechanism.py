@@ -1,4 +1,4 @@
-"""Settling mechanism analysis (experiment_runner.mechanism): turning points, the friction-free twin,
+"""Settling mechanism analysis (experiment_runner.campaigns.mechanism): turning points, the friction-free twin,
 and the seed's mechanism on a small campaign."""
 from __future__ import annotations
 
