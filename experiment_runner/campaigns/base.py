@@ -49,6 +49,9 @@ class RunSettings:
     workers, cluster
         Where the trials run (:func:`experiment_runner.executor.make_executor`): ``workers``
         local processes (default 1: this process) or the Dask scheduler at ``cluster``.
+    executor : experiment_runner.executor.Executor, optional
+        An executor to run the trials on instead (kept open: several campaigns share its warm
+        workers, as :func:`~experiment_runner.campaigns.runner.main_job` does).
     resume : bool
         Keep the trials already in ``out_dir/trials.jsonl`` from an interrupted run of the same
         campaign and settings (:mod:`experiment_runner.campaigns.stream`); False discards them.
@@ -67,6 +70,7 @@ class RunSettings:
     progress: bool = True
     workers: Optional[int] = None
     cluster: Any = None
+    executor: Any = None
     resume: bool = True
 
 

@@ -17,6 +17,7 @@ from experiment_runner.campaigns.frequency_response import frf_lines
 from experiment_runner.campaigns.kinds import kind_of
 from experiment_runner.campaigns.report import write_index
 from experiment_runner.campaigns.spec import Calibration, Campaign, load_campaign
+from experiment_runner.executor import make_executor
 from stage_sim.config import ConfigError
 
 __all__ = ["run_campaign", "as_run", "main_job", "MAIN_JOB", "MAIN_JOB_FRF"]
@@ -75,7 +76,8 @@ def main_job(out_dir="out/campaigns", settings: RunSettings | None = None, **cha
     t0 = time.monotonic()
     out_dir = Path(out_dir)
     settings = replace(settings or RunSettings(graph=True), **changes)
-    runs = [run_campaign(name, out_dir / name, settings) for name in MAIN_JOB]
+    with make_executor(settings.workers, settings.cluster) as ex:      # one pool, warmed once, for all
+        runs = [run_campaign(name, out_dir / name, settings, executor=ex) for name in MAIN_JOB]
     extras = {}
     for cr in runs:
         if cr.campaign.name in MAIN_JOB_FRF:

@@ -1,6 +1,6 @@
 """Campaign trials in chunks on an executor, streamed to disk, resumable.
 
-:func:`run_trials` runs the trials of one case at one condition of a campaign as chunks
+:func:`run_trial_jobs` runs the trials of a campaign's cases and conditions as chunks
 of a few trials (:func:`chunk_task`) on an :class:`~experiment_runner.executor.Executor`
 (in process, local processes or Dask), and appends every trial's metrics to the
 campaign's stream as its chunk completes. Only metrics travel and stay in memory, never
@@ -44,7 +44,7 @@ from experiment_runner.campaigns.spec import Campaign, conditions
 from experiment_runner.campaigns.trials import metric_record, plain, reference, simulate_trials
 from stage_sim.config import ConfigError, Preset
 
-__all__ = ["TrialStream", "run_trials", "simulate_trials", "representative_trial", "chunk_task",
+__all__ = ["TrialStream", "run_trials", "run_trial_jobs", "representative_trial", "chunk_task",
            "campaign_key", "code_fingerprint", "STREAM_NAME", "CODE_MODULES"]
 
 FORMAT = "nanostage-trials"
@@ -279,47 +279,65 @@ def chunk_size(n: int, samples: int, workers: int) -> int:
     return max(1, min(cap, math.ceil(n / (2 * workers))))
 
 
-def run_trials(camp, case, cond, preset, correction, executor, stream: TrialStream,
-               chunk: Optional[int] = None, on_chunk=None) -> tuple[list, list]:
-    """All ``camp.trials`` trials of ``case`` at ``cond``: the ones not in ``stream`` run in chunks
-    on ``executor`` and are appended to it as they complete; then all are read back from it.
+def run_trial_jobs(camp, jobs: list, executor, stream: TrialStream, chunk: Optional[int] = None,
+                   on_chunk=None) -> None:
+    """All ``camp.trials`` trials of every job not yet in ``stream``, in chunks on ``executor``, appended
+    to ``stream`` as they complete. The chunks of all jobs go to the executor as one task list, so
+    the workers never wait for the last chunk of one case and condition before the next starts.
 
     Parameters
     ----------
-    camp, case, cond, preset
-        Campaign (as run), case, condition and the case's preset at it.
-    correction : array_like or None
-        SAI Step II correction [m].
+    camp : experiment_runner.campaigns.spec.Campaign
+        The campaign as run.
+    jobs : list of (case, cond, preset, correction)
+        A case, a condition, the case's preset at it and its SAI Step II correction [m] (or None).
     executor : experiment_runner.executor.Executor
     stream : TrialStream
     chunk : int, optional
-        Trials per task (default :func:`chunk_size`).
+        Trials per task (default :func:`chunk_size` of each job).
     on_chunk : callable, optional
-        ``on_chunk(done, n)`` after every completed chunk: trials of this case and condition
-        in the stream, of ``n`` (progress).
+        ``on_chunk(case, cond, done, n)`` after every completed chunk: trials of that case and
+        condition in the stream, of ``n`` (progress).
+    """
+    n = camp.trials
+    camp_json = camp.model_dump_json()
+    code = stream.header["code"]
+    named = {(case.name, cond.key): (case, cond) for case, cond, _, _ in jobs}
+
+    def tasks():
+        for case, cond, preset, correction in jobs:
+            todo = sorted(set(range(n)) - stream.done(case.name, cond.key))
+            if not todo:
+                continue
+            samples = len(reference(camp, cond, preset.controller.rate).x)
+            size = chunk or chunk_size(len(todo), samples, executor.workers)
+            preset_json = preset.model_dump_json()
+            corr = None if correction is None else np.asarray(correction, float).tolist()
+            for a in range(0, len(todo), size):
+                yield ((case.name, cond.key, todo[a]),
+                       (camp_json, case.name, cond.key, preset_json, corr, todo[a:a + size], code))
+
+    for (case_name, cond_key, _), records in executor.map(chunk_task, tasks()):
+        stream.append(records)
+        if on_chunk is not None:
+            on_chunk(*named[case_name, cond_key], len(stream.done(case_name, cond_key)), n)
+
+
+def run_trials(camp, case, cond, preset, correction, executor, stream: TrialStream,
+               chunk: Optional[int] = None, on_chunk=None) -> tuple[list, list]:
+    """All ``camp.trials`` trials of ``case`` at ``cond`` (:func:`run_trial_jobs` of one job), read
+    back from ``stream``.
 
     Returns
     -------
     metrics : list of dict
-        Per trial ``0 .. n-1``, as :func:`experiment_runner.campaigns.trials.simulate_trials`.
+        Per trial ``0 .. n-1``, as :func:`experiment_runner.campaigns.trials.metric_record`.
     x0 : list of float
         Start position of every trial [m].
     """
-    n = camp.trials
-    todo = sorted(set(range(n)) - stream.done(case.name, cond.key))
-    if todo:
-        samples = len(reference(camp, cond, preset.controller.rate).x)
-        size = chunk or chunk_size(len(todo), samples, executor.workers)
-        camp_json, preset_json = camp.model_dump_json(), preset.model_dump_json()
-        corr = None if correction is None else np.asarray(correction, float).tolist()
-        tasks = ((("chunk", case.name, cond.key, todo[a]),
-                  (camp_json, case.name, cond.key, preset_json, corr, todo[a:a + size], stream.header["code"]))
-                 for a in range(0, len(todo), size))
-        for _, records in executor.map(chunk_task, tasks):
-            stream.append(records)
-            if on_chunk is not None:
-                on_chunk(len(stream.done(case.name, cond.key)), n)
-    return stream.read(case.name, cond.key, n)
+    run_trial_jobs(camp, [(case, cond, preset, correction)], executor, stream, chunk,
+                   None if on_chunk is None else (lambda _case, _cond, done, n: on_chunk(done, n)))
+    return stream.read(case.name, cond.key, n=camp.trials)
 
 
 def representative_trial(camp, case, cond, preset, index: int, correction, metrics: dict):

@@ -7,8 +7,8 @@
    (:mod:`~experiment_runner.campaigns.calibration`), reuse another campaign's, or take a given
    ``calibration.json``;
 2. :func:`simulate_all` -- every case x condition: SAI Step II learning where a case has it
-   (:func:`~experiment_runner.campaigns.trials.learn_step_ii`), all trials in chunks on the
-   executor streamed to ``trials.jsonl`` (:mod:`~experiment_runner.campaigns.stream`), the
+   (:func:`~experiment_runner.campaigns.trials.learn_step_ii`), all trials of all of them in
+   chunks on one executor, streamed to ``trials.jsonl`` (:mod:`~experiment_runner.campaigns.stream`), the
    statistics, the representative trial (median of the kind's representative metric) run again
    for its trace, its settling mechanism (the kind's ``analyse``) and MCAP recording;
 3. :func:`run_graph` -- optionally the representative trials through the ROS 2 graph;
@@ -21,6 +21,7 @@ import math
 import shutil
 import sys
 import time
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 from typing import Optional
@@ -37,7 +38,7 @@ from experiment_runner.campaigns.graph_runs import compare_graph, run_graph_jobs
 from experiment_runner.campaigns.report import write_outputs
 from experiment_runner.campaigns.spec import CalibrationFrom, Campaign, case_overrides, case_preset, conditions
 from experiment_runner.campaigns.stream import (STREAM_NAME, TrialStream, campaign_key, code_fingerprint,
-                                                representative_trial, run_trials)
+                                                representative_trial, run_trial_jobs)
 from experiment_runner.campaigns.trials import graph_experiment, learn_step_ii
 from experiment_runner.executor import make_executor
 from experiment_runner.metrics import finite_or_none
@@ -57,12 +58,13 @@ def run_trial_campaign(kind: CampaignKind, camp: Campaign, out_dir: Path, settin
     out_dir.mkdir(parents=True, exist_ok=True)
     conds = conditions(camp)
     timing = {}
-    cal = calibration_of(camp, out_dir, settings)
-    cal_values = dict(cal["values"]) if cal is not None else None
-    timing["calibration_s"] = time.monotonic() - t_start
-    t1 = time.monotonic()
-    runs, step_ii = simulate_all(kind, camp, conds, cal_values, out_dir, settings)
-    timing["simulation_s"] = time.monotonic() - t1
+    with _executor(settings) as ex:
+        cal = calibration_of(camp, out_dir, settings, ex)
+        cal_values = dict(cal["values"]) if cal is not None else None
+        timing["calibration_s"] = time.monotonic() - t_start
+        t1 = time.monotonic()
+        runs, step_ii = simulate_all(kind, camp, conds, cal_values, out_dir, settings, ex)
+        timing["simulation_s"] = time.monotonic() - t1
     t2 = time.monotonic()
     if settings.graph:
         run_graph(camp, conds, runs, step_ii, cal_values, out_dir, settings)
@@ -77,8 +79,9 @@ def run_trial_campaign(kind: CampaignKind, camp: Campaign, out_dir: Path, settin
     return cr
 
 
-def calibration_of(camp: Campaign, out_dir: Path, settings: RunSettings) -> Optional[dict]:
-    """The calibration the cases run with (``calibration.json`` content), or None (the presets' values)."""
+def calibration_of(camp: Campaign, out_dir: Path, settings: RunSettings, executor) -> Optional[dict]:
+    """The calibration the cases run with (``calibration.json`` content), or None (the presets' values);
+    a fit runs its trials on ``executor``."""
     if settings.calibration is not None:
         cal = dict(settings.calibration)
         cal["reused"] = True
@@ -87,27 +90,31 @@ def calibration_of(camp: Campaign, out_dir: Path, settings: RunSettings) -> Opti
         return None
     if isinstance(camp.calibration, CalibrationFrom):
         with _bar(settings, f"{camp.name}: calibration of {camp.calibration.from_}", unit="eval") as bar:
-            return source_calibration(camp, out_dir, settings.calibration_trials, bar)
+            return source_calibration(camp, out_dir, settings.calibration_trials, bar, executor)
     n_cal = min(settings.calibration_trials or camp.calibration.trials, camp.trials)
     with _bar(settings, f"{camp.name}: calibrate {camp.baseline}", unit="eval") as bar:
-        cal = calibrate(camp, n_cal, bar)
+        cal = calibrate(camp, n_cal, bar, executor)
     cal["reused"] = False
     return cal
 
 
 def simulate_all(kind: CampaignKind, camp: Campaign, conds: list, cal_values: Optional[dict], out_dir: Path,
-                 settings: RunSettings) -> tuple[dict, dict]:
+                 settings: RunSettings, executor) -> tuple[dict, dict]:
     """Every case at every condition: ``runs[(case, condition key)]`` (:class:`RunResult`) and the
-    learned Step II corrections ``{case: {...}}``."""
-    step_ii, runs, unswept = {}, {}, {}
+    learned Step II corrections ``{case: {...}}``.
+
+    First the presets and Step II corrections of every case and condition, then all their trials
+    as one task list on the executor (:func:`~experiment_runner.campaigns.stream.run_trial_jobs`),
+    then each one's statistics and representative trial."""
+    step_ii, runs, first = {}, {}, {}
     n_units = len(camp.cases) * len(conds) + sum(
         ((c.step_ii.iterations if c.step_ii.iterations is not None else
           case_preset(camp, c).sai_manager.ilc.iterations) + 1) for c in camp.cases if c.step_ii)
     stream_key = campaign_key(camp, {(c.name, cond.key): case_preset(camp, c, cal_values, cond)
                                      for c in camp.cases for cond in conds})
     with _bar(settings, f"{camp.name}: simulate", total=n_units, unit="run") as bar, \
-            make_executor(settings.workers, settings.cluster) as ex, \
             TrialStream(out_dir / STREAM_NAME, camp.name, stream_key, code_fingerprint(), settings.resume) as stream:
+        plan = []                      # (case, cond, preset, correction, the first run of the same trials)
         for case in camp.cases:
             corr_cache = {}
             for cond in conds:
@@ -121,22 +128,32 @@ def simulate_all(kind: CampaignKind, camp: Campaign, conds: list, cal_values: Op
                     corr = corr_cache[key]["correction"]
                 # a case the sweep leaves unchanged is run once per test condition and reused
                 same = (case.name, preset.model_dump_json(), tuple(v for k, v in cond.at().items() if k != "sweep"))
-                if cond.sweep is not None and same in unswept:
-                    runs[(case.name, cond.key)] = replace(unswept[same], cond=cond, wall_s=0.0)
-                    bar.update(1)
-                    continue
-                rr = _case_at(kind, camp, case, cond, preset, corr, cal_values, ex, stream, out_dir, settings,
-                              on_chunk=lambda d, n: bar.set_postfix_str(f"{case.name} {cond.label}: {d}/{n} trials"))
-                runs[(case.name, cond.key)] = rr
-                unswept[same] = rr
-                bar.update(1)
+                if cond.sweep is None or same not in first:
+                    first[same] = (case.name, cond.key)
+                plan.append((case, cond, preset, corr, first[same]))
+        jobs = [(case, cond, preset, corr) for case, cond, preset, corr, ref in plan if ref == (case.name, cond.key)]
+        run_trial_jobs(camp, jobs, executor, stream, on_chunk=lambda case, cond, d, n: bar.set_postfix_str(
+            f"{case.name} {cond.label}: {d}/{n} trials"))
+        for case, cond, preset, corr, ref in plan:
+            if ref != (case.name, cond.key):
+                runs[(case.name, cond.key)] = replace(runs[ref], cond=cond, wall_s=0.0)
+            else:
+                runs[(case.name, cond.key)] = _case_at(kind, camp, case, cond, preset, corr, cal_values, stream,
+                                                       out_dir, settings)
+            bar.update(1)
     return runs, step_ii
 
 
-def _case_at(kind, camp, case, cond, preset, corr, cal_values, ex, stream, out_dir, settings, on_chunk) -> RunResult:
-    """One case at one condition: its trials (streamed), statistics and representative trial."""
+def _executor(settings: RunSettings):
+    """The executor of the trials: ``settings.executor`` (kept open) or a new one (closed after the campaign)."""
+    return nullcontext(settings.executor) if settings.executor is not None else \
+        make_executor(settings.workers, settings.cluster)
+
+
+def _case_at(kind, camp, case, cond, preset, corr, cal_values, stream, out_dir, settings) -> RunResult:
+    """One case at one condition: its trials (from the stream), statistics and representative trial."""
     tc = time.monotonic()
-    mets, x0 = run_trials(camp, case, cond, preset, corr, ex, stream, on_chunk=on_chunk)
+    mets, x0 = stream.read(case.name, cond.key, camp.trials)
     stats = {m: Stat.of([x.get(m) for x in mets]) for m in kind.metrics}
     rep = representative(kind, mets)
     ref, tr, res = representative_trial(camp, case, cond, preset, rep, corr, mets[rep])
