@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 import yaml
 
+from experiment_runner.campaigns.calibration import ParamSpec, fit
 from experiment_runner.campaigns.cli import add_campaign_arguments, main_campaign
 from experiment_runner.campaigns.runner import MAIN_JOB, run_campaign
-from experiment_runner.campaigns.spec import CAMPAIGN_DIR, cal_parameters, calibration_source, case_preset, conditions, list_campaigns, load_campaign, resolve
+from experiment_runner.campaigns.spec import (CAMPAIGN_DIR, cal_parameters, calibration_source, case_preset,
+                                              conditions, list_campaigns, load_campaign, resolve)
 from experiment_runner.campaigns.trials import graph_experiment, make_trials, reference
-from experiment_runner.campaigns.calibration import ParamSpec, fit
 from experiment_runner.experiment import Experiment, build_trials, experiment_preset
-from stage_sim.config import ConfigError
+from stage_sim.config import ConfigError, load_preset
 
 # Calibrated values of the full main job (50 / 20 trials, dwell 1 s), reused so that the
 # direction tests run in seconds; test_calibration_fits_the_baseline checks the fit itself.
@@ -110,7 +111,6 @@ def test_schema_errors_name_the_field(tmp_path, mutate, where):
 
 
 def test_resolve_wildcards_and_scale():
-    from stage_sim.config import load_preset
     p = load_preset("fi_stage_gms")
     o = resolve(p, ["stage.bearings.*.friction.k"], "scale", 2.0)
     assert sorted(o) == ["stage.bearings.0.friction.k", "stage.bearings.1.friction.k"]

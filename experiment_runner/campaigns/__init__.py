@@ -9,10 +9,10 @@ Modules, from the bottom up (each imports only those above it in this list; enfo
                           the presets of every case
 ``base``                  run settings, run results, the ``CampaignKind`` protocol
 ``trials``                the one place trials are built, simulated and judged; Step II learning
-``calibration``           the baseline fit
 ``stream``                trial chunks on an executor, streamed to ``trials.jsonl``, resumable
 ``findings``              the seed's findings in the simulation
 ``mechanism``             why a point-to-point trial settles as it does
+``calibration``           the baseline fit (its trials as chunks on the executor)
 ``report``                report.md and plots (the parts shared by kinds)
 ``graph_runs``            representative trials through the ROS 2 graph
 ``trial_run``             running a trial campaign (calibrate, learn, simulate, judge, write)

@@ -236,7 +236,8 @@ def baseline_metrics(camp: Campaign, case, jobs: dict, n_trials: int, executor) 
     camp_json, code = camp.model_dump_json(), code_fingerprint()
     tasks = []
     for key, (cond, preset) in jobs.items():
-        size = chunk_size(n_trials, len(reference(camp, cond, preset.controller.rate).x), executor.workers)
+        size = chunk_size(n_trials, len(reference(camp, cond, preset.controller.rate).x), executor.workers,
+                          n_trials * len(jobs))
         preset_json = preset.model_dump_json()
         tasks += [((key, a), (camp_json, case.name, cond.key, preset_json, None,
                               list(range(a, min(a + size, n_trials))), code)) for a in range(0, n_trials, size)]
