@@ -170,6 +170,15 @@ class Executor:
             for fut in pending:
                 fut.cancel()
 
+    def warm(self, fn: Callable, args: tuple) -> None:
+        """Start ``fn(*args)`` once per worker and return at once (the local pool only): the workers
+        are spawned, import their modules and load their compiled kernels while this process does
+        other work (a campaign's calibration); results and errors are dropped (the real tasks meet
+        any error again)."""
+        if self.kind == "processes":
+            for _ in range(self.workers):
+                self._pool.submit(fn, *args)
+
     def close(self) -> None:
         """Stop the pool / disconnect from Dask (a cluster passed in stays up)."""
         if self._pool is not None:

@@ -12,7 +12,7 @@ Modules, from the bottom up (each imports only those above it in this list; enfo
 ``stream``                trial chunks on an executor, streamed to ``trials.jsonl``, resumable
 ``findings``              the seed's findings in the simulation
 ``mechanism``             why a point-to-point trial settles as it does
-``calibration``           the baseline fit (its trials as chunks on the executor)
+``calibration``           the baseline fit
 ``report``                report.md and plots (the parts shared by kinds)
 ``graph_runs``            representative trials through the ROS 2 graph
 ``trial_run``             running a trial campaign (calibrate, learn, simulate, judge, write)

@@ -50,16 +50,15 @@ from typing import Callable, Optional
 
 from scipy.optimize import brentq
 
+from experiment_runner.batch import Models
 from experiment_runner.campaigns.base import Stat
 from experiment_runner.campaigns.spec import (Campaign, _expand, _py, calibration_source, case_preset, conditions,
                                               resolve)
-from experiment_runner.campaigns.stream import chunk_size, chunk_task, code_fingerprint
-from experiment_runner.campaigns.trials import reference
-from experiment_runner.executor import make_executor
+from experiment_runner.campaigns.trials import metric_record, simulate_trials
 from experiment_runner.metrics import finite_or_none
 
-__all__ = ["ParamSpec", "ParamFit", "CalibrationResult", "fit", "calibrate", "baseline_metrics",
-           "calibration_fingerprint", "source_calibration"]
+__all__ = ["ParamSpec", "ParamFit", "CalibrationResult", "fit", "calibrate", "calibration_fingerprint",
+           "source_calibration"]
 
 _CLIP = 20.0      # |log ratio| used for a metric that is 0, nan or not reached
 
@@ -229,30 +228,8 @@ def fit(specs: list[ParamSpec], start: dict, evaluate: Callable[[dict], dict], *
                              converged=converged, history=history)
 
 
-def baseline_metrics(camp: Campaign, case, jobs: dict, n_trials: int, executor) -> dict:
-    """Metrics of trials ``0 .. n_trials-1`` of ``case`` at each condition of ``jobs`` (``{key: (cond,
-    preset)}``), in chunks on ``executor`` (:func:`~experiment_runner.campaigns.stream.chunk_task`, as
-    the campaign's trials): ``{key: [metrics of trial 0, ...]}``."""
-    camp_json, code = camp.model_dump_json(), code_fingerprint()
-    tasks = []
-    for key, (cond, preset) in jobs.items():
-        size = chunk_size(n_trials, len(reference(camp, cond, preset.controller.rate).x), executor.workers,
-                          n_trials * len(jobs))
-        preset_json = preset.model_dump_json()
-        tasks += [((key, a), (camp_json, case.name, cond.key, preset_json, None,
-                              list(range(a, min(a + size, n_trials))), code)) for a in range(0, n_trials, size)]
-    out = {key: [None] * n_trials for key in jobs}
-    for (key, _), records in executor.map(chunk_task, tasks):
-        for r in records:
-            out[key][r["trial"]] = r["metrics"]
-    return out
-
-
-def calibrate(camp: Campaign, n_trials: int, bar=None, executor=None) -> dict:
-    """Fit the campaign's calibration parameters on its baseline case; returns calibration.json content.
-
-    Every evaluation runs the baseline's first ``n_trials`` trials at the target conditions on
-    ``executor`` (default: in this process)."""
+def calibrate(camp: Campaign, n_trials: int, bar=None) -> dict:
+    """Fit the campaign's calibration parameters on its baseline case; returns calibration.json content."""
     cal = camp.calibration
     base = camp.case(camp.baseline)
     preset0 = case_preset(camp, base)
@@ -275,12 +252,14 @@ def calibrate(camp: Campaign, n_trials: int, bar=None, executor=None) -> dict:
         c = next(c for c in conditions(camp) if c.matches(**p.target.at()))
         conds[c.key] = c
 
-    ex = executor if executor is not None else make_executor(1)
-
     def evaluate(values):
         out = {}
-        per_cond = baseline_metrics(camp, base, {key: (c, case_preset(camp, base, values, c)) for key, c in conds.items()},
-                                    n_trials, ex)
+        per_cond = {}
+        for key, c in conds.items():
+            preset = case_preset(camp, base, values, c)
+            _, trials, res = simulate_trials(camp, base, c, preset, range(n_trials), models=Models.from_preset(preset))
+            mets = [metric_record(tr, res, j, preset.controller.rate) for j, tr in enumerate(trials)]
+            per_cond[key] = mets
         for p in cal.parameters:
             c = next(c for c in conds.values() if c.matches(**p.target.at()))
             st = Stat.of([m.get(p.target.metric) for m in per_cond[c.key]])
@@ -336,7 +315,7 @@ def calibration_fingerprint(camp: Campaign, n_trials: int) -> str:
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def source_calibration(camp: Campaign, out_dir: Path, n_trials: Optional[int] = None, bar=None, executor=None) -> dict:
+def source_calibration(camp: Campaign, out_dir: Path, n_trials: Optional[int] = None, bar=None) -> dict:
     """The calibration of ``calibration: {from: NAME}``: loaded from a matching ``calibration.json``
     (this output folder, then ``out_dir/../NAME/``), else fitted on NAME's baseline.
 
@@ -356,7 +335,7 @@ def source_calibration(camp: Campaign, out_dir: Path, n_trials: Optional[int] = 
             doc, loaded = got, path
             break
     if doc is None:
-        doc = calibrate(src, n, bar, executor)
+        doc = calibrate(src, n, bar)
     doc = dict(doc)
     doc["reused"] = loaded is not None
     doc["source"] = {"campaign": src.name, "title": src.title, "baseline": src.baseline,

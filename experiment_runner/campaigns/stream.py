@@ -44,7 +44,7 @@ from experiment_runner.campaigns.spec import Campaign, conditions
 from experiment_runner.campaigns.trials import metric_record, plain, reference, simulate_trials
 from stage_sim.config import ConfigError, Preset
 
-__all__ = ["TrialStream", "run_trials", "run_trial_jobs", "representative_trial", "chunk_task",
+__all__ = ["TrialStream", "run_trials", "run_trial_jobs", "warm_up", "representative_trial", "chunk_task",
            "campaign_key", "code_fingerprint", "STREAM_NAME", "CODE_MODULES"]
 
 FORMAT = "nanostage-trials"
@@ -275,11 +275,19 @@ def chunk_task(camp_json: str, case_name: str, cond_key: str, preset_json: str,
              "metrics": plain(metric_record(tr, res, j, rate))} for j, tr in enumerate(trials)]
 
 
+def warm_up(camp, case, cond, preset, executor) -> None:
+    """Warm ``executor``'s workers in the background (:meth:`~experiment_runner.executor.Executor.warm`)
+    with trial 0 of ``case`` at ``cond``: its modules imported, the batch engine's kernels loaded,
+    the preset's models built (cached for the real chunks)."""
+    executor.warm(chunk_task, (camp.model_dump_json(), case.name, cond.key, preset.model_dump_json(), None, [0],
+                               code_fingerprint()))
+
+
 def chunk_size(n: int, samples: int, workers: int, total: Optional[int] = None) -> int:
     """Trials per chunk of a job of ``n`` trials of ``samples`` samples each: as large as
     :data:`CHUNK_BYTES` allows (larger batches run faster per trial) while the task list of
-    ``total`` trials (every job's, default ``n``) keeps at least two chunks per worker; the job is
-    split into equal chunks.
+    ``total`` trials (every job's, default ``n``) keeps at least two chunks per worker (a worker
+    that finishes early takes another); the job is split into equal chunks.
 
     >>> chunk_size(40, 15_000, 2, total=160), chunk_size(40, 15_000, 1, total=160), chunk_size(50, 15_000, 2)
     (40, 40, 13)

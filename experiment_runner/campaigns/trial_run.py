@@ -38,7 +38,7 @@ from experiment_runner.campaigns.graph_runs import compare_graph, run_graph_jobs
 from experiment_runner.campaigns.report import write_outputs
 from experiment_runner.campaigns.spec import CalibrationFrom, Campaign, case_overrides, case_preset, conditions
 from experiment_runner.campaigns.stream import (STREAM_NAME, TrialStream, campaign_key, code_fingerprint,
-                                                representative_trial, run_trial_jobs)
+                                                representative_trial, run_trial_jobs, warm_up)
 from experiment_runner.campaigns.trials import graph_experiment, learn_step_ii
 from experiment_runner.executor import make_executor
 from experiment_runner.metrics import finite_or_none
@@ -59,7 +59,9 @@ def run_trial_campaign(kind: CampaignKind, camp: Campaign, out_dir: Path, settin
     conds = conditions(camp)
     timing = {}
     with _executor(settings) as ex:
-        cal = calibration_of(camp, out_dir, settings, ex)
+        base = camp.case(camp.baseline)
+        warm_up(camp, base, conds[0], case_preset(camp, base, None, conds[0]), ex)   # while calibrating
+        cal = calibration_of(camp, out_dir, settings)
         cal_values = dict(cal["values"]) if cal is not None else None
         timing["calibration_s"] = time.monotonic() - t_start
         t1 = time.monotonic()
@@ -79,9 +81,11 @@ def run_trial_campaign(kind: CampaignKind, camp: Campaign, out_dir: Path, settin
     return cr
 
 
-def calibration_of(camp: Campaign, out_dir: Path, settings: RunSettings, executor) -> Optional[dict]:
-    """The calibration the cases run with (``calibration.json`` content), or None (the presets' values);
-    a fit runs its trials on ``executor``."""
+def calibration_of(camp: Campaign, out_dir: Path, settings: RunSettings) -> Optional[dict]:
+    """The calibration the cases run with (``calibration.json`` content), or None (the presets' values).
+
+    A fit runs in this process (numba threads over the trials): on a process pool its many short
+    evaluations were no faster (table_4_2, 16 trials, 2 workers: calibration + simulation the same)."""
     if settings.calibration is not None:
         cal = dict(settings.calibration)
         cal["reused"] = True
@@ -90,10 +94,10 @@ def calibration_of(camp: Campaign, out_dir: Path, settings: RunSettings, executo
         return None
     if isinstance(camp.calibration, CalibrationFrom):
         with _bar(settings, f"{camp.name}: calibration of {camp.calibration.from_}", unit="eval") as bar:
-            return source_calibration(camp, out_dir, settings.calibration_trials, bar, executor)
+            return source_calibration(camp, out_dir, settings.calibration_trials, bar)
     n_cal = min(settings.calibration_trials or camp.calibration.trials, camp.trials)
     with _bar(settings, f"{camp.name}: calibrate {camp.baseline}", unit="eval") as bar:
-        cal = calibrate(camp, n_cal, bar, executor)
+        cal = calibrate(camp, n_cal, bar)
     cal["reused"] = False
     return cal
 
