@@ -15,7 +15,7 @@ Integration scheme (per control period ``dt``, ``n_sub`` sub-steps of ``h``):
 * Coulomb elements are solved implicitly per sub-step (stick if the force needed
   to stop is within the static limit), so there is no chattering at rest;
 * optional force variations of each friction element (position-dependent and
-  direction-dependent level, direction-dependent viscous part: ``config._FrictionVariation``)
+  direction-dependent level, direction-dependent viscous part: ``stage_sim.friction.FrictionVariation``)
   scale its held force; optional table forces (``stage.force_offset``, ``force_ripple``,
   ``periodic_force``) and an external force input (:func:`plant_step_ext`) act on the table,
   held over a sub-step; all are skipped when off, so results are bit-identical without them;
@@ -37,11 +37,9 @@ import numpy as np
 import scipy.linalg
 from numba import njit
 
-from .config import CoulombFriction, DahlFriction, GmsFriction, LugreFriction, Stage
-from .friction import dahl_tangent, dahl_update, gms_block, gms_block_tangent, initial_stiffness, lugre_update, stribeck
+from . import friction
+from .config import Stage
 
-# friction element kinds
-DAHL, GMS, LUGRE, COULOMB = 1, 2, 3, 4
 # per-trial scalar state slots
 P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX = range(8)
 N_PSTATE = 8
@@ -63,12 +61,11 @@ class PlantModel(NamedTuple):
     dt: float              # control period [s]
     phi: np.ndarray        # (2n, 2n) exact state transition over h
     gam: np.ndarray        # (2n, n) exact ZOH force input over h
-    fr_kind: np.ndarray    # (nf,) friction element kind
+    fr_kind: np.ndarray    # (nf,) friction law id (stage_sim.friction.kind)
     fr_dof: np.ndarray     # (nf,) DOF the element acts on
-    fr_par: np.ndarray     # (nf, 6) kind-specific parameters
-    fr_k: np.ndarray       # (nf, nmax) GMS block stiffnesses
-    fr_alpha: np.ndarray   # (nf, nmax) GMS block fractions
-    fr_n: np.ndarray       # (nf,) GMS block count
+    fr_par: np.ndarray     # (nf, npar) the law's parameter row (its params()), zero-padded
+    fr_implicit: np.ndarray  # (nf,) bool: the law is solved implicitly per sub-step (law.IMPLICIT)
+    n_frs: int             # friction state slots per element (max of the laws' n_state, >= 1)
     fr_noise: np.ndarray   # (nf,) random force per control sample, RMS [N]
     dither_dof: np.ndarray  # (2,) DOF driven by piezo 0 / 1, -1 if none
     kf_ratio: float        # true / nominal force constant
@@ -100,26 +97,6 @@ class PlantModel(NamedTuple):
     ripple: np.ndarray     # (nr, 3) position-periodic table force: amplitude [N], 2 pi/period [rad/m], phase
     periodic: np.ndarray   # (np, 3) fixed-frequency table force: amplitude [N], 2 pi f [rad/s], phase
     table_force: bool      # any of f_offset, ripple, periodic
-
-
-def _friction_params(fr):
-    """(kind, par[6], k_blocks, alpha_blocks, tangent stiffness) of a friction config."""
-    par = np.zeros(6)
-    k = alpha = np.zeros(0)
-    if isinstance(fr, DahlFriction):
-        par[:3] = fr.k_sigma, fr.f_c, fr.shape
-        return DAHL, par, k, alpha, initial_stiffness(fr)
-    if isinstance(fr, GmsFriction):
-        par[0] = fr.f_c
-        k, alpha = np.array(fr.k), np.array(fr.alpha)
-        return GMS, par, k, alpha, initial_stiffness(fr)
-    if isinstance(fr, LugreFriction):
-        par[:6] = fr.sigma0, fr.sigma1, fr.f_c, fr.f_s, fr.v_s, fr.exponent
-        return LUGRE, par, k, alpha, initial_stiffness(fr)
-    if isinstance(fr, CoulombFriction):
-        par[:2] = fr.f_c, fr.f_c if fr.f_s is None else fr.f_s
-        return COULOMB, par, k, alpha, initial_stiffness(fr)
-    raise TypeError(f"unknown friction config {fr!r}")
 
 
 def _variation(fr) -> np.ndarray:
@@ -210,26 +187,23 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
             mat[j, i] -= val
 
     nf = len(fr_list)
-    nmax = max([1] + [len(f.k) for f, _, _ in fr_list if isinstance(f, GmsFriction)])
-    fr_kind = np.zeros(nf, np.int64)
-    fr_dof = np.zeros(nf, np.int64)
-    fr_par = np.zeros((nf, 6))
-    fr_k = np.zeros((nf, nmax))
-    fr_alpha = np.zeros((nf, nmax))
-    fr_n = np.zeros(nf, np.int64)
-    fr_noise = np.zeros(nf)
+    laws = [friction.law(fr) for fr, _, _ in fr_list]
+    pars = [law.params(fr) for law, (fr, _, _) in zip(laws, fr_list)]
+    fr_kind = np.array([friction.kind(fr) for fr, _, _ in fr_list], np.int64)
+    fr_dof = np.array([dof for _, dof, _ in fr_list], np.int64)
+    fr_par = np.zeros((nf, max([1] + [len(p) for p in pars])))
+    fr_implicit = np.array([law.IMPLICIT for law in laws], np.bool_)
+    n_frs = max([1] + [law.n_state(fr) for law, (fr, _, _) in zip(laws, fr_list)])
+    fr_noise = np.array([noise for _, _, noise in fr_list], float)
     fr_var = np.zeros((nf, 6))
     k_tangent = np.zeros((n, n))
     c_explicit = np.zeros(n)
-    for e, (fr, dof, noise) in enumerate(fr_list):
-        kind, par, kb, ab, kt = _friction_params(fr)
-        fr_kind[e], fr_dof[e], fr_par[e], fr_noise[e] = kind, dof, par, noise
-        fr_k[e, :len(kb)], fr_alpha[e, :len(ab)], fr_n[e] = kb, ab, len(kb)
+    for e, (law, (fr, dof, _)) in enumerate(zip(laws, fr_list)):
+        fr_par[e, :len(pars[e])] = pars[e]
         fr_var[e] = _variation(fr)
         cmat[dof, dof] += fr.viscous
-        k_tangent[dof, dof] += kt * (1.0 + abs(fr_var[e, 1]))
-        if kind == LUGRE:
-            c_explicit[dof] += fr.sigma1
+        k_tangent[dof, dof] += law.stiffness_at_rest(fr) * (1.0 + abs(fr_var[e, 1]))
+        c_explicit[dof] += law.explicit_damping(fr)
 
     sai_dof, k_lock, c_lock, cap, rc_a, arm_steps, pulse_force, pulse_steps = -1, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0
     sai = stage.sai
@@ -280,8 +254,8 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
         bsens = bearing_dofs[0]
     return PlantModel(
         n=n, n_sub=n_sub, h=h, dt=dt, phi=phi, gam=gam,
-        fr_kind=fr_kind, fr_dof=fr_dof, fr_par=fr_par, fr_k=fr_k, fr_alpha=fr_alpha,
-        fr_n=fr_n, fr_noise=fr_noise, dither_dof=np.array(dither_dof, np.int64),
+        fr_kind=fr_kind, fr_dof=fr_dof, fr_par=fr_par, fr_implicit=fr_implicit, n_frs=n_frs,
+        fr_noise=fr_noise, dither_dof=np.array(dither_dof, np.int64),
         kf_ratio=d.force_constant_ratio, peak=d.peak_force, cont=d.continuous_force,
         th_alpha=dt / d.thermal_time_constant,
         noise_std=d.noise_current_rms * d.force_constant * d.force_constant_ratio,
@@ -325,7 +299,7 @@ def init_plant_state(pm: PlantModel, n_trials: int, x0=0.0, sai_mode: float = 1.
     ps[P_RC] = sai_mode
     if pm.sai_dof >= 0 and sai_mode < 0.5:
         ps[P_LOCKED] = 1.0
-    return PlantState(z=z, fr=np.zeros(pm.fr_k.shape + (n_trials,)), ps=ps,
+    return PlantState(z=z, fr=np.zeros((pm.fr_kind.shape[0], pm.n_frs, n_trials)), ps=ps,
                       dbuf=np.zeros((pm.delay + 1, n_trials)), f=np.zeros((n, n_trials)),
                       zn=np.zeros((2 * n, n_trials)), force=np.zeros(n_trials))
 
@@ -364,7 +338,7 @@ def quantize(x, q):
 @njit(cache=True, inline="always")
 def _var_scale(pm, e, x, direction):
     """Force scale of friction element ``e`` at position ``x`` [m] for a force resisting
-    motion in ``direction`` (+1: moving +, -1: moving -); see ``config._FrictionVariation``."""
+    motion in ``direction`` (+1: moving +, -1: moving -); see ``stage_sim.friction.FrictionVariation``."""
     var = pm.fr_var
     d = x - var[e, 3]
     s = 1.0 + var[e, 4] * d + var[e, 5] * d * d
@@ -398,54 +372,26 @@ def _friction_forces(pm, z, fr, f, k, seeds):
     predicted sub-step displacement ``v h / 2`` (a mid-point force): a plainly held
     spring force lags by half a sub-step and pumps energy into lightly damped
     pre-motion resonances; the mid-point force keeps the scheme area-preserving.
-    Coulomb elements are solved implicitly in :func:`plant_step` instead.
+    Implicit laws (Coulomb) are solved in :func:`plant_step` instead.
     """
     n = pm.n
     hh = 0.5 * pm.h
     nb = z.shape[1]
-    par = pm.fr_par
     for e in range(pm.fr_kind.shape[0]):
         kind = pm.fr_kind[e]
         dof = pm.fr_dof[e]
-        if kind == DAHL:
-            k0, fc, shape = par[e, 0], par[e, 1], par[e, 2]
+        p = pm.fr_par[e]
+        s = fr[e]
+        varied = pm.fr_var[e, 0] != 0.0
+        if not pm.fr_implicit[e]:
             for b in range(nb):
                 v = z[n + dof, b]
-                fe = fr[e, 0, b]
-                kt = dahl_tangent(fe, 1.0 if v > 0.0 else -1.0, k0, fc, shape)
-                if pm.fr_var[e, 0] != 0.0:
+                fe, kt = friction.held(kind, p, s, b, v)
+                if varied:
                     f[dof, b] -= _varied(pm, e, z[dof, b], v, fe + kt * v * hh)
                 else:
                     f[dof, b] -= fe + kt * v * hh
-        elif kind == GMS:
-            fc = par[e, 0]
-            for b in range(nb):
-                v = z[n + dof, b]
-                s = 1.0 if v > 0.0 else -1.0
-                fe = 0.0
-                kt = 0.0
-                for i in range(pm.fr_n[e]):
-                    fi = fr[e, i, b]
-                    fe += fi
-                    kt += gms_block_tangent(fi, s, pm.fr_k[e, i], pm.fr_alpha[e, i] * fc)
-                if pm.fr_var[e, 0] != 0.0:
-                    f[dof, b] -= _varied(pm, e, z[dof, b], v, fe + kt * v * hh)
-                else:
-                    f[dof, b] -= fe + kt * v * hh
-        elif kind == LUGRE:
-            s0, s1 = par[e, 0], par[e, 1]
-            for b in range(nb):
-                v = z[n + dof, b]
-                s = 1.0 if v > 0.0 else -1.0
-                g = stribeck(v, par[e, 2], par[e, 3], par[e, 4], par[e, 5])
-                zb = fr[e, 0, b]
-                zdot = v - s0 * abs(v) * zb / g
-                kt = s0 * max(0.0, 1.0 - s0 * s * zb / g)
-                if pm.fr_var[e, 0] != 0.0:
-                    f[dof, b] -= _varied(pm, e, z[dof, b], v, s0 * zb + s1 * zdot + kt * v * hh)
-                else:
-                    f[dof, b] -= s0 * zb + s1 * zdot + kt * v * hh
-        elif kind == COULOMB and pm.fr_var[e, 2] != 0.0:
+        elif pm.fr_var[e, 2] != 0.0:
             for b in range(nb):            # direction-dependent viscous part (the rest is implicit)
                 f[dof, b] -= pm.fr_var[e, 2] * abs(z[n + dof, b])
         if pm.fr_noise[e] > 0.0:
@@ -600,45 +546,32 @@ def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode
                     if a != 0.0:
                         for b in range(nb):
                             zn[r, b] += a * f[c, b]
-        # ---- Coulomb elements: implicit stick/slip
+        # ---- implicit laws (Coulomb: stick/slip), from the velocity the other forces give
         for e in range(nf):
-            if pm.fr_kind[e] == COULOMB:
+            if pm.fr_implicit[e]:
+                kind = pm.fr_kind[e]
                 dof = pm.fr_dof[e]
+                p = pm.fr_par[e]
                 g = pm.gam[n + dof, dof]
                 for b in range(nb):
                     a = zn[n + dof, b]
-                    f_stop = a / g
-                    lim = pm.fr_par[e, 1] if z[n + dof, b] == 0.0 else pm.fr_par[e, 0]
                     sc = 1.0
                     if pm.fr_var[e, 0] != 0.0:
                         sc = _var_scale(pm, e, z[dof, b], 1.0 if a > 0.0 else -1.0)
-                        lim *= sc
-                    stick = abs(f_stop) <= lim
-                    fc = f_stop if stick else pm.fr_par[e, 0] * sc * (1.0 if a > 0.0 else -1.0)
+                    fc, stick = friction.implicit(kind, p, a, g, z[n + dof, b], sc)
                     for r in range(nz):
                         zn[r, b] -= pm.gam[r, dof] * fc
                     if stick:
                         zn[n + dof, b] = 0.0
         # ---- friction states, exactly in the displacement domain
         for e in range(nf):
-            kind = pm.fr_kind[e]
-            dof = pm.fr_dof[e]
-            if kind == DAHL:
-                k0, fc, shape = pm.fr_par[e, 0], pm.fr_par[e, 1], pm.fr_par[e, 2]
+            if not pm.fr_implicit[e]:
+                kind = pm.fr_kind[e]
+                dof = pm.fr_dof[e]
+                p = pm.fr_par[e]
+                s = fr[e]
                 for b in range(nb):
-                    fr[e, 0, b] = dahl_update(fr[e, 0, b], zn[dof, b] - z[dof, b], k0, fc, shape)
-            elif kind == GMS:
-                fc = pm.fr_par[e, 0]
-                for b in range(nb):
-                    dx = zn[dof, b] - z[dof, b]
-                    for i in range(pm.fr_n[e]):
-                        fr[e, i, b] = gms_block(fr[e, i, b], dx, pm.fr_k[e, i], pm.fr_alpha[e, i] * fc)
-            elif kind == LUGRE:
-                p = pm.fr_par
-                for b in range(nb):
-                    zb, _ = lugre_update(fr[e, 0, b], zn[dof, b] - z[dof, b], pm.h, p[e, 0],
-                                         p[e, 1], p[e, 2], p[e, 3], p[e, 4], p[e, 5])
-                    fr[e, 0, b] = zb
+                    friction.update(kind, p, s, b, zn[dof, b] - z[dof, b], pm.h)
         for b in range(nb):
             for r in range(nz):
                 z[r, b] = zn[r, b]

@@ -29,7 +29,8 @@ import math
 import numpy as np
 from numba import njit
 
-from stage_sim.plant import COULOMB, DAHL, GMS, LUGRE, OK, PlantModel, init_plant_state, plant_step_ext
+from stage_sim import friction
+from stage_sim.plant import OK, PlantModel, init_plant_state, plant_step_ext
 
 __all__ = ["observer_model", "observe", "open_loop", "new_state", "friction_norm"]
 
@@ -46,19 +47,8 @@ def friction_norm(pm, z, fr, b, fc_tot):
     n = pm.n
     tot = 0.0
     for e in range(pm.fr_kind.shape[0]):
-        if pm.fr_dof[e] != 0:
-            continue
-        kind = pm.fr_kind[e]
-        if kind == DAHL:
-            tot += fr[e, 0, b]
-        elif kind == GMS:
-            for i in range(pm.fr_n[e]):
-                tot += fr[e, i, b]
-        elif kind == LUGRE:
-            tot += pm.fr_par[e, 0] * fr[e, 0, b]
-        elif kind == COULOMB:
-            v = z[n, b]
-            tot += pm.fr_par[e, 0] * (1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0))
+        if pm.fr_dof[e] == 0:
+            tot += friction.level(pm.fr_kind[e], pm.fr_par[e], fr[e], b, z[n, b])
     if fc_tot > 0.0:
         return tot / fc_tot
     v = z[n, b]
