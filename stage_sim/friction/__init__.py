@@ -1,7 +1,7 @@
-"""Friction laws of the seed and their registry: Dahl, GMS, LuGre, Coulomb.
+"""Friction laws of the seed and their registry: Dahl, GMS, LuGre, Coulomb, regularised Coulomb.
 
-One module per law (:mod:`.dahl`, :mod:`.gms`, :mod:`.lugre`, :mod:`.coulomb`)
-owns all of it: its schema (the ``model: NAME`` entry of a preset's
+One module per law (:mod:`.dahl`, :mod:`.gms`, :mod:`.lugre`, :mod:`.coulomb`,
+:mod:`.regularized`) owns all of it: its schema (the ``model: NAME`` entry of a preset's
 friction), its compiled kernels (state update, held force and tangent stiffness, or an
 implicit per-sub-step solve), its stiffness at rest and its virgin curve. This registry is
 what the rest of the code iterates: the preset schema (:data:`FRICTION`), the plant
@@ -31,7 +31,7 @@ Examples
 >>> float(d.drive(np.array([0.0, 1e-3]))[-1]) == 5.31   # saturates at F_C
 True
 >>> [law.NAME for law in LAWS]
-['dahl', 'gms', 'lugre', 'coulomb']
+['dahl', 'gms', 'lugre', 'coulomb', 'regularized_coulomb']
 """
 from __future__ import annotations
 
@@ -40,27 +40,29 @@ from typing import Annotated, Union
 from numba import njit
 from pydantic import Field
 
-from . import coulomb, dahl, gms, lugre
+from . import coulomb, dahl, gms, lugre, regularized
 from .base import FrictionVariation, Model, virgin_curve
 from .coulomb import CoulombFriction, CoulombViscous
 from .dahl import Dahl, DahlFriction, dahl_tangent, dahl_update
 from .gms import GMS, GmsFriction, gms_block, gms_block_tangent, gms_update
 from .lugre import LuGre, LugreFriction, lugre_update, stribeck
+from .regularized import RegularizedCoulombFriction
 
 __all__ = [
     "LAWS", "FRICTION", "law", "kind", "initial_stiffness", "update", "held", "implicit", "level",
-    "DAHL", "GMS_KIND", "LUGRE", "COULOMB",
+    "DAHL", "GMS_KIND", "LUGRE", "COULOMB", "REGULARIZED",
     "FrictionVariation", "DahlFriction", "GmsFriction", "LugreFriction", "CoulombFriction",
+    "RegularizedCoulombFriction",
     "dahl_update", "dahl_tangent", "gms_block", "gms_block_tangent", "gms_update", "lugre_update", "stribeck",
     "Dahl", "GMS", "LuGre", "CoulombViscous", "Model", "virgin_curve",
 ]
 
-LAWS = (dahl, gms, lugre, coulomb)
+LAWS = (dahl, gms, lugre, coulomb, regularized)
 """Every law, in the order of their integer ids (1, 2, ...): the compiled plant dispatches on them."""
 
-DAHL, GMS_KIND, LUGRE, COULOMB = range(1, len(LAWS) + 1)
+DAHL, GMS_KIND, LUGRE, COULOMB, REGULARIZED = range(1, len(LAWS) + 1)
 _BY_NAME = {m.NAME: m for m in LAWS}
-assert [m.NAME for m in LAWS] == ["dahl", "gms", "lugre", "coulomb"]
+assert [m.NAME for m in LAWS] == ["dahl", "gms", "lugre", "coulomb", "regularized_coulomb"]
 
 FRICTION = Annotated[Union[tuple(m.Schema for m in LAWS)], Field(discriminator="model")]
 """Schema of a friction element: any law's, told apart by its ``model`` field."""
@@ -118,6 +120,8 @@ def implicit(kind, p, a, g, v_prev, sc):
     """``(force [N], sticks)`` of an implicit law over a sub-step (see :func:`.coulomb.implicit`)."""
     if kind == COULOMB:
         return coulomb.implicit(p, a, g, v_prev, sc)
+    if kind == REGULARIZED:
+        return regularized.implicit(p, a, g, v_prev, sc)
     return 0.0, False
 
 
@@ -132,4 +136,6 @@ def level(kind, p, s, b, v):
         return lugre.level(p, s, b, v)
     if kind == COULOMB:
         return coulomb.level(p, s, b, v)
+    if kind == REGULARIZED:
+        return regularized.level(p, s, b, v)
     return 0.0
