@@ -1,6 +1,6 @@
 """Batch engine: many closed-loop trials of one preset as a single compiled loop.
 
-Each control sample ``k`` runs, in this order (the ROS graph uses the same order
+Each control sample ``k`` runs, in this order (written once, in :func:`_run`; the ROS graph uses the same order
 and the same compiled step functions, so both give identical trajectories):
 
 1. the SAI manager reads the reference (and its look-ahead) -> isolator mode and
@@ -26,8 +26,8 @@ from stage_control.dither import build_dither, dither_step, init_dither_state
 from stage_control.sai import build_sai, init_sai_state, sai_step
 from stage_control.servo import build_servo, init_servo_state, servo_step
 from stage_sim.config import Dither, Preset, SaiManager
-from stage_sim.plant import (OK, STATUS_TEXT, PlantModel, PlantState, SimulationError, quantize, build_plant,
-                             init_plant_state, plant_step)
+from stage_sim.plant import (OK, STATUS_TEXT, PlantInputs, PlantModel, PlantState, SimulationError, build_plant,
+                             chunk_state, init_plant_state, plant_step, quantize, state_chunk)
 
 
 class InitialState(NamedTuple):
@@ -109,14 +109,15 @@ class BatchResult:
 
 
 @njit(cache=True, parallel=True)
-def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction,
-         z, fr, ps, dbuf, f, zn, force, ss, ds, sa,
+def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction, plant, ss, ds, sa,
          o_xr, o_y, o_yb, o_u, o_xt, o_xb, o_d0, o_d1, o_mode, status, fail):
-    """Closed loop over time for each chunk of trials; arrays are (chunk, ..., trial)."""
+    """Closed loop over time for each chunk of trials; arrays are (chunk, ..., trial), ``plant``
+    a chunked :class:`~stage_sim.plant.PlantState`."""
     n_chunks, n_steps, nb = x_ref.shape
     for c in prange(n_chunks):
         # per-chunk views, hoisted out of the time loop
-        zc, frc, psc, dbc, fc, znc, forc = z[c], fr[c], ps[c], dbuf[c], f[c], zn[c], force[c]
+        pc = state_chunk(plant, c)
+        zc = pc.z
         ssc, dsc, sac, st, seed = ss[c], ds[c], sa[c], status[c], seeds[c]
         xrc, vrc = x_ref[c], v_ref[c]
         meas = np.empty((2, nb))
@@ -130,6 +131,7 @@ def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction,
         xr = np.zeros(nb)
         vr = np.zeros(nb)
         va = np.zeros(nb)
+        inp = PlantInputs(u, d0, d1, mode, np.zeros(0))
         for b in range(nb):
             meas[0, b] = quantize(zc[0, b], pm.q_table)
             meas[1, b] = quantize(zc[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
@@ -156,7 +158,7 @@ def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction,
                 o_d0[c, k, b] = d0[b]
                 o_d1[c, k, b] = d1[b]
                 o_mode[c, k, b] = mode[b]
-            plant_step(pm, zc, frc, psc, dbc, fc, znc, forc, u, d0, d1, mode, k, seed, meas, st)
+            plant_step(pm, pc, inp, k, seed, meas, st)
             for b in range(nb):
                 if st[b] != OK and fail[c, b] < 0:
                     fail[c, b] = k
@@ -225,8 +227,7 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     size = -(-n_trials // n_chunks)
     pm = models.plant
     init = models.initial_state(_chunked(x_ref[:, 0], 1, n_chunks * size)[0])
-    plant = [np.ascontiguousarray(np.moveaxis(a.reshape(a.shape[:-1] + (n_chunks, size)), -2, 0))
-             for a in init.plant]
+    plant = chunk_state(init.plant, n_chunks)
     T = x_ref.shape[1]
     states = [np.ascontiguousarray(np.moveaxis(a.reshape(-1, n_chunks, size), 1, 0))
               for a in (init.servo, init.dither, init.sai)]
@@ -235,7 +236,7 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     fail = -np.ones((n_chunks, size), np.int64)
     _run(pm, models.servo, models.dither, models.sai, models.lead,
          _chunked(x_ref, n_chunks, size), _chunked(v_ref, n_chunks, size),
-         _chunked(seeds, n_chunks, size), corr, *plant, *states, *outs, status, fail)
+         _chunked(seeds, n_chunks, size), corr, plant, *states, *outs, status, fail)
     xr, y, yb, u, xt, xb, d0, d1, mode = (_unchunked(o, n_trials) for o in outs)
     res = BatchResult(t=np.arange(T) / preset.controller.rate, x_ref=xr, x_correction=xr - x_ref,
                       v_ref=np.asarray(v_ref),

@@ -1,10 +1,11 @@
 """Plant simulator: lumped-mass stage with friction, isolators, drive, sensors.
 
 :func:`build_plant` compiles a validated :class:`stage_sim.config.Stage` into a
-:class:`PlantModel` (plain arrays), and :func:`plant_step` advances one trial by
-one control period. The same compiled step is called by the batch engine
-(``experiment_runner.batch``) and by the ROS plant node, so both produce the same
-trajectories.
+:class:`PlantModel` (plain arrays), and :func:`plant_step` advances a batch of trials
+(:class:`PlantState`, trial axis last) under :class:`PlantInputs` by one control period. The
+same compiled step is called by the batch engine (``experiment_runner.batch``), the ROS plant
+node (a batch of one) and :func:`run_open_loop` (the open-loop driver of the diagnosis, the FRF
+campaign and the paper's Appendix B), so all produce the same trajectories.
 
 Integration scheme (per control period ``dt``, ``n_sub`` sub-steps of ``h``):
 
@@ -17,7 +18,7 @@ Integration scheme (per control period ``dt``, ``n_sub`` sub-steps of ``h``):
 * optional force variations of each friction element (position-dependent and
   direction-dependent level, direction-dependent viscous part: ``stage_sim.friction.FrictionVariation``)
   scale its held force; optional table forces (``stage.force_offset``, ``force_ripple``,
-  ``periodic_force``) and an external force input (:func:`plant_step_ext`) act on the table,
+  ``periodic_force``) and an external force input (``PlantInputs.f_ext``) act on the table,
   held over a sub-step; all are skipped when off, so results are bit-identical without them;
 * ``n_sub`` is chosen so the stiffest mode of the configuration -- including the
   tangent stiffness of pre-motion friction and the SAI lock -- satisfies
@@ -277,14 +278,50 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
 
 
 class PlantState(NamedTuple):
-    """State of a batch of trials; the trial axis is LAST (batch-inner layout)."""
+    """State of a batch of trials; the trial axis is LAST (batch-inner layout).
+
+    Passed whole to the compiled code (numba types a NamedTuple of arrays); a chunk of a
+    chunked state (leading chunk axis on every field) is :func:`state_chunk`.
+    """
     z: np.ndarray        # (2n, B) positions then velocities
-    fr: np.ndarray       # (nf, nmax, B) friction states
+    fr: np.ndarray       # (nf, n_frs, B) friction states
     ps: np.ndarray       # (N_PSTATE, B) scalar states (see P_* slots)
     dbuf: np.ndarray     # (delay+1, B) drive delay line
     f: np.ndarray        # (n, B) scratch: forces
     zn: np.ndarray       # (2n, B) scratch: next state
     force: np.ndarray    # (B,) scratch: motor force
+
+
+class PlantInputs(NamedTuple):
+    """What drives the plant over one control period, each (B,) (trial axis last); or, for
+    :func:`run_open_loop`, each (T, B) over T periods."""
+    u: np.ndarray        # servo force command [N] (drive input, scaled by the nominal force constant)
+    d0: np.ndarray       # piezo dither force, +d0 on the channel-0 bearing [N] (Eq. 3.2)
+    d1: np.ndarray       # piezo dither force, -d1 on the channel-1 bearing [N]
+    mode: np.ndarray     # SAI solenoid command: 1 compliant (lock released), 0 stiff
+    f_ext: np.ndarray    # external force on the table [N], not through the drive (delay, limits,
+                         #   force constant, noise); EMPTY (0,) = none (the closed loop passes none)
+
+
+def plant_inputs(n_trials: int, f_ext: bool = False, T: int | None = None) -> PlantInputs:
+    """Zero inputs (isolator compliant) for ``n_trials``, per period or (``T``) over ``T`` periods;
+    ``f_ext=False``: no external force (an empty ``f_ext``)."""
+    shape = (n_trials,) if T is None else (T, n_trials)
+    return PlantInputs(u=np.zeros(shape), d0=np.zeros(shape), d1=np.zeros(shape), mode=np.ones(shape),
+                       f_ext=np.zeros(shape if f_ext else (0,) * len(shape)))
+
+
+@njit(cache=True, inline="always")
+def state_chunk(st, c):
+    """Chunk ``c`` of a chunked :class:`PlantState` (every field with a leading chunk axis)."""
+    return PlantState(st.z[c], st.fr[c], st.ps[c], st.dbuf[c], st.f[c], st.zn[c], st.force[c])
+
+
+def chunk_state(st: PlantState, n_chunks: int) -> PlantState:
+    """A state over ``n_chunks * size`` trials as ``n_chunks`` chunks of ``size`` (trial axis
+    last, chunk axis first), contiguous, for :func:`state_chunk`."""
+    return PlantState(*[np.ascontiguousarray(np.moveaxis(a.reshape(a.shape[:-1] + (n_chunks, -1)), -2, 0))
+                        for a in st])
 
 
 def init_plant_state(pm: PlantModel, n_trials: int, x0=0.0, sai_mode: float = 1.0) -> PlantState:
@@ -432,40 +469,19 @@ def _sai_forces(pm, z, ps, f, mode):
             ps[P_PULSE, b] -= 1.0
 
 
-_NO_FORCE = np.zeros(0)
-
-
 @njit(cache=True)
-def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds, meas, status):
+def plant_step(pm, st, inp, k, seeds, meas, status):
     """Advance a batch of trials by one control period.
-
-    :func:`plant_step_ext` without an external force (see there for the parameters).
-    """
-    plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, _NO_FORCE, d0, d1, mode, k, seeds, meas, status)
-
-
-@njit(cache=True)
-def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode, k, seeds, meas, status):
-    """Advance a batch of trials by one control period, with an external table force.
 
     Parameters
     ----------
     pm : PlantModel
-    z, fr, ps, dbuf, f, zn, force : ndarray
-        The fields of a :class:`PlantState` (trial axis last), updated in place.
-    u_cmd : ndarray, shape (B,)
-        Servo force command [N] (drive input, scaled by the nominal force constant).
-    f_ext : ndarray, shape (B,) or (0,)
-        External force on the table [N], held over the period, not through the drive
-        (delay, limits, force constant, noise); empty = none. Used by the model
-        diagnosis (force observer); the closed loop passes none.
-    d0, d1 : ndarray, shape (B,)
-        Piezo dither forces [N]: ``+d0`` on the channel-0 bearing, ``-d1`` on the
-        channel-1 bearing (Eq. 3.2).
-    mode : ndarray, shape (B,)
-        SAI solenoid command: 1 compliant (lock released), 0 stiff.
+    st : PlantState
+        The batch's state (trial axis last), updated in place.
+    inp : PlantInputs
+        The inputs held over the period (:class:`PlantInputs`, each (B,); ``f_ext`` may be empty).
     k : int
-        Control sample index (selects the noise samples).
+        Control sample index (selects the noise samples and the time of periodic forces).
     seeds : ndarray of int64, shape (B,)
         Trial seeds.
     meas : ndarray, shape (2, B)
@@ -473,6 +489,8 @@ def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode
     status : ndarray of int64, shape (B,)
         Out: ``OK``, ``DIVERGED`` or ``OUT_OF_TRAVEL`` (a nonzero status is kept).
     """
+    z, fr, ps, dbuf, f, zn, force = st
+    u_cmd, d0, d1, mode, f_ext = inp
     n = pm.n
     nz = 2 * n
     nb = u_cmd.shape[0]
@@ -590,6 +608,47 @@ def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode
             status[b] = OUT_OF_TRAVEL
 
 
+@njit(cache=True, nogil=True)
+def run_open_loop(pm, st, inp, k0, seeds, meas, status, true_position, out):
+    """The one open-loop driver: the plant under given inputs for ``T`` control periods.
+
+    Parameters
+    ----------
+    pm : PlantModel
+    st : PlantState
+        State of the batch (B trials) at sample ``k0``; advanced in place.
+    inp : PlantInputs
+        Inputs over the run, each (T, B), or (1, B) for an input held over the whole run;
+        ``f_ext`` also empty (0, 0) for none.
+    k0 : int
+        Control sample index of the first period (noise, periodic forces).
+    seeds : ndarray of int64, shape (B,)
+    meas : ndarray, shape (2, B)
+        The measurement at ``k0`` on entry, the last one on return.
+    status : ndarray of int64, shape (B,)
+        Plant status, kept once nonzero (see :func:`plant_step`).
+    true_position : bool
+        Record the true table position (else the measured one, as a servo would see it).
+    out : ndarray, shape (T, B)
+        Written: the table position at the start of each period, before its inputs act.
+    """
+    T = out.shape[0]
+    none = np.zeros(0)
+    ext = inp.f_ext.shape[0] > 0
+    z = st.z
+    for j in range(T):
+        for b in range(out.shape[1]):
+            out[j, b] = z[0, b] if true_position else meas[0, b]
+        plant_step(pm, st, PlantInputs(_row(inp.u, j), _row(inp.d0, j), _row(inp.d1, j), _row(inp.mode, j),
+                                       _row(inp.f_ext, j) if ext else none), k0 + j, seeds, meas, status)
+
+
+@njit(cache=True, inline="always")
+def _row(a, j):
+    """Row ``j`` of a (T, B) input, or its only row when it is held (1, B)."""
+    return a[j] if a.shape[0] > 1 else a[0]
+
+
 class PlantSim:
     """Python-side stepper over :func:`plant_step` (used by the ROS plant node and tests).
 
@@ -611,24 +670,23 @@ class PlantSim:
         self.meas = np.zeros((2, n_trials))
         self.status = np.zeros(n_trials, np.int64)
         self._zeros = np.zeros(n_trials)
+        self._none = np.zeros(0)
         self.meas[0] = [quantize(x, pm.q_table) for x in self.state.z[0]]
         self.meas[1] = ([quantize(x, pm.q_bearing) for x in self.state.z[pm.bsens_dof]]
                         if pm.bsens_dof >= 0 else np.nan)
 
     def step(self, u, d0=0.0, d1=0.0, mode=1.0, f_ext=None):
         """Apply command ``u`` [N], dither ``d0, d1`` [N] and SAI ``mode`` for one period,
-        and optionally an external table force ``f_ext`` [N] (:func:`plant_step_ext`).
+        and optionally an external table force ``f_ext`` [N] (:class:`PlantInputs`).
 
         Returns the measurement (2, n_trials): table and bearing-sensor positions [m].
         Raises :class:`SimulationError` if a trial diverged or left the travel.
         """
         b = self._zeros.shape[0]
         u, d0, d1, mode = [np.broadcast_to(np.asarray(v, float), (b,)).copy() for v in (u, d0, d1, mode)]
-        if f_ext is None:
-            plant_step(self.pm, *self.state, u, d0, d1, mode, self.k, self.seeds, self.meas, self.status)
-        else:
-            fe = np.broadcast_to(np.asarray(f_ext, float), (b,)).copy()
-            plant_step_ext(self.pm, *self.state, u, fe, d0, d1, mode, self.k, self.seeds, self.meas, self.status)
+        fe = self._none if f_ext is None else np.broadcast_to(np.asarray(f_ext, float), (b,)).copy()
+        plant_step(self.pm, self.state, PlantInputs(u, d0, d1, mode, fe), self.k, self.seeds, self.meas,
+                   self.status)
         self.k += 1
         if self.status.any():
             i = int(np.flatnonzero(self.status)[0])
