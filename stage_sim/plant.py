@@ -320,7 +320,8 @@ def state_chunk(st, c):
 def chunk_state(st: PlantState, n_chunks: int) -> PlantState:
     """A state over ``n_chunks * size`` trials as ``n_chunks`` chunks of ``size`` (trial axis
     last, chunk axis first), contiguous, for :func:`state_chunk`."""
-    return PlantState(*[np.ascontiguousarray(np.moveaxis(a.reshape(a.shape[:-1] + (n_chunks, -1)), -2, 0))
+    size = st.z.shape[-1] // n_chunks
+    return PlantState(*[np.ascontiguousarray(np.moveaxis(a.reshape(a.shape[:-1] + (n_chunks, size)), -2, 0))
                         for a in st])
 
 
