@@ -111,57 +111,63 @@ class BatchResult:
 @njit(cache=True, parallel=True)
 def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction, plant, ss, ds, sa,
          o_xr, o_y, o_yb, o_u, o_xt, o_xb, o_d0, o_d1, o_mode, status, fail):
-    """Closed loop over time for each chunk of trials; arrays are (chunk, ..., trial), ``plant``
-    a chunked :class:`~stage_sim.plant.PlantState`."""
-    n_chunks, n_steps, nb = x_ref.shape
-    for c in prange(n_chunks):
-        # per-chunk views, hoisted out of the time loop
-        pc = state_chunk(plant, c)
-        zc = pc.z
-        ssc, dsc, sac, st, seed = ss[c], ds[c], sa[c], status[c], seeds[c]
-        xrc, vrc = x_ref[c], v_ref[c]
-        meas = np.empty((2, nb))
-        y = np.empty(nb)
-        dout = np.zeros((2, nb))
-        d0 = np.zeros(nb)
-        d1 = np.zeros(nb)
-        u = np.zeros(nb)
-        mode = np.zeros(nb)
-        xc = np.zeros(nb)
-        xr = np.zeros(nb)
-        vr = np.zeros(nb)
-        va = np.zeros(nb)
-        inp = PlantInputs(u, d0, d1, mode, np.zeros(0))
+    """The trials in chunks, one chunk per task (``prange``); arrays are (chunk, ..., trial),
+    ``plant`` a chunked :class:`~stage_sim.plant.PlantState`."""
+    for c in prange(x_ref.shape[0]):
+        _run_chunk(pm, sm, dm, am, lead, x_ref[c], v_ref[c], seeds[c], correction, state_chunk(plant, c),
+                   ss[c], ds[c], sa[c], o_xr[c], o_y[c], o_yb[c], o_u[c], o_xt[c], o_xb[c], o_d0[c], o_d1[c],
+                   o_mode[c], status[c], fail[c])
+
+
+@njit(cache=True)
+def _run_chunk(pm, sm, dm, am, lead, xrc, vrc, seed, correction, pc, ssc, dsc, sac,
+               o_xr, o_y, o_yb, o_u, o_xt, o_xb, o_d0, o_d1, o_mode, st, fail):
+    """Closed loop over time for one chunk of trials: the step order SAI -> dither -> servo ->
+    plant, written once; arrays are (..., trial), outputs (sample, trial)."""
+    n_steps, nb = xrc.shape
+    zc = pc.z
+    meas = np.empty((2, nb))
+    y = np.empty(nb)
+    dout = np.zeros((2, nb))
+    d0 = np.zeros(nb)
+    d1 = np.zeros(nb)
+    u = np.zeros(nb)
+    mode = np.zeros(nb)
+    xc = np.zeros(nb)
+    xr = np.zeros(nb)
+    vr = np.zeros(nb)
+    va = np.zeros(nb)
+    inp = PlantInputs(u, d0, d1, mode, np.zeros(0))
+    for b in range(nb):
+        meas[0, b] = quantize(zc[0, b], pm.q_table)
+        meas[1, b] = quantize(zc[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
+    for k in range(n_steps):
+        ka = min(k + lead, n_steps - 1)
         for b in range(nb):
-            meas[0, b] = quantize(zc[0, b], pm.q_table)
-            meas[1, b] = quantize(zc[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
-        for k in range(n_steps):
-            ka = min(k + lead, n_steps - 1)
-            for b in range(nb):
-                vr[b] = vrc[k, b]
-                va[b] = vrc[ka, b]
-            sai_step(am, sac, correction, k, vr, va, mode, xc)
-            for b in range(nb):
-                xr[b] = xrc[k, b] + xc[b]
-                y[b] = meas[0, b]
-            dither_step(dm, dsc, k, xr, vr, y, dout)
-            servo_step(sm, ssc, xr, vr, y, u)
-            for b in range(nb):
-                d0[b] = dout[0, b]
-                d1[b] = dout[1, b]
-                o_xr[c, k, b] = xr[b]
-                o_y[c, k, b] = y[b]
-                o_yb[c, k, b] = meas[1, b]
-                o_u[c, k, b] = u[b]
-                o_xt[c, k, b] = zc[0, b]
-                o_xb[c, k, b] = zc[pm.bear_dof, b]
-                o_d0[c, k, b] = d0[b]
-                o_d1[c, k, b] = d1[b]
-                o_mode[c, k, b] = mode[b]
-            plant_step(pm, pc, inp, k, seed, meas, st)
-            for b in range(nb):
-                if st[b] != OK and fail[c, b] < 0:
-                    fail[c, b] = k
+            vr[b] = vrc[k, b]
+            va[b] = vrc[ka, b]
+        sai_step(am, sac, correction, k, vr, va, mode, xc)
+        for b in range(nb):
+            xr[b] = xrc[k, b] + xc[b]
+            y[b] = meas[0, b]
+        dither_step(dm, dsc, k, xr, vr, y, dout)
+        servo_step(sm, ssc, xr, vr, y, u)
+        for b in range(nb):
+            d0[b] = dout[0, b]
+            d1[b] = dout[1, b]
+            o_xr[k, b] = xr[b]
+            o_y[k, b] = y[b]
+            o_yb[k, b] = meas[1, b]
+            o_u[k, b] = u[b]
+            o_xt[k, b] = zc[0, b]
+            o_xb[k, b] = zc[pm.bear_dof, b]
+            o_d0[k, b] = d0[b]
+            o_d1[k, b] = d1[b]
+            o_mode[k, b] = mode[b]
+        plant_step(pm, pc, inp, k, seed, meas, st)
+        for b in range(nb):
+            if st[b] != OK and fail[b] < 0:
+                fail[b] = k
 
 
 def _chunked(a, n_chunks, size):

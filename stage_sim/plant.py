@@ -470,7 +470,7 @@ def _sai_forces(pm, z, ps, f, mode):
             ps[P_PULSE, b] -= 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def plant_step(pm, st, inp, k, seeds, meas, status):
     """Advance a batch of trials by one control period.
 
