@@ -119,7 +119,7 @@ def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction, plant, ss, ds, s
                    o_mode[c], status[c], fail[c])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _run_chunk(pm, sm, dm, am, lead, xrc, vrc, seed, correction, pc, ssc, dsc, sac,
                o_xr, o_y, o_yb, o_u, o_xt, o_xb, o_d0, o_d1, o_mode, st, fail):
     """Closed loop over time for one chunk of trials: the step order SAI -> dither -> servo ->

@@ -205,7 +205,7 @@ def init_servo_state(model: ServoModel, n_trials: int) -> np.ndarray:
     return np.zeros((model.n_state, int(n_trials)))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def servo_step(model, state, x_ref, v_ref, x_meas, u_out):
     """One control sample of the servo for every trial of a batch.
 
