@@ -255,8 +255,7 @@ class SaiManager(_Strict):
 
 class Simulation(_Strict):
     max_omega_h: Annotated[float, _Number, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
-        0.25, description="largest (angular frequency x sub-step) of the stiffness the plant holds explicitly "
-        "over a sub-step (friction tangent, SAI lock; see stage_sim.plant.build_plant) allowed [-]")
+        0.25, description="largest (stiffest-mode angular frequency x sub-step) allowed [-]")
     max_substeps: Annotated[int, _Number, Field(ge=1, le=1000)] = 200
     seed: Annotated[int, _Number, Field(ge=0)] = 0
 
