@@ -50,7 +50,7 @@ from experiment_runner.batch import Models, _chunked, _unchunked, simulate
 from experiment_runner.campaigns.spec import FrequencyResponseTest, frequency_grid
 from experiment_runner.metrics import sine_phasor
 from stage_control.servo import build_servo
-from stage_sim.plant import OK, init_plant_state, plant_step, quantize
+from stage_sim.plant import OK, PlantInputs, chunk_state, init_plant_state, quantize, run_open_loop, state_chunk
 
 __all__ = ["frequency_grid", "plant_frf", "PlantFrf", "closed_loop_frf", "controller_frf", "loop_frfs",
            "coulomb_force", "moving_mass"]
@@ -58,8 +58,9 @@ __all__ = ["frequency_grid", "plant_frf", "PlantFrf", "closed_loop_frf", "contro
 
 # =========================================================================== open-loop kernel
 @njit(cache=True, parallel=True)
-def _open_loop(pm, amp, omega, n_ramp, seeds, true_position, z, fr, ps, dbuf, f, zn, force, out_y, status):
-    """Open-loop sine forces on the plant; arrays are (chunk, ..., column).
+def _open_loop(pm, amp, omega, n_ramp, seeds, true_position, plant, out_y, status):
+    """Open-loop sine forces on the plant (its driver :func:`stage_sim.plant.run_open_loop`);
+    arrays are (chunk, ..., column), ``plant`` a chunked :class:`~stage_sim.plant.PlantState`.
 
     Column ``b`` gets ``u[k] = amp * env[k] * sin(omega * k * dt)`` with the raised-cosine
     envelope ``env = (1 - cos(pi k / n_ramp)) / 2`` for ``k < n_ramp`` (then 1); ``out_y[c, k, b]``
@@ -69,23 +70,20 @@ def _open_loop(pm, amp, omega, n_ramp, seeds, true_position, z, fr, ps, dbuf, f,
     n_chunks, n_steps, nb = out_y.shape
     dt = pm.dt
     for c in prange(n_chunks):
-        zc, frc, psc, dbc, fc, znc, forc = z[c], fr[c], ps[c], dbuf[c], f[c], zn[c], force[c]
-        st, seed = status[c], seeds[c]
-        meas = np.empty((2, nb))
-        u = np.zeros(nb)
-        zero = np.zeros(nb)
-        one = np.ones(nb)
-        for b in range(nb):
-            meas[0, b] = quantize(zc[0, b], pm.q_table)
-            meas[1, b] = 0.0
+        u = np.empty((n_steps, nb))
         for k in range(n_steps):
             for b in range(nb):
                 env = 1.0
                 if k < n_ramp[c, b]:
                     env = 0.5 * (1.0 - math.cos(math.pi * k / n_ramp[c, b]))
-                u[b] = amp[c, b] * env * math.sin(omega[c, b] * k * dt)
-                out_y[c, k, b] = zc[0, b] if true_position else meas[0, b]
-            plant_step(pm, zc, frc, psc, dbc, fc, znc, forc, u, zero, zero, one, k, seed, meas, st)
+                u[k, b] = amp[c, b] * env * math.sin(omega[c, b] * k * dt)
+        st = state_chunk(plant, c)
+        meas = np.empty((2, nb))
+        for b in range(nb):
+            meas[0, b] = quantize(st.z[0, b], pm.q_table)
+            meas[1, b] = 0.0
+        inp = PlantInputs(u, np.zeros((1, nb)), np.zeros((1, nb)), np.ones((1, nb)), np.zeros((0, 0)))
+        run_open_loop(pm, st, inp, 0, seeds[c], meas, status[c], true_position, out_y[c])
 
 
 def _ramp_samples(test, f, dt):
@@ -220,12 +218,11 @@ def plant_frf(preset, test: FrequencyResponseTest, amplitudes=None, models=None)
         om = np.array([2 * np.pi * f_adj[j] for _, j in grp])
         nr = np.array([layout[j].n_ramp for _, j in grp], np.int64)
         seeds = np.array([seed0 + i * nf + j for i, j in grp], np.int64)
-        st = init_plant_state(pm, n_chunks * size, 0.0, sai_mode=1.0)
-        plant = [np.ascontiguousarray(np.moveaxis(a.reshape(a.shape[:-1] + (n_chunks, size)), -2, 0)) for a in st]
+        plant = chunk_state(init_plant_state(pm, n_chunks * size, 0.0, sai_mode=1.0), n_chunks)
         out_y = np.zeros((n_chunks, T, size))
         stat = np.zeros((n_chunks, size), np.int64)
         _open_loop(pm, _chunked(amp, n_chunks, size), _chunked(om, n_chunks, size), _chunked(nr, n_chunks, size),
-                   _chunked(seeds, n_chunks, size), test.sensor == "true", *plant, out_y, stat)
+                   _chunked(seeds, n_chunks, size), test.sensor == "true", plant, out_y, stat)
         y = _unchunked(out_y, B)
         stat = _unchunked(stat, B)
         samples += B * T

@@ -51,7 +51,9 @@ FORMAT = "nanostage-trials"
 VERSION = 1
 STREAM_NAME = "trials.jsonl"
 _ROOT = Path(__file__).resolve().parents[2]
-CODE_MODULES = ("stage_sim/config.py", "stage_sim/friction.py", "stage_sim/plant.py",
+CODE_MODULES = ("stage_sim/config.py", "stage_sim/schema.py", *sorted(f"stage_sim/friction/{p.name}" for p in
+                                                (_ROOT / "stage_sim" / "friction").glob("*.py")),
+                "stage_sim/plant.py",
                 "stage_control/dither.py", "stage_control/filters.py", "stage_control/sai.py",
                 "stage_control/servo.py", "experiment_runner/batch.py", "experiment_runner/metrics.py",
                 "experiment_runner/experiment.py", "experiment_runner/profiles.py",

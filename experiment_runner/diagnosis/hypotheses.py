@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .model import ModelSpec, coulomb_total, friction_elements
+from stage_sim import friction
 from stage_sim.config import set_dotted
 
 __all__ = ["Param", "Effect", "LIBRARY", "get_effect", "describe", "virgin_x50"]
@@ -101,46 +102,18 @@ def _variation(fr, f_c_new: float) -> dict:
             "position_center": fr.position_center}
 
 
-def _pre_motion_stiffness(fr) -> float:
-    m = fr.model
-    if m == "dahl":
-        return fr.k_sigma
-    if m == "gms":
-        return float(sum(fr.k))
-    if m == "lugre":
-        return fr.sigma0
-    return 0.0
-
-
-def virgin_x50(fr_dump: list[dict]) -> float:
-    """Displacement [m] at which the summed virgin curve of friction elements reaches half
-    their total Coulomb force (pre-motion length scale; Dahl: ln2 F_C/k_sigma)."""
+def virgin_x50(fr_dump: list) -> float:
+    """Displacement [m] at which the summed virgin curve of friction elements (configs or their
+    dicts) reaches half their total sliding force (pre-motion length scale; Dahl: ln2 F_C/k_sigma).
+    Each law's virgin curve and sliding force come from its module (:mod:`stage_sim.friction`)."""
     xs = np.logspace(-10, -2, 2000)
     tot = np.zeros_like(xs)
     fc = 0.0
     for fr in fr_dump:
-        m = fr["model"]
-        if m == "dahl":
-            k, f, nu = fr["k_sigma"], fr["f_c"], fr.get("shape", 1.0)
-            if nu == 1.0:
-                tot += f * (1 - np.exp(-k * xs / f))
-            else:   # integrate dF/dx = k (1 - F/fc)^nu numerically
-                F = np.zeros_like(xs)
-                for i in range(1, len(xs)):
-                    F[i] = F[i - 1] + k * max(0.0, 1 - F[i - 1] / f) ** nu * (xs[i] - xs[i - 1])
-                tot += np.minimum(F, f)
-            fc += f
-        elif m == "gms":
-            for k, a in zip(fr["k"], fr["alpha"]):
-                tot += np.minimum(k * xs, a * fr["f_c"])
-            fc += fr["f_c"] * sum(fr["alpha"])
-        elif m == "lugre":
-            k, f = fr["sigma0"], fr["f_c"]
-            tot += f * (1 - np.exp(-k * xs / f))
-            fc += f
-        elif m == "coulomb":
-            tot += fr["f_c"]
-            fc += fr["f_c"]
+        law = friction.law(fr["model"] if isinstance(fr, dict) else fr)
+        cfg = law.Schema.model_construct(**fr) if isinstance(fr, dict) else fr
+        tot += law.virgin(cfg, xs)
+        fc += law.sliding_force(cfg)
     if fc <= 0:
         return float("nan")
     i = int(np.searchsorted(tot, 0.5 * fc))
@@ -225,7 +198,7 @@ class Dahl(Effect):
         return None if friction_elements(spec.preset) else "the model has no friction element to give pre-motion"
 
     def _k0(self, spec):
-        return float(sum(_pre_motion_stiffness(fr) for _, fr in friction_elements(spec.preset)))
+        return float(sum(friction.initial_stiffness(fr) for _, fr in friction_elements(spec.preset)))
 
     def params(self, spec, ctx):
         k0 = self._k0(spec)
@@ -342,7 +315,7 @@ class Stribeck(Effect):
 
         def edit(d):
             for (path, fr), we in zip(els, w):
-                k = _pre_motion_stiffness(fr) or max(fr.f_c, 1e-9) / 1e-6
+                k = friction.initial_stiffness(fr) or max(fr.f_c, 1e-9) / 1e-6
                 set_dotted(d, path, {"model": "lugre", "sigma0": k, "sigma1": getattr(fr, "sigma1", 0.0),
                                     "viscous": fr.viscous, "f_c": max(fr.f_c, 1e-9), "f_s": max(fs * we, fr.f_c * 1.0001, 1e-9),
                                     "v_s": vs, "exponent": getattr(fr, "exponent", 2.0), **_variation(fr, max(fr.f_c, 1e-9))})

@@ -30,6 +30,8 @@ from scipy import signal
 
 from experiment_runner.batch import simulate
 
+from stage_sim.plant import PlantInputs, PlantState
+
 from . import engine as E
 from .data import DiagData, smooth
 from .model import ModelSpec
@@ -99,8 +101,8 @@ class Observer:
         outs = [np.empty((T, B)) for _ in range(4)]
         ns = (T + snap_every - 1) // snap_every if snap_every > 0 else 1
         snaps = [np.zeros((ns,) + a.shape) for a in st[:4]]
-        bad = E.observe(c.pm, c.fc_tot, u, *inputs, ys, vs, *st, self.omega, c.m_eff, int(snap_every), *outs,
-                        *snaps)
+        inp = PlantInputs(u, *inputs, np.zeros((0, 0)))
+        bad = E.observe(c.pm, c.fc_tot, inp, ys, vs, st, self.omega, c.m_eff, int(snap_every), *outs, *snaps)
         self.calls += 1
         return ObsResult(*outs, snaps=(snap_every, *snaps) if snap_every > 0 else None, bad=int(bad))
 
@@ -269,7 +271,7 @@ def open_loop_windows(spec: ModelSpec, obs: Observer, res: ObsResult, length: in
         st += [np.zeros((c.pm.n, len(cols))), np.zeros((2 * c.pm.n, len(cols))), np.zeros(len(cols))]
         out = np.empty((length, len(cols)))
         window = [np.ascontiguousarray(a[k0:k0 + length, cols]) for a in (obs.u,) + obs.inputs]
-        E.open_loop(c.pm, *window, k0, *st, out)
+        E.open_loop(c.pm, PlantInputs(*window, np.zeros((0, 0))), k0, PlantState(*st), out)
         starts += [k0] * len(cols)
         trials += cols
         outs.append(out)
