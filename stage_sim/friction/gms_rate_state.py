@@ -28,6 +28,12 @@ their steady sliding state is exact (``w = dx/h``, ``theta = L/w``, hence ``|f| 
 
 State per trial: the block forces ``f_i`` [N], then ``theta_i - theta0`` [s] (so the plant's
 zero state is the relaxed element, ``theta0`` seconds at rest).
+
+``stiffness_at_rest``, ``sliding_force`` and ``virgin`` are the GMS's: at rest each block is its
+spring ``k_i`` (the slip is not instantaneous); steady sliding carries ``sum alpha_i F_C`` for
+``b = a`` (at ``v_r`` otherwise); the virgin curve is the quasi-static (``a -> 0``) envelope, which a
+motion from an aged contact first overshoots by about ``a lim_i ln(v theta0/L_i)`` per block (the
+static peak; tested).
 """
 from __future__ import annotations
 
