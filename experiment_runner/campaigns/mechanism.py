@@ -104,14 +104,14 @@ def frictionless_twin(preset):
 
 def premotion_range(preset) -> float:
     """Displacement after a reversal at which the bearings' friction is (nearly) saturated [m]:
-    the largest block's ``2 alpha_i F_C / k_i`` for GMS (Masing: twice the virgin range), ``2 x 3
-    F_C / k_sigma`` for Dahl (95% of the swing); nan for other models."""
+    the largest block's ``2 alpha_i F_C / k_i`` for GMS and its rate-and-state variant (Masing: twice
+    the virgin range), ``2 x 3 F_C / k_sigma`` for Dahl (95% of the swing); nan for other models."""
     out = []
     for b in preset.stage.bearings:
         f = b.friction
         if f is None:
             continue
-        if f.model == "gms":
+        if f.model in ("gms", "gms_rate_state"):
             out.append(max(2 * a * f.f_c / k for a, k in zip(f.alpha, f.k)))
         elif f.model == "dahl":
             out.append(2 * 3 * f.f_c / f.k_sigma)

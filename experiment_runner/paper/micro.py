@@ -9,7 +9,8 @@ shows the No FI settling time *growing* with every same-direction step: 47.8 ms 
 model (the seed's GMS with Coulomb slip, Eq. 4.4; Dahl) makes the n-th same-direction step
 *faster* than the first (after a same-direction stop the slipped blocks stay at their limit).
 
-Candidate physics, tested here without touching the simulator's friction laws: each GMS block
+Candidate physics, now also the simulator's friction law ``gms_rate_state``
+(:mod:`stage_sim.friction.gms_rate_state`, whose block kernels this loop calls): each GMS block
 ``i`` (Table 4.4: ``k_i``, limit ``lim_i = α_i F_C``) keeps its spring, and its Coulomb slider
 becomes a **rate-and-state slider** (Dieterich-Ruina, aging law)::
 
@@ -39,7 +40,9 @@ mass included, the ~400 Hz mode itself left out), bearings through the FI for ``
 or rigidly for ``fi_stage_nofi_gms``, the preset's PID discretised as in
 :mod:`stage_control.servo` (backward Euler integral and filtered derivative on the error,
 10 kHz, zero-order hold), 4.88 nm encoder, no noise. Its ``a = 0`` case reproduces the engine
-(:func:`engine_sequence`) step by step to 0.5 ms.
+(:func:`engine_sequence`) step by step to 0.5 ms, and at ``a = b = 0.02`` the engine with the
+simulator's law (``engine_sequence(..., overrides=rate_state_overrides())``) to 1.4 ms per step
+(30.0 -> 87.9 ms vs 30.1 -> 87.3 ms here).
 """
 from __future__ import annotations
 
@@ -52,6 +55,7 @@ from experiment_runner.batch import simulate
 from experiment_runner.metrics import settling_time
 from experiment_runner.profiles import point_to_point, step_sequence
 from stage_sim.config import load_preset, with_overrides
+from stage_sim.friction.gms_rate_state import slider_step
 
 PRESET = "fi_stage_nofi_gms"        # Ch. 4 No FI stage with the Table 4.4 GMS bearings
 PRESET_FI = "fi_stage_gms"          # the same stage with the FIs (k_fi = 8.27e4 N/m, Table 4.3)
@@ -83,52 +87,6 @@ def stage(preset=PRESET):
     wd = 2.0 * math.pi * pid.derivative_cutoff
     return (m_t, m_b, k_fi, c_fi, (pid.kp, pid.ki, pid.kd, wd), (k, alpha, f_c),
             1.0 / p.controller.rate, st.encoder.resolution)
-
-
-@njit(cache=True)
-def _block_update(f_old, dx, k, lim, a, v_r, h, c_state=1.0):
-    """Implicit step of one rate-dependent block: ``f = f_old + k dx - k h w(f)``; returns f.
-
-    ``w = v_r c_state exp((|f|/lim - 1)/a) sgn(f)``; ``c_state`` carries the aging state of
-    :func:`closed_loop` (1 without it)."""
-    f_tr = f_old + k * dx
-    if a <= 0.0:                                 # seed's GMS: Coulomb slip at the limit
-        return min(max(f_tr, -lim), lim)
-    s = 1.0 if f_tr >= 0.0 else -1.0
-    y_tr = abs(f_tr)
-    c = k * h * v_r * c_state                    # force relaxed per unit exp(...) in one step
-    if c * math.exp((y_tr / lim - 1.0) / a) < 1e-12 * lim:
-        return f_tr                              # creep negligible: elastic predictor stands
-    lo, hi = 0.0, y_tr                           # root of g(y) = y - y_tr + c exp((y/lim - 1)/a)
-    y = min(y_tr, lim)
-    for _ in range(60):
-        ex = c * math.exp((y / lim - 1.0) / a)
-        g = y - y_tr + ex
-        if g > 0.0:
-            hi = y
-        else:
-            lo = y
-        y_new = y - g / (1.0 + ex / (a * lim))
-        if not (lo < y_new < hi):
-            y_new = 0.5 * (lo + hi)
-        if abs(y_new - y) < 1e-15 * lim + 1e-18:
-            y = y_new
-            break
-        y = y_new
-    return s * y
-
-
-@njit(cache=True)
-def slider_step(f, theta, dx, k, lim, ell, a, b, v_r, h):
-    """One step ``h`` of a GMS block with a rate-and-state slider; returns ``(f, θ)``.
-
-    ``b = 0``: rate dependence only (``θ`` unused); ``a = 0``: the seed's Coulomb block."""
-    if b <= 0.0 or a <= 0.0:
-        return _block_update(f, dx, k, lim, a, v_r, h), theta
-    cs = (ell / (v_r * theta)) ** (b / a)
-    f = _block_update(f, dx, k, lim, a, v_r, h, cs)
-    w = v_r * cs * math.exp((abs(f) / lim - 1.0) / a)
-    return f, (theta + h) / (1.0 + h * w / ell)
 
 
 @njit(cache=True)
@@ -221,9 +179,20 @@ def standalone_single(step, a, dwell=DWELL, v_r=V_R, preset=PRESET, b=0.0, theta
     return float(_standalone(ref, a, preset, v_r, b, theta0)[0][0])
 
 
-def engine_sequence(step, n_forward=8, n_backward=8, dwell=DWELL, preset=PRESET):
-    """Settling time [s] per step of the sequence on the engine (preset, drive noise off)."""
-    p = with_overrides(load_preset(preset), {"stage.drive.noise_current_rms": 0.0})
+def rate_state_overrides(a=None):
+    """Preset overrides that give both bearings the simulator's ``gms_rate_state`` law, as the
+    campaign ``table_4_2_aging`` (its home, with the value's derivation); ``a`` replaces its ``a``."""
+    from experiment_runner.campaign import load_campaign
+    ov = dict(load_campaign("table_4_2_aging", check_presets=False).overrides)
+    if a is not None:
+        ov.update({k: a for k in ov if k.endswith("friction.a")})
+    return ov
+
+
+def engine_sequence(step, n_forward=8, n_backward=8, dwell=DWELL, preset=PRESET, overrides=None):
+    """Settling time [s] per step of the sequence on the engine (preset, drive noise off, then
+    ``overrides``, e.g. :func:`rate_state_overrides`)."""
+    p = with_overrides(load_preset(preset), {"stage.drive.noise_current_rms": 0.0, **(overrides or {})})
     ref = step_sequence(step, n_forward, n_backward, dwell=dwell, shape="triangular")
     r = simulate(p, ref.x, ref.v, x0=0.0)
     return _settling(r.t, r.y[0], ref)
@@ -302,5 +271,8 @@ if __name__ == "__main__":                      # python -m experiment_runner.pa
         print(f"{name}, after a +5 mm / -5 mm move: No FI 5 µm {h5[0] * 1e3:.1f} / {h5[1] * 1e3:.1f} ms "
               f"(mean {h5.mean() * 1e3:.1f}; Table 4.2: 62), 5 mm {h5m[0] * 1e3:.1f} / {h5m[1] * 1e3:.1f} ms "
               f"(Table 4.2: 44)")
+    eng = engine_sequence(5e-6, overrides=rate_state_overrides())
+    print(f"simulator, law gms_rate_state (campaign table_4_2_aging): No FI 5 µm {_fmt(eng)} "
+          f"(mean16 {np.nanmean(eng) * 1e3:.1f})")
     print("seed: No FI 5 µm 47.8 → 85 ms (mean16 69.1), 50 µm 237 → 214, 5 mm 44 (Table 4.2); "
           "FI 5 µm 10.5 → 10.2 (mean16 10.3), 50 µm 43.6 → 453, 5 mm 16 (Table 4.2)")

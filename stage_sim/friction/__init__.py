@@ -1,7 +1,8 @@
-"""Friction laws of the seed and their registry: Dahl, GMS, LuGre, Coulomb, regularised Coulomb.
+"""Friction laws of the seed and their registry: Dahl, GMS, LuGre, Coulomb, regularised Coulomb,
+GMS with rate-and-state sliders.
 
 One module per law (:mod:`.dahl`, :mod:`.gms`, :mod:`.lugre`, :mod:`.coulomb`,
-:mod:`.regularized`) owns all of it: its schema (the ``model: NAME`` entry of a preset's
+:mod:`.regularized`, :mod:`.gms_rate_state`) owns all of it: its schema (the ``model: NAME`` entry of a preset's
 friction), its compiled kernels (state update, held force and tangent stiffness, or an
 implicit per-sub-step solve), its stiffness at rest and its virgin curve. This registry is
 what the rest of the code iterates: the preset schema (:data:`FRICTION`), the plant
@@ -31,7 +32,7 @@ Examples
 >>> float(d.drive(np.array([0.0, 1e-3]))[-1]) == 5.31   # saturates at F_C
 True
 >>> [law.NAME for law in LAWS]
-['dahl', 'gms', 'lugre', 'coulomb', 'regularized_coulomb']
+['dahl', 'gms', 'lugre', 'coulomb', 'regularized_coulomb', 'gms_rate_state']
 """
 from __future__ import annotations
 
@@ -40,29 +41,30 @@ from typing import Annotated, Union
 from numba import njit
 from pydantic import Field
 
-from . import coulomb, dahl, gms, lugre, regularized
+from . import coulomb, dahl, gms, gms_rate_state, lugre, regularized
 from .base import FrictionVariation, Model, virgin_curve
 from .coulomb import CoulombFriction, CoulombViscous
 from .dahl import Dahl, DahlFriction, dahl_tangent, dahl_update
 from .gms import GMS, GmsFriction, gms_block, gms_block_tangent, gms_update
 from .lugre import LuGre, LugreFriction, lugre_update, stribeck
+from .gms_rate_state import GmsRateStateFriction
 from .regularized import RegularizedCoulombFriction
 
 __all__ = [
     "LAWS", "FRICTION", "law", "kind", "initial_stiffness", "update", "held", "implicit", "level",
-    "DAHL", "GMS_KIND", "LUGRE", "COULOMB", "REGULARIZED",
+    "DAHL", "GMS_KIND", "LUGRE", "COULOMB", "REGULARIZED", "GMS_RATE_STATE",
     "FrictionVariation", "DahlFriction", "GmsFriction", "LugreFriction", "CoulombFriction",
-    "RegularizedCoulombFriction",
+    "RegularizedCoulombFriction", "GmsRateStateFriction",
     "dahl_update", "dahl_tangent", "gms_block", "gms_block_tangent", "gms_update", "lugre_update", "stribeck",
     "Dahl", "GMS", "LuGre", "CoulombViscous", "Model", "virgin_curve",
 ]
 
-LAWS = (dahl, gms, lugre, coulomb, regularized)
+LAWS = (dahl, gms, lugre, coulomb, regularized, gms_rate_state)
 """Every law, in the order of their integer ids (1, 2, ...): the compiled plant dispatches on them."""
 
-DAHL, GMS_KIND, LUGRE, COULOMB, REGULARIZED = range(1, len(LAWS) + 1)
+DAHL, GMS_KIND, LUGRE, COULOMB, REGULARIZED, GMS_RATE_STATE = range(1, len(LAWS) + 1)
 _BY_NAME = {m.NAME: m for m in LAWS}
-assert [m.NAME for m in LAWS] == ["dahl", "gms", "lugre", "coulomb", "regularized_coulomb"]
+assert [m.NAME for m in LAWS] == ["dahl", "gms", "lugre", "coulomb", "regularized_coulomb", "gms_rate_state"]
 
 FRICTION = Annotated[Union[tuple(m.Schema for m in LAWS)], Field(discriminator="model")]
 """Schema of a friction element: any law's, told apart by its ``model`` field."""
@@ -101,6 +103,8 @@ def update(kind, p, s, b, dx, h):
         gms.update(p, s, b, dx, h)
     elif kind == LUGRE:
         lugre.update(p, s, b, dx, h)
+    elif kind == GMS_RATE_STATE:
+        gms_rate_state.update(p, s, b, dx, h)
 
 
 @njit(cache=True, inline="always")
@@ -112,6 +116,8 @@ def held(kind, p, s, b, v):
         return gms.held(p, s, b, v)
     if kind == LUGRE:
         return lugre.held(p, s, b, v)
+    if kind == GMS_RATE_STATE:
+        return gms_rate_state.held(p, s, b, v)
     return 0.0, 0.0
 
 
@@ -138,4 +144,6 @@ def level(kind, p, s, b, v):
         return coulomb.level(p, s, b, v)
     if kind == REGULARIZED:
         return regularized.level(p, s, b, v)
+    if kind == GMS_RATE_STATE:
+        return gms_rate_state.level(p, s, b, v)
     return 0.0
