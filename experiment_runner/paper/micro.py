@@ -182,7 +182,7 @@ def standalone_single(step, a, dwell=DWELL, v_r=V_R, preset=PRESET, b=0.0, theta
 def rate_state_overrides(a=None):
     """Preset overrides that give both bearings the simulator's ``gms_rate_state`` law, as the
     campaign ``table_4_2_aging`` (its home, with the value's derivation); ``a`` replaces its ``a``."""
-    from experiment_runner.campaign import load_campaign
+    from experiment_runner.campaigns.spec import load_campaign
     ov = dict(load_campaign("table_4_2_aging", check_presets=False).overrides)
     if a is not None:
         ov.update({k: a for k in ov if k.endswith("friction.a")})
