@@ -364,11 +364,18 @@ class Simulation(_Strict):
     seed: Annotated[int, _Number, Field(ge=0)] = 0
 
 
+NO_CONTROLLER = {"rate": 10_000.0, "pid": {"kp": 0.0}}
+"""The controller of a preset that states none (a model of an open-loop record, e.g. a force-mode
+identification run): no feedback (zero command), the default rate. A closed-loop tool given such a
+preset runs its plant with zero command; the diagnosis refuses it for a record with a reference."""
+
+
 class Preset(_Strict):
     name: str
     description: str = ""
     stage: Stage
-    controller: Controller
+    controller: Controller = Field(default_factory=lambda: Controller(**NO_CONTROLLER),
+                                   description="servo controller; omitted = no feedback (a model of open-loop data)")
     dither: Optional[Dither] = None
     sai_manager: Optional[SaiManager] = None
     simulation: Simulation = Simulation()

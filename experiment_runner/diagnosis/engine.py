@@ -29,7 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
-from stage_sim.plant import COULOMB, DAHL, GMS, LUGRE, OK, PlantModel, init_plant_state, plant_step_ext
+from stage_sim.plant import COULOMB, DAHL, GMS, LUGRE, OK, PlantModel, init_plant_state, plant_step_ext, quantize
 
 __all__ = ["observer_model", "observe", "open_loop", "new_state", "friction_norm"]
 
@@ -66,12 +66,13 @@ def friction_norm(pm, z, fr, b, fc_tot):
 
 
 @njit(cache=True, nogil=True)
-def observe(pm, fc_tot, u, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, omega, m_eff, snap_every,
+def observe(pm, fc_tot, u, fe, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, omega, m_eff, snap_every,
             out_d, out_x, out_v, out_phi, snap_z, snap_fr, snap_ps, snap_dbuf):
     """Force observer over a batch of trials (see module docstring).
 
     ``u, ys, vs``: (T, B) recorded command [N], smoothed measured position [m] and velocity
-    [m/s]; ``d0, d1, mode``: (T, B) the plant's other inputs, piezo dither forces [N] and SAI
+    [m/s]; ``fe``: (T, B) known external table force [N] (applied with the tracking force);
+    ``d0, d1, mode``: (T, B) the plant's other inputs, piezo dither forces [N] and SAI
     solenoid command (1 compliant, 0 stiff). ``z ... force``: plant state
     (:class:`stage_sim.plant.PlantState` fields, at rest at ``ys[0]``). Writes ``out_d`` (force residual [N]), ``out_x``, ``out_v`` (observer position
     and velocity), ``out_phi`` (normalised table friction state), and every ``snap_every``
@@ -86,6 +87,7 @@ def observe(pm, fc_tot, u, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, 
     ki = m_eff * omega * omega * omega
     integ = np.zeros(B)
     d = np.zeros(B)
+    dk = np.zeros(B)
     uk = np.zeros(B)
     d0k = np.zeros(B)
     d1k = np.zeros(B)
@@ -106,6 +108,7 @@ def observe(pm, fc_tot, u, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, 
             ev = vs[k, b] - z[n, b]
             integ[b] += ki * dt * e
             d[b] = kp * e + kd * ev + integ[b]
+            dk[b] = d[b] + fe[k, b]
             uk[b] = u[k, b]
             d0k[b] = d0[k, b]
             d1k[b] = d1[k, b]
@@ -114,7 +117,7 @@ def observe(pm, fc_tot, u, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, 
             out_x[k, b] = z[0, b]
             out_v[k, b] = z[n, b]
             out_phi[k, b] = friction_norm(pm, z, fr, b, fc_tot)
-        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, d, d0k, d1k, mk, k, seeds, meas, status)
+        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, dk, d0k, d1k, mk, k, seeds, meas, status)
         for b in range(B):
             if status[b] != OK:
                 bad += 1
@@ -123,27 +126,38 @@ def observe(pm, fc_tot, u, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, 
 
 
 @njit(cache=True, nogil=True)
-def open_loop(pm, u, d0, d1, mode, k0, z, fr, ps, dbuf, f, zn, force, out_x):
+def open_loop(pm, u, fe, d0, d1, mode, k0, z, fr, ps, dbuf, f, zn, force, out_x, seeds, out_y):
     """Open loop from sample ``k0``: column ``w`` is driven by the command ``u[:, w]``
-    (length, W) and the inputs ``d0, d1, mode`` (length, W) (see :func:`observe`) from the
-    state ``z ... force`` (column ``w``); writes the table position into ``out_x`` (length, W)."""
+    (length, W), the known external force ``fe`` and the inputs ``d0, d1, mode`` (length, W)
+    (see :func:`observe`) from the state ``z ... force`` (column ``w``); writes the table
+    position into ``out_x`` (length, W) and the measurement (the sensor's, quantized) into
+    ``out_y``. ``seeds`` (W,): the noise seeds of a plant model with noise (a simulated
+    recording); returns the number of columns that diverged or left the travel."""
     length, W = u.shape
+    fk = np.zeros(W)
     uk = np.zeros(W)
     d0k = np.zeros(W)
     d1k = np.zeros(W)
     mk = np.zeros(W)
-    none = np.zeros(0)
-    seeds = np.zeros(W, np.int64)
     meas = np.zeros((2, W))
     status = np.zeros(W, np.int64)
+    for w in range(W):
+        meas[0, w] = quantize(z[0, w], pm.q_table)
     for j in range(length):
         for w in range(W):
             out_x[j, w] = z[0, w]
+            out_y[j, w] = meas[0, w]
             uk[w] = u[j, w]
+            fk[w] = fe[j, w]
             d0k[w] = d0[j, w]
             d1k[w] = d1[j, w]
             mk[w] = mode[j, w]
-        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, none, d0k, d1k, mk, k0 + j, seeds, meas, status)
+        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, fk, d0k, d1k, mk, k0 + j, seeds, meas, status)
+    bad = 0
+    for w in range(W):
+        if status[w] != OK:
+            bad += 1
+    return bad
 
 
 def new_state(pm: PlantModel, x0, sai_mode: float = 1.0) -> tuple:
