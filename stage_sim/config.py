@@ -186,6 +186,10 @@ class Drive(_Strict):
     noise_cutoff: Optional[Pos] = Field(None, description="noise low-pass corner [Hz]; None = white at the control rate",
                                         json_schema_extra=unit("Hz", 1e-1, 1e6))
     delay_samples: Annotated[int, _Number, Field(ge=0, le=100)] = 0
+    delay_fraction: Annotated[float, _Number, Field(ge=0, lt=1, allow_inf_nan=False)] = Field(
+        0.0, description="fractional part of the drive delay [samples]: the command of sample k acts over "
+        "[k + delay_samples + delay_fraction, k + 1 + delay_samples + delay_fraction) control periods "
+        "(exact delayed zero-order hold)")
 
     @model_validator(mode="after")
     def _limits(self):

@@ -43,8 +43,8 @@ from .friction import dahl_tangent, dahl_update, gms_block, gms_block_tangent, i
 # friction element kinds
 DAHL, GMS, LUGRE, COULOMB = 1, 2, 3, 4
 # per-trial scalar state slots
-P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX = range(8)
-N_PSTATE = 8
+P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX, P_FPREV = range(9)
+N_PSTATE = 9
 # status codes returned by plant_step
 OK, DIVERGED, OUT_OF_TRAVEL = 0, 1, 2
 STATUS_TEXT = {OK: "ok", DIVERGED: "state diverged (non-finite or beyond 1e3 x travel)",
@@ -100,6 +100,8 @@ class PlantModel(NamedTuple):
     ripple: np.ndarray     # (nr, 3) position-periodic table force: amplitude [N], 2 pi/period [rad/m], phase
     periodic: np.ndarray   # (np, 3) fixed-frequency table force: amplitude [N], 2 pi f [rad/s], phase
     table_force: bool      # any of f_offset, ripple, periodic
+    delay_frac: float      # fractional drive delay [control periods] (0 = whole samples only)
+    g_prev: np.ndarray     # (n_sub, 2n) exact response of each sub-step to (previous - present) drive force
 
 
 def _friction_params(fr):
@@ -149,6 +151,27 @@ def _exact_zoh_cached(a_bytes, b_bytes, shape, h):
     big[:nz, nz:] = b * h
     e = scipy.linalg.expm(big)
     return e[:nz, :nz].copy(), e[:nz, nz:].copy()
+
+
+def _delayed_zoh(a, b, h, n_sub, frac):
+    """(n_sub, 2n): exact delayed zero-order hold of the drive force. Over a control period the
+    force is the previous sample's until ``frac`` of the period, then the present one's; sub-step
+    ``i`` propagates with the present force (``phi z + gam f``) plus row ``i`` times (previous -
+    present): ``gam[:, 0]`` for a sub-step wholly before the switch, ``phi(h - t_s) gam(t_s)[:, 0]``
+    for the one the switch splits at ``t_s``, zero after it."""
+    out = np.zeros((n_sub, a.shape[0]))
+    if frac <= 0.0:
+        return out
+    ts = frac * n_sub
+    whole = int(math.floor(ts))
+    phi_h, gam_h = _exact_zoh(a, b, h)
+    out[:whole] = gam_h[:, 0]
+    rest = (ts - whole) * h
+    if whole < n_sub and rest > 0.0:
+        gam_a = _exact_zoh(a, b, rest)[1]
+        phi_b = _exact_zoh(a, b, h - rest)[0]
+        out[whole] = phi_b @ gam_a[:, 0]
+    return out
 
 
 def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
@@ -299,6 +322,7 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
         periodic=np.array([[p.amplitude, 2 * math.pi * p.frequency, p.phase] for p in stage.periodic_force],
                           float).reshape(-1, 3),
         table_force=bool(stage.force_offset != 0.0 or stage.force_ripple or stage.periodic_force),
+        delay_frac=float(d.delay_fraction), g_prev=_delayed_zoh(a, b, h, n_sub, d.delay_fraction),
     )
 
 
@@ -600,6 +624,12 @@ def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode
                     if a != 0.0:
                         for b in range(nb):
                             zn[r, b] += a * f[c, b]
+        # ---- fractional drive delay: the previous sample's force over the first part of the period
+        if pm.delay_frac > 0.0:
+            for b in range(nb):
+                df = ps[P_FPREV, b] - force[b]
+                for r in range(nz):
+                    zn[r, b] += pm.g_prev[sub, r] * df
         # ---- Coulomb elements: implicit stick/slip
         for e in range(nf):
             if pm.fr_kind[e] == COULOMB:
@@ -643,6 +673,9 @@ def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode
             for r in range(nz):
                 z[r, b] = zn[r, b]
 
+    if pm.delay_frac > 0.0:
+        for b in range(nb):
+            ps[P_FPREV, b] = force[b]
     for b in range(nb):
         meas[0, b] = quantize(z[0, b], pm.q_table)
         meas[1, b] = quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan

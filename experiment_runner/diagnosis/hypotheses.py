@@ -388,6 +388,35 @@ class Delay(Effect):
         return spec.with_changes({"stage.drive.delay_samples": int(round(theta[0]))})
 
 
+class FractionalDelay(Effect):
+    """Drive delay in control periods, not restricted to whole samples: ``delay_samples`` its whole
+    part, ``delay_fraction`` the rest (the plant's exact delayed zero-order hold)."""
+    MAX = 12.0
+
+    @staticmethod
+    def _total(spec):
+        d = spec.preset.stage.drive
+        return d.delay_samples + d.delay_fraction
+
+    def params(self, spec, ctx):
+        d = self._total(spec)
+        return [Param("delay", "samples", 0.0, self.MAX, min(d + 0.5, self.MAX - 0.5),
+                      doc="total drive delay in control periods (fractional)")]
+
+    def starts(self, spec, ctx):
+        d = self._total(spec)
+        return [[min(d + x, self.MAX - 0.5)] for x in (0.5, 1.5, 3.0)]
+
+    def nominal(self, spec):
+        return {"delay": self._total(spec)}
+
+    def apply(self, spec, theta):
+        tau = min(max(float(theta[0]), 0.0), self.MAX)
+        whole = int(math.floor(tau))
+        return spec.with_changes({"stage.drive.delay_samples": whole,
+                                  "stage.drive.delay_fraction": min(tau - whole, 1.0 - 1e-12)})
+
+
 # --------------------------------------------------------------------------- structure
 class Mode(Effect):
     def params(self, spec, ctx):
@@ -731,6 +760,13 @@ def _lib():
               "residual correlated with the rate of change of the command (largest where the command changes "
               "fast: reversals, starts of moves); phase lag growing with frequency",
               param_doc=[("delay_samples", "samples", "delay")]),
+        FractionalDelay("fractional_delay", "fractional actuator delay", "deterministic",
+                        "The drive applies the command a non-integer number of control periods late: "
+                        "stage.drive.delay_samples (whole part) + stage.drive.delay_fraction (exact delayed "
+                        "zero-order hold: the command of sample k acts from k + delay).",
+                        "as the actuator delay; the phase lag of the command -> measurement transfer grows "
+                        "linearly with frequency, by 360 deg x delay x f / rate",
+                        param_doc=[("delay", "samples", "total delay in control periods")]),
         ForceConstant("force_constant", "force-constant error", "deterministic",
                       "The motor force per command differs from nominal (stage.drive.force_constant_ratio).",
                       "residual proportional to the command itself (residual vs command is a straight line)",

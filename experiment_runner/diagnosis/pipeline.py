@@ -41,9 +41,9 @@ from .predict import (NoiseFloor, Observer, band_rms, compare_replay, open_loop_
 
 __all__ = ["Options", "diagnose"]
 
-# at most one effect of each group: alternative friction models; and GMS fits the Coulomb force
-# itself (the sum of its block capacities)
-EXCLUSIVE = ({"dahl", "gms", "stribeck"}, {"gms", "coulomb"})
+# at most one effect of each group: alternative friction models; GMS fits the Coulomb force itself
+# (the sum of its block capacities); a whole-sample and a fractional drive delay
+EXCLUSIVE = ({"dahl", "gms", "stribeck"}, {"gms", "coulomb"}, {"delay", "fractional_delay"})
 # quantities a nominal states as known (a data-sheet force constant): among candidates the replay
 # cannot tell apart, one of these is adopted last (it moves only when the data demand it)
 KNOWN = frozenset({"force_constant"})
