@@ -6,9 +6,11 @@ from a model is then its **open-loop prediction**: the recorded command (and the
 external force, ``/stage/external_force``) through the model's plant over windows, each
 window started from the model's state *re-initialised from the measurement* (the force
 observer of :mod:`.predict`, which makes the model follow the measured position, gives the
-state at the window start, friction and joint states included). Over a window the model runs
-on its own, so a missing force shows as a drift of the predicted position from the measured
-one.
+state at the window start, friction and joint states included); the window's initial position
+and velocity are then re-estimated from the measured window (least squares of an offset and a
+velocity offset, :func:`_initial_offset`: the smoothed measurement's velocity at the start is
+biased where the command steps). Over a window the model runs on its own, so a missing force
+shows as a curvature of the predicted position away from the measured one.
 
 :class:`OpenLoopJudge` is :class:`.judge.ReplayJudge` with this predictor: the same
 statistics (run-to-run floor from ``K`` simulated recordings with fixed noise seeds,
@@ -87,6 +89,9 @@ class OpenLoopJudge(ReplayJudge):
         self.windows = [(s, np.flatnonzero(self.mask[s * self.L:(s + 1) * self.L].any(axis=0)))
                         for s in range(n_s)]
         self.windows = [(s, j) for s, j in self.windows if len(j)]
+        # initial position and velocity offsets of a window: least squares of (1, t) over the window
+        tt = np.arange(self.L) / data.rate
+        self._basis = np.linalg.pinv(np.stack([np.ones(self.L), tt], axis=1)), np.stack([np.ones(self.L), tt], axis=1)
 
     # ------------------------------------------------------------------ predictor
     def _observed(self, spec: ModelSpec):
@@ -117,7 +122,7 @@ class OpenLoopJudge(ReplayJudge):
             sd = np.concatenate([sk + cols[j] for sk in seeds]).astype(np.int64)
             out_x, out_y = np.empty((L, W)), np.empty((L, W))
             bad += E.open_loop(pm, *win, k0, *st, out_x, sd, out_y)
-            y[k0:k0 + L, jj] = out_y
+            y[k0:k0 + L, jj] = out_y + _initial_offset(y[k0:k0 + L, jj] - out_y, self._basis)
         self.sims += 1
         return y, bad
 
@@ -204,6 +209,16 @@ def missing_force(r: np.ndarray, lengths, rate: float, f_o: float) -> np.ndarray
     simulated recording near the data (the model's missing physics), above it the model runs free."""
     from .data import smooth
     return smooth(r, rate, MISSING_LP * f_o, lengths)[0]
+
+
+def _initial_offset(e: np.ndarray, basis) -> np.ndarray:
+    """(L, W): the part of the window errors ``e`` (measured - predicted) that an initial position
+    and velocity offset explain (least squares of ``a + b t`` per column): the window's start state
+    re-estimated from the measurement over the window. The observer's state at the window start
+    follows the *smoothed* measurement, whose velocity is biased where the command steps; left in,
+    that bias is a model-dependent error a wrong delay or mass could cancel."""
+    pinv, X = basis
+    return X @ (pinv @ e)
 
 
 def window_replay(spec: ModelSpec, data: DiagData) -> dict:

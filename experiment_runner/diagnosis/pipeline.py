@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .data import DiagData, load_data
+from .frf import locate_modes
 from .fit import (Evaluator, FitResult, estimate_lattice, fit_effect, fit_noise_level, fit_with, joint_fit, n_eff,
                   noise_components, sparse_regression)
 from .hypotheses import LIBRARY, get_effect
@@ -41,9 +42,9 @@ from .predict import (NoiseFloor, Observer, band_rms, compare_replay, open_loop_
 
 __all__ = ["Options", "diagnose"]
 
-# at most one effect of each group: alternative friction models; GMS fits the Coulomb force itself
-# (the sum of its block capacities); a whole-sample and a fractional drive delay
-EXCLUSIVE = ({"dahl", "gms", "stribeck"}, {"gms", "coulomb"}, {"delay", "fractional_delay"})
+# at most one effect of each group: alternative friction models; and GMS fits the Coulomb force
+# itself (the sum of its block capacities)
+EXCLUSIVE = ({"dahl", "gms", "stribeck"}, {"gms", "coulomb"})
 # quantities a nominal states as known (a data-sheet force constant): among candidates the replay
 # cannot tell apart, one of these is adopted last (it moves only when the data demand it)
 KNOWN = frozenset({"force_constant"})
@@ -413,6 +414,13 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
     q_eff = base.preset.stage.encoder.resolution
     ctx["delta_lo"] = max(3 * q_eff, 3e-8)
     ctx["delta_hi"] = max(1e-4, 30 * ctx["delta_lo"])
+    # modes anywhere up to Nyquist: the command -> measurement transfer against the nominal's
+    try:
+        ctx["frf_modes"] = locate_modes(spec0, data)
+    except (ValueError, np.linalg.LinAlgError) as err:
+        ctx["frf_modes"] = []
+        _log(opt, f"frf mode location failed: {err!r}")
+    loc["frf_modes"] = ctx["frf_modes"]
     timing["locate_s"] = time.perf_counter() - t
 
     # ---------------------------------------------------------------- fit and choose
