@@ -83,7 +83,8 @@ def mode_ratio(f, f_b: float, zeta: float, phi: float) -> np.ndarray:
 def locate_modes(spec: ModelSpec, data: DiagData, min_coherence: float = 0.8, max_modes: int = 2) -> list[dict]:
     """Narrow features of ``|H_measured / H_model|`` (coherent bins, ratio detrended by a running
     median over an octave) at least 4 robust standard deviations out, each fitted by
-    :func:`mode_ratio` times a complex gain over an octave each side. Returns the fitted modes
+    :func:`mode_ratio` times a complex gain over an octave each side; kept if lightly damped
+    (zeta < 0.2), of a fraction of the mass (< 0.8) and fitting to 15 % RMS. Returns the fitted modes
     ``{f_hz, zeta, fraction, feature_hz, kind, depth_db, fit_rms}``, deepest first."""
     est = measured_frf(data)
     if est is None:
@@ -108,7 +109,9 @@ def locate_modes(spec: ModelSpec, data: DiagData, min_coherence: float = 0.8, ma
         used |= (fo >= fk / 1.3) & (fo <= fk * 1.3)
         kind = "antiresonance" if dev[i] < 0 else "resonance"
         fit = _fit_mode(fo[band], R[band], fk, kind)
-        if fit is not None:
+        # a lightly damped mode of a fraction of the mass, fitting the ratio to 15 % (log units): else a
+        # broad misfit of the model (friction, the loop through which a closed-loop transfer is seen)
+        if fit is not None and fit["zeta"] < 0.2 and fit["fraction"] < 0.8 and fit["fit_rms"] < 0.15:
             fit.update(feature_hz=float(fk), kind=kind, depth_db=float(20 * dev[i] / math.log(10)))
             out.append(fit)
     return out

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .model import ModelSpec, coulomb_total, friction_elements
+from .units import unit_for
 from stage_sim.config import set_dotted
 
 __all__ = ["Param", "Effect", "LIBRARY", "get_effect", "describe", "virgin_x50", "split_mode", "rigid_mass"]
@@ -408,9 +409,6 @@ class FractionalDelay(Effect):
 
     def nominal(self, spec):
         return {"shift": 0.0}
-
-    def derived(self, spec, theta):
-        return {"total_delay_samples": max(self.total(spec) + float(theta[0]), 0.0)}
 
     def apply(self, spec, theta):
         tau = max(self.total(spec) + float(theta[0]), 0.0)
@@ -917,7 +915,8 @@ def describe(as_json: bool = False):
     rows = []
     for e in LIBRARY.values():
         rows.append({"key": e.key, "title": e.title, "kind": e.kind, "physics": e.physics, "signature": e.signature,
-                     "parameters": [{"name": n, "unit": u, "meaning": m} for n, u, m in e.param_doc],
+                     "parameters": [{"name": n, "unit": u, "unit_rotary": unit_for(u, "rotary"), "meaning": m}
+                                    for n, u, m in e.param_doc],
                      "in_preset": e.expressible, "needs": e.needs})
     rows.append({"key": "sparse_regression", "title": "sparse regression (SINDy-style)", "kind": "fallback",
                  "physics": "When no effect explains a residual: sequentially thresholded least squares of the "
@@ -934,8 +933,9 @@ def describe(as_json: bool = False):
         out.append(f"    physics:   {r['physics']}")
         out.append(f"    signature: {r['signature']}")
         if r["parameters"]:
-            out.append("    params:    " + "; ".join(f"{p['name']} [{p['unit']}] {p['meaning']}".rstrip()
-                                                     for p in r["parameters"]))
+            out.append("    params:    " + "; ".join(
+                f"{p['name']} [{p['unit']}" + (f"; rotary {p['unit_rotary']}" if p["unit_rotary"] != p["unit"] else "")
+                + f"] {p['meaning']}".rstrip() for p in r["parameters"]))
         if r["needs"]:
             out.append(f"    needs:     {r['needs']}")
     return "\n".join(out)
