@@ -483,6 +483,43 @@ class Mode(Effect):
         return spec.with_changes(edit=lambda d: split_mode(d, f, z, phi))
 
 
+class LocatedMode(Effect):
+    """A mode located and fitted on the command -> measurement transfer (:mod:`.frf`) above the
+    cutoff of the measurement's smoothing, where the force observer cannot fit it (the smoothed
+    measurement it follows has no motion there): the transfer's fit (frequency, damping, mass
+    fraction; :func:`split_mode`) is the candidate as it is, one per located mode, and the judge
+    decides on the held-out data."""
+    _modes = None
+
+    def bind(self, ctx):
+        fs = float(ctx.get("smoothing_hz") or 0.0)
+        self._modes = tuple(m for m in ctx.get("frf_modes") or () if m["f_hz"] > fs)
+        return self
+
+    def applicable(self, spec):
+        if self._modes is not None and not self._modes:
+            return "no mode located on the command -> measurement transfer above the smoothing cutoff"
+        return None
+
+    def params(self, spec, ctx):
+        n = len(self._modes or ())
+        return [Param("mode", "-", 0, max(n - 1, 0), 0, doc="index of the located mode")]
+
+    def nominal(self, spec):
+        return {"mode": None}
+
+    def _mode(self, theta):
+        return self._modes[int(round(float(theta[0])))]
+
+    def derived(self, spec, theta):
+        m = self._mode(theta)
+        return {"f": m["f_hz"], "zeta": m["zeta"], "fraction": m["fraction"]}
+
+    def apply(self, spec, theta):
+        m = self._mode(theta)
+        return spec.with_changes(edit=lambda d: split_mode(d, m["f_hz"], m["zeta"], m["fraction"]))
+
+
 class FiCompliance(Effect):
     """The bearings behind a spring-damper (friction isolator, Ch. 4), in any nominal with friction:
     its bolted bearings, or -- a nominal written as "table with friction" -- a bearing made of the
@@ -841,6 +878,14 @@ def _lib():
              "residual spectrum, ringing after transients",
              param_doc=[("f", "Hz", "blocked frequency"), ("zeta", "-", "damping ratio"),
                         ("fraction", "-", "modal mass / table DOF mass")]),
+        LocatedMode("located_mode", "structural resonance located on the transfer", "integer",
+                    "A lightly damped mode above the force observer's reach (the measurement's smoothing "
+                    "cutoff) up to Nyquist, as located and fitted on the command -> measurement transfer: "
+                    "blocked frequency, damping and mass fraction split off the table (stage.modes; total "
+                    "mass kept).",
+                    "a narrow resonance / anti-resonance of the measured transfer against the model's, where the "
+                    "force residual shows nothing",
+                    param_doc=[("mode", "-", "index of the located mode (derived: f [Hz], zeta, fraction)")]),
         Delay("delay", "actuator delay", "integer",
               "The drive applies the command some samples late (stage.drive.delay_samples).",
               "residual correlated with the rate of change of the command (largest where the command changes "

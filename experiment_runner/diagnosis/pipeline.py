@@ -424,6 +424,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         ctx["frf_modes"] = []
         _log(opt, f"frf mode location failed: {err!r}")
     loc["frf_modes"] = ctx["frf_modes"]
+    ctx["smoothing_hz"] = data.smooth_hz
     timing["locate_s"] = time.perf_counter() - t
 
     # ---------------------------------------------------------------- fit and choose
