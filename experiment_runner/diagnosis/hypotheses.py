@@ -472,8 +472,11 @@ class Mode(Effect):
         frf = [[min(max(m["f_hz"], 2.5), 0.48 * rate), min(max(m["zeta"], 0.0015), 0.45),
                 min(max(m["fraction"], 0.0015), 0.9 * hi)] for m in (ctx.get("frf_modes") or [])[:2]]
         peaks = list(ctx.get("peak_hz") or [])[:3]
-        grid = peaks + [f for f in (0.01 * rate, 0.03 * rate, 0.1 * rate) if all(abs(np.log(f / p)) > 0.3 for p in peaks)]
-        return (frf + [[f, 0.03, min(0.1, 0.5 * hi)] for f in grid])[:5]
+        # the located peaks, then a grid of 4 per decade up to Nyquist (the starts are ranked by their cost,
+        # the best two fitted): a mode far from the excitation's lines starts near its frequency too
+        grid = np.geomspace(0.005 * rate, 0.4 * rate, 8)
+        grid = peaks + [float(f) for f in grid if all(abs(np.log(f / p)) > 0.3 for p in peaks)]
+        return (frf + [[f, 0.03, min(0.1, 0.5 * hi)] for f in grid])[:12]
 
     def nominal(self, spec):
         return {"f": None, "zeta": None, "fraction": None}

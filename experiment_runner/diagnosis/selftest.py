@@ -245,6 +245,9 @@ CASES = [
     Case("mode+coulomb_sine", ("structural_mode", "coulomb"), _both("friction.f_c", 2.655 * 1.3), edit=_mode_edit,
          expect={"structural_mode": {"f": 150.0, "fraction": MODE_FRACTION}, "coulomb": {"F_C": 5.31 * 1.3}},
          experiment="sine", seed=136),
+    Case("mode+coulomb", ("structural_mode", "coulomb"), _both("friction.f_c", 2.655 * 1.3), edit=_mode_edit,
+         expect={"structural_mode": {"f": 150.0, "fraction": MODE_FRACTION}, "coulomb": {"F_C": 5.31 * 1.3}},
+         seed=137),
     # issue 12: a whole-sample and a fractional drive delay (2.4 samples); the FI compliance found from a
     # nominal written as a table with friction (the bearing mass fitted). (A 1.5 kHz mode split off the
     # table does not change these closed-loop replays beyond their floor -- 0.99x -- so it is no case here:
