@@ -448,10 +448,10 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         todo = []
         for k in keys:
             e = get_effect(k)
+            if hasattr(e, "bind"):
+                e.bind(ctx)          # before applicable: an effect's applicability may depend on this recording
             if k in taken or k in excl or e.kind not in ("deterministic", "integer") or e.applicable(current) is not None:
                 continue
-            if hasattr(e, "bind"):
-                e.bind(ctx)
             todo.append(e)
         return todo
 
