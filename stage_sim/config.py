@@ -82,6 +82,10 @@ class Drive(_Strict):
     noise_cutoff: Optional[Pos] = Field(None, description="noise low-pass corner [Hz]; None = white at the control rate",
                                         json_schema_extra=unit("Hz", 1e-1, 1e6))
     delay_samples: Annotated[int, _Number, Field(ge=0, le=100)] = 0
+    delay_fraction: Annotated[float, _Number, Field(ge=0, lt=1, allow_inf_nan=False)] = Field(
+        0.0, description="fractional part of the drive delay [samples]: the command of sample k acts over "
+        "[k + delay_samples + delay_fraction, k + 1 + delay_samples + delay_fraction) control periods "
+        "(exact delayed zero-order hold)")
 
     @model_validator(mode="after")
     def _limits(self):
@@ -260,11 +264,18 @@ class Simulation(_Strict):
     seed: Annotated[int, _Number, Field(ge=0)] = 0
 
 
+NO_CONTROLLER = {"rate": 10_000.0, "pid": {"kp": 0.0}}
+"""The controller of a preset that states none (a model of an open-loop record, e.g. a force-mode
+identification run): no feedback (zero command), the default rate. A closed-loop tool given such a
+preset runs its plant with zero command; the diagnosis refuses it for a record with a reference."""
+
+
 class Preset(_Strict):
     name: str
     description: str = ""
     stage: Stage
-    controller: Controller
+    controller: Controller = Field(default_factory=lambda: Controller(**NO_CONTROLLER),
+                                   description="servo controller; omitted = no feedback (a model of open-loop data)")
     dither: Optional[Dither] = None
     sai_manager: Optional[SaiManager] = None
     simulation: Simulation = Simulation()

@@ -42,8 +42,8 @@ from . import friction
 from .config import Stage
 
 # per-trial scalar state slots
-P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX = range(8)
-N_PSTATE = 8
+P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX, P_FPREV = range(9)
+N_PSTATE = 9
 # status codes returned by plant_step
 OK, DIVERGED, OUT_OF_TRAVEL = 0, 1, 2
 STATUS_TEXT = {OK: "ok", DIVERGED: "state diverged (non-finite or beyond 1e3 x travel)",
@@ -98,6 +98,8 @@ class PlantModel(NamedTuple):
     ripple: np.ndarray     # (nr, 3) position-periodic table force: amplitude [N], 2 pi/period [rad/m], phase
     periodic: np.ndarray   # (np, 3) fixed-frequency table force: amplitude [N], 2 pi f [rad/s], phase
     table_force: bool      # any of f_offset, ripple, periodic
+    delay_frac: float      # fractional drive delay [control periods] (0 = whole samples only)
+    g_prev: np.ndarray     # (n_sub, 2n) exact response of each sub-step to (previous - present) drive force
 
 
 def _variation(fr) -> np.ndarray:
@@ -127,6 +129,27 @@ def _exact_zoh_cached(a_bytes, b_bytes, shape, h):
     big[:nz, nz:] = b * h
     e = scipy.linalg.expm(big)
     return e[:nz, :nz].copy(), e[:nz, nz:].copy()
+
+
+def _delayed_zoh(a, b, h, n_sub, frac):
+    """(n_sub, 2n): exact delayed zero-order hold of the drive force. Over a control period the
+    force is the previous sample's until ``frac`` of the period, then the present one's; sub-step
+    ``i`` propagates with the present force (``phi z + gam f``) plus row ``i`` times (previous -
+    present): ``gam[:, 0]`` for a sub-step wholly before the switch, ``phi(h - t_s) gam(t_s)[:, 0]``
+    for the one the switch splits at ``t_s``, zero after it."""
+    out = np.zeros((n_sub, a.shape[0]))
+    if frac <= 0.0:
+        return out
+    ts = frac * n_sub
+    whole = int(math.floor(ts))
+    phi_h, gam_h = _exact_zoh(a, b, h)
+    out[:whole] = gam_h[:, 0]
+    rest = (ts - whole) * h
+    if whole < n_sub and rest > 0.0:
+        gam_a = _exact_zoh(a, b, rest)[1]
+        phi_b = _exact_zoh(a, b, h - rest)[0]
+        out[whole] = phi_b @ gam_a[:, 0]
+    return out
 
 
 def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
@@ -274,6 +297,7 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
         periodic=np.array([[p.amplitude, 2 * math.pi * p.frequency, p.phase] for p in stage.periodic_force],
                           float).reshape(-1, 3),
         table_force=bool(stage.force_offset != 0.0 or stage.force_ripple or stage.periodic_force),
+        delay_frac=float(d.delay_fraction), g_prev=_delayed_zoh(a, b, h, n_sub, d.delay_fraction),
     )
 
 
@@ -565,6 +589,12 @@ def plant_step(pm, st, inp, k, seeds, meas, status):
                     if a != 0.0:
                         for b in range(nb):
                             zn[r, b] += a * f[c, b]
+        # ---- fractional drive delay: the previous sample's force over the first part of the period
+        if pm.delay_frac > 0.0:
+            for b in range(nb):
+                df = ps[P_FPREV, b] - force[b]
+                for r in range(nz):
+                    zn[r, b] += pm.g_prev[sub, r] * df
         # ---- implicit laws (Coulomb: stick/slip), from the velocity the other forces give
         for e in range(nf):
             if pm.fr_implicit[e]:
@@ -595,6 +625,9 @@ def plant_step(pm, st, inp, k, seeds, meas, status):
             for r in range(nz):
                 z[r, b] = zn[r, b]
 
+    if pm.delay_frac > 0.0:
+        for b in range(nb):
+            ps[P_FPREV, b] = force[b]
     for b in range(nb):
         meas[0, b] = quantize(z[0, b], pm.q_table)
         meas[1, b] = quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
@@ -610,7 +643,7 @@ def plant_step(pm, st, inp, k, seeds, meas, status):
 
 
 @njit(cache=True, nogil=True)
-def run_open_loop(pm, st, inp, k0, seeds, meas, status, true_position, out):
+def run_open_loop(pm, st, inp, k0, seeds, meas, status, true_position, out, out_meas):
     """The one open-loop driver: the plant under given inputs for ``T`` control periods.
 
     Parameters
@@ -632,14 +665,19 @@ def run_open_loop(pm, st, inp, k0, seeds, meas, status, true_position, out):
         Record the true table position (else the measured one, as a servo would see it).
     out : ndarray, shape (T, B)
         Written: the table position at the start of each period, before its inputs act.
+    out_meas : ndarray, shape (T, B) or (0, 0)
+        Also written, unless empty: the measured position at the start of each period.
     """
     T = out.shape[0]
     none = np.zeros(0)
     ext = inp.f_ext.shape[0] > 0
+    both = out_meas.shape[0] > 0
     z = st.z
     for j in range(T):
         for b in range(out.shape[1]):
             out[j, b] = z[0, b] if true_position else meas[0, b]
+            if both:
+                out_meas[j, b] = meas[0, b]
         plant_step(pm, st, PlantInputs(_row(inp.u, j), _row(inp.d0, j), _row(inp.d1, j), _row(inp.mode, j),
                                        _row(inp.f_ext, j) if ext else none), k0 + j, seeds, meas, status)
 

@@ -83,7 +83,7 @@ def _open_loop(pm, amp, omega, n_ramp, seeds, true_position, plant, out_y, statu
             meas[0, b] = quantize(st.z[0, b], pm.q_table)
             meas[1, b] = 0.0
         inp = PlantInputs(u, np.zeros((1, nb)), np.zeros((1, nb)), np.ones((1, nb)), np.zeros((0, 0)))
-        run_open_loop(pm, st, inp, 0, seeds[c], meas, status[c], true_position, out_y[c])
+        run_open_loop(pm, st, inp, 0, seeds[c], meas, status[c], true_position, out_y[c], np.zeros((0, 0)))
 
 
 def _ramp_samples(test, f, dt):

@@ -31,7 +31,8 @@ import numpy as np
 from numba import njit
 
 from stage_sim import friction
-from stage_sim.plant import OK, PlantInputs, PlantModel, PlantState, init_plant_state, plant_step, run_open_loop
+from stage_sim.plant import (OK, PlantInputs, PlantModel, PlantState, init_plant_state, plant_step, quantize,
+                             run_open_loop)
 
 __all__ = ["observer_model", "observe", "open_loop", "new_state", "friction_norm"]
 
@@ -63,7 +64,8 @@ def observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every,
 
     ``inp``: :class:`stage_sim.plant.PlantInputs` over the record, (T, B) each: the recorded
     command [N], piezo dither forces [N] and SAI solenoid command (1 compliant, 0 stiff); its
-    ``f_ext`` is unused (the tracking force takes its place). ``ys, vs``: (T, B) smoothed
+    ``f_ext`` (T, B) is the known external table force [N] (``/stage/external_force``), applied
+    with the tracking force, or empty (0, 0) for none. ``ys, vs``: (T, B) smoothed
     measured position [m] and velocity [m/s]. ``st``: plant state
     (:class:`stage_sim.plant.PlantState`, at rest at ``ys[0]``). Writes ``out_d`` (force residual [N]), ``out_x``, ``out_v`` (observer position
     and velocity), ``out_phi`` (normalised table friction state), and every ``snap_every``
@@ -79,6 +81,8 @@ def observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every,
     ki = m_eff * omega * omega * omega
     integ = np.zeros(B)
     d = np.zeros(B)
+    dk = np.zeros(B)
+    known = inp.f_ext.shape[0] > 0
     seeds = np.zeros(B, np.int64)
     meas = np.zeros((2, B))
     status = np.zeros(B, np.int64)
@@ -95,11 +99,12 @@ def observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every,
             ev = vs[k, b] - z[n, b]
             integ[b] += ki * dt * e
             d[b] = kp * e + kd * ev + integ[b]
+            dk[b] = d[b] + inp.f_ext[k, b] if known else d[b]
             out_d[k, b] = d[b]
             out_x[k, b] = z[0, b]
             out_v[k, b] = z[n, b]
             out_phi[k, b] = friction_norm(pm, z, fr, b, fc_tot)
-        plant_step(pm, st, PlantInputs(inp.u[k], inp.d0[k], inp.d1[k], inp.mode[k], d), k, seeds, meas, status)
+        plant_step(pm, st, PlantInputs(inp.u[k], inp.d0[k], inp.d1[k], inp.mode[k], dk), k, seeds, meas, status)
         for b in range(B):
             if status[b] != OK:
                 bad += 1
@@ -107,13 +112,23 @@ def observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every,
     return bad
 
 
-def open_loop(pm, inp, k0, st, out_x):
+def open_loop(pm, inp, k0, st, out_x, seeds=None, out_y=None) -> int:
     """Open loop from sample ``k0``: column ``w`` is driven by the inputs ``inp`` (a
-    :class:`stage_sim.plant.PlantInputs` of (length, W) arrays, no ``f_ext``) from the state
-    ``st`` (column ``w``); writes the true table position into ``out_x`` (length, W).
-    The plant's open-loop driver :func:`stage_sim.plant.run_open_loop`, noise-free."""
+    :class:`stage_sim.plant.PlantInputs` of (length, W) arrays; ``f_ext`` the known external
+    table force (length, W), or empty (0, 0) for none) from the state ``st`` (column ``w``);
+    writes the true table position into ``out_x`` (length, W) and, if given, the measurement
+    (the sensor's, quantized) into ``out_y``. ``seeds`` (W,): the noise seeds of a plant model
+    with noise (a simulated recording; zeros by default). The plant's open-loop driver
+    :func:`stage_sim.plant.run_open_loop`. Returns the number of columns that diverged or left
+    the travel."""
     W = out_x.shape[1]
-    run_open_loop(pm, st, inp, k0, np.zeros(W, np.int64), np.zeros((2, W)), np.zeros(W, np.int64), True, out_x)
+    seeds = np.zeros(W, np.int64) if seeds is None else np.asarray(seeds, np.int64)
+    meas = np.zeros((2, W))
+    meas[0] = [quantize(x, pm.q_table) for x in st.z[0]]
+    status = np.zeros(W, np.int64)
+    run_open_loop(pm, st, inp, k0, seeds, meas, status, True, out_x,
+                  np.zeros((0, 0)) if out_y is None else out_y)
+    return int(np.count_nonzero(status != OK))
 
 
 def new_state(pm: PlantModel, x0, sai_mode: float = 1.0) -> PlantState:
