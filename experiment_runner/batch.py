@@ -1,6 +1,6 @@
 """Batch engine: many closed-loop trials of one preset as a single compiled loop.
 
-Each control sample ``k`` runs, in this order (the ROS graph uses the same order
+Each control sample ``k`` runs, in this order (written once, in :func:`_run`; the ROS graph uses the same order
 and the same compiled step functions, so both give identical trajectories):
 
 1. the SAI manager reads the reference (and its look-ahead) -> isolator mode and
@@ -26,8 +26,8 @@ from stage_control.dither import build_dither, dither_step, init_dither_state
 from stage_control.sai import build_sai, init_sai_state, sai_step
 from stage_control.servo import build_servo, init_servo_state, servo_step
 from stage_sim.config import Dither, Preset, SaiManager
-from stage_sim.plant import (OK, STATUS_TEXT, PlantModel, PlantState, SimulationError, quantize, build_plant,
-                             init_plant_state, plant_step)
+from stage_sim.plant import (OK, STATUS_TEXT, PlantInputs, PlantModel, PlantState, SimulationError, build_plant,
+                             chunk_state, init_plant_state, plant_step, quantize, state_chunk)
 
 
 class InitialState(NamedTuple):
@@ -109,57 +109,65 @@ class BatchResult:
 
 
 @njit(cache=True, parallel=True)
-def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction,
-         z, fr, ps, dbuf, f, zn, force, ss, ds, sa,
+def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction, plant, ss, ds, sa,
          o_xr, o_y, o_yb, o_u, o_xt, o_xb, o_d0, o_d1, o_mode, status, fail):
-    """Closed loop over time for each chunk of trials; arrays are (chunk, ..., trial)."""
-    n_chunks, n_steps, nb = x_ref.shape
-    for c in prange(n_chunks):
-        # per-chunk views, hoisted out of the time loop
-        zc, frc, psc, dbc, fc, znc, forc = z[c], fr[c], ps[c], dbuf[c], f[c], zn[c], force[c]
-        ssc, dsc, sac, st, seed = ss[c], ds[c], sa[c], status[c], seeds[c]
-        xrc, vrc = x_ref[c], v_ref[c]
-        meas = np.empty((2, nb))
-        y = np.empty(nb)
-        dout = np.zeros((2, nb))
-        d0 = np.zeros(nb)
-        d1 = np.zeros(nb)
-        u = np.zeros(nb)
-        mode = np.zeros(nb)
-        xc = np.zeros(nb)
-        xr = np.zeros(nb)
-        vr = np.zeros(nb)
-        va = np.zeros(nb)
+    """The trials in chunks, one chunk per task (``prange``); arrays are (chunk, ..., trial),
+    ``plant`` a chunked :class:`~stage_sim.plant.PlantState`."""
+    for c in prange(x_ref.shape[0]):
+        _run_chunk(pm, sm, dm, am, lead, x_ref[c], v_ref[c], seeds[c], correction, state_chunk(plant, c),
+                   ss[c], ds[c], sa[c], o_xr[c], o_y[c], o_yb[c], o_u[c], o_xt[c], o_xb[c], o_d0[c], o_d1[c],
+                   o_mode[c], status[c], fail[c])
+
+
+@njit(cache=True, error_model="numpy")
+def _run_chunk(pm, sm, dm, am, lead, xrc, vrc, seed, correction, pc, ssc, dsc, sac,
+               o_xr, o_y, o_yb, o_u, o_xt, o_xb, o_d0, o_d1, o_mode, st, fail):
+    """Closed loop over time for one chunk of trials: the step order SAI -> dither -> servo ->
+    plant, written once; arrays are (..., trial), outputs (sample, trial)."""
+    n_steps, nb = xrc.shape
+    zc = pc.z
+    meas = np.empty((2, nb))
+    y = np.empty(nb)
+    dout = np.zeros((2, nb))
+    d0 = np.zeros(nb)
+    d1 = np.zeros(nb)
+    u = np.zeros(nb)
+    mode = np.zeros(nb)
+    xc = np.zeros(nb)
+    xr = np.zeros(nb)
+    vr = np.zeros(nb)
+    va = np.zeros(nb)
+    inp = PlantInputs(u, d0, d1, mode, np.zeros(0))
+    for b in range(nb):
+        meas[0, b] = quantize(zc[0, b], pm.q_table)
+        meas[1, b] = quantize(zc[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
+    for k in range(n_steps):
+        ka = min(k + lead, n_steps - 1)
         for b in range(nb):
-            meas[0, b] = quantize(zc[0, b], pm.q_table)
-            meas[1, b] = quantize(zc[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
-        for k in range(n_steps):
-            ka = min(k + lead, n_steps - 1)
-            for b in range(nb):
-                vr[b] = vrc[k, b]
-                va[b] = vrc[ka, b]
-            sai_step(am, sac, correction, k, vr, va, mode, xc)
-            for b in range(nb):
-                xr[b] = xrc[k, b] + xc[b]
-                y[b] = meas[0, b]
-            dither_step(dm, dsc, k, xr, vr, y, dout)
-            servo_step(sm, ssc, xr, vr, y, u)
-            for b in range(nb):
-                d0[b] = dout[0, b]
-                d1[b] = dout[1, b]
-                o_xr[c, k, b] = xr[b]
-                o_y[c, k, b] = y[b]
-                o_yb[c, k, b] = meas[1, b]
-                o_u[c, k, b] = u[b]
-                o_xt[c, k, b] = zc[0, b]
-                o_xb[c, k, b] = zc[pm.bear_dof, b]
-                o_d0[c, k, b] = d0[b]
-                o_d1[c, k, b] = d1[b]
-                o_mode[c, k, b] = mode[b]
-            plant_step(pm, zc, frc, psc, dbc, fc, znc, forc, u, d0, d1, mode, k, seed, meas, st)
-            for b in range(nb):
-                if st[b] != OK and fail[c, b] < 0:
-                    fail[c, b] = k
+            vr[b] = vrc[k, b]
+            va[b] = vrc[ka, b]
+        sai_step(am, sac, correction, k, vr, va, mode, xc)
+        for b in range(nb):
+            xr[b] = xrc[k, b] + xc[b]
+            y[b] = meas[0, b]
+        dither_step(dm, dsc, k, xr, vr, y, dout)
+        servo_step(sm, ssc, xr, vr, y, u)
+        for b in range(nb):
+            d0[b] = dout[0, b]
+            d1[b] = dout[1, b]
+            o_xr[k, b] = xr[b]
+            o_y[k, b] = y[b]
+            o_yb[k, b] = meas[1, b]
+            o_u[k, b] = u[b]
+            o_xt[k, b] = zc[0, b]
+            o_xb[k, b] = zc[pm.bear_dof, b]
+            o_d0[k, b] = d0[b]
+            o_d1[k, b] = d1[b]
+            o_mode[k, b] = mode[b]
+        plant_step(pm, pc, inp, k, seed, meas, st)
+        for b in range(nb):
+            if st[b] != OK and fail[b] < 0:
+                fail[b] = k
 
 
 def _chunked(a, n_chunks, size):
@@ -225,8 +233,7 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     size = -(-n_trials // n_chunks)
     pm = models.plant
     init = models.initial_state(_chunked(x_ref[:, 0], 1, n_chunks * size)[0])
-    plant = [np.ascontiguousarray(np.moveaxis(a.reshape(a.shape[:-1] + (n_chunks, size)), -2, 0))
-             for a in init.plant]
+    plant = chunk_state(init.plant, n_chunks)
     T = x_ref.shape[1]
     states = [np.ascontiguousarray(np.moveaxis(a.reshape(-1, n_chunks, size), 1, 0))
               for a in (init.servo, init.dither, init.sai)]
@@ -235,7 +242,7 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     fail = -np.ones((n_chunks, size), np.int64)
     _run(pm, models.servo, models.dither, models.sai, models.lead,
          _chunked(x_ref, n_chunks, size), _chunked(v_ref, n_chunks, size),
-         _chunked(seeds, n_chunks, size), corr, *plant, *states, *outs, status, fail)
+         _chunked(seeds, n_chunks, size), corr, plant, *states, *outs, status, fail)
     xr, y, yb, u, xt, xb, d0, d1, mode = (_unchunked(o, n_trials) for o in outs)
     res = BatchResult(t=np.arange(T) / preset.controller.rate, x_ref=xr, x_correction=xr - x_ref,
                       v_ref=np.asarray(v_ref),

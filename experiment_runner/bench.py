@@ -1,7 +1,8 @@
 """``nanostage bench``: speed of the simulation core (never a pass/fail test).
 
 Reports simulated seconds per wall-clock second for one FI-stage point-to-point
-trajectory and for a batch of 100 such trials (on one core, and on all cores),
+trajectory and for a batch of 100 such trials (on one core, and on all cores; the one-core
+figures also per CPU second, ``core_*_rtf_cpu``, which a loaded machine disturbs less),
 at the preset's control rate with the sub-steps the integrator needs
 (``core_substeps_per_sample``; ``core_ns_per_substep_per_trial`` is the one-core batch's
 wall time per sub-step and trial), plus the process's peak resident memory.
@@ -10,8 +11,12 @@ wall time per sub-step and trial), plus the process's peak resident memory.
 time of ``nanostage campaign --main`` in a temporary folder, with the CLI's default workers.
 
 ``campaign_trials_per_s_1`` / ``_2``: Table 4.2 campaign trials (both cases, both step
-sizes, 1 s dwell, no calibration) per wall-clock second in this process and on two local
-worker processes (:func:`campaign_trials_per_s`).
+sizes, 1 s dwell, no calibration) per wall-clock second on one worker (this process) and on
+two local worker processes, each worker with half the cores (:func:`campaign_trials_per_s`),
+so that ``campaign_scale_out_2`` = ``_2 / _1`` is the scale-out from one worker to two;
+``campaign_trials_per_s_dask_2``: the same two workers as a Dask ``LocalCluster``;
+``campaign_trials_per_s_all_cores_1``: this process with every core (numba threads), as
+``nanostage campaign --workers 1`` runs.
 
 ``diagnose_seconds_10s``: wall time of ``nanostage diagnose`` (reading the MCAP file
 included) on a 10 s, 10 kHz synthetic recording with one concealed effect
@@ -35,24 +40,67 @@ import json
 import resource
 import tempfile
 import time
+from contextlib import ExitStack
 from pathlib import Path
+from typing import Optional
 
 import numba
 import numpy as np
 
 from experiment_runner.batch import Models, simulate
+from experiment_runner.campaigns.runner import main_job
+from experiment_runner.campaigns.spec import Campaign, case_preset, conditions, load_campaign
+from experiment_runner.campaigns.stream import TrialStream, code_fingerprint, run_trial_jobs
+from experiment_runner.executor import cpu_count, local_cluster, make_executor
 from experiment_runner.profiles import point_to_point
 from stage_sim.config import load_preset
 
 
-def _rtf(preset, ref, n_trials, models, repeats):
-    """Best-of-``repeats`` aggregated real-time factor (simulated s / wall s)."""
+def _rtf(preset, ref, n_trials, models, repeats, clock=time.perf_counter):
+    """Best-of-``repeats`` aggregated real-time factor (simulated s / ``clock`` s: wall time, or
+    with ``time.process_time`` the process's CPU time, which a loaded machine disturbs less)."""
     best = np.inf
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = clock()
         simulate(preset, ref.x, ref.v, n_trials=n_trials, models=models)
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, clock() - t0)
     return n_trials * ref.t[-1] / best
+
+
+def core_figures(quick: bool = False) -> dict:
+    """The ``core_*`` figures: FI-stage point-to-point (5 mm), one trial and 100 trials on one
+    core (per wall and per CPU second), 100 trials on all cores, the sub-steps per sample and the
+    wall time per sub-step and trial."""
+    preset = load_preset("fi_stage")
+    models = Models.from_preset(preset)
+    ref = point_to_point(5e-3, dt=1.0 / preset.controller.rate)
+    simulate(preset, ref.x, ref.v, n_trials=2, models=models)          # compile / load cache
+    repeats = 2 if quick else 5
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        single = _rtf(preset, ref, 1, models, repeats)
+        single_cpu = _rtf(preset, ref, 1, models, repeats, time.process_time)
+        batch_one_core = _rtf(preset, ref, 100, models, max(1, repeats // 2))
+        batch_cpu = _rtf(preset, ref, 100, models, max(1, repeats // 2), time.process_time)
+    finally:
+        numba.set_num_threads(threads)
+    batch_all = _rtf(preset, ref, 100, models, max(1, repeats // 2))
+    return {
+        "core_single_rtf": round(single, 1),
+        "core_batch_rtf": round(batch_one_core, 1),
+        "core_single_rtf_cpu": round(single_cpu, 1),
+        "core_batch_rtf_cpu": round(batch_cpu, 1),
+        "core_batch_rtf_all_cores": round(batch_all, 1),
+        "cores": threads,
+        # the distance to the limit: sub-steps the integrator needs per control sample, and
+        # the wall time of one sub-step of one trial in the one-core batch
+        "core_substeps_per_sample": models.plant.n_sub,
+        "core_ns_per_substep_per_trial": round(1e9 / (preset.controller.rate * batch_one_core
+                                                      * models.plant.n_sub), 1),
+        "control_rate_hz": preset.controller.rate,
+        "trajectory_s": round(float(ref.t[-1]), 4),
+    }
 
 
 def run_graph_bench(quick: bool = False) -> dict:
@@ -97,27 +145,44 @@ def run_graph_bench(quick: bool = False) -> dict:
     }
 
 
-def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table_4_2") -> float:
-    """Campaign trials per wall-clock second on ``workers`` local processes (1: in this process),
-    as ``nanostage campaign --workers`` runs them: chunks on the executor, metrics streamed to
-    disk (:func:`experiment_runner.stream.run_trials`); every case and condition of ``campaign``
-    with ``trials`` trials each, no calibration. The pool is started and warm (numba kernels
-    loaded, models built) before the clock starts."""
-    from experiment_runner.campaign import Campaign, case_preset, conditions, load_campaign
-    from experiment_runner.executor import make_executor
-    from experiment_runner.stream import TrialStream, code_fingerprint, run_trials
+def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table_4_2", *, dask: bool = False,
+                          threads: Optional[int] = None) -> float:
+    """Campaign trials per wall-clock second on ``workers`` workers, as ``nanostage campaign`` runs
+    them: chunks of all cases and conditions on one executor, metrics streamed to disk
+    (:func:`experiment_runner.campaigns.stream.run_trial_jobs`); ``trials`` trials of every case and
+    condition of ``campaign``, no calibration. The workers are started and warm (numba kernels
+    loaded, models built) before the clock starts.
+
+    Parameters
+    ----------
+    workers : int
+        1: in this process; more: a local process pool (or, with ``dask``, a Dask ``LocalCluster``)
+        of that many worker processes.
+    threads : int, optional
+        Numba threads per worker in this process or on Dask (default, and always on a process pool: the
+        cores shared out, ``cores // workers``).
+    """
+    threads = threads or max(1, cpu_count() // workers)
     camp = load_campaign(campaign)
-    jobs = [(c, cond, case_preset(camp, c, None, cond)) for c in camp.cases for cond in conditions(camp)]
+    jobs = [(c, cond, case_preset(camp, c, None, cond), None) for c in camp.cases for cond in conditions(camp)]
     timed = Campaign.model_validate({**camp.model_dump(), "trials": trials})
     warm = Campaign.model_validate({**camp.model_dump(), "trials": 2 * workers})
-    with make_executor(workers) as ex, tempfile.TemporaryDirectory() as tmp:
-        with TrialStream(Path(tmp) / "warm.jsonl", camp.name, "warm-up", code_fingerprint(), resume=False) as stream:
-            for case, cond, preset in jobs:
-                run_trials(warm, case, cond, preset, None, ex, stream, chunk=1)
-        with TrialStream(Path(tmp) / "timed.jsonl", camp.name, "timed", code_fingerprint(), resume=False) as stream:
+    with ExitStack() as stack:
+        if dask:
+            ex = stack.enter_context(make_executor(cluster=stack.enter_context(local_cluster(workers, threads))))
+        elif workers == 1:
+            before = numba.get_num_threads()
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            stack.callback(numba.set_num_threads, before)
+            ex = stack.enter_context(make_executor(1))
+        else:
+            ex = stack.enter_context(make_executor(workers))
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory()))
+        with TrialStream(tmp / "warm.jsonl", camp.name, "warm-up", code_fingerprint(), resume=False) as stream:
+            run_trial_jobs(warm, jobs, ex, stream, chunk=1)
+        with TrialStream(tmp / "timed.jsonl", camp.name, "timed", code_fingerprint(), resume=False) as stream:
             t0 = time.perf_counter()
-            for case, cond, preset in jobs:
-                run_trials(timed, case, cond, preset, None, ex, stream)
+            run_trial_jobs(timed, jobs, ex, stream)
             wall = time.perf_counter() - t0
     return len(jobs) * trials / wall
 
@@ -125,8 +190,6 @@ def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table
 def main_job_seconds() -> float:
     """Wall time [s] of the README's main job (``nanostage campaign --main``: calibration,
     every trial, the graph runs, report and plots) in a temporary folder."""
-    from experiment_runner.campaign import main_job
-    from experiment_runner.executor import cpu_count
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         main_job(tmp, progress=False, resume=False, workers=cpu_count())     # as the CLI runs it
@@ -134,35 +197,16 @@ def main_job_seconds() -> float:
 
 
 def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, main_job: bool = False) -> int:
-    preset = load_preset("fi_stage")
-    models = Models.from_preset(preset)
-    ref = point_to_point(5e-3, dt=1.0 / preset.controller.rate)
-    simulate(preset, ref.x, ref.v, n_trials=2, models=models)          # compile / load cache
-    repeats = 2 if quick else 5
-    threads = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        single = _rtf(preset, ref, 1, models, repeats)
-        batch_one_core = _rtf(preset, ref, 100, models, max(1, repeats // 2))
-    finally:
-        numba.set_num_threads(threads)
-    batch_all = _rtf(preset, ref, 100, models, max(1, repeats // 2))
-    result = {
-        "core_single_rtf": round(single, 1),
-        "core_batch_rtf": round(batch_one_core, 1),
-        "core_batch_rtf_all_cores": round(batch_all, 1),
-        "cores": threads,
-        # the distance to the limit: sub-steps the integrator needs per control sample, and
-        # the wall time of one sub-step of one trial in the one-core batch
-        "core_substeps_per_sample": models.plant.n_sub,
-        "core_ns_per_substep_per_trial": round(1e9 / (preset.controller.rate * batch_one_core
-                                                      * models.plant.n_sub), 1),
-        "control_rate_hz": preset.controller.rate,
-        "trajectory_s": round(float(ref.t[-1]), 4),
-        "peak_memory_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
-    }
+    result = core_figures(quick)
+    result["peak_memory_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+    threads = result["cores"]
+    n_camp = 12 if quick else 40
+    half = max(1, threads // 2)                # one worker of the two gets half the cores
     for w in (1, 2):
-        result[f"campaign_trials_per_s_{w}"] = round(campaign_trials_per_s(w, 12 if quick else 40), 1)
+        result[f"campaign_trials_per_s_{w}"] = round(campaign_trials_per_s(w, n_camp, threads=half), 1)
+    result["campaign_scale_out_2"] = round(result["campaign_trials_per_s_2"] / result["campaign_trials_per_s_1"], 2)
+    result["campaign_trials_per_s_dask_2"] = round(campaign_trials_per_s(2, n_camp, dask=True, threads=half), 1)
+    result["campaign_trials_per_s_all_cores_1"] = round(campaign_trials_per_s(1, n_camp, threads=threads), 1)
     from experiment_runner.diagnosis.selftest import diagnose_seconds
     result["diagnose_seconds_10s"] = round(diagnose_seconds(10.0), 1)
     if graph:

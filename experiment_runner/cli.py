@@ -1,9 +1,24 @@
-"""``nanostage`` command line: one entry point, one subcommand per job."""
+"""``nanostage`` command line: one entry point, one subcommand per job.
+
+Bad input has one path: a command raises :data:`USER_ERRORS` (a configuration, recording,
+design or missing-data error naming the file, field, value and what is allowed) or exits with
+a message (``SystemExit("...")``); :func:`main` prints ``nanostage COMMAND: message`` and
+returns 2, never a traceback. Bad arguments are argparse's one-line error (exit 2).
+"""
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+from experiment_runner.design import DesignError
+from experiment_runner.diagnosis.realdata import DataMissing
+from experiment_runner.recording import RecordingError
+from stage_sim.config import ConfigError
+
+USER_ERRORS = (ConfigError, RecordingError, DesignError, DataMissing)
+"""Exceptions that are the user's input, not a fault of nanostage: a message and exit 2."""
 
 
 def _paper(args):
@@ -23,7 +38,7 @@ def _graph(args):
             print(f"{name:20s} {load_experiment(name).description}")
         return 0
     if not args.experiment:
-        raise SystemExit("nanostage graph: give an EXPERIMENT (name or YAML path), or --list")
+        raise ConfigError("give an EXPERIMENT (name or YAML path), or --list")
     from pathlib import Path
 
     from experiment_runner.graph import run_graph
@@ -47,7 +62,7 @@ MODULE_COMMANDS = [
     ("replay", "republish a recording on its topics with /clock (like ros2 bag play)",
      "experiment_runner.replay", "add_replay_arguments", "main_replay"),
     ("campaign", "the seed's experiments as campaigns: calibrate, simulate, report",
-     "experiment_runner.campaign", "add_campaign_arguments", "main_campaign"),
+     "experiment_runner.campaigns.cli", "add_campaign_arguments", "main_campaign"),
     ("diagnose", "locate, name and fit what a nominal model misses in a recording",
      "experiment_runner.diagnosis.cli", "add_diagnose_arguments", "main_diagnose"),
     ("synth", "simulate an experiment on a concealed truth into a recording",
@@ -104,19 +119,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    """Run one ``nanostage`` subcommand; a bad input file or recording prints its error (exit 2)."""
-    from experiment_runner.recording import RecordingError
-    from stage_sim.config import ConfigError
+    """Run one ``nanostage`` subcommand; bad input prints its message (exit 2, see the module docstring)."""
     args = build_parser().parse_args(argv)
+    prefix = f"nanostage {args.command}: "
     try:
         return int(args.func(args) or 0)
-    except (ConfigError, RecordingError) as err:
-        print(f"nanostage {args.command}: {err}", file=sys.stderr)
+    except USER_ERRORS as err:
+        print(f"{prefix}{err}", file=sys.stderr)
+        return 2
+    except SystemExit as err:
+        if not isinstance(err.code, str):          # an exit status (argparse's is 2): keep it
+            raise
+        print(err.code if err.code.startswith(prefix) else prefix + err.code, file=sys.stderr)
         return 2
     except BrokenPipeError:
         # the reader of our output went away (``nanostage presets | head``): not an error of ours;
         # point stdout at devnull so the interpreter's final flush does not fail again
-        import os
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141                        # 128 + SIGPIPE, as a shell reports it
 

@@ -832,33 +832,29 @@ def _overridden(p: Preset, sets) -> Preset:
 
 def main_design(args) -> int:
     """Run ``nanostage design``: 0 = a design meets the requirement / VAN passes, 1 = none does /
-    VAN fails, 2 = bad input."""
+    VAN fails; bad input raises :class:`DesignError` / ``ConfigError`` (the CLI's message, exit 2)."""
     import sys
-    try:
-        p = _overridden(_preset(args.preset), args.set)
-        van_mode = args.van or p.dither is not None
-        if not van_mode:
-            if args.rms is None:
-                raise DesignError("give the required RMS in-position error: --rms NM")
-            if not (math.isfinite(args.rms) and args.rms > 0):
-                raise DesignError(f"--rms {args.rms:g}: must be > 0 [nm]")
-            if args.trials < 1 or args.dwell <= 0 or args.step_um == 0:
-                raise DesignError("--trials must be >= 1, --dwell > 0 and --step-um nonzero")
-            lumped_stage(p)
-        out = Path(args.out or f"out/design/{p.name}")
-        progress = None if args.json else (lambda s: print(s, file=sys.stderr))
-        advice = van = None
-        if van_mode:
-            if args.rms is not None:
-                print("nanostage design: --rms is not used by the VAN check", file=sys.stderr)
-            van = check_van(p, v_pp=args.vpp)
-        else:
-            advice = advise_isolator(p, args.rms * 1e-9, step=args.step_um * 1e-6, grid=args.grid,
-                                     n_trials=args.trials, dwell=args.dwell, progress=progress,
-                                     workers=args.workers, cluster=args.cluster)
-    except (ConfigError, DesignError) as err:
-        print(f"nanostage design: {err}", file=sys.stderr)
-        return 2
+    p = _overridden(_preset(args.preset), args.set)
+    van_mode = args.van or p.dither is not None
+    if not van_mode:
+        if args.rms is None:
+            raise DesignError("give the required RMS in-position error: --rms NM")
+        if not (math.isfinite(args.rms) and args.rms > 0):
+            raise DesignError(f"--rms {args.rms:g}: must be > 0 [nm]")
+        if args.trials < 1 or args.dwell <= 0 or args.step_um == 0:
+            raise DesignError("--trials must be >= 1, --dwell > 0 and --step-um nonzero")
+        lumped_stage(p)
+    out = Path(args.out or f"out/design/{p.name}")
+    progress = None if args.json else (lambda s: print(s, file=sys.stderr))
+    advice = van = None
+    if van_mode:
+        if args.rms is not None:
+            print("nanostage design: --rms is not used by the VAN check", file=sys.stderr)
+        van = check_van(p, v_pp=args.vpp)
+    else:
+        advice = advise_isolator(p, args.rms * 1e-9, step=args.step_um * 1e-6, grid=args.grid,
+                                 n_trials=args.trials, dwell=args.dwell, progress=progress,
+                                 workers=args.workers, cluster=args.cluster)
     files = write_report(out, advice, van, plots=not args.no_plots, overrides=args.set)
     if args.json:
         print(Path(files["json"]).read_text())

@@ -1,6 +1,6 @@
 """Where independent tasks run: in this process, on a local process pool, or on Dask.
 
-Campaign trial chunks (:mod:`experiment_runner.stream`), design sweeps and diagnosis
+Campaign trial chunks (:mod:`experiment_runner.campaigns.stream`), design sweeps and diagnosis
 candidate fits are lists of independent tasks: a plain, picklable, module-level function
 called with small arguments (preset JSON, trial indices, seeds, parameter values).
 :func:`make_executor` returns one object with one method, :meth:`Executor.map`, that runs
@@ -41,9 +41,11 @@ import threading
 import time
 from typing import Callable, Hashable, Iterable, Iterator, Optional
 
+import numba
+
 from stage_sim.config import ConfigError
 
-__all__ = ["Executor", "make_executor", "cpu_count"]
+__all__ = ["Executor", "make_executor", "local_cluster", "cpu_count"]
 
 Task = tuple[Hashable, tuple]
 """A task: its id (any hashable, e.g. ``(case, condition, first_trial)``) and the positional
@@ -58,10 +60,19 @@ def cpu_count() -> int:
         return os.cpu_count() or 1
 
 
+_THREADS: Optional[int] = None
+"""Numba threads of this worker's tasks (set at its start-up)."""
+
+
 def _set_numba_threads(threads: int) -> None:
-    """Worker start-up: numba threads of this process (pool initializer, Dask ``client.run``)."""
-    import numba
-    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    """Worker start-up: numba threads of this process's tasks (pool initializer, Dask ``client.run``).
+
+    Numba's thread count is per calling thread: a pool worker runs its tasks in the thread that
+    ran the initializer, a Dask worker in threads of its own, so :func:`_locked_call` applies
+    :data:`_THREADS` again in the thread that runs the task."""
+    global _THREADS
+    _THREADS = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(_THREADS)
 
 
 def _pool_worker_init(threads: int, parent: int) -> None:
@@ -81,8 +92,12 @@ _TASK_LOCK = threading.Lock()
 
 
 def _locked_call(fn: Callable, args: tuple):
-    """Run ``fn(*args)`` holding this process's task lock (Dask workers with several threads)."""
+    """Run ``fn(*args)`` holding this process's task lock (Dask workers with several threads), with
+    the worker's numba threads (not the default of every core: two workers of one thread each
+    on two cores would otherwise run four numba threads)."""
     with _TASK_LOCK:
+        if _THREADS is not None:
+            numba.set_num_threads(_THREADS)
         return fn(*args)
 
 
@@ -155,6 +170,15 @@ class Executor:
             for fut in pending:
                 fut.cancel()
 
+    def warm(self, fn: Callable, args: tuple) -> None:
+        """Start ``fn(*args)`` once per worker and return at once (the local pool only): the workers
+        are spawned, import their modules and load their compiled kernels while this process does
+        other work (a campaign's calibration); results and errors are dropped (the real tasks meet
+        any error again)."""
+        if self.kind == "processes":
+            for _ in range(self.workers):
+                self._pool.submit(fn, *args)
+
     def close(self) -> None:
         """Stop the pool / disconnect from Dask (a cluster passed in stays up)."""
         if self._pool is not None:
@@ -213,6 +237,30 @@ def add_executor_arguments(parser, what: str, workers_default: Optional[int] = N
                         help=f"local worker processes for the {what} ({workers_help})")
     parser.add_argument("--cluster", default=None, metavar="ADDRESS",
                         help=f"Dask scheduler address (e.g. tcp://host:8786) to run the {what} on")
+
+
+WORKER_CONFIG = {
+    # the worker's statistical profiler samples every thread's stack every 10 ms: a few % to tens of %
+    # of a task that spends its time in Python and numba calls
+    "distributed.worker.profile.enabled": False,
+    # the nanny's default environment minus MALLOC_TRIM_THRESHOLD_=65536, which returns freed memory
+    # to the system at once: every simulate() then page-faults its trajectory buffers in again
+    "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1},
+}
+"""Dask configuration of the workers that run the trials (:func:`local_cluster`). Measured on 2
+cores: a chunk of 10 Table 4.2 trials took ~2x as long on a default ``LocalCluster`` worker as on
+a pool worker, about the same with this. Workers of a cluster of your own: start them with the
+same settings (``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False`` in their environment, and
+``MALLOC_TRIM_THRESHOLD_`` not set by their nanny)."""
+
+
+def local_cluster(workers: int, threads: int = 1):
+    """A Dask ``LocalCluster`` of ``workers`` processes with ``threads`` threads each, configured
+    with :data:`WORKER_CONFIG`; use as a context manager, pass it as ``cluster``."""
+    import dask
+    from distributed import LocalCluster
+    with dask.config.set(WORKER_CONFIG):
+        return LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True, dashboard_address=None)
 
 
 def make_executor(workers: Optional[int] = None, cluster=None) -> Executor:

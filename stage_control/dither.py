@@ -122,7 +122,7 @@ def init_dither_state(model: DitherModel, n_trials: int) -> np.ndarray:
     return np.zeros((model.n_state, int(n_trials)))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def dither_step(model, state, k, x_ref, v_ref, x_meas, out):
     """One sample of the dither generator and HC controller for every trial of a batch.
 

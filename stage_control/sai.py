@@ -70,7 +70,7 @@ def init_sai_state(model: SaiModel, n_trials: int) -> np.ndarray:
     return np.zeros((model.n_state, int(n_trials)))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def sai_step(model, state, correction, k, v_ref, v_ref_ahead, mode_out, xc_out):
     """One sample of the SAI switch manager for every trial of a batch.
 

@@ -18,7 +18,8 @@ Design choices
 * DOB filters ``Q G_n^-1`` and ``Q`` (Eq. C.1, C.2): Tustin. ``Q`` is fed the command
   *applied at the previous sample*: ``x_meas[k]`` only reflects commands up to ``k-1``
   (zero-order hold), so this aligns both paths and avoids an algebraic loop.
-* Feedforward (Fig. 4.15): the Dahl or GMS model of ``Feedforward.friction`` (stiffnesses
+* Feedforward (Fig. 4.15): the rate-independent law (Dahl, GMS: ``FEEDFORWARD`` in
+  :mod:`stage_sim.friction`) of ``Feedforward.friction`` (stiffnesses
   scaled by ``1 + stiffness_error``) is driven by the increments of ``x_ref``; its force
   ``F`` plus ``viscous * v_ref`` is *added* to the command (the stage feels ``-F``).
 * NIASA (Eq. A.1): ``K_I = (k_sigma (1 - F_hat/F_c sgn(xdot)) + kp)/tau_d`` replaces
@@ -45,8 +46,9 @@ import numpy as np
 from numba import njit
 
 from stage_control.filters import dc_state, discretize, realize, ss_coefficients
-from stage_sim.config import Controller, DahlFriction, GmsFriction, Stage
-from stage_sim.friction import dahl_update, gms_block
+from stage_sim import friction
+from stage_sim.config import Controller, Stage
+from stage_sim.friction import dahl_update
 
 __all__ = ["ServoModel", "build_servo", "check_reference", "init_servo_state", "servo_step"]
 
@@ -56,7 +58,8 @@ SERVO_U_PREV, SERVO_XREF_PREV, SERVO_XMEAS_PREV = 7, 8, 9
 SERVO_NIASA_DIR, SERVO_NIASA_F = 10, 11
 SERVO_FF = 12
 
-FF_NONE, FF_DAHL, FF_GMS = 0, 1, 2
+FF_NONE = 0
+"""``ServoModel.ff_kind`` without feedforward; else the law's id (:func:`stage_sim.friction.kind`)."""
 
 
 class ServoModel(NamedTuple):
@@ -94,11 +97,8 @@ class ServoModel(NamedTuple):
     q_c0: float
     q_c1: float
     q_d: float
-    ff_kind: int              # FF_NONE / FF_DAHL / FF_GMS
-    ff_k: np.ndarray          # Dahl k_sigma (1,) or GMS k_i [N/m]
-    ff_alpha: np.ndarray      # GMS alpha_i [-]
-    ff_fc: float              # Coulomb force [N]
-    ff_shape: float           # Dahl shape factor [-]
+    ff_kind: int              # FF_NONE or the feedforward law's id (stage_sim.friction.kind)
+    ff_par: np.ndarray        # the law's parameter row (law.params), stiffness error applied
     ff_viscous: float         # [N s/m]
     n_ff: int                 # feedforward state slots
     niasa: int                # 1 = NIASA integral gain
@@ -147,23 +147,15 @@ def build_servo(controller: Controller, stage: Stage) -> ServoModel:
         qg = q = tuple(np.zeros(s) for s in ((2, 2), (2, 1), (1, 2), (1, 1)))
 
     ff = controller.feedforward
-    ff_alpha = np.ones(1)
-    ff_shape = 1.0
     if ff is None:
-        kind, ff_k, ff_fc, ff_visc = FF_NONE, np.zeros(1), 1.0, 0.0
-    elif isinstance(ff.friction, DahlFriction):
-        fr = ff.friction
-        kind, ff_k, ff_fc, ff_visc, ff_shape = (FF_DAHL, np.array([fr.k_sigma]), fr.f_c,
-                                                fr.viscous, fr.shape)
-    elif isinstance(ff.friction, GmsFriction):
-        fr = ff.friction
-        kind, ff_k, ff_fc, ff_visc = FF_GMS, np.array(fr.k, float), fr.f_c, fr.viscous
-        ff_alpha = np.array(fr.alpha, float)
+        kind, ff_par, ff_visc, n_ff = FF_NONE, np.zeros(1), 0.0, 0
     else:
-        raise ValueError(f"feedforward friction must be 'dahl' or 'gms', got {ff.friction.model!r}")
-    if ff is not None:
-        ff_k = ff_k * (1.0 + ff.stiffness_error)
-    n_ff = {FF_NONE: 0, FF_DAHL: 1, FF_GMS: len(ff_k)}[kind]
+        law = friction.law(ff.friction)
+        if not law.FEEDFORWARD:
+            ok = ", ".join(repr(m.NAME) for m in friction.LAWS if m.FEEDFORWARD)
+            raise ValueError(f"feedforward friction must be one of {ok}, got {ff.friction.model!r}")
+        fr = law.with_stiffness(ff.friction, 1.0 + ff.stiffness_error)
+        kind, ff_par, ff_visc, n_ff = friction.kind(fr), law.params(fr), fr.viscous, law.n_state(fr)
 
     ni = controller.niasa
     qg_x = dc_state(qg[0], qg[1])
@@ -175,8 +167,7 @@ def build_servo(controller: Controller, stage: Stage) -> ServoModel:
         dob=int(dob is not None),
         **ss_coefficients("qg", *qg), qg_x0=float(qg_x[0]), qg_x1=float(qg_x[1]),
         **ss_coefficients("q", *q),
-        ff_kind=kind, ff_k=np.ascontiguousarray(ff_k, float), ff_alpha=ff_alpha,
-        ff_fc=float(ff_fc), ff_shape=float(ff_shape), ff_viscous=float(ff_visc), n_ff=n_ff,
+        ff_kind=kind, ff_par=np.ascontiguousarray(ff_par, float), ff_viscous=float(ff_visc), n_ff=n_ff,
         niasa=int(ni is not None),
         ni_tau=float(ni.tau_d) if ni else 1.0, ni_ksigma=float(ni.k_sigma) if ni else 0.0,
         ni_fc=float(ni.f_c) if ni else 1.0,
@@ -214,7 +205,7 @@ def init_servo_state(model: ServoModel, n_trials: int) -> np.ndarray:
     return np.zeros((model.n_state, int(n_trials)))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def servo_step(model, state, x_ref, v_ref, x_meas, u_out):
     """One control sample of the servo for every trial of a batch.
 
@@ -247,30 +238,14 @@ def servo_step(model, state, x_ref, v_ref, x_meas, u_out):
 
     # ---- feedforward friction driven by the reference, force -> u_out (scratch) --------
     # A trial's first call latches the reference (dx = 0), as the main loop does below.
-    if ff_kind == FF_DAHL:
-        k0, fc, shape, visc = model.ff_k[0], model.ff_fc, model.ff_shape, model.ff_viscous
+    if ff_kind != FF_NONE:
+        p, visc = model.ff_par, model.ff_viscous
+        ff = s[SERVO_FF:SERVO_FF + model.n_ff]
         for b in range(nb):
             xr = x_ref[b]
             prev = xr if s[SERVO_STARTED, b] == 0.0 else s[SERVO_XREF_PREV, b]
-            f = dahl_update(s[SERVO_FF, b], xr - prev, k0, fc, shape)
-            s[SERVO_FF, b] = f
-            u_out[b] = f + visc * v_ref[b]
-    elif ff_kind == FF_GMS:
-        fc, visc = model.ff_fc, model.ff_viscous
-        for b in range(nb):
-            u_out[b] = 0.0
-        for i in range(model.n_ff):          # Eq. 4.4, block by block
-            lim = model.ff_alpha[i] * fc
-            ki_ = model.ff_k[i]
-            row = SERVO_FF + i
-            for b in range(nb):
-                xr = x_ref[b]
-                prev = xr if s[SERVO_STARTED, b] == 0.0 else s[SERVO_XREF_PREV, b]
-                fi = gms_block(s[row, b], xr - prev, ki_, lim)
-                s[row, b] = fi
-                u_out[b] += fi
-        for b in range(nb):
-            u_out[b] = u_out[b] + visc * v_ref[b]
+            friction.update(ff_kind, p, ff, b, xr - prev, model.dt)
+            u_out[b] = friction.level(ff_kind, p, ff, b, 0.0) + visc * v_ref[b]
 
     # ---- NIASA nominal Dahl model driven by the measurement ----------------------------
     if model.niasa == 1:

@@ -20,127 +20,23 @@ True
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal, Optional, Union
+from typing import Annotated, Literal, Optional
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
-from stage_sim.validation import (ConfigError, check_plausible, format_validation_error, is_number_type, load_yaml,
-                                  unit)
+from stage_sim.friction import FRICTION
+from stage_sim.friction import CoulombFriction, DahlFriction, GmsFriction, LugreFriction  # noqa: F401  (re-exported)
+from stage_sim.schema import Finite, Fraction, NonNeg, Pos, _Number, _Strict  # noqa: F401  (re-exported)
+from stage_sim.validation import ConfigError, check_plausible, format_validation_error, load_yaml, unit
 
 PRESET_DIR = Path(__file__).with_name("presets")
 
 
 
-def _not_bool(value):
-    if isinstance(value, bool):
-        raise ValueError("expected a number, not true/false")
-    return value
-
-
-_Number = BeforeValidator(_not_bool)
-"""Refuses true/false where a number is due (pydantic would read them as 1 and 0); every
-number field of a :class:`_Strict` model gets it, these aliases also inside lists."""
-Pos = Annotated[float, _Number, Field(gt=0, allow_inf_nan=False)]
-NonNeg = Annotated[float, _Number, Field(ge=0, allow_inf_nan=False)]
-Finite = Annotated[float, _Number, Field(allow_inf_nan=False)]
-Fraction = Annotated[float, _Number, Field(ge=0, le=1, allow_inf_nan=False)]
-
-
-class _Strict(BaseModel):
-    """Base of every input schema (presets, experiments, campaigns): unknown keys are
-    refused, and so is true/false in any number field (pydantic alone reads them as 1/0)."""
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    @classmethod
-    def __pydantic_init_subclass__(cls, **kwargs):
-        super().__pydantic_init_subclass__(**kwargs)
-        numbers = [info for info in cls.model_fields.values()
-                   if is_number_type(info.annotation) and _Number not in info.metadata]
-        for info in numbers:
-            info.metadata.append(_Number)
-        if numbers:
-            cls.model_rebuild(force=True)
-
-
 # --------------------------------------------------------------------------- friction
-class _FrictionVariation(_Strict):
-    """Optional variations of a friction element's force (all default off = exactly the base model).
-
-    The element's force (pre-motion and sliding alike) is multiplied by
-    ``s(x) (1 +- f_c_difference / (2 f_c))`` (``+`` while the element's force resists motion
-    in +x, i.e. moving +), and a direction-dependent viscous force ``-(viscous_difference/2) |v|``
-    is added; ``x``, ``v`` are the position and velocity of the body the element acts on and
-    ``s(x) = max(0, 1 + (f_c_gradient (x - position_center) + f_c_curvature (x - position_center)^2) / f_c)``.
-    So the Coulomb force is ``F_C(x) = f_c s(x)``, ``F_C+ - F_C- = f_c_difference`` and
-    ``c+ - c- = viscous_difference``.
-    """
-    f_c_difference: Finite = Field(0.0, description="Coulomb force moving + minus moving - [N]; |.| < 2 f_c")
-    viscous_difference: Finite = Field(0.0, description="viscous coefficient moving + minus moving - [N·s/m]")
-    f_c_gradient: Finite = Field(0.0, description="slope of the Coulomb force along the travel [N/m]")
-    f_c_curvature: Finite = Field(0.0, description="curvature of the Coulomb force along the travel [N/m²]")
-    position_center: Finite = Field(0.0, description="position about which f_c_gradient/f_c_curvature apply [m]")
-
-    @model_validator(mode="after")
-    def _variation(self):
-        if abs(self.f_c_difference) >= 2 * self.f_c and self.f_c_difference != 0.0:
-            raise ValueError(f"f_c_difference={self.f_c_difference} must be smaller in size than 2 f_c = {2 * self.f_c}")
-        if self.f_c == 0 and (self.f_c_gradient or self.f_c_curvature):
-            raise ValueError("f_c_gradient/f_c_curvature need f_c > 0")
-        return self
-
-
-class DahlFriction(_FrictionVariation):
-    """Dahl model, Eq. 1.1 (shape factor ``shape``) / Eq. 4.3 (shape = 1)."""
-    model: Literal["dahl"]
-    k_sigma: Pos = Field(description="initial contact stiffness [N/m]", json_schema_extra=unit("N/m", 1e2, 1e10))
-    f_c: Pos = Field(description="Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
-    shape: Pos = Field(1.0, description="shape factor nu [-]")
-    viscous: NonNeg = Field(0.0, description="viscous coefficient to ground [N·s/m]",
-                            json_schema_extra=unit("N·s/m", 1e-3, 1e5))
-
-
-class GmsFriction(_FrictionVariation):
-    """Generalized Maxwell-slip model with Coulomb slip, Eq. 4.4."""
-    model: Literal["gms"]
-    k: list[Pos] = Field(min_length=1, description="block stiffnesses k_i [N/m]",
-                         json_schema_extra=unit("N/m", 1.0, 1e10))
-    alpha: list[Pos] = Field(min_length=1, description="block saturation fractions alpha_i [-]")
-    f_c: Pos = Field(description="Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
-    viscous: NonNeg = Field(0.0, description="viscous coefficient to ground [N·s/m]",
-                            json_schema_extra=unit("N·s/m", 1e-3, 1e5))
-
-    @model_validator(mode="after")
-    def _same_length(self):
-        if len(self.k) != len(self.alpha):
-            raise ValueError(f"k has {len(self.k)} blocks but alpha has {len(self.alpha)}")
-        return self
-
-
-class LugreFriction(_FrictionVariation):
-    """LuGre model with Stribeck curve g(v) = F_C + (F_S - F_C) exp(-|v/v_s|^exponent)."""
-    model: Literal["lugre"]
-    sigma0: Pos = Field(description="bristle stiffness [N/m]", json_schema_extra=unit("N/m", 1e2, 1e10))
-    sigma1: NonNeg = Field(0.0, description="bristle damping [N·s/m]", json_schema_extra=unit("N·s/m", 1e-3, 1e6))
-    viscous: NonNeg = Field(0.0, description="viscous coefficient sigma2 [N·s/m]",
-                            json_schema_extra=unit("N·s/m", 1e-3, 1e5))
-    f_c: Pos = Field(description="Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
-    f_s: Pos = Field(description="static (break-away) force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
-    v_s: Pos = Field(description="Stribeck velocity [m/s]", json_schema_extra=unit("m/s", 1e-8, 1.0))
-    exponent: Pos = Field(2.0, description="Stribeck exponent [-]")
-
-
-class CoulombFriction(_FrictionVariation):
-    """Coulomb + viscous friction with stiction (stick while |force| <= f_s)."""
-    model: Literal["coulomb"]
-    f_c: NonNeg = Field(description="Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
-    f_s: Optional[NonNeg] = Field(None, description="static force [N]; default f_c",
-                                  json_schema_extra=unit("N", 1e-3, 1e3))
-    viscous: NonNeg = Field(0.0, description="viscous coefficient [N·s/m]",
-                            json_schema_extra=unit("N·s/m", 1e-3, 1e5))
-
-
-Friction = Annotated[Union[DahlFriction, GmsFriction, LugreFriction, CoulombFriction],
-                     Field(discriminator="model")]
+# Each law's schema lives with the law (stage_sim/friction/<law>.py); the registry builds the union.
+Friction = FRICTION
+"""A friction element: any law of the registry (:mod:`stage_sim.friction`), told apart by ``model``."""
 
 
 # --------------------------------------------------------------------------- stage
@@ -186,6 +82,10 @@ class Drive(_Strict):
     noise_cutoff: Optional[Pos] = Field(None, description="noise low-pass corner [Hz]; None = white at the control rate",
                                         json_schema_extra=unit("Hz", 1e-1, 1e6))
     delay_samples: Annotated[int, _Number, Field(ge=0, le=100)] = 0
+    delay_fraction: Annotated[float, _Number, Field(ge=0, lt=1, allow_inf_nan=False)] = Field(
+        0.0, description="fractional part of the drive delay [samples]: the command of sample k acts over "
+        "[k + delay_samples + delay_fraction, k + 1 + delay_samples + delay_fraction) control periods "
+        "(exact delayed zero-order hold)")
 
     @model_validator(mode="after")
     def _limits(self):
@@ -364,11 +264,18 @@ class Simulation(_Strict):
     seed: Annotated[int, _Number, Field(ge=0)] = 0
 
 
+NO_CONTROLLER = {"rate": 10_000.0, "pid": {"kp": 0.0}}
+"""The controller of a preset that states none (a model of an open-loop record, e.g. a force-mode
+identification run): no feedback (zero command), the default rate. A closed-loop tool given such a
+preset runs its plant with zero command; the diagnosis refuses it for a record with a reference."""
+
+
 class Preset(_Strict):
     name: str
     description: str = ""
     stage: Stage
-    controller: Controller
+    controller: Controller = Field(default_factory=lambda: Controller(**NO_CONTROLLER),
+                                   description="servo controller; omitted = no feedback (a model of open-loop data)")
     dither: Optional[Dither] = None
     sai_manager: Optional[SaiManager] = None
     simulation: Simulation = Simulation()

@@ -1,10 +1,11 @@
 """Plant simulator: lumped-mass stage with friction, isolators, drive, sensors.
 
 :func:`build_plant` compiles a validated :class:`stage_sim.config.Stage` into a
-:class:`PlantModel` (plain arrays), and :func:`plant_step` advances one trial by
-one control period. The same compiled step is called by the batch engine
-(``experiment_runner.batch``) and by the ROS plant node, so both produce the same
-trajectories.
+:class:`PlantModel` (plain arrays), and :func:`plant_step` advances a batch of trials
+(:class:`PlantState`, trial axis last) under :class:`PlantInputs` by one control period. The
+same compiled step is called by the batch engine (``experiment_runner.batch``), the ROS plant
+node (a batch of one) and :func:`run_open_loop` (the open-loop driver of the diagnosis, the FRF
+campaign and the paper's Appendix B), so all produce the same trajectories.
 
 Integration scheme (per control period ``dt``, ``n_sub`` sub-steps of ``h``):
 
@@ -15,9 +16,9 @@ Integration scheme (per control period ``dt``, ``n_sub`` sub-steps of ``h``):
 * Coulomb elements are solved implicitly per sub-step (stick if the force needed
   to stop is within the static limit), so there is no chattering at rest;
 * optional force variations of each friction element (position-dependent and
-  direction-dependent level, direction-dependent viscous part: ``config._FrictionVariation``)
+  direction-dependent level, direction-dependent viscous part: ``stage_sim.friction.FrictionVariation``)
   scale its held force; optional table forces (``stage.force_offset``, ``force_ripple``,
-  ``periodic_force``) and an external force input (:func:`plant_step_ext`) act on the table,
+  ``periodic_force``) and an external force input (``PlantInputs.f_ext``) act on the table,
   held over a sub-step; all are skipped when off, so results are bit-identical without them;
 * ``n_sub`` is chosen so the stiffest mode of the configuration -- including the
   tangent stiffness of pre-motion friction and the SAI lock -- satisfies
@@ -37,14 +38,12 @@ import numpy as np
 import scipy.linalg
 from numba import njit
 
-from .config import CoulombFriction, DahlFriction, GmsFriction, LugreFriction, Stage
-from .friction import dahl_tangent, dahl_update, gms_block, gms_block_tangent, initial_stiffness, lugre_update, stribeck
+from . import friction
+from .config import Stage
 
-# friction element kinds
-DAHL, GMS, LUGRE, COULOMB = 1, 2, 3, 4
 # per-trial scalar state slots
-P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX = range(8)
-N_PSTATE = 8
+P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX, P_FPREV = range(9)
+N_PSTATE = 9
 # status codes returned by plant_step
 OK, DIVERGED, OUT_OF_TRAVEL = 0, 1, 2
 STATUS_TEXT = {OK: "ok", DIVERGED: "state diverged (non-finite or beyond 1e3 x travel)",
@@ -63,12 +62,11 @@ class PlantModel(NamedTuple):
     dt: float              # control period [s]
     phi: np.ndarray        # (2n, 2n) exact state transition over h
     gam: np.ndarray        # (2n, n) exact ZOH force input over h
-    fr_kind: np.ndarray    # (nf,) friction element kind
+    fr_kind: np.ndarray    # (nf,) friction law id (stage_sim.friction.kind)
     fr_dof: np.ndarray     # (nf,) DOF the element acts on
-    fr_par: np.ndarray     # (nf, 6) kind-specific parameters
-    fr_k: np.ndarray       # (nf, nmax) GMS block stiffnesses
-    fr_alpha: np.ndarray   # (nf, nmax) GMS block fractions
-    fr_n: np.ndarray       # (nf,) GMS block count
+    fr_par: np.ndarray     # (nf, npar) the law's parameter row (its params()), zero-padded
+    fr_implicit: np.ndarray  # (nf,) bool: the law is solved implicitly per sub-step (law.IMPLICIT)
+    n_frs: int             # friction state slots per element (max of the laws' n_state, >= 1)
     fr_noise: np.ndarray   # (nf,) random force per control sample, RMS [N]
     dither_dof: np.ndarray  # (2,) DOF driven by piezo 0 / 1, -1 if none
     kf_ratio: float        # true / nominal force constant
@@ -100,26 +98,8 @@ class PlantModel(NamedTuple):
     ripple: np.ndarray     # (nr, 3) position-periodic table force: amplitude [N], 2 pi/period [rad/m], phase
     periodic: np.ndarray   # (np, 3) fixed-frequency table force: amplitude [N], 2 pi f [rad/s], phase
     table_force: bool      # any of f_offset, ripple, periodic
-
-
-def _friction_params(fr):
-    """(kind, par[6], k_blocks, alpha_blocks, tangent stiffness) of a friction config."""
-    par = np.zeros(6)
-    k = alpha = np.zeros(0)
-    if isinstance(fr, DahlFriction):
-        par[:3] = fr.k_sigma, fr.f_c, fr.shape
-        return DAHL, par, k, alpha, initial_stiffness(fr)
-    if isinstance(fr, GmsFriction):
-        par[0] = fr.f_c
-        k, alpha = np.array(fr.k), np.array(fr.alpha)
-        return GMS, par, k, alpha, initial_stiffness(fr)
-    if isinstance(fr, LugreFriction):
-        par[:6] = fr.sigma0, fr.sigma1, fr.f_c, fr.f_s, fr.v_s, fr.exponent
-        return LUGRE, par, k, alpha, initial_stiffness(fr)
-    if isinstance(fr, CoulombFriction):
-        par[:2] = fr.f_c, fr.f_c if fr.f_s is None else fr.f_s
-        return COULOMB, par, k, alpha, initial_stiffness(fr)
-    raise TypeError(f"unknown friction config {fr!r}")
+    delay_frac: float      # fractional drive delay [control periods] (0 = whole samples only)
+    g_prev: np.ndarray     # (n_sub, 2n) exact response of each sub-step to (previous - present) drive force
 
 
 def _variation(fr) -> np.ndarray:
@@ -149,6 +129,27 @@ def _exact_zoh_cached(a_bytes, b_bytes, shape, h):
     big[:nz, nz:] = b * h
     e = scipy.linalg.expm(big)
     return e[:nz, :nz].copy(), e[:nz, nz:].copy()
+
+
+def _delayed_zoh(a, b, h, n_sub, frac):
+    """(n_sub, 2n): exact delayed zero-order hold of the drive force. Over a control period the
+    force is the previous sample's until ``frac`` of the period, then the present one's; sub-step
+    ``i`` propagates with the present force (``phi z + gam f``) plus row ``i`` times (previous -
+    present): ``gam[:, 0]`` for a sub-step wholly before the switch, ``phi(h - t_s) gam(t_s)[:, 0]``
+    for the one the switch splits at ``t_s``, zero after it."""
+    out = np.zeros((n_sub, a.shape[0]))
+    if frac <= 0.0:
+        return out
+    ts = frac * n_sub
+    whole = int(math.floor(ts))
+    phi_h, gam_h = _exact_zoh(a, b, h)
+    out[:whole] = gam_h[:, 0]
+    rest = (ts - whole) * h
+    if whole < n_sub and rest > 0.0:
+        gam_a = _exact_zoh(a, b, rest)[1]
+        phi_b = _exact_zoh(a, b, h - rest)[0]
+        out[whole] = phi_b @ gam_a[:, 0]
+    return out
 
 
 def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
@@ -210,26 +211,23 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
             mat[j, i] -= val
 
     nf = len(fr_list)
-    nmax = max([1] + [len(f.k) for f, _, _ in fr_list if isinstance(f, GmsFriction)])
-    fr_kind = np.zeros(nf, np.int64)
-    fr_dof = np.zeros(nf, np.int64)
-    fr_par = np.zeros((nf, 6))
-    fr_k = np.zeros((nf, nmax))
-    fr_alpha = np.zeros((nf, nmax))
-    fr_n = np.zeros(nf, np.int64)
-    fr_noise = np.zeros(nf)
+    laws = [friction.law(fr) for fr, _, _ in fr_list]
+    pars = [law.params(fr) for law, (fr, _, _) in zip(laws, fr_list)]
+    fr_kind = np.array([friction.kind(fr) for fr, _, _ in fr_list], np.int64)
+    fr_dof = np.array([dof for _, dof, _ in fr_list], np.int64)
+    fr_par = np.zeros((nf, max([1] + [len(p) for p in pars])))
+    fr_implicit = np.array([law.IMPLICIT for law in laws], np.bool_)
+    n_frs = max([1] + [law.n_state(fr) for law, (fr, _, _) in zip(laws, fr_list)])
+    fr_noise = np.array([noise for _, _, noise in fr_list], float)
     fr_var = np.zeros((nf, 6))
     k_tangent = np.zeros((n, n))
     c_explicit = np.zeros(n)
-    for e, (fr, dof, noise) in enumerate(fr_list):
-        kind, par, kb, ab, kt = _friction_params(fr)
-        fr_kind[e], fr_dof[e], fr_par[e], fr_noise[e] = kind, dof, par, noise
-        fr_k[e, :len(kb)], fr_alpha[e, :len(ab)], fr_n[e] = kb, ab, len(kb)
+    for e, (law, (fr, dof, _)) in enumerate(zip(laws, fr_list)):
+        fr_par[e, :len(pars[e])] = pars[e]
         fr_var[e] = _variation(fr)
         cmat[dof, dof] += fr.viscous
-        k_tangent[dof, dof] += kt * (1.0 + abs(fr_var[e, 1]))
-        if kind == LUGRE:
-            c_explicit[dof] += fr.sigma1
+        k_tangent[dof, dof] += law.stiffness_at_rest(fr) * (1.0 + abs(fr_var[e, 1]))
+        c_explicit[dof] += law.explicit_damping(fr)
 
     sai_dof, k_lock, c_lock, cap, rc_a, arm_steps, pulse_force, pulse_steps = -1, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0
     sai = stage.sai
@@ -280,8 +278,8 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
         bsens = bearing_dofs[0]
     return PlantModel(
         n=n, n_sub=n_sub, h=h, dt=dt, phi=phi, gam=gam,
-        fr_kind=fr_kind, fr_dof=fr_dof, fr_par=fr_par, fr_k=fr_k, fr_alpha=fr_alpha,
-        fr_n=fr_n, fr_noise=fr_noise, dither_dof=np.array(dither_dof, np.int64),
+        fr_kind=fr_kind, fr_dof=fr_dof, fr_par=fr_par, fr_implicit=fr_implicit, n_frs=n_frs,
+        fr_noise=fr_noise, dither_dof=np.array(dither_dof, np.int64),
         kf_ratio=d.force_constant_ratio, peak=d.peak_force, cont=d.continuous_force,
         th_alpha=dt / d.thermal_time_constant,
         noise_std=d.noise_current_rms * d.force_constant * d.force_constant_ratio,
@@ -299,18 +297,56 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
         periodic=np.array([[p.amplitude, 2 * math.pi * p.frequency, p.phase] for p in stage.periodic_force],
                           float).reshape(-1, 3),
         table_force=bool(stage.force_offset != 0.0 or stage.force_ripple or stage.periodic_force),
+        delay_frac=float(d.delay_fraction), g_prev=_delayed_zoh(a, b, h, n_sub, d.delay_fraction),
     )
 
 
 class PlantState(NamedTuple):
-    """State of a batch of trials; the trial axis is LAST (batch-inner layout)."""
+    """State of a batch of trials; the trial axis is LAST (batch-inner layout).
+
+    Passed whole to the compiled code (numba types a NamedTuple of arrays); a chunk of a
+    chunked state (leading chunk axis on every field) is :func:`state_chunk`.
+    """
     z: np.ndarray        # (2n, B) positions then velocities
-    fr: np.ndarray       # (nf, nmax, B) friction states
+    fr: np.ndarray       # (nf, n_frs, B) friction states
     ps: np.ndarray       # (N_PSTATE, B) scalar states (see P_* slots)
     dbuf: np.ndarray     # (delay+1, B) drive delay line
     f: np.ndarray        # (n, B) scratch: forces
     zn: np.ndarray       # (2n, B) scratch: next state
     force: np.ndarray    # (B,) scratch: motor force
+
+
+class PlantInputs(NamedTuple):
+    """What drives the plant over one control period, each (B,) (trial axis last); or, for
+    :func:`run_open_loop`, each (T, B) over T periods."""
+    u: np.ndarray        # servo force command [N] (drive input, scaled by the nominal force constant)
+    d0: np.ndarray       # piezo dither force, +d0 on the channel-0 bearing [N] (Eq. 3.2)
+    d1: np.ndarray       # piezo dither force, -d1 on the channel-1 bearing [N]
+    mode: np.ndarray     # SAI solenoid command: 1 compliant (lock released), 0 stiff
+    f_ext: np.ndarray    # external force on the table [N], not through the drive (delay, limits,
+                         #   force constant, noise); EMPTY (0,) = none (the closed loop passes none)
+
+
+def plant_inputs(n_trials: int, f_ext: bool = False, T: int | None = None) -> PlantInputs:
+    """Zero inputs (isolator compliant) for ``n_trials``, per period or (``T``) over ``T`` periods;
+    ``f_ext=False``: no external force (an empty ``f_ext``)."""
+    shape = (n_trials,) if T is None else (T, n_trials)
+    return PlantInputs(u=np.zeros(shape), d0=np.zeros(shape), d1=np.zeros(shape), mode=np.ones(shape),
+                       f_ext=np.zeros(shape if f_ext else (0,) * len(shape)))
+
+
+@njit(cache=True, inline="always")
+def state_chunk(st, c):
+    """Chunk ``c`` of a chunked :class:`PlantState` (every field with a leading chunk axis)."""
+    return PlantState(st.z[c], st.fr[c], st.ps[c], st.dbuf[c], st.f[c], st.zn[c], st.force[c])
+
+
+def chunk_state(st: PlantState, n_chunks: int) -> PlantState:
+    """A state over ``n_chunks * size`` trials as ``n_chunks`` chunks of ``size`` (trial axis
+    last, chunk axis first), contiguous, for :func:`state_chunk`."""
+    size = st.z.shape[-1] // n_chunks
+    return PlantState(*[np.ascontiguousarray(np.moveaxis(a.reshape(a.shape[:-1] + (n_chunks, size)), -2, 0))
+                        for a in st])
 
 
 def init_plant_state(pm: PlantModel, n_trials: int, x0=0.0, sai_mode: float = 1.0) -> PlantState:
@@ -325,7 +361,7 @@ def init_plant_state(pm: PlantModel, n_trials: int, x0=0.0, sai_mode: float = 1.
     ps[P_RC] = sai_mode
     if pm.sai_dof >= 0 and sai_mode < 0.5:
         ps[P_LOCKED] = 1.0
-    return PlantState(z=z, fr=np.zeros(pm.fr_k.shape + (n_trials,)), ps=ps,
+    return PlantState(z=z, fr=np.zeros((pm.fr_kind.shape[0], pm.n_frs, n_trials)), ps=ps,
                       dbuf=np.zeros((pm.delay + 1, n_trials)), f=np.zeros((n, n_trials)),
                       zn=np.zeros((2 * n, n_trials)), force=np.zeros(n_trials))
 
@@ -364,7 +400,7 @@ def quantize(x, q):
 @njit(cache=True, inline="always")
 def _var_scale(pm, e, x, direction):
     """Force scale of friction element ``e`` at position ``x`` [m] for a force resisting
-    motion in ``direction`` (+1: moving +, -1: moving -); see ``config._FrictionVariation``."""
+    motion in ``direction`` (+1: moving +, -1: moving -); see ``stage_sim.friction.FrictionVariation``."""
     var = pm.fr_var
     d = x - var[e, 3]
     s = 1.0 + var[e, 4] * d + var[e, 5] * d * d
@@ -398,54 +434,26 @@ def _friction_forces(pm, z, fr, f, k, seeds):
     predicted sub-step displacement ``v h / 2`` (a mid-point force): a plainly held
     spring force lags by half a sub-step and pumps energy into lightly damped
     pre-motion resonances; the mid-point force keeps the scheme area-preserving.
-    Coulomb elements are solved implicitly in :func:`plant_step` instead.
+    Implicit laws (Coulomb) are solved in :func:`plant_step` instead.
     """
     n = pm.n
     hh = 0.5 * pm.h
     nb = z.shape[1]
-    par = pm.fr_par
     for e in range(pm.fr_kind.shape[0]):
         kind = pm.fr_kind[e]
         dof = pm.fr_dof[e]
-        if kind == DAHL:
-            k0, fc, shape = par[e, 0], par[e, 1], par[e, 2]
+        p = pm.fr_par[e]
+        s = fr[e]
+        varied = pm.fr_var[e, 0] != 0.0
+        if not pm.fr_implicit[e]:
             for b in range(nb):
                 v = z[n + dof, b]
-                fe = fr[e, 0, b]
-                kt = dahl_tangent(fe, 1.0 if v > 0.0 else -1.0, k0, fc, shape)
-                if pm.fr_var[e, 0] != 0.0:
+                fe, kt = friction.held(kind, p, s, b, v)
+                if varied:
                     f[dof, b] -= _varied(pm, e, z[dof, b], v, fe + kt * v * hh)
                 else:
                     f[dof, b] -= fe + kt * v * hh
-        elif kind == GMS:
-            fc = par[e, 0]
-            for b in range(nb):
-                v = z[n + dof, b]
-                s = 1.0 if v > 0.0 else -1.0
-                fe = 0.0
-                kt = 0.0
-                for i in range(pm.fr_n[e]):
-                    fi = fr[e, i, b]
-                    fe += fi
-                    kt += gms_block_tangent(fi, s, pm.fr_k[e, i], pm.fr_alpha[e, i] * fc)
-                if pm.fr_var[e, 0] != 0.0:
-                    f[dof, b] -= _varied(pm, e, z[dof, b], v, fe + kt * v * hh)
-                else:
-                    f[dof, b] -= fe + kt * v * hh
-        elif kind == LUGRE:
-            s0, s1 = par[e, 0], par[e, 1]
-            for b in range(nb):
-                v = z[n + dof, b]
-                s = 1.0 if v > 0.0 else -1.0
-                g = stribeck(v, par[e, 2], par[e, 3], par[e, 4], par[e, 5])
-                zb = fr[e, 0, b]
-                zdot = v - s0 * abs(v) * zb / g
-                kt = s0 * max(0.0, 1.0 - s0 * s * zb / g)
-                if pm.fr_var[e, 0] != 0.0:
-                    f[dof, b] -= _varied(pm, e, z[dof, b], v, s0 * zb + s1 * zdot + kt * v * hh)
-                else:
-                    f[dof, b] -= s0 * zb + s1 * zdot + kt * v * hh
-        elif kind == COULOMB and pm.fr_var[e, 2] != 0.0:
+        elif pm.fr_var[e, 2] != 0.0:
             for b in range(nb):            # direction-dependent viscous part (the rest is implicit)
                 f[dof, b] -= pm.fr_var[e, 2] * abs(z[n + dof, b])
         if pm.fr_noise[e] > 0.0:
@@ -486,40 +494,19 @@ def _sai_forces(pm, z, ps, f, mode):
             ps[P_PULSE, b] -= 1.0
 
 
-_NO_FORCE = np.zeros(0)
-
-
-@njit(cache=True)
-def plant_step(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, d0, d1, mode, k, seeds, meas, status):
+@njit(cache=True, inline="always")
+def plant_step(pm, st, inp, k, seeds, meas, status):
     """Advance a batch of trials by one control period.
-
-    :func:`plant_step_ext` without an external force (see there for the parameters).
-    """
-    plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, _NO_FORCE, d0, d1, mode, k, seeds, meas, status)
-
-
-@njit(cache=True)
-def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode, k, seeds, meas, status):
-    """Advance a batch of trials by one control period, with an external table force.
 
     Parameters
     ----------
     pm : PlantModel
-    z, fr, ps, dbuf, f, zn, force : ndarray
-        The fields of a :class:`PlantState` (trial axis last), updated in place.
-    u_cmd : ndarray, shape (B,)
-        Servo force command [N] (drive input, scaled by the nominal force constant).
-    f_ext : ndarray, shape (B,) or (0,)
-        External force on the table [N], held over the period, not through the drive
-        (delay, limits, force constant, noise); empty = none. Used by the model
-        diagnosis (force observer); the closed loop passes none.
-    d0, d1 : ndarray, shape (B,)
-        Piezo dither forces [N]: ``+d0`` on the channel-0 bearing, ``-d1`` on the
-        channel-1 bearing (Eq. 3.2).
-    mode : ndarray, shape (B,)
-        SAI solenoid command: 1 compliant (lock released), 0 stiff.
+    st : PlantState
+        The batch's state (trial axis last), updated in place.
+    inp : PlantInputs
+        The inputs held over the period (:class:`PlantInputs`, each (B,); ``f_ext`` may be empty).
     k : int
-        Control sample index (selects the noise samples).
+        Control sample index (selects the noise samples and the time of periodic forces).
     seeds : ndarray of int64, shape (B,)
         Trial seeds.
     meas : ndarray, shape (2, B)
@@ -527,6 +514,8 @@ def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode
     status : ndarray of int64, shape (B,)
         Out: ``OK``, ``DIVERGED`` or ``OUT_OF_TRAVEL`` (a nonzero status is kept).
     """
+    z, fr, ps, dbuf, f, zn, force = st
+    u_cmd, d0, d1, mode, f_ext = inp
     n = pm.n
     nz = 2 * n
     nb = u_cmd.shape[0]
@@ -600,49 +589,45 @@ def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode
                     if a != 0.0:
                         for b in range(nb):
                             zn[r, b] += a * f[c, b]
-        # ---- Coulomb elements: implicit stick/slip
+        # ---- fractional drive delay: the previous sample's force over the first part of the period
+        if pm.delay_frac > 0.0:
+            for b in range(nb):
+                df = ps[P_FPREV, b] - force[b]
+                for r in range(nz):
+                    zn[r, b] += pm.g_prev[sub, r] * df
+        # ---- implicit laws (Coulomb: stick/slip), from the velocity the other forces give
         for e in range(nf):
-            if pm.fr_kind[e] == COULOMB:
+            if pm.fr_implicit[e]:
+                kind = pm.fr_kind[e]
                 dof = pm.fr_dof[e]
+                p = pm.fr_par[e]
                 g = pm.gam[n + dof, dof]
                 for b in range(nb):
                     a = zn[n + dof, b]
-                    f_stop = a / g
-                    lim = pm.fr_par[e, 1] if z[n + dof, b] == 0.0 else pm.fr_par[e, 0]
                     sc = 1.0
                     if pm.fr_var[e, 0] != 0.0:
                         sc = _var_scale(pm, e, z[dof, b], 1.0 if a > 0.0 else -1.0)
-                        lim *= sc
-                    stick = abs(f_stop) <= lim
-                    fc = f_stop if stick else pm.fr_par[e, 0] * sc * (1.0 if a > 0.0 else -1.0)
+                    fc, stick = friction.implicit(kind, p, a, g, z[n + dof, b], sc)
                     for r in range(nz):
                         zn[r, b] -= pm.gam[r, dof] * fc
                     if stick:
                         zn[n + dof, b] = 0.0
         # ---- friction states, exactly in the displacement domain
         for e in range(nf):
-            kind = pm.fr_kind[e]
-            dof = pm.fr_dof[e]
-            if kind == DAHL:
-                k0, fc, shape = pm.fr_par[e, 0], pm.fr_par[e, 1], pm.fr_par[e, 2]
+            if not pm.fr_implicit[e]:
+                kind = pm.fr_kind[e]
+                dof = pm.fr_dof[e]
+                p = pm.fr_par[e]
+                s = fr[e]
                 for b in range(nb):
-                    fr[e, 0, b] = dahl_update(fr[e, 0, b], zn[dof, b] - z[dof, b], k0, fc, shape)
-            elif kind == GMS:
-                fc = pm.fr_par[e, 0]
-                for b in range(nb):
-                    dx = zn[dof, b] - z[dof, b]
-                    for i in range(pm.fr_n[e]):
-                        fr[e, i, b] = gms_block(fr[e, i, b], dx, pm.fr_k[e, i], pm.fr_alpha[e, i] * fc)
-            elif kind == LUGRE:
-                p = pm.fr_par
-                for b in range(nb):
-                    zb, _ = lugre_update(fr[e, 0, b], zn[dof, b] - z[dof, b], pm.h, p[e, 0],
-                                         p[e, 1], p[e, 2], p[e, 3], p[e, 4], p[e, 5])
-                    fr[e, 0, b] = zb
+                    friction.update(kind, p, s, b, zn[dof, b] - z[dof, b], pm.h)
         for b in range(nb):
             for r in range(nz):
                 z[r, b] = zn[r, b]
 
+    if pm.delay_frac > 0.0:
+        for b in range(nb):
+            ps[P_FPREV, b] = force[b]
     for b in range(nb):
         meas[0, b] = quantize(z[0, b], pm.q_table)
         meas[1, b] = quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
@@ -655,6 +640,52 @@ def plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, u_cmd, f_ext, d0, d1, mode
             status[b] = DIVERGED
         elif x < pm.travel_min or x > pm.travel_max:
             status[b] = OUT_OF_TRAVEL
+
+
+@njit(cache=True, nogil=True)
+def run_open_loop(pm, st, inp, k0, seeds, meas, status, true_position, out, out_meas):
+    """The one open-loop driver: the plant under given inputs for ``T`` control periods.
+
+    Parameters
+    ----------
+    pm : PlantModel
+    st : PlantState
+        State of the batch (B trials) at sample ``k0``; advanced in place.
+    inp : PlantInputs
+        Inputs over the run, each (T, B), or (1, B) for an input held over the whole run;
+        ``f_ext`` also empty (0, 0) for none.
+    k0 : int
+        Control sample index of the first period (noise, periodic forces).
+    seeds : ndarray of int64, shape (B,)
+    meas : ndarray, shape (2, B)
+        The measurement at ``k0`` on entry, the last one on return.
+    status : ndarray of int64, shape (B,)
+        Plant status, kept once nonzero (see :func:`plant_step`).
+    true_position : bool
+        Record the true table position (else the measured one, as a servo would see it).
+    out : ndarray, shape (T, B)
+        Written: the table position at the start of each period, before its inputs act.
+    out_meas : ndarray, shape (T, B) or (0, 0)
+        Also written, unless empty: the measured position at the start of each period.
+    """
+    T = out.shape[0]
+    none = np.zeros(0)
+    ext = inp.f_ext.shape[0] > 0
+    both = out_meas.shape[0] > 0
+    z = st.z
+    for j in range(T):
+        for b in range(out.shape[1]):
+            out[j, b] = z[0, b] if true_position else meas[0, b]
+            if both:
+                out_meas[j, b] = meas[0, b]
+        plant_step(pm, st, PlantInputs(_row(inp.u, j), _row(inp.d0, j), _row(inp.d1, j), _row(inp.mode, j),
+                                       _row(inp.f_ext, j) if ext else none), k0 + j, seeds, meas, status)
+
+
+@njit(cache=True, inline="always")
+def _row(a, j):
+    """Row ``j`` of a (T, B) input, or its only row when it is held (1, B)."""
+    return a[j] if a.shape[0] > 1 else a[0]
 
 
 class PlantSim:
@@ -678,24 +709,23 @@ class PlantSim:
         self.meas = np.zeros((2, n_trials))
         self.status = np.zeros(n_trials, np.int64)
         self._zeros = np.zeros(n_trials)
+        self._none = np.zeros(0)
         self.meas[0] = [quantize(x, pm.q_table) for x in self.state.z[0]]
         self.meas[1] = ([quantize(x, pm.q_bearing) for x in self.state.z[pm.bsens_dof]]
                         if pm.bsens_dof >= 0 else np.nan)
 
     def step(self, u, d0=0.0, d1=0.0, mode=1.0, f_ext=None):
         """Apply command ``u`` [N], dither ``d0, d1`` [N] and SAI ``mode`` for one period,
-        and optionally an external table force ``f_ext`` [N] (:func:`plant_step_ext`).
+        and optionally an external table force ``f_ext`` [N] (:class:`PlantInputs`).
 
         Returns the measurement (2, n_trials): table and bearing-sensor positions [m].
         Raises :class:`SimulationError` if a trial diverged or left the travel.
         """
         b = self._zeros.shape[0]
         u, d0, d1, mode = [np.broadcast_to(np.asarray(v, float), (b,)).copy() for v in (u, d0, d1, mode)]
-        if f_ext is None:
-            plant_step(self.pm, *self.state, u, d0, d1, mode, self.k, self.seeds, self.meas, self.status)
-        else:
-            fe = np.broadcast_to(np.asarray(f_ext, float), (b,)).copy()
-            plant_step_ext(self.pm, *self.state, u, fe, d0, d1, mode, self.k, self.seeds, self.meas, self.status)
+        fe = self._none if f_ext is None else np.broadcast_to(np.asarray(f_ext, float), (b,)).copy()
+        plant_step(self.pm, self.state, PlantInputs(u, d0, d1, mode, fe), self.k, self.seeds, self.meas,
+                   self.status)
         self.k += 1
         if self.status.any():
             i = int(np.flatnonzero(self.status)[0])

@@ -49,6 +49,10 @@ def source_copy(tmp_path):
     ("experiment_runner/ros/servo_node.py", "from experiment_runner.ros.plant_node import PlantNode",
      ["no node imports another"]),
     ("msg_defs/topics.py", "from msg_defs.convert import stamp_ns", ["msg_defs: conversions above"]),
+    pytest.param("experiment_runner/batch.py", "from experiment_runner.campaigns.spec import Campaign",
+                 ["Campaigns are an application"], marks=pytest.mark.slow),
+    pytest.param("experiment_runner/campaigns/spec.py", "from experiment_runner.campaigns.runner import run_campaign",
+                 ["Campaigns: CLI above runner", "No import cycles"], marks=pytest.mark.slow),
 ])
 def test_a_broken_layer_breaks_its_contract(source_copy, module, line, broken):
     path = source_copy / module

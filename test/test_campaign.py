@@ -9,10 +9,14 @@ import numpy as np
 import pytest
 import yaml
 
-from experiment_runner import campaign as cm
-from experiment_runner.calibration import ParamSpec, fit
+from experiment_runner.campaigns.calibration import ParamSpec, fit
+from experiment_runner.campaigns.cli import add_campaign_arguments, main_campaign
+from experiment_runner.campaigns.runner import MAIN_JOB, run_campaign
+from experiment_runner.campaigns.spec import (CAMPAIGN_DIR, cal_parameters, calibration_source, case_preset,
+                                              conditions, list_campaigns, load_campaign, resolve)
+from experiment_runner.campaigns.trials import graph_experiment, make_trials, reference
 from experiment_runner.experiment import Experiment, build_trials, experiment_preset
-from stage_sim.config import ConfigError
+from stage_sim.config import ConfigError, load_preset
 
 # Calibrated values of the full main job (50 / 20 trials, dwell 1 s), reused so that the
 # direction tests run in seconds; test_calibration_fits_the_baseline checks the fit itself.
@@ -37,26 +41,26 @@ def _same_direction(f) -> bool:
 
 
 # --------------------------------------------------------------------------- files
-@pytest.mark.parametrize("name", cm.list_campaigns())
+@pytest.mark.parametrize("name", list_campaigns())
 def test_every_campaign_file_validates(name):
-    c = cm.load_campaign(name)                 # presets, overrides, calibrated paths resolved too
-    conds = cm.conditions(c)
+    c = load_campaign(name)                 # presets, overrides, calibrated paths resolved too
+    conds = conditions(c)
     assert conds and c.baseline in [k.name for k in c.cases]
     for v in c.seed.values:                     # every seed number belongs to exactly one condition
         assert len([x for x in conds if x.matches(**v.at())]) == 1
     assert c.seed.findings, "every campaign states the seed's findings"
-    fitted = cm.calibration_source(c) or c      # calibration: {from: NAME} reuses NAME's baseline fit
-    for p in cm.cal_parameters(c):              # fitted to a baseline number only
+    fitted = calibration_source(c) or c      # calibration: {from: NAME} reuses NAME's baseline fit
+    for p in cal_parameters(c):              # fitted to a baseline number only
         assert fitted.seed_value(fitted.baseline, p.target.metric, **p.target.at()) is not None
 
 
 def test_main_job_campaigns_are_shipped():
-    assert set(cm.MAIN_JOB) <= set(cm.list_campaigns())
-    t42 = cm.load_campaign("table_4_2")
+    assert set(MAIN_JOB) <= set(list_campaigns())
+    t42 = load_campaign("table_4_2")
     assert t42.trials == 50 and [c.preset for c in t42.cases] == ["fi_stage_nofi_gms", "fi_stage_gms"]
     assert t42.seed_value("nofi", "settling_time_s", step=5e-3) == 0.044
     assert t42.seed_value("fi", "rms_in_position_m", step=5e-6) == 2.7e-9
-    t52 = cm.load_campaign("table_5_2")
+    t52 = load_campaign("table_5_2")
     assert t52.trials == 20
     assert {c.name: c.overrides.get("sai_manager.rule") for c in t52.cases} == {
         "baseline": "always_stiff", "fi": "always_compliant", "sai": "point_to_point"}
@@ -102,28 +106,27 @@ def test_schema_errors_name_the_field(tmp_path, mutate, where):
     d = _tiny()
     mutate(d)
     with pytest.raises(ConfigError) as err:
-        cm.load_campaign(_write(tmp_path, d))
+        load_campaign(_write(tmp_path, d))
     assert where in str(err.value)
 
 
 def test_resolve_wildcards_and_scale():
-    from stage_sim.config import load_preset
     p = load_preset("fi_stage_gms")
-    o = cm.resolve(p, ["stage.bearings.*.friction.k"], "scale", 2.0)
+    o = resolve(p, ["stage.bearings.*.friction.k"], "scale", 2.0)
     assert sorted(o) == ["stage.bearings.0.friction.k", "stage.bearings.1.friction.k"]
     assert o["stage.bearings.0.friction.k"][0] == 2 * p.stage.bearings[0].friction.k[0]
-    assert cm.resolve(p, ["controller.pid.ki"], "value", 3.0) == {"controller.pid.ki": 3.0}
+    assert resolve(p, ["controller.pid.ki"], "value", 3.0) == {"controller.pid.ki": 3.0}
 
 
 def test_graph_experiment_reproduces_the_batch_trial():
     """The one-trial experiment file of trial i starts where trial i of the campaign starts, with
     its noise seed and the same (calibrated) preset."""
-    c = cm.load_campaign("table_5_2")
-    case, cond = c.case("sai"), cm.conditions(c)[1]
-    preset = cm.case_preset(c, case, CAL_5_2, cond)
-    ref = cm.reference(c, cond, preset.controller.rate)
-    trials = cm.make_trials(c, case, preset, ref, 5)
-    exp = Experiment.model_validate(cm.graph_experiment(c, case, cond, 3, CAL_5_2))
+    c = load_campaign("table_5_2")
+    case, cond = c.case("sai"), conditions(c)[1]
+    preset = case_preset(c, case, CAL_5_2, cond)
+    ref = reference(c, cond, preset.controller.rate)
+    trials = make_trials(c, case, preset, ref, range(5))
+    exp = Experiment.model_validate(graph_experiment(c, case, cond, 3, CAL_5_2))
     got = build_trials(exp, experiment_preset(exp))
     assert len(got) == 1
     assert np.array_equal(got[0].x_ref, trials[3].x_ref) and got[0].seed == trials[3].seed
@@ -141,7 +144,7 @@ def test_calibration_fits_the_baseline(tmp_path):
     """Table 4.2 fitted on 8 No FI trials: the noise part of the RMS in-position error lands on the
     seed's No FI number; the PID is the designed one (not calibrated); FI is not used. (With 4
     trials the in-position RMS is not monotonic in the noise level near the fit: 9% off.)"""
-    cr = cm.run_campaign("table_4_2", tmp_path, trials=8, calibration_trials=8, progress=False,
+    cr = run_campaign("table_4_2", tmp_path, trials=8, calibration_trials=8, progress=False,
                          plots=False, mcap=False, report=False)
     cal = cr.calibration
     assert cal["converged"] and cal["baseline"] == "nofi"
@@ -149,7 +152,7 @@ def test_calibration_fits_the_baseline(tmp_path):
     assert rms["target"]["sim_effective"] == pytest.approx(rms["target"]["seed_effective"], rel=0.05)
     assert 2e-4 < rms["value"] < 2e-3
     assert rms["applied"]["nofi"] == rms["applied"]["fi"]         # the same drive in both cases
-    assert cr.runs[("nofi", "5mm")].preset.controller.pid == cm.load_preset("fi_stage_nofi_gms").controller.pid
+    assert cr.runs[("nofi", "5mm")].preset.controller.pid == load_preset("fi_stage_nofi_gms").controller.pid
     on_disk = json.loads((tmp_path / "calibration.json").read_text())
     assert on_disk["values"] == pytest.approx(cal["values"])
     assert all(h["values"].keys() == {"drive_noise_current_rms"} for h in cal["history"])
@@ -159,7 +162,7 @@ def test_calibration_fits_the_baseline(tmp_path):
 def test_bearing_stiffness_scale_is_fitted_within_the_tables(tmp_path):
     """Table 5.2: the Table 6.5 GMS stiffness scale lands inside [1, 3.55] (Table 6.5 as printed ..
     Table 6.4's k_sigma) with the Baseline 5 mm settling time on the seed's 77 ms (+-5%)."""
-    cr = cm.run_campaign("table_5_2", tmp_path, trials=4, calibration_trials=4, progress=False,
+    cr = run_campaign("table_5_2", tmp_path, trials=4, calibration_trials=4, progress=False,
                          plots=False, mcap=False, report=False)
     fit = {p["name"]: p for p in cr.calibration["parameters"]}
     k = fit["bearing_stiffness_scale"]
@@ -173,13 +176,13 @@ def test_bearing_stiffness_scale_is_fitted_within_the_tables(tmp_path):
 @pytest.fixture(scope="module")
 def t42(tmp_path_factory):
     out = tmp_path_factory.mktemp("t42")
-    return cm.run_campaign("table_4_2", out, trials=8, calibration=_cal(CAL_4_2), progress=False)
+    return run_campaign("table_4_2", out, trials=8, calibration=_cal(CAL_4_2), progress=False)
 
 
 @pytest.fixture(scope="module")
 def t52(tmp_path_factory):
     out = tmp_path_factory.mktemp("t52")
-    return cm.run_campaign("table_5_2", out, trials=8, calibration=_cal(CAL_5_2), progress=False)
+    return run_campaign("table_5_2", out, trials=8, calibration=_cal(CAL_5_2), progress=False)
 
 
 @pytest.mark.slow
@@ -260,7 +263,7 @@ def test_table_3_3_findings(tmp_path):
     """VAN: dither with HC settles faster and has a larger in-position error (all four directions
     of Table 3.3 reproduced; the settling reductions, -16% / -6% at 50 trials, are much smaller than
     the seed's -66% / -22%)."""
-    cr = cm.run_campaign("table_3_3", tmp_path, trials=8, calibration=_cal(CAL_3_3), progress=False,
+    cr = run_campaign("table_3_3", tmp_path, trials=8, calibration=_cal(CAL_3_3), progress=False,
                          plots=False, mcap=False)
     for f in cr.findings:
         assert _same_direction(f), f["id"]
@@ -271,7 +274,7 @@ def test_dahl_bearings_ratchet_out_of_position(tmp_path):
     """table_4_2_dahl: with the Table 4.3 Dahl bearings the No FI stage drifts after settling
     (single-state Dahl drift), so its in-position error exceeds the FI's: the seed's RMS finding
     is reversed. This is why table_4_2 uses the GMS presets."""
-    cr = cm.run_campaign("table_4_2_dahl", tmp_path, trials=4, dwell=0.5, calibration=_cal(CAL_4_2),
+    cr = run_campaign("table_4_2_dahl", tmp_path, trials=4, dwell=0.5, calibration=_cal(CAL_4_2),
                          progress=False, plots=False, mcap=False)
     for fid in ("fi_rms_larger_5mm", "fi_rms_larger_5um"):
         assert not _same_direction(_finding(cr, fid))
@@ -286,14 +289,14 @@ def test_dahl_bearings_ratchet_out_of_position(tmp_path):
 def test_graph_runs_reproduce_the_batch_trials(tmp_path):
     """Representative trials through the ROS graph, incl. an SAI trial with its learned Step II
     correction, give the batch engine's measured positions exactly."""
-    d = yaml.safe_load(open(cm.CAMPAIGN_DIR / "table_5_2.yaml"))
+    d = yaml.safe_load(open(CAMPAIGN_DIR / "table_5_2.yaml"))
     d.update(name="t52_graph", trials=2, cases=[c for c in d["cases"] if c["name"] in ("baseline", "sai")])
     d["test"].update(steps=[5e-6], dwell=0.05)
     d["seed"]["values"] = [v for v in d["seed"]["values"] if v["step"] == 5e-6 and v["case"] != "fi"]
     d["seed"]["findings"] = [f for f in d["seed"]["findings"] if f["id"] == "sai_settles_faster_5um"]
     d["calibration"] = None
     d["cases"][1]["step_ii"]["iterations"] = 2
-    cr = cm.run_campaign(_write(tmp_path, d), tmp_path / "out", graph=True, progress=False, plots=False)
+    cr = run_campaign(_write(tmp_path, d), tmp_path / "out", graph=True, progress=False, plots=False)
     for key in (("baseline", "5um"), ("sai", "5um")):
         g = cr.runs[key].graph
         assert g["done"] and not g["aborted"], g
@@ -306,12 +309,13 @@ def test_graph_runs_reproduce_the_batch_trials(tmp_path):
 @pytest.mark.slow
 def test_cli(tmp_path, capsys):
     p = argparse.ArgumentParser()
-    cm.add_campaign_arguments(p)
-    assert cm.main_campaign(p.parse_args(["--list"])) == 0
+    add_campaign_arguments(p)
+    assert main_campaign(p.parse_args(["--list"])) == 0
     assert "table_5_2" in capsys.readouterr().out
-    assert cm.main_campaign(p.parse_args(["no_such_campaign"])) == 2
+    with pytest.raises(ConfigError, match="no_such_campaign"):        # the CLI prints it, exit 2 (test_cli.py)
+        main_campaign(p.parse_args(["no_such_campaign"]))
     path = _write(tmp_path, _tiny())
-    code = cm.main_campaign(p.parse_args([str(path), "--out", str(tmp_path / "o"), "--quiet", "--no-plots",
+    code = main_campaign(p.parse_args([str(path), "--out", str(tmp_path / "o"), "--quiet", "--no-plots",
                                           "--no-mcap"]))
     assert code == 0
     out = capsys.readouterr().out

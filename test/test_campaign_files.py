@@ -19,7 +19,13 @@ import math
 import pytest
 import yaml
 
-from experiment_runner import campaign as cm
+from experiment_runner.campaigns.calibration import calibration_fingerprint
+from experiment_runner.campaigns.kinds import KINDS, kind_of, schemas
+from experiment_runner.campaigns.registry import METRICS
+from experiment_runner.campaigns.runner import run_campaign
+from experiment_runner.campaigns.spec import (CAMPAIGN_DIR, Calibration, CalibrationFrom, Campaign, cal_parameters,
+                                              calibration_source, case_preset, conditions, list_campaigns,
+                                              load_campaign)
 from stage_sim.config import ConfigError
 
 # Calibrated values of the full runs (see test_campaign.py), by the campaign that fits them.
@@ -38,15 +44,15 @@ def _cal(camp):
     """Calibration values for a campaign: its own fit or that of ``calibration.from``."""
     if camp.calibration is None:
         return None
-    src = camp.calibration.from_ if isinstance(camp.calibration, cm.CalibrationFrom) else camp.name
+    src = camp.calibration.from_ if isinstance(camp.calibration, CalibrationFrom) else camp.name
     return {"values": CAL[src], "parameters": [], "trials": 0}
 
 
-def _reduced(camp: cm.Campaign) -> cm.Campaign:
+def _reduced(camp: Campaign) -> Campaign:
     """The campaign at test scale: fewer trials, only the named conditions and cases."""
     d = camp.model_dump(by_alias=True)
     d["trials"] = TRIALS.get(camp.name, 2)
-    if isinstance(camp.calibration, cm.Calibration):
+    if isinstance(camp.calibration, Calibration):
         d["calibration"]["trials"] = min(d["calibration"]["trials"], d["trials"])
     named = list(camp.seed.values) + list(camp.seed.findings)
     if camp.test.kind == "circle":
@@ -66,7 +72,7 @@ def _reduced(camp: cm.Campaign) -> cm.Campaign:
         if any(getattr(x, "over", "mean") == "sweep_spread" for x in named):
             keep.add(min(camp.sweep.values))     # a spread needs two values: the largest error (-50%)
         d["sweep"]["values"] = [v for v in camp.sweep.values if v in keep]
-    return cm.Campaign.model_validate(d)
+    return Campaign.model_validate(d)
 
 
 def _same_direction(f) -> bool:
@@ -76,24 +82,24 @@ def _same_direction(f) -> bool:
 
 
 # --------------------------------------------------------------------------- every file
-@pytest.mark.parametrize("name", cm.list_campaigns())
+@pytest.mark.parametrize("name", list_campaigns())
 def test_file_validates_with_sourced_seed_numbers(name):
-    c = cm.load_campaign(name)
+    c = load_campaign(name)
     assert c.seed.source and c.seed.findings
     for f in c.seed.findings:                    # a stated direction, and a reason where it fails
         assert f.claim and (f.note == "" or len(f.note) > 80), f.id
-    if isinstance(c.calibration, cm.CalibrationFrom):
-        src = cm.calibration_source(c)
-        assert isinstance(src.calibration, cm.Calibration)
-        assert {p.name for p in cm.cal_parameters(c)} == set(CAL[src.name])
+    if isinstance(c.calibration, CalibrationFrom):
+        src = calibration_source(c)
+        assert isinstance(src.calibration, Calibration)
+        assert {p.name for p in cal_parameters(c)} == set(CAL[src.name])
 
 
-@pytest.mark.parametrize("name", [n for n in cm.list_campaigns()
-                                  if cm.load_campaign(n, check_presets=False).test.kind in RUN_KINDS])
+@pytest.mark.parametrize("name", [n for n in list_campaigns()
+                                  if load_campaign(n, check_presets=False).test.kind in RUN_KINDS])
 @pytest.mark.slow
 def test_file_runs_and_takes_the_seed_directions(name, tmp_path):
-    camp = _reduced(cm.load_campaign(name))
-    cr = cm.run_campaign(camp, tmp_path, calibration=_cal(camp), progress=False, plots=False, mcap=False)
+    camp = _reduced(load_campaign(name))
+    cr = run_campaign(camp, tmp_path, calibration=_cal(camp), progress=False, plots=False, mcap=False)
     assert len(cr.findings) == len(camp.seed.findings)
     md = (tmp_path / "report.md").read_text()
     notes = {f.id: f.note for f in camp.seed.findings}
@@ -115,15 +121,15 @@ def test_calibration_from_fits_caches_and_reuses(tmp_path):
     """A circle campaign on the table_4_2 stage runs table_4_2's baseline fit once (2 trials),
     caches it as calibration.json, and the next run into the folder, or into a sibling of the
     source campaign's folder, loads it instead of refitting."""
-    camp = cm.load_campaign("circle_4_11")
+    camp = load_campaign("circle_4_11")
     d = camp.model_dump(by_alias=True)
     d.update(trials=1)
     d["test"]["circles"] = [{"radius": 5e-6, "speeds": [20e-6]}]
     d["seed"]["values"] = []
     d["seed"]["findings"] = [f for f in d["seed"]["findings"] if f["id"] == "fi_rms_lower_5um"]
-    tiny = cm.Campaign.model_validate(d)
+    tiny = Campaign.model_validate(d)
     out = tmp_path / "circle"
-    first = cm.run_campaign(tiny, out, calibration_trials=1, progress=False, mcap=False)
+    first = run_campaign(tiny, out, calibration_trials=1, progress=False, mcap=False)
     cal = first.calibration
     assert not cal["reused"] and cal["source"]["campaign"] == "table_4_2" and cal["trials"] == 1
     fit = {p["name"]: p for p in cal["parameters"]}     # fitted to table_4_2's No FI 5 mm numbers
@@ -135,17 +141,17 @@ def test_calibration_from_fits_caches_and_reuses(tmp_path):
         assert ov["stage.drive.noise_current_rms"] == pytest.approx(cal["values"]["drive_noise_current_rms"])
     assert "calibration: {from: table_4_2}" in (out / "report.md").read_text()
     assert (out / "plots" / "reduction_vs_speed.png").is_file()        # Fig. 4.13/4.14 style
-    again = cm.run_campaign(tiny, out, calibration_trials=1, progress=False, plots=False, mcap=False)
+    again = run_campaign(tiny, out, calibration_trials=1, progress=False, plots=False, mcap=False)
     assert again.calibration["reused"] and again.calibration["values"] == cal["values"]
     assert again.calibration["source"]["loaded_from"] == str(out / "calibration.json")
     # a table_4_2 run's own calibration.json, next to the output folder, is found too
     (tmp_path / "table_4_2").mkdir()
     (tmp_path / "table_4_2" / "calibration.json").write_text((out / "calibration.json").read_text())
-    third = cm.run_campaign(tiny, tmp_path / "other", calibration_trials=1, progress=False, plots=False,
+    third = run_campaign(tiny, tmp_path / "other", calibration_trials=1, progress=False, plots=False,
                             mcap=False, report=False)
     assert third.calibration["source"]["loaded_from"] == str(tmp_path / "table_4_2" / "calibration.json")
     # another trial count is another fit: the cache is not used
-    assert cm.calibration_fingerprint(cm.load_campaign("table_4_2"), 3) != cal["fingerprint"]
+    assert calibration_fingerprint(load_campaign("table_4_2"), 3) != cal["fingerprint"]
 
 
 # --------------------------------------------------------------------------- schema
@@ -156,7 +162,7 @@ def _write(tmp_path, data):
 
 
 def _circle(**extra):
-    d = yaml.safe_load((cm.CAMPAIGN_DIR / "circle_4_11.yaml").read_text())
+    d = yaml.safe_load((CAMPAIGN_DIR / "circle_4_11.yaml").read_text())
     d.update(extra)
     return d
 
@@ -175,40 +181,40 @@ def test_schema_errors_name_the_field(tmp_path, mutate, where):
     d = _circle()
     mutate(d)
     with pytest.raises(ConfigError) as err:
-        cm.load_campaign(_write(tmp_path, d))
+        load_campaign(_write(tmp_path, d))
     assert where in str(err.value)
 
 
 def test_sweep_schema_errors(tmp_path):
-    d = yaml.safe_load((cm.CAMPAIGN_DIR / "ff_4_16.yaml").read_text())
+    d = yaml.safe_load((CAMPAIGN_DIR / "ff_4_16.yaml").read_text())
     d["sweep"]["apply"][2].pop("series")
     with pytest.raises(ConfigError, match="series_scale needs 'series'"):
-        cm.load_campaign(_write(tmp_path, d))
-    d = yaml.safe_load((cm.CAMPAIGN_DIR / "ff_4_16.yaml").read_text())
+        load_campaign(_write(tmp_path, d))
+    d = yaml.safe_load((CAMPAIGN_DIR / "ff_4_16.yaml").read_text())
     d["sweep"]["apply"][1]["cases"] = ["nofi_dahl"]
     with pytest.raises(ConfigError, match="in more than one sweep target"):
-        cm.load_campaign(_write(tmp_path, d))
-    d = yaml.safe_load((cm.CAMPAIGN_DIR / "ff_4_16.yaml").read_text())
+        load_campaign(_write(tmp_path, d))
+    d = yaml.safe_load((CAMPAIGN_DIR / "ff_4_16.yaml").read_text())
     d["seed"]["findings"][-1]["sweep"] = 1.0
     with pytest.raises(ConfigError, match="sweep_spread compares every sweep value"):
-        cm.load_campaign(_write(tmp_path, d))
-    d = yaml.safe_load((cm.CAMPAIGN_DIR / "ff_6_5.yaml").read_text())
+        load_campaign(_write(tmp_path, d))
+    d = yaml.safe_load((CAMPAIGN_DIR / "ff_6_5.yaml").read_text())
     d["seed"]["findings"][3]["direction"] = "lower"
     with pytest.raises(ConfigError, match="relative_to is for direction 'similar'"):
-        cm.load_campaign(_write(tmp_path, d))
-    d = yaml.safe_load((cm.CAMPAIGN_DIR / "ff_6_5.yaml").read_text())
+        load_campaign(_write(tmp_path, d))
+    d = yaml.safe_load((CAMPAIGN_DIR / "ff_6_5.yaml").read_text())
     d["seed"]["findings"][3]["relative_to"] = "nobody"
     with pytest.raises(ConfigError, match="case 'nobody' is not a case"):
-        cm.load_campaign(_write(tmp_path, d))
+        load_campaign(_write(tmp_path, d))
 
 
 def test_feedforward_stiffness_errors_follow_the_seed():
     """Sec. 4.4.3: the No FI models' stiffnesses scale with the error; FI + Dahl re-combines the
     erroneous k_sigma,NoFI in series with k_fi (8.08e4 N/m of Table 4.3 without error); Baseline and
     FI + GMS do not depend on the sweep."""
-    c = cm.load_campaign("ff_4_16")
-    conds = {cond.sweep: cond for cond in cm.conditions(c) if cond.radius == 5e-3 and cond.speed == 5e-3}
-    ff = {s: {k.name: cm.case_preset(c, k, CAL["table_4_2"], cond).controller.feedforward for k in c.cases}
+    c = load_campaign("ff_4_16")
+    conds = {cond.sweep: cond for cond in conditions(c) if cond.radius == 5e-3 and cond.speed == 5e-3}
+    ff = {s: {k.name: case_preset(c, k, CAL["table_4_2"], cond).controller.feedforward for k in c.cases}
           for s, cond in conds.items()}
     assert ff[1.0]["baseline"] is None
     k_fi = 1 / (1 / 8.27e4 + 1 / 2.19e6)      # Table 4.3 lists 8.08e4; its own k_fi, k_sigma,NoFI give 7.97e4
@@ -223,14 +229,28 @@ def test_feedforward_stiffness_errors_follow_the_seed():
 
 
 def test_sai_reversal_window_follows_the_speed():
-    c = cm.load_campaign("circle_5_14")
-    for cond in cm.conditions(c):
-        p = cm.case_preset(c, c.case("sai"), None, cond)
+    c = load_campaign("circle_5_14")
+    for cond in conditions(c):
+        p = case_preset(c, c.case("sai"), None, cond)
         assert p.sai_manager.reversal_window == pytest.approx(0.309 * cond.speed)
         assert p.sai_manager.rule == "tracking" and p.sai_manager.ilc is None
-        assert math.isclose(cm.case_preset(c, c.case("fi"), None, cond).sai_manager.reversal_window, 0.0)
+        assert math.isclose(case_preset(c, c.case("fi"), None, cond).sai_manager.reversal_window, 0.0)
 
 
 def test_new_campaigns_are_listed():
     assert {"table_6_3", "circle_3_19", "circle_4_11", "circle_5_14", "ff_4_16", "ff_6_5", "steps_c1",
-            "steps_c12"} <= set(cm.list_campaigns())
+            "steps_c12"} <= set(list_campaigns())
+
+
+def test_every_test_schema_has_its_kind_and_metrics():
+    """The ``test`` union and :data:`KINDS` list the same kinds; each kind reports its schema's metrics,
+    every one of them in the metric registry; each shipped campaign's conditions come from its schema."""
+    assert {s.model_fields["kind"].annotation.__args__[0] for s in schemas()} == set(KINDS)
+    for name, kind in KINDS.items():
+        assert kind.name == name and kind.test in schemas()
+        assert kind.metrics == kind.test.METRICS and set(kind.metrics) <= set(METRICS)
+    for n in list_campaigns():
+        camp = load_campaign(n, check_presets=False)
+        assert kind_of(camp).test is type(camp.test)
+        base = camp.test.conditions()
+        assert len(conditions(camp)) == len(base) * (len(camp.sweep.values) if camp.sweep else 1)

@@ -11,8 +11,11 @@ import scipy.signal
 import yaml
 from scipy.optimize import brentq
 
-from experiment_runner import campaign as cm
-from experiment_runner import frf_campaign as fc
+from experiment_runner.campaigns.findings import seed_bound_check
+from experiment_runner.campaigns.frf import loop_frfs, plant_frf
+from experiment_runner.campaigns.kinds import kind_of
+from experiment_runner.campaigns.runner import run_campaign
+from experiment_runner.campaigns.spec import Campaign, FrequencyResponseTest, conditions, frequency_grid, load_campaign
 from experiment_runner.batch import simulate
 from experiment_runner.metrics import sine_phasor
 from stage_control.tuning import loop_margins
@@ -48,7 +51,7 @@ def _exact_plant(preset, f):
 def _test(**kw):
     base = dict(kind="frequency_response", amplitudes=[0.5], f_min=5.0, f_max=2000.0, points_per_decade=3,
                 cycles=3, min_measure_time=0.05, min_settle_time=0.6, sensor="true")
-    return fc.FrequencyResponseTest(**{**base, **kw})
+    return FrequencyResponseTest(**{**base, **kw})
 
 
 # --------------------------------------------------------------------------- estimator and loop
@@ -62,7 +65,7 @@ def test_sine_phasor_rejects_offset_and_drift():
 
 def test_plant_frf_recovers_a_linear_stage():
     preset = _linear_preset()
-    pf = fc.plant_frf(preset, _test(amplitudes=[0.2, 2.0]))
+    pf = plant_frf(preset, _test(amplitudes=[0.2, 2.0]))
     assert (pf.status == 0).all() and np.isfinite(pf.G).all()
     exact = _exact_plant(preset, pf.freqs_hz)
     for row in pf.G:                                  # linear: the same FRF at every amplitude
@@ -70,7 +73,7 @@ def test_plant_frf_recovers_a_linear_stage():
         assert err.max() < 2e-3, (pf.freqs_hz, err)   # transients and the fit: below 0.2 %
     # the encoder reading (4.88 nm counts) gives the same FRF where the motion spans many counts
     enc = with_overrides(preset, {"stage.encoder.resolution": 4.88e-9})
-    pe = fc.plant_frf(enc, _test(amplitudes=[2.0], sensor="encoder"))
+    pe = plant_frf(enc, _test(amplitudes=[2.0], sensor="encoder"))
     many = np.abs(pe.G[0]) * 2.0 > 200 * 4.88e-9
     assert many.sum() >= 3 and np.abs(pe.G[0, many] / exact[many] - 1).max() < 5e-3
     # ... and is visibly quantised at 2 kHz (2 counts peak to peak), where the true position is exact
@@ -97,7 +100,7 @@ def test_calculated_closed_loop_matches_the_batch_engine(dob):
     t = k[w] * dt
     T_sim = np.array([sine_phasor(t, res.y[i, w], f) / sine_phasor(t, x_ref[i, w], f)
                       for i, f in enumerate(f_adj)])
-    T_calc = fc.loop_frfs(preset, f_adj, _exact_plant(preset, f_adj))["T"]
+    T_calc = loop_frfs(preset, f_adj, _exact_plant(preset, f_adj))["T"]
     assert np.abs(T_sim - T_calc).max() < 1e-3 * np.abs(T_calc).max(), (T_sim, T_calc)
     # the loop is not trivially 1: a real test of the controller FRF
     assert np.abs(T_calc - 1).max() > 0.1
@@ -122,14 +125,14 @@ def test_loop_margins_reference_values():
 # --------------------------------------------------------------------------- campaign files
 def test_frf_campaign_files_validate():
     for name in ("frf_fi", "frf_dob"):
-        c = cm.load_campaign(name)
-        conds = cm.conditions(c)
+        c = load_campaign(name)
+        conds = conditions(c)
         assert [x.amplitude for x in conds] == [0.11, 0.22, 0.55, 1.1, 2.2, 4.95, 11.0, 16.5]
         assert conds[0].label == "0.11 N" and c.test.f_min <= 1.0
-        assert cm._metric_names(c) == fc.FRF_METRICS
-    fi = cm.load_campaign("frf_fi")
+        assert kind_of(c).metrics == FrequencyResponseTest.METRICS
+    fi = load_campaign("frf_fi")
     assert fi.seed_value("nofi", "bandwidth_hz", amplitude=16.5) == 200.0
-    dob = cm.load_campaign("frf_dob")
+    dob = load_campaign("frf_dob")
     assert dob.case("nofi_dob").overrides["controller.dob"]["q_cutoff"] == 100.0
     assert dob.case("fi_dob").overrides["controller.dob"]["q_cutoff"] == 200.0
 
@@ -153,10 +156,10 @@ def _frf_yaml(**seed_extra):
 ])
 def test_frf_schema_errors_name_the_field(tmp_path, mutate, where):
     d = _frf_yaml()
-    cm.load_campaign(_write(tmp_path, d))          # the unmutated file is valid
+    load_campaign(_write(tmp_path, d))          # the unmutated file is valid
     mutate(d)
     with pytest.raises(ConfigError, match=where):
-        cm.load_campaign(_write(tmp_path, d))
+        load_campaign(_write(tmp_path, d))
 
 
 def _write(tmp_path, data):
@@ -172,9 +175,9 @@ REDUCED = {"frf_fi": {"amplitudes": [0.11, 0.55, 1.1, 16.5], "f_min": 2.0, "poin
 
 
 def _reduced(name):
-    d = cm.load_campaign(name).model_dump()
+    d = load_campaign(name).model_dump()
     d["test"].update(REDUCED[name])
-    return cm.Campaign.model_validate(d)
+    return Campaign.model_validate(d)
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +186,7 @@ def runs(tmp_path_factory):
     for name in ("frf_fi", "frf_dob"):
         path = tmp_path_factory.mktemp(name)
         # through the campaign hook; plots of one campaign only (they take seconds)
-        out[name] = cm.run_campaign(_reduced(name), path, progress=False, plots=name == "frf_fi")
+        out[name] = run_campaign(_reduced(name), path, progress=False, plots=name == "frf_fi")
     return out
 
 
@@ -235,7 +238,7 @@ def test_simulated_closed_loop_agrees_with_the_calculated_one(runs):
 
 @pytest.mark.slow
 def test_frf_dob_seed_bounds(runs):
-    checks = fc.seed_bound_check(runs["frf_dob"].campaign, runs["frf_dob"].runs)
+    checks = seed_bound_check(runs["frf_dob"].campaign, runs["frf_dob"].runs)
     # the 200 Hz DOB's negative No FI margins at 0.11 N are not reproduced (see the finding's note)
     failed = {(c["case"], c["metric"]) for c in checks if c["within_bound"] is False}
     assert failed == {("nofi_dob200", "gain_margin_db"), ("nofi_dob200", "phase_margin_deg")}
@@ -247,11 +250,11 @@ def test_outputs_are_written(runs):
     cr = runs["frf_dob"]
     d = json.loads((cr.out_dir / "results.json").read_text())
     assert d["kind"] == "frequency_response" and d["units"]["G"] == "m/N"
-    n_f = len(fc.frequency_grid(cr.campaign.test))
+    n_f = len(frequency_grid(cr.campaign.test))
     n_a = len(REDUCED["frf_dob"]["amplitudes"])
     assert len(d["frf"]) == 5 * n_a
     assert all(len(x["freqs_hz"]) == n_f and len(x["T_real"]) == n_f for x in d["frf"])
-    assert {r["metric"] for r in d["results"]} == set(fc.FRF_METRICS)
+    assert {r["metric"] for r in d["results"]} == set(FrequencyResponseTest.METRICS)
     with open(cr.out_dir / "frf.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 5 * n_a * n_f

@@ -131,6 +131,14 @@ def test_paper_unknown_claim_group_exits_2_listing_the_groups(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, expected", [
     (["presets", "no_such_preset"], "no_such_preset: no such preset file"),
+    (["graph"], "give an EXPERIMENT (name or YAML path), or --list"),
+    (["campaign"], "give a CAMPAIGN (name or YAML path), --list or --main"),
+    (["campaign", "frf_fi", "--dwell", "0.5", "--out", "c"], "--dwell applies to point-to-point campaigns only"),
+    (["diagnose"], "give RECORDING [NOMINAL], or --list-effects, or --selftest"),
+    (["convert", "table", "no_such.csv", "--rate", "1000", "--command", "u", "--measured", "y", "--out", "x.mcap"],
+     "no_such.csv"),
+    (["convert", "emps", "no_such_dir", "--out", "x.mcap"], "no_such_dir: no such file"),
+    (["design", "fi_stage"], "give the required RMS in-position error: --rms NM"),
     (["design", "no_such_preset", "--rms", "2"], "no_such_preset: no such preset file"),
     (["design", "fi_stage", "--rms", "-2"], "--rms -2"),
     (["synth", "no_such_truth", "fi_p2p_5um", "--out", "x.mcap"], "no_such_truth: no such preset file"),
@@ -140,6 +148,28 @@ def test_paper_unknown_claim_group_exits_2_listing_the_groups(tmp_path, capsys):
 def test_other_commands_bad_input_exits_2_naming_it(tmp_path, capsys, monkeypatch, argv, expected):
     monkeypatch.chdir(tmp_path)
     _fails(argv, capsys, expected)
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["bench", "--quick=yes"], "argument --quick: ignored explicit argument 'yes'"),
+    (["paper", "--json=yes"], "argument --json: ignored explicit argument 'yes'"),
+    (["synth", "fi_stage"], "the following arguments are required"),
+    (["realdata", "--only", "nothing"], "argument --only: invalid choice: 'nothing'"),
+])
+def test_bad_arguments_are_argparse_errors(capsys, argv, expected):
+    err = _refused_by_argparse(argv, capsys)
+    assert expected in err, err
+
+
+def test_every_command_has_a_bad_input_test():
+    """Each ``nanostage`` subcommand appears in a bad-input case of this file."""
+    import re
+    from pathlib import Path
+
+    from experiment_runner.cli import build_parser
+    commands = set(build_parser()._subparsers._group_actions[0].choices)
+    tested = set(re.findall(r'\(\["(\w+)"', Path(__file__).read_text()))
+    assert commands <= tested, f"no bad-input test for: {sorted(commands - tested)}"
 
 
 def test_a_closed_output_pipe_is_not_a_traceback():

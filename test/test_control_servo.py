@@ -218,14 +218,15 @@ def reference_step(model, s, x_ref, v_ref, x_meas):
     dxr = x_ref - s[8]
     s[8] = x_ref
     u_ff = 0.0
+    p = model.ff_par                                  # Dahl: k_sigma, f_c, shape; GMS: f_c, n, k_i..., alpha_i f_c...
     if model.ff_kind == 1:
-        s[12] = dahl_update(s[12], dxr, model.ff_k[0], model.ff_fc, model.ff_shape)
+        s[12] = dahl_update(s[12], dxr, p[0], p[1], p[2])
         u_ff = s[12] + model.ff_viscous * v_ref
     elif model.ff_kind == 2:
         total = 0.0
         for i in range(model.n_ff):
-            lim = model.ff_alpha[i] * model.ff_fc
-            s[12 + i] = min(max(s[12 + i] + model.ff_k[i] * dxr, -lim), lim)
+            lim = p[2 + model.n_ff + i]
+            s[12 + i] = min(max(s[12 + i] + p[2 + i] * dxr, -lim), lim)
             total += s[12 + i]
         u_ff = total + model.ff_viscous * v_ref
     d_hat = 0.0

@@ -5,7 +5,6 @@ chosen from the sweep's own range so every branch (feasible, edge, infeasible) i
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 
@@ -13,8 +12,8 @@ import numpy as np
 import pytest
 
 from experiment_runner import design
-from experiment_runner.design import (DesignError, Flexure, advise_isolator, add_design_arguments, check_van,
-                                      main_design, recommend, sweep_isolator)
+from experiment_runner.design import (DesignError, Flexure, advise_isolator, check_van, main_design, recommend,
+                                      sweep_isolator)
 
 K_GRID = np.logspace(4, 6.5, 6)        # stage totals [N/m]
 C_GRID = np.array([1.0, 30.0, 1000.0])  # [N·s/m]
@@ -142,9 +141,9 @@ def test_van_bad_input():
 
 # ----------------------------------------------------------------------------- CLI
 def _cli(argv):
-    ap = argparse.ArgumentParser()
-    add_design_arguments(ap)
-    return main_design(ap.parse_args(argv))
+    """``nanostage design argv``: bad input is the CLI's message and exit 2."""
+    from experiment_runner.cli import main
+    return main(["design", *argv])
 
 
 def test_cli_exit_codes(tmp_path, capsys):

@@ -1,7 +1,7 @@
 """Concealed-data proof, end to end through the command-line functions:
 ``synth TRUTH EXPERIMENT --out REC`` -> MCAP recording -> ``diagnose REC NOMINAL``.
 
-The full self-test (``nanostage diagnose --selftest``, 42 cases) takes minutes; here a
+The full self-test (``nanostage diagnose --selftest``, 45 cases) takes minutes; here a
 positive case through the CLI with every output file, and a representative subset of the
 self-test through ``--selftest --json``: one case per recording kind (stepped sine, circle,
 point-to-point), a pair of effects and a negative control, each judged by the issue's pass

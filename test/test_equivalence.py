@@ -9,7 +9,7 @@ from stage_control.dither import dither_step
 from stage_control.sai import sai_step
 from stage_control.servo import servo_step
 from stage_sim.config import load_preset
-from stage_sim.plant import plant_step
+from stage_sim.plant import PlantInputs, plant_step
 
 
 def _step_by_step(preset, x_ref, v_ref, seed):
@@ -30,7 +30,8 @@ def _step_by_step(preset, x_ref, v_ref, seed):
         dither_step(m.dither, ds, k, xr, one(v_ref[k]), y, dout)
         servo_step(m.servo, ss, xr, one(v_ref[k]), y, u)
         ys[k] = y[0]
-        plant_step(m.plant, *plant, u, dout[0].copy(), dout[1].copy(), mode, k, seeds, meas, status)
+        plant_step(m.plant, plant, PlantInputs(u, dout[0].copy(), dout[1].copy(), mode, np.zeros(0)), k, seeds,
+                   meas, status)
         assert status[0] == 0
         y = meas[0].copy()
     return ys

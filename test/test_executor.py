@@ -9,11 +9,12 @@ import math
 
 import pytest
 
-from experiment_runner import stream as stream_mod
-from experiment_runner.campaign import (Campaign, case_preset, conditions, load_campaign, run_campaign,
-                                        simulate_case)
+from experiment_runner.campaigns import stream as stream_mod
+from experiment_runner.campaigns.runner import run_campaign
+from experiment_runner.campaigns.spec import Campaign, case_preset, conditions, load_campaign
+from experiment_runner.campaigns.stream import STREAM_NAME
+from experiment_runner.campaigns.trials import metric_record, simulate_trials
 from experiment_runner.executor import make_executor
-from experiment_runner.stream import STREAM_NAME
 from stage_sim.config import ConfigError
 
 STEP = 5e-6
@@ -38,7 +39,9 @@ def reference_metrics(camp) -> dict:
     (cond,) = conditions(camp)
     out = {}
     for case in camp.cases:
-        ref, trials, _, mets = simulate_case(camp, case, cond, case_preset(camp, case, None, cond), TRIALS)
+        preset = case_preset(camp, case, None, cond)
+        ref, trials, res = simulate_trials(camp, case, cond, preset, range(TRIALS))
+        mets = [metric_record(tr, res, j, preset.controller.rate) for j, tr in enumerate(trials)]
         out[case.name] = (_canon(mets), [float(t.x_ref[0] - ref.x[0]) for t in trials])
     return out
 

@@ -556,3 +556,39 @@ def test_a_second_sequencer_on_the_domain_refuses_to_start():
             s.destroy_node()
     finally:
         rclpy.shutdown(context=ctx)
+
+
+def test_the_recorder_counts_samples_lost_before_it_heard_the_config(tmp_path):
+    """On a loaded machine the run's config (transient_local, matched on its own) may reach the
+    recorder after the first per-sample messages: a gap among those is still counted (the
+    control period comes with the config) and reported as ``recording_incomplete``."""
+    import rclpy
+    from rclpy.context import Context
+    from std_msgs.msg import String
+
+    from experiment_runner.ros.recorder_node import RecorderNode
+    from msg_defs import cdr
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=_domain())
+    try:
+        node = RecorderNode(out=str(tmp_path / "run"), context=ctx)
+        truth = cdr.JointStateWriter()
+        for k in [0, 1, 2, 6, 7]:                                   # samples 3, 4, 5 never came
+            node._write_raw("/stage/truth", truth.pack(k * DT_NS, ("table",), (1e-9 * k,)), lambda d: d)
+        node._config_in(String(data=yaml.safe_dump({"preset": load_preset("fi_stage").model_dump(mode="json")})))
+        for k in [8, 10]:                                          # and sample 9, after the config
+            node._write_raw("/stage/truth", truth.pack(k * DT_NS, ("table",), (1e-9 * k,)), lambda d: d)
+        node.close()
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from experiment_runner.recording import bag_layout
+    from msg_defs.convert import parse_event
+    with open(bag_layout(tmp_path / "run")[1], "rb") as f:
+        events = [parse_event(m.data) for *_, m in make_reader(f, decoder_factories=[DecoderFactory()])
+                  .iter_decoded_messages(topics=["/experiment/events"])]
+    (gap,) = [e for e in events if e.get("cause") == "recording_incomplete"]
+    assert gap["lost"] == {"/stage/truth": 4} and "4 sample(s) of /stage/truth" in gap["reason"]

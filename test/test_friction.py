@@ -98,3 +98,83 @@ def test_batch_of_trials_is_independent():
     f = d.drive(x)
     for i, s in enumerate((1e-7, 1e-6, -1e-5)):
         np.testing.assert_allclose(f[:, i], Dahl(K_SIGMA, F_C).drive(np.linspace(0, s, 100)))
+
+
+# --------------------------------------------------------------------------- regularised Coulomb (registry law)
+def _regularized_sim(f_c=2.0, v_reg=1e-5, viscous=4.0, mass=1.0):
+    from stage_sim.config import Stage
+    from stage_sim.plant import PlantSim, build_plant
+    stage = Stage.model_validate(dict(
+        table=dict(mass=mass), encoder=dict(resolution=0.0), travel=dict(min=-1.0, max=1.0),
+        drive=dict(force_constant=1.0, peak_force=100.0, continuous_force=100.0),
+        table_friction=dict(model="regularized_coulomb", f_c=f_c, v_reg=v_reg, viscous=viscous)))
+    return PlantSim(build_plant(stage))
+
+
+@pytest.mark.parametrize("force", [0.5, 1.9, 3.0])
+def test_regularized_coulomb_steady_velocity(force):
+    """Under a constant force the table reaches the velocity where the force balances
+    ``F_C tanh(v/v_reg) + c v`` (a root found here with scipy), below F_C too: a smooth
+    zero-velocity transition creeps instead of sticking. The slope F_C/v_reg = 2e5 N·s/m on
+    1 kg is 2e5 1/s, 20 x the control rate: the plant solves it implicitly, no sub-steps added."""
+    from scipy.optimize import brentq
+    f_c, v_reg, c = 2.0, 1e-5, 40.0
+    sim = _regularized_sim(f_c, v_reg, c)
+    assert sim.pm.n_sub == 1
+    vs = []
+    for _ in range(20000):
+        sim.step(force)
+        vs.append(sim.velocities[0, 0])
+    v_exact = brentq(lambda v: f_c * np.tanh(v / v_reg) + c * v - force, 0.0, 10.0)
+    assert vs[-1] == pytest.approx(v_exact, rel=1e-6)
+    assert np.all(np.diff(vs) >= -1e-15 * abs(v_exact))      # no overshoot / ringing from rest
+
+
+def test_regularized_coulomb_odd_and_zero_at_rest():
+    """Reversing the force reverses the motion exactly; with no force it stays at rest."""
+    a, b, rest = _regularized_sim(), _regularized_sim(), _regularized_sim()
+    for _ in range(3000):
+        a.step(1.0)
+        b.step(-1.0)
+        rest.step(0.0)
+    assert b.positions[0, 0] == -a.positions[0, 0] and a.positions[0, 0] > 0
+    assert rest.positions[0, 0] == 0.0 and rest.velocities[0, 0] == 0.0
+
+
+def test_regularized_coulomb_in_the_registry():
+    """The law is a preset friction like any other: schema (with plausible ranges), virgin
+    curve and stiffness at rest through the registry, level for the diagnosis."""
+    from stage_sim import friction
+    from stage_sim.config import ConfigError, load_preset, with_overrides
+    fr = {"model": "regularized_coulomb", "f_c": 3.0, "v_reg": 1e-6}
+    p = with_overrides(load_preset("fi_stage"), {"stage.bearings.0.friction": fr})
+    cfg = p.stage.bearings[0].friction
+    assert friction.law(cfg).NAME == "regularized_coulomb"
+    assert friction.initial_stiffness(cfg) == 0.0
+    assert friction.law(cfg).virgin(cfg, np.array([1e-9, 1e-3])).tolist() == [3.0, 3.0]
+    with pytest.raises(ConfigError, match="v_reg"):
+        with_overrides(p, {"stage.bearings.0.friction.v_reg": 0.0}, source="test")
+    from experiment_runner.batch import simulate
+    from experiment_runner.profiles import point_to_point
+    ref = point_to_point(5e-6, dt=1e-4)
+    r = simulate(p, ref.x, ref.v)                    # the closed loop runs with it
+    assert abs(r.y[0, -1] - 5e-6) < 1e-7
+
+
+def test_numba_cache_is_keyed_by_the_compiled_code(tmp_path):
+    """A kernel compiled into another (a law's update into the plant step, the plant step
+    into the batch engine) must not run stale from numba's cache after its source changes:
+    the cache directory is named by a hash over every source file using numba."""
+    import shutil
+    from stage_sim import _cache
+    for pkg in _cache.PACKAGES:
+        shutil.copytree(_cache.ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    h0 = _cache.code_hash(tmp_path)
+    assert h0 == _cache.code_hash(_cache.ROOT)
+    law = tmp_path / "stage_sim" / "friction" / "regularized.py"
+    law.write_text(law.read_text().replace("1.0 - th * th", "1.0 - th ** 2"))
+    assert _cache.code_hash(tmp_path) != h0
+    doc = tmp_path / "stage_sim" / "validation.py"            # no compiled code: same cache
+    law.write_text(law.read_text().replace("1.0 - th ** 2", "1.0 - th * th"))
+    doc.write_text(doc.read_text() + "\n# comment\n")
+    assert _cache.code_hash(tmp_path) == h0

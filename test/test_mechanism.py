@@ -1,12 +1,14 @@
-"""Settling mechanism analysis (experiment_runner.mechanism): turning points, the friction-free twin,
+"""Settling mechanism analysis (experiment_runner.campaigns.mechanism): turning points, the friction-free twin,
 and the seed's mechanism on a small campaign."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from experiment_runner import campaign as cm
-from experiment_runner import mechanism as mech
+from experiment_runner.campaigns.runner import run_campaign
+from experiment_runner.campaigns.spec import Campaign, case_preset, conditions, load_campaign
+from experiment_runner.campaigns import mechanism as mech
+from experiment_runner.campaigns.frequency_response import frf_lines
 from stage_sim.config import load_preset
 
 
@@ -41,11 +43,11 @@ def test_no_fi_5mm_is_friction_limited_and_fi_is_not():
     """Table 4.2 stage, designed PID, one trial: the No FI table reverses after the reference stops and
     settles in the pre-motion regime at least twice as slowly as its friction-free twin; the FI case
     with the same PID is within 35% of the same twin."""
-    camp = cm.load_campaign("table_4_2")
-    cond = next(c for c in cm.conditions(camp) if c.step == 5e-3)
+    camp = load_campaign("table_4_2")
+    cond = next(c for c in conditions(camp) if c.step == 5e-3)
     out = {}
     for case in camp.cases:
-        out[case.name] = mech.analyse(camp, case, cond, cm.case_preset(camp, case, None, cond), 0)
+        out[case.name] = mech.analyse(camp, case, cond, case_preset(camp, case, None, cond), 0)
     nofi, fi = out["nofi"], out["fi"]
     assert nofi["friction_limited"] and nofi["settled_in_premotion"]
     assert nofi["settling_time_s"] > 2.0 * nofi["twin_settling_time_s"]
@@ -61,13 +63,13 @@ def test_no_fi_5mm_is_friction_limited_and_fi_is_not():
 def test_frf_lines_put_bandwidth_and_margins_next_to_the_settling(tmp_path):
     """The main job's Fig. 4.6 table: one row per amplitude, the No FI pre-motion bandwidth collapse, and
     the FI's gain-margin loss explained by the 2 kg -> 1.14 kg rigid-body loop gain (4.8 dB)."""
-    d = cm.load_campaign("frf_fi").model_dump(by_alias=True)
+    d = load_campaign("frf_fi").model_dump(by_alias=True)
     d["test"].update(amplitudes=[0.11, 16.5], f_min=2.0, points_per_decade=8, simulate_closed_loop=False)
     keep = lambda x: all(a in (None, 0.11, 16.5) for a in (x.get("amplitude"), x.get("versus_amplitude")))
     d["seed"]["findings"] = [f for f in d["seed"]["findings"] if keep(f)]
     d["seed"]["values"] = [v for v in d["seed"]["values"] if keep(v)]
-    frf = cm.run_campaign(cm.Campaign.model_validate(d), tmp_path, progress=False, plots=False)
-    lines = mech.frf_lines(frf)
+    frf = run_campaign(Campaign.model_validate(d), tmp_path, progress=False, plots=False)
+    lines = frf_lines(frf)
     rows = [x for x in lines if x.startswith("| 0.11 N") or x.startswith("| 16.5 N")]
     assert len(rows) == 2
     bw_pre = frf.runs[("nofi", frf.conditions[0].key)].values["bandwidth_hz"]

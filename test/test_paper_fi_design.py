@@ -1,8 +1,8 @@
 """Chapter 6 FI design analysis (Sec. 6.3.2, 6.4.2) and Appendix D rotary FI claims.
 
 Module-scoped fixtures run ``experiment_runner.paper.fi_design`` and ``...rotary`` once.
-Claims that reproduce assert ``agrees``; for the two that do not (Fig. 6.3(b) stiffness
-trend, Fig. 6.8 optimum location) the tests pin the honest property we find instead.
+Claims that reproduce assert ``agrees``; for the one that does not (Fig. 6.3(b) stiffness
+trend) the test pins the honest property we find instead and its first-order explanation.
 """
 from __future__ import annotations
 
@@ -60,6 +60,27 @@ def test_series_solver_linear_and_gms_limits():
     assert np.max(np.abs(k_fi * (xt - xb) - f)) < 1e-9
 
 
+def test_series_construction_reproduces_table_4_5():
+    """The seed's FI-case GMS (Table 4.5) is the virgin curve of Table 4.4 in series with k_fi."""
+    dev_series, dev_per_block = fi_design.table_4_5_check()
+    assert dev_series < 0.01            # 0.5 % of F_C over 0..400 um
+    assert dev_per_block > 0.2          # each block with its own k_fi: not the seed's table
+    # Table 4.5's initial stiffness = k_sigma,FI of Table 4.3 (8.08e4 N/m), within rounding
+    assert math.isclose(fi_design.GMS45_K.sum(), 8.08e4, rel_tol=0.01)
+    assert math.isclose(fi_design.GMS4_K.sum(), 2.19e6, rel_tol=0.005)   # Table 4.4 = Table 4.3's k_sigma
+
+
+def test_gamma_optimum_scale_invariant_and_consistency_matters():
+    """Fig. 6.8 on a coarse grid: same optimum for any common k_sigma = sum k_i, not for the printed pair."""
+    etas = np.logspace(-2, 0, 9)
+    g1, _, _ = fi_design.gamma_curve(etas, gms_k=fi_design.gms_consistent())
+    g2, _, _ = fi_design.gamma_curve(etas, k_f=float(fi_design.GMS_K.sum()), gms_k=fi_design.GMS_K)
+    g3, _, _ = fi_design.gamma_curve(etas)                                  # Tables 6.4/6.5 as printed
+    assert np.argmin(g1) == np.argmin(g2)
+    assert 0.05 <= etas[np.argmin(g1)] <= 0.2
+    assert etas[np.argmin(g3)] <= 0.04
+
+
 def test_rotary_eq_d1_d2_from_equations_of_motion():
     """D.1/D.2 re-derived: roller + two bearings, same T_f on both."""
     k, c, cf = 300.0, 0.01, 2.0
@@ -101,6 +122,12 @@ def test_ge_claim_honest_property(fi_out):
     for v in list(n["sensitivity_c_f"].values()) + list(n["variants"].values()):
         assert v["ge_agrees"] is False and v["ge_table_ok"] and v["ge_mono_c"]
     assert n["max_closed_loop_pole_real"] < 0
+    # first-order explanation: |G_e| ~ |k_fi - m_t w^2| / |C| gives the optimum and the rise
+    k_opt = n["Ge_k_opt_vs_c"]["1"]
+    assert abs(n["Ge_k_opt_estimate"] / k_opt - 1) < 0.25
+    assert n["Ge_rise_estimate"] > 0.5
+    # python-control feedback() gives the same norms as the vectorised map
+    assert n["Ge_python_control_max_rel_dev"] < 1e-9
 
 
 @pytest.mark.slow
@@ -114,16 +141,23 @@ def test_gd_claim_agrees(fi_out):
 
 
 @pytest.mark.slow
-def test_gamma_claim_honest_property(fi_out):
-    """Fig. 6.8: U shape and under/over-compensation reproduce; the optimum sits at ~0.02, not 0.05-0.1."""
+def test_gamma_claim_agrees_with_consistent_friction_models(fi_out):
+    """Fig. 6.8: with Dahl and GMS sharing the initial stiffness (the seed's identification) the
+    optimum lies in 0.05-0.1 (±1/10 decade); the printed Tables 6.4/6.5, which disagree on it, put
+    it at ~0.02."""
     c = fi_out[1]["6.4.2/gamma-optimum"]
     n = c.numbers
-    assert c.agrees is False
+    assert c.agrees, c.note
     assert n["u_shaped"] and n["underestimates_small"] and n["overcompensates_large"]
-    assert 0.01 <= n["eta_min"] <= 0.035
-    assert n["gamma_at_0.05"] < n["gamma_at_1"] and n["gamma_at_0.1"] < n["gamma_at_1"]
-    # the per-block series variant lands in the seed's range
-    assert 0.04 <= n["eta_min_per_block_variant"] <= 0.126
+    assert 0.0397 <= n["eta_min"] <= 0.126
+    assert 0.0397 <= n["eta_min_second_cycle"] <= 0.126
+    assert math.isclose(n["gms_initial_stiffness"], 2.19e6, rel_tol=1e-9)
+    # the optimum depends on the two models sharing k_sigma, not on which value is shared
+    assert n["eta_min_common_scale_table_6_5"] == n["eta_min"]
+    # the tables as printed (sum k_i = 0.28 k_sigma) give the old, wrong optimum
+    assert 0.01 <= n["eta_min_as_printed"] <= 0.035
+    # the series construction is the seed's (Table 4.5), the per-block one is not
+    assert n["table_4_5_dev_series"] < 0.01 and n["table_4_5_dev_per_block"] > 0.2
 
 
 @pytest.mark.slow

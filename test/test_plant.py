@@ -167,7 +167,7 @@ def test_variations_off_by_default():
 
 
 def test_force_offset_equals_external_force_and_bypasses_the_drive():
-    """``stage.force_offset`` and the external input of plant_step_ext are the same table
+    """``stage.force_offset`` and the external input of plant_step (PlantInputs.f_ext) are the same table
     force; neither passes through the drive (here: 3 samples of delay)."""
     drive = dict(DRIVE, delay_samples=3)
     a = PlantSim(build_plant(_stage(force_offset=0.5, drive=drive)))

@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from stage_control import tuning
+from stage_sim import friction
 from stage_control.tuning import closed_loop_bandwidth_hz, loop_shape_pid, margins
 from stage_sim.config import PRESET_DIR, ConfigError, list_presets, load_preset, preset_from_dict, with_overrides
 
@@ -380,7 +381,8 @@ def test_error_lines_name_file_field_value_and_what_is_allowed(tmp_path):
     assert set(lines[1:]) == {
         "  stage.table.mass: got -1; expected greater than 0 -- moving table mass [kg] (rotary: inertia [kg·m²])",
         "  stage.table.mas: unknown key (got 3); allowed keys: mass",
-        "  stage.bearings.0.friction.model: got 'dahll'; expected one of 'dahl', 'gms', 'lugre', 'coulomb'",
+        "  stage.bearings.0.friction.model: got 'dahll'; expected one of "      # every law of the registry
+        + ", ".join(repr(law.NAME) for law in friction.LAWS),
         "  stage.drive.peak_force: required field is missing -- peak force limit [N]",
         "  controller.pid.kp: expected a number, not true/false (got True)",
     }

@@ -108,9 +108,10 @@ def main_diagnose(args) -> int:
         conf = f"  [confounded with {', '.join(f['confounded_with'])}]" if f.get("confounded_with") else ""
         print(f"  {i}. {f['title']}: {ps}{conf}")
     v = rep["validation"]["force_residual_rms_N"]
+    fu = (rep.get("units") or {}).get("force", "N")
     if v["fall"] is not None:
-        print(f"held-out force residual RMS: {v['nominal']:.4g} N -> {v['improved']:.4g} N "
-              f"({100 * v['fall']:.1f} % lower; floor {v['floor']:.3g} N)")
+        print(f"held-out force residual RMS: {v['nominal']:.4g} {fu} -> {v['improved']:.4g} {fu} "
+              f"({100 * v['fall']:.1f} % lower; floor {v['floor']:.3g} {fu})")
     print(f"report: {out / 'report.md'}   improved preset: {out / 'improved_preset.yaml'}   "
           f"({rep['timing_s']['total_s']:.1f} s)")
     return 0
@@ -147,10 +148,19 @@ def replay_lines(rep: dict) -> list[str]:
     r = rep["replay"]
     c, p = r["command_rms_N"], r["position_rms_m"]
     st = r["stable"]
-    return [f"held-out closed-loop replay ({len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples, "
-            f"{r['reference']} reference):",
-            f"  command error RMS  {c['nominal']:.4g} N -> {c['improved']:.4g} N   (run-to-run floor {c['floor']:.3g} N)",
-            f"  position error RMS {p['nominal']:.4g} m -> {p['improved']:.4g} m   (run-to-run floor {p['floor']:.3g} m)",
+    U = rep.get("units") or {}
+    fu, pu = U.get("force", "N"), U.get("position", "m")
+    if rep.get("recording", {}).get("open_loop"):
+        head = [f"held-out open-loop prediction ({len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples, "
+                "windows re-initialised from the measurement; the recorded command is the input):"]
+    else:
+        head = [f"held-out closed-loop replay ({len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples, "
+                f"{r['reference']} reference):",
+                f"  command error RMS  {c['nominal']:.4g} {fu} -> {c['improved']:.4g} {fu}   "
+                f"(run-to-run floor {c['floor']:.3g} {fu})"]
+    return head + [
+            f"  position error RMS {p['nominal']:.4g} {pu} -> {p['improved']:.4g} {pu}   "
+            f"(run-to-run floor {p['floor']:.3g} {pu})",
             f"  error / floor      {r['floor_ratio']['nominal']:.3g}x -> {r['floor_ratio']['improved']:.3g}x"
             + ("" if st["improved"] else "   IMPROVED MODEL UNSTABLE") + ("" if st["nominal"] else "   (nominal unstable)")]
 

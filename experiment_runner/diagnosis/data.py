@@ -7,7 +7,11 @@ whole record is one trial) and stacks them as (T, B) arrays, trial axis last, pa
 the last sample and masked. The plant's other inputs -- the piezo dither forces (``/stage/dither``) and the SAI solenoid
 command (``/stage/isolator``, held from each message's stamp) -- are taken from the recording
 where it has them; otherwise the pipeline fills them from the nominal model's own dither
-generator and SAI manager on the recorded reference (:meth:`DiagData.plant_inputs`).
+generator and SAI manager on the recorded reference (:meth:`DiagData.plant_inputs`). A known
+external force (``/stage/external_force``) is applied to the model's table wherever the model
+runs (:meth:`DiagData.known_force`). An *open-loop* record (no ``/stage/reference``: the recorded
+command drove the plant) has ``open_loop`` set and the measured position as ``x_ref`` (its
+low-passed derivative as ``v_ref``), so the motion regimes are read from the measurement.
 It splits the samples into a *fit* set and a *held-out* set:
 whole trials when there are two or more (every third trial held out, at least one),
 otherwise contiguous blocks of the single trial (every third of six blocks held out).
@@ -47,12 +51,19 @@ class DiagData:
     d0: np.ndarray = None         # (T, B) dither force of piezo 1 [N] (None: no dither)
     d1: np.ndarray = None         # (T, B) dither force of piezo 2 [N]
     mode: np.ndarray = None       # (T, B) SAI solenoid command, 1 compliant, 0 stiff (None: compliant)
+    f_ext: np.ndarray = None      # (T, B) known external force on the table [N] (/stage/external_force; None: none)
+    open_loop: bool = False       # no reference: the recorded command drove the plant (x_ref = measured position)
+    axis: str = "linear"          # linear (m, N) or rotary (rad, N·m): the recording's run.axis / preset stage.kind
 
     def plant_inputs(self) -> tuple:
         """``(d0, d1, mode)`` as (T, B) arrays: zero dither and a compliant (no) isolator where absent."""
         zero = np.zeros(self.shape)
         return (zero if self.d0 is None else self.d0, zero if self.d1 is None else self.d1,
                 np.ones(self.shape) if self.mode is None else self.mode)
+
+    def known_force(self) -> np.ndarray:
+        """The known external table force (T, B) [N]: ``f_ext``, zero where absent."""
+        return np.zeros(self.shape) if self.f_ext is None else self.f_ext
 
     @property
     def dt(self) -> float:
@@ -66,10 +77,11 @@ class DiagData:
         """The same data restricted to trials ``cols`` (indices into the batch axis)."""
         cols = np.asarray(cols, int)
         kw = {k: None if getattr(self, k) is None else getattr(self, k)[:, cols]
-              for k in ("x_ref", "v_ref", "u", "y", "valid", "fit", "held", "ys", "vs", "d0", "d1", "mode")}
+              for k in ("x_ref", "v_ref", "u", "y", "valid", "fit", "held", "ys", "vs", "d0", "d1", "mode", "f_ext")}
         return DiagData(rate=self.rate, t0=self.t0[cols], lengths=self.lengths[cols],
                         trial_ids=[self.trial_ids[c] for c in cols], source=self.source, split=self.split,
-                        smooth_hz=self.smooth_hz, notes=list(self.notes), **kw)
+                        smooth_hz=self.smooth_hz, notes=list(self.notes), open_loop=self.open_loop, axis=self.axis,
+                        **kw)
 
 
 def smooth(y: np.ndarray, rate: float, cutoff: float, lengths=None):
@@ -105,7 +117,7 @@ def _stack(cols, T):
 def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trials: int | None = None) -> DiagData:
     """Read ``source`` (path or :class:`~experiment_runner.recording.Recording`) into :class:`DiagData`."""
     from experiment_runner.recording import Recording, RecordingError, read_recording
-    rec = source if isinstance(source, Recording) else read_recording(source)
+    rec = source if isinstance(source, Recording) else read_recording(source, require_reference=False)
     n = len(rec)
     if n < 10:
         raise RecordingError(f"{rec.path}: only {n} control samples; the diagnosis needs at least 10")
@@ -115,8 +127,15 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
     notes = [f"recording {rec.salvaged}"] if rec.salvaged else []
     if np.any(np.abs(dts * 1e-9 - dt) > 0.01 * dt):
         notes.append(f"{int(np.sum(np.abs(dts * 1e-9 - dt) > 0.01 * dt))} irregular sample interval(s)")
-    v_ref = rec.v_ref
-    if np.all(np.isnan(v_ref)):
+    x_ref, v_ref = rec.x_ref, rec.v_ref
+    if rec.open_loop:
+        # no reference: the recorded command drove the plant. The regimes (reversal, constant velocity, ...)
+        # are read from the measurement itself, low-passed (zero phase) at rate/50
+        _, vs = smooth(rec.y[:, None], rate, rate / 50.0)
+        x_ref, v_ref = rec.y.copy(), vs[:, 0]
+        notes.append("open-loop record (no /stage/reference): the recorded command drove the plant; judged by "
+                     "open-loop windows re-initialised from the measurement")
+    elif np.all(np.isnan(v_ref)):
         v_ref = np.gradient(rec.x_ref) * rate
         notes.append("reference velocity absent: differentiated from the reference position")
     v_ref = np.nan_to_num(v_ref)
@@ -133,16 +152,22 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
     if rec.isolator is not None and len(rec.isolator):
         mode = _at_samples(rec.isolator, rec.stamp_ns, ISOLATOR_JOINT, "position", hold=True)
         notes.append("SAI mode from /stage/isolator")
+    f_ext = None
+    if rec.external_force is not None:
+        f_ext = np.nan_to_num(np.asarray(rec.external_force, float))
+        notes.append("known external force from /stage/external_force (applied to the model's table)")
     cut = lambda a: None if a is None else [a[s0:s1] for _, s0, s1 in slices]  # noqa: E731
-    return from_trials(rate, [rec.t[s0] for _, s0, _ in slices], cut(rec.x_ref), cut(v_ref), cut(rec.u), cut(rec.y),
-                       trial_ids=[s[0] for s in slices], source=str(rec.path), notes=notes, burn_in=burn_in,
-                       d0=cut(d0), d1=cut(d1), mode=cut(mode))
+    out = from_trials(rate, [rec.t[s0] for _, s0, _ in slices], cut(x_ref), cut(v_ref), cut(rec.u), cut(rec.y),
+                      trial_ids=[s[0] for s in slices], source=str(rec.path), notes=notes, burn_in=burn_in,
+                      d0=cut(d0), d1=cut(d1), mode=cut(mode), f_ext=cut(f_ext), open_loop=rec.open_loop)
+    out.axis = rec.axis
+    return out
 
 
 def from_trials(rate: float, t0, x_ref, v_ref, u, y, trial_ids=None, source: str = "", notes=None,
-                burn_in: float = 0.005, d0=None, d1=None, mode=None) -> DiagData:
-    """:class:`DiagData` of trials given as lists of 1-D arrays (one per trial; ``d0, d1, mode``
-    optional), stacked, masked and split into fit and held-out sets as :func:`load_data` does."""
+                burn_in: float = 0.005, d0=None, d1=None, mode=None, f_ext=None, open_loop: bool = False) -> DiagData:
+    """:class:`DiagData` of trials given as lists of 1-D arrays (one per trial; ``d0, d1, mode``,
+    ``f_ext`` optional; ``open_loop``: no reference, ``x_ref`` is the measured position), stacked, masked and split into fit and held-out sets as :func:`load_data` does."""
     B = len(u)
     T = max(len(a) for a in u)
     lengths = np.array([len(a) for a in u])
@@ -166,7 +191,8 @@ def from_trials(rate: float, t0, x_ref, v_ref, u, y, trial_ids=None, source: str
     st = lambda a: None if a is None else _stack(a, T)  # noqa: E731
     return DiagData(rate=float(rate), t0=np.asarray(t0, float), x_ref=st(x_ref), v_ref=st(v_ref), u=st(u), y=st(y),
                     valid=valid, fit=fit, held=held, lengths=lengths, trial_ids=trial_ids, source=source,
-                    split=split, notes=list(notes or []), d0=st(d0), d1=st(d1), mode=st(mode))
+                    split=split, notes=list(notes or []), d0=st(d0), d1=st(d1), mode=st(mode), f_ext=st(f_ext),
+                    open_loop=bool(open_loop))
 
 
 def _at_samples(series, stamp_ns, joint: str, field: str, hold: bool = False) -> np.ndarray:

@@ -1,7 +1,8 @@
 """Compiled kernels of the diagnosis: force observer and open-loop windows.
 
-Both drive the project's own compiled plant step (:func:`stage_sim.plant.plant_step_ext`,
-the step the batch engine and the ROS plant node use) with the model's full plant -- drive
+Both drive the project's own compiled plant step (:func:`stage_sim.plant.plant_step`,
+the step the batch engine and the ROS plant node use; :func:`open_loop` is the plant's open-loop
+driver :func:`stage_sim.plant.run_open_loop`) with the model's full plant -- drive
 delay, limits and force constant included -- minus its random parts (:func:`observer_model`).
 Every effect a hypothesis adds is a plant feature (preset field), so nothing is simulated here
 that the plant does not simulate itself; closed-loop runs are :func:`experiment_runner.batch.simulate`.
@@ -29,7 +30,9 @@ import math
 import numpy as np
 from numba import njit
 
-from stage_sim.plant import COULOMB, DAHL, GMS, LUGRE, OK, PlantModel, init_plant_state, plant_step_ext
+from stage_sim import friction
+from stage_sim.plant import (OK, PlantInputs, PlantModel, PlantState, init_plant_state, plant_step, quantize,
+                             run_open_loop)
 
 __all__ = ["observer_model", "observe", "open_loop", "new_state", "friction_norm"]
 
@@ -46,19 +49,8 @@ def friction_norm(pm, z, fr, b, fc_tot):
     n = pm.n
     tot = 0.0
     for e in range(pm.fr_kind.shape[0]):
-        if pm.fr_dof[e] != 0:
-            continue
-        kind = pm.fr_kind[e]
-        if kind == DAHL:
-            tot += fr[e, 0, b]
-        elif kind == GMS:
-            for i in range(pm.fr_n[e]):
-                tot += fr[e, i, b]
-        elif kind == LUGRE:
-            tot += pm.fr_par[e, 0] * fr[e, 0, b]
-        elif kind == COULOMB:
-            v = z[n, b]
-            tot += pm.fr_par[e, 0] * (1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0))
+        if pm.fr_dof[e] == 0:
+            tot += friction.level(pm.fr_kind[e], pm.fr_par[e], fr[e], b, z[n, b])
     if fc_tot > 0.0:
         return tot / fc_tot
     v = z[n, b]
@@ -66,30 +58,31 @@ def friction_norm(pm, z, fr, b, fc_tot):
 
 
 @njit(cache=True, nogil=True)
-def observe(pm, fc_tot, u, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, omega, m_eff, snap_every,
+def observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every,
             out_d, out_x, out_v, out_phi, snap_z, snap_fr, snap_ps, snap_dbuf):
     """Force observer over a batch of trials (see module docstring).
 
-    ``u, ys, vs``: (T, B) recorded command [N], smoothed measured position [m] and velocity
-    [m/s]; ``d0, d1, mode``: (T, B) the plant's other inputs, piezo dither forces [N] and SAI
-    solenoid command (1 compliant, 0 stiff). ``z ... force``: plant state
-    (:class:`stage_sim.plant.PlantState` fields, at rest at ``ys[0]``). Writes ``out_d`` (force residual [N]), ``out_x``, ``out_v`` (observer position
+    ``inp``: :class:`stage_sim.plant.PlantInputs` over the record, (T, B) each: the recorded
+    command [N], piezo dither forces [N] and SAI solenoid command (1 compliant, 0 stiff); its
+    ``f_ext`` (T, B) is the known external table force [N] (``/stage/external_force``), applied
+    with the tracking force, or empty (0, 0) for none. ``ys, vs``: (T, B) smoothed
+    measured position [m] and velocity [m/s]. ``st``: plant state
+    (:class:`stage_sim.plant.PlantState`, at rest at ``ys[0]``). Writes ``out_d`` (force residual [N]), ``out_x``, ``out_v`` (observer position
     and velocity), ``out_phi`` (normalised table friction state), and every ``snap_every``
     samples the plant state into ``snap_*`` (for :func:`open_loop`). Returns the number of
     samples at which the plant reported a non-OK status.
     """
-    T, B = u.shape
+    T, B = ys.shape
     n = pm.n
+    z, fr, ps, dbuf = st.z, st.fr, st.ps, st.dbuf
     dt = pm.dt
     kp = 3.0 * m_eff * omega * omega
     kd = 3.0 * m_eff * omega
     ki = m_eff * omega * omega * omega
     integ = np.zeros(B)
     d = np.zeros(B)
-    uk = np.zeros(B)
-    d0k = np.zeros(B)
-    d1k = np.zeros(B)
-    mk = np.zeros(B)
+    dk = np.zeros(B)
+    known = inp.f_ext.shape[0] > 0
     seeds = np.zeros(B, np.int64)
     meas = np.zeros((2, B))
     status = np.zeros(B, np.int64)
@@ -106,15 +99,12 @@ def observe(pm, fc_tot, u, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, 
             ev = vs[k, b] - z[n, b]
             integ[b] += ki * dt * e
             d[b] = kp * e + kd * ev + integ[b]
-            uk[b] = u[k, b]
-            d0k[b] = d0[k, b]
-            d1k[b] = d1[k, b]
-            mk[b] = mode[k, b]
+            dk[b] = d[b] + inp.f_ext[k, b] if known else d[b]
             out_d[k, b] = d[b]
             out_x[k, b] = z[0, b]
             out_v[k, b] = z[n, b]
             out_phi[k, b] = friction_norm(pm, z, fr, b, fc_tot)
-        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, d, d0k, d1k, mk, k, seeds, meas, status)
+        plant_step(pm, st, PlantInputs(inp.u[k], inp.d0[k], inp.d1[k], inp.mode[k], dk), k, seeds, meas, status)
         for b in range(B):
             if status[b] != OK:
                 bad += 1
@@ -122,32 +112,26 @@ def observe(pm, fc_tot, u, d0, d1, mode, ys, vs, z, fr, ps, dbuf, f, zn, force, 
     return bad
 
 
-@njit(cache=True, nogil=True)
-def open_loop(pm, u, d0, d1, mode, k0, z, fr, ps, dbuf, f, zn, force, out_x):
-    """Open loop from sample ``k0``: column ``w`` is driven by the command ``u[:, w]``
-    (length, W) and the inputs ``d0, d1, mode`` (length, W) (see :func:`observe`) from the
-    state ``z ... force`` (column ``w``); writes the table position into ``out_x`` (length, W)."""
-    length, W = u.shape
-    uk = np.zeros(W)
-    d0k = np.zeros(W)
-    d1k = np.zeros(W)
-    mk = np.zeros(W)
-    none = np.zeros(0)
-    seeds = np.zeros(W, np.int64)
+def open_loop(pm, inp, k0, st, out_x, seeds=None, out_y=None) -> int:
+    """Open loop from sample ``k0``: column ``w`` is driven by the inputs ``inp`` (a
+    :class:`stage_sim.plant.PlantInputs` of (length, W) arrays; ``f_ext`` the known external
+    table force (length, W), or empty (0, 0) for none) from the state ``st`` (column ``w``);
+    writes the true table position into ``out_x`` (length, W) and, if given, the measurement
+    (the sensor's, quantized) into ``out_y``. ``seeds`` (W,): the noise seeds of a plant model
+    with noise (a simulated recording; zeros by default). The plant's open-loop driver
+    :func:`stage_sim.plant.run_open_loop`. Returns the number of columns that diverged or left
+    the travel."""
+    W = out_x.shape[1]
+    seeds = np.zeros(W, np.int64) if seeds is None else np.asarray(seeds, np.int64)
     meas = np.zeros((2, W))
+    meas[0] = [quantize(x, pm.q_table) for x in st.z[0]]
     status = np.zeros(W, np.int64)
-    for j in range(length):
-        for w in range(W):
-            out_x[j, w] = z[0, w]
-            uk[w] = u[j, w]
-            d0k[w] = d0[j, w]
-            d1k[w] = d1[j, w]
-            mk[w] = mode[j, w]
-        plant_step_ext(pm, z, fr, ps, dbuf, f, zn, force, uk, none, d0k, d1k, mk, k0 + j, seeds, meas, status)
+    run_open_loop(pm, st, inp, k0, seeds, meas, status, True, out_x,
+                  np.zeros((0, 0)) if out_y is None else out_y)
+    return int(np.count_nonzero(status != OK))
 
 
-def new_state(pm: PlantModel, x0, sai_mode: float = 1.0) -> tuple:
-    """Plant state arrays (z, fr, ps, dbuf, f, zn, force) at rest at ``x0`` (B,), the isolator
-    in ``sai_mode`` (1 compliant, 0 stiff and locked)."""
+def new_state(pm: PlantModel, x0, sai_mode: float = 1.0) -> PlantState:
+    """Plant state at rest at ``x0`` (B,), the isolator in ``sai_mode`` (1 compliant, 0 stiff and locked)."""
     x0 = np.atleast_1d(np.asarray(x0, float))
-    return tuple(init_plant_state(pm, len(x0), x0, sai_mode=sai_mode))
+    return init_plant_state(pm, len(x0), x0, sai_mode=sai_mode)

@@ -27,9 +27,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .model import ModelSpec, coulomb_total, friction_elements
+from .units import unit_for
+from stage_sim import friction
 from stage_sim.config import set_dotted
 
-__all__ = ["Param", "Effect", "LIBRARY", "get_effect", "describe", "virgin_x50"]
+__all__ = ["Param", "Effect", "LIBRARY", "get_effect", "describe", "virgin_x50", "split_mode", "rigid_mass"]
 
 
 @dataclass
@@ -101,46 +103,18 @@ def _variation(fr, f_c_new: float) -> dict:
             "position_center": fr.position_center}
 
 
-def _pre_motion_stiffness(fr) -> float:
-    m = fr.model
-    if m == "dahl":
-        return fr.k_sigma
-    if m == "gms":
-        return float(sum(fr.k))
-    if m == "lugre":
-        return fr.sigma0
-    return 0.0
-
-
-def virgin_x50(fr_dump: list[dict]) -> float:
-    """Displacement [m] at which the summed virgin curve of friction elements reaches half
-    their total Coulomb force (pre-motion length scale; Dahl: ln2 F_C/k_sigma)."""
+def virgin_x50(fr_dump: list) -> float:
+    """Displacement [m] at which the summed virgin curve of friction elements (configs or their
+    dicts) reaches half their total sliding force (pre-motion length scale; Dahl: ln2 F_C/k_sigma).
+    Each law's virgin curve and sliding force come from its module (:mod:`stage_sim.friction`)."""
     xs = np.logspace(-10, -2, 2000)
     tot = np.zeros_like(xs)
     fc = 0.0
     for fr in fr_dump:
-        m = fr["model"]
-        if m == "dahl":
-            k, f, nu = fr["k_sigma"], fr["f_c"], fr.get("shape", 1.0)
-            if nu == 1.0:
-                tot += f * (1 - np.exp(-k * xs / f))
-            else:   # integrate dF/dx = k (1 - F/fc)^nu numerically
-                F = np.zeros_like(xs)
-                for i in range(1, len(xs)):
-                    F[i] = F[i - 1] + k * max(0.0, 1 - F[i - 1] / f) ** nu * (xs[i] - xs[i - 1])
-                tot += np.minimum(F, f)
-            fc += f
-        elif m == "gms":
-            for k, a in zip(fr["k"], fr["alpha"]):
-                tot += np.minimum(k * xs, a * fr["f_c"])
-            fc += fr["f_c"] * sum(fr["alpha"])
-        elif m == "lugre":
-            k, f = fr["sigma0"], fr["f_c"]
-            tot += f * (1 - np.exp(-k * xs / f))
-            fc += f
-        elif m == "coulomb":
-            tot += fr["f_c"]
-            fc += fr["f_c"]
+        law = friction.law(fr["model"] if isinstance(fr, dict) else fr)
+        cfg = law.Schema.model_construct(**fr) if isinstance(fr, dict) else fr
+        tot += law.virgin(cfg, xs)
+        fc += law.sliding_force(cfg)
     if fc <= 0:
         return float("nan")
     i = int(np.searchsorted(tot, 0.5 * fc))
@@ -225,7 +199,7 @@ class Dahl(Effect):
         return None if friction_elements(spec.preset) else "the model has no friction element to give pre-motion"
 
     def _k0(self, spec):
-        return float(sum(_pre_motion_stiffness(fr) for _, fr in friction_elements(spec.preset)))
+        return float(sum(friction.initial_stiffness(fr) for _, fr in friction_elements(spec.preset)))
 
     def params(self, spec, ctx):
         k0 = self._k0(spec)
@@ -342,7 +316,7 @@ class Stribeck(Effect):
 
         def edit(d):
             for (path, fr), we in zip(els, w):
-                k = _pre_motion_stiffness(fr) or max(fr.f_c, 1e-9) / 1e-6
+                k = friction.initial_stiffness(fr) or max(fr.f_c, 1e-9) / 1e-6
                 set_dotted(d, path, {"model": "lugre", "sigma0": k, "sigma1": getattr(fr, "sigma1", 0.0),
                                     "viscous": fr.viscous, "f_c": max(fr.f_c, 1e-9), "f_s": max(fs * we, fr.f_c * 1.0001, 1e-9),
                                     "v_s": vs, "exponent": getattr(fr, "exponent", 2.0), **_variation(fr, max(fr.f_c, 1e-9))})
@@ -388,87 +362,232 @@ class Delay(Effect):
         return spec.with_changes({"stage.drive.delay_samples": int(round(theta[0]))})
 
 
+class FractionalDelay(Effect):
+    """A fraction of a control period more or less drive delay than the model has: the total
+    ``delay_samples + delay_fraction`` shifted by ``shift`` in (-1, 1) (the plant's exact delayed
+    zero-order hold). The whole samples are the integer ``delay`` effect's: a delay of 1.4 samples
+    is named as ``delay`` 1 and then ``fractional_delay`` +0.4 on top (a whole-sample delay the
+    data show stays that, a fraction adopted only if it adds beyond the floor)."""
+
+    @staticmethod
+    def total(spec):
+        d = spec.preset.stage.drive
+        return d.delay_samples + d.delay_fraction
+
+    def params(self, spec, ctx):
+        return [Param("shift", "samples", -0.999, 0.999, 0.3, doc="delay added to the model's, in control periods")]
+
+    def starts(self, spec, ctx):
+        return [[0.3], [-0.3]] if self.total(spec) > 0 else [[0.3], [0.7]]
+
+    def nominal(self, spec):
+        return {"shift": 0.0}
+
+    def apply(self, spec, theta):
+        tau = max(self.total(spec) + float(theta[0]), 0.0)
+        whole = int(math.floor(tau))
+        return spec.with_changes({"stage.drive.delay_samples": whole,
+                                  "stage.drive.delay_fraction": min(tau - whole, 1.0 - 1e-12)})
+
+
 # --------------------------------------------------------------------------- structure
+def rigid_mass(stage: dict) -> float:
+    """Mass of the table's DOF in a preset mapping's ``stage``: table + rigidly bolted bearings +
+    the structural modes on it [kg]."""
+    mt = stage["table"]["mass"]
+    return (mt * (1.0 + sum(m["mass_ratio"] for m in stage["modes"]))
+            + sum(b["mass"] for b in stage["bearings"] if b.get("joint") is None))
+
+
+def split_mode(d: dict, f: float, zeta: float, fraction: float) -> None:
+    """Add to preset mapping ``d`` a structural mode (blocked frequency ``f`` [Hz], damping ratio
+    ``zeta``) whose mass is ``fraction`` of the table DOF's mass (:func:`rigid_mass`), taken out of
+    the table: the total mass stays. The other modes keep their masses. Raises ``ValueError`` if
+    the table is lighter than the mode mass."""
+    st = d["stage"]
+    ms = fraction * rigid_mass(st)
+    m_old = st["table"]["mass"]
+    m_new = m_old - ms
+    if not m_new > 0:
+        raise ValueError(f"mode mass {ms:.4g} kg exceeds the table mass {m_old:.4g} kg")
+    for m in st["modes"]:
+        m["mass_ratio"] = m["mass_ratio"] * m_old / m_new
+    st["table"]["mass"] = m_new
+    st["modes"] = list(st["modes"]) + [{"frequency": float(f), "damping_ratio": min(float(zeta), 0.99),
+                                        "mass_ratio": ms / m_new}]
+
+
 class Mode(Effect):
+    """A lightly damped mode anywhere between DC and Nyquist, its mass a fraction of the table's
+    (:func:`split_mode`: the total mass stays the nominal's); started from the command ->
+    measurement transfer (:mod:`.frf`, context ``frf_modes``) and the force residual's peaks."""
+
+    def _max_fraction(self, spec):
+        st = spec.preset.stage
+        d = {"table": {"mass": st.table.mass}, "modes": [m.model_dump() for m in st.modes],
+             "bearings": [b.model_dump() for b in st.bearings]}
+        return 0.95 * st.table.mass / rigid_mass(d)
+
     def params(self, spec, ctx):
         rate = spec.preset.controller.rate
-        f0 = ctx.get("peak_hz", [0.1 * rate])[0] if ctx.get("peak_hz") else 0.1 * rate
-        return [Param("f", "Hz", 2.0, 0.45 * rate, f0, log=True, doc="blocked natural frequency"),
-                Param("zeta", "-", 0.002, 0.5, 0.03, log=True, doc="damping ratio"),
-                Param("mass_ratio", "-", 1e-3, 3.0, 0.1, log=True, doc="modal mass / table mass")]
+        frf = list(ctx.get("frf_modes") or [])
+        f0 = frf[0]["f_hz"] if frf else (ctx["peak_hz"][0] if ctx.get("peak_hz") else 0.1 * rate)
+        hi = self._max_fraction(spec)
+        return [Param("f", "Hz", 2.0, 0.49 * rate, min(max(f0, 2.5), 0.48 * rate), log=True,
+                      doc="blocked natural frequency"),
+                Param("zeta", "-", 0.001, 0.5, 0.03, log=True, doc="damping ratio"),
+                Param("fraction", "-", 1e-3, hi, min(0.1, 0.5 * hi), log=True,
+                      doc="modal mass / mass of the table's DOF (taken out of the table)")]
 
     def starts(self, spec, ctx):
         rate = spec.preset.controller.rate
+        hi = self._max_fraction(spec)
+        frf = [[min(max(m["f_hz"], 2.5), 0.48 * rate), min(max(m["zeta"], 0.0015), 0.45),
+                min(max(m["fraction"], 0.0015), 0.9 * hi)] for m in (ctx.get("frf_modes") or [])[:2]]
         peaks = list(ctx.get("peak_hz") or [])[:3]
-        grid = peaks + [f for f in (0.01 * rate, 0.03 * rate, 0.1 * rate) if all(abs(np.log(f / p)) > 0.3 for p in peaks)]
-        return [[f, 0.03, 0.1] for f in grid[:5]]
+        # the located peaks, then a grid of 4 per decade up to Nyquist (the starts are ranked by their cost,
+        # the best two fitted): a mode far from the excitation's lines starts near its frequency too
+        grid = np.geomspace(0.005 * rate, 0.4 * rate, 8)
+        grid = peaks + [float(f) for f in grid if all(abs(np.log(f / p)) > 0.3 for p in peaks)]
+        return (frf + [[f, 0.03, min(0.1, 0.5 * hi)] for f in grid])[:12]
 
     def nominal(self, spec):
-        return {"f": None, "zeta": None, "mass_ratio": None}
+        return {"f": None, "zeta": None, "fraction": None}
 
     def apply(self, spec, theta):
-        f, z, mu = (float(v) for v in theta)
+        f, z, phi = (float(v) for v in theta)
+        return spec.with_changes(edit=lambda d: split_mode(d, f, z, phi))
 
-        def edit(d):
-            d["stage"]["modes"] = list(d["stage"]["modes"]) + [{"frequency": f, "damping_ratio": min(z, 0.99),
-                                                                "mass_ratio": mu}]
-        return spec.with_changes(edit=edit)
+
+class LocatedMode(Effect):
+    """A mode located and fitted on the command -> measurement transfer (:mod:`.frf`) above the
+    cutoff of the measurement's smoothing, where the force observer cannot fit it (the smoothed
+    measurement it follows has no motion there): the transfer's fit (frequency, damping, mass
+    fraction; :func:`split_mode`) is the candidate as it is, one per located mode, and the judge
+    decides on the held-out data."""
+    _modes = None
+
+    def bind(self, ctx):
+        fs = float(ctx.get("smoothing_hz") or 0.0)
+        self._modes = tuple(m for m in ctx.get("frf_modes") or () if m["f_hz"] > fs)
+        return self
+
+    def applicable(self, spec):
+        if self._modes is not None and not self._modes:
+            return "no mode located on the command -> measurement transfer above the smoothing cutoff"
+        return None
+
+    def params(self, spec, ctx):
+        n = len(self._modes or ())
+        return [Param("mode", "-", 0, max(n - 1, 0), 0, doc="index of the located mode")]
+
+    def nominal(self, spec):
+        return {"mode": None}
+
+    def _mode(self, theta):
+        return self._modes[int(round(float(theta[0])))]
+
+    def derived(self, spec, theta):
+        m = self._mode(theta)
+        return {"f": m["f_hz"], "zeta": m["zeta"], "fraction": m["fraction"]}
+
+    def apply(self, spec, theta):
+        m = self._mode(theta)
+        return spec.with_changes(edit=lambda d: split_mode(d, m["f_hz"], m["zeta"], m["fraction"]))
 
 
 class FiCompliance(Effect):
+    """The bearings behind a spring-damper (friction isolator, Ch. 4), in any nominal with friction:
+    its bolted bearings, or -- a nominal written as "table with friction" -- a bearing made of the
+    table friction. The bearing mass ``m_b`` is fitted; the rigid mass (table + bearings) is kept,
+    so the two ways of writing the same rigid body give the same candidates and the same fit."""
+
     def applicable(self, spec):
-        return None if spec.preset.stage.bearings else "the stage has no bearing carriage to put behind a joint"
+        st = spec.preset.stage
+        if not st.bearings and st.table_friction is None:
+            return "the stage has no friction to put behind a joint (no bearing, no table friction)"
+        return None
 
     @staticmethod
-    def _mt(st):
-        """Table side of the joint: the table with its structural-mode masses."""
-        return st.table.mass * (1.0 + sum(m.mass_ratio for m in st.modes))
+    def _rigid(st):
+        """Mass of the rigid body: table + bearings [kg]."""
+        return st.table.mass + sum(b.mass for b in st.bearings)
 
-    def _m_red(self, spec):
-        st = spec.preset.stage
-        mb = st.bearings[0].mass
-        mt = self._mt(st)
-        return mb * mt / (mb + mt)
+    @staticmethod
+    def _mode_mass(st):
+        return st.table.mass * sum(m.mass_ratio for m in st.modes)
+
+    def _m_red(self, st, mb):
+        """Reduced mass of one of the ``nb`` joints for total bearing mass ``mb`` [kg]."""
+        nb = max(len(st.bearings), 1)
+        mt = self._rigid(st) - mb + self._mode_mass(st)
+        return (mb / nb) * mt / (mb / nb + mt)
+
+    def _mb0(self, st):
+        return sum(b.mass for b in st.bearings) if st.bearings else 0.1 * self._rigid(st)
 
     def params(self, spec, ctx):
         st = spec.preset.stage
-        nb = len(st.bearings)
-        k0 = st.bearings[0].joint.stiffness * nb if st.bearings[0].joint is not None else None
-        mr = self._m_red(spec)
-        kg = k0 or mr * (2 * np.pi * 50.0) ** 2 * nb
+        nb = max(len(st.bearings), 1)
+        mb0 = self._mb0(st)
+        jointed = bool(st.bearings) and st.bearings[0].joint is not None
+        k0 = st.bearings[0].joint.stiffness * nb if jointed else None
+        kg = k0 or self._m_red(st, mb0) * (2 * np.pi * 50.0) ** 2 * nb
+        M = self._rigid(st)
         return [Param("k_fi", "N/m", 1e-3 * kg, 1e3 * kg, kg, log=True, doc="total joint stiffness (all bearings)"),
-                Param("zeta_fi", "-", 1e-3, 1.0, 0.02, log=True, doc="joint damping ratio on the reduced mass")]
+                Param("zeta_fi", "-", 1e-3, 1.0, 0.02, log=True, doc="joint damping ratio on the reduced mass"),
+                Param("m_b", "kg", 0.005 * M, 0.8 * M, min(max(mb0, 0.01 * M), 0.7 * M), log=True,
+                      doc="total bearing mass behind the joints (table + bearings kept)")]
 
     def starts(self, spec, ctx):
         st = spec.preset.stage
-        nb = len(st.bearings)
-        mr = self._m_red(spec)
-        if st.bearings[0].joint is not None:
+        nb = max(len(st.bearings), 1)
+        mb = self.params(spec, ctx)[2].x0
+        if st.bearings and st.bearings[0].joint is not None:
             k0 = st.bearings[0].joint.stiffness * nb
-            return [[k0, 0.02], [0.3 * k0, 0.02], [3 * k0, 0.02]]
-        fr = list(ctx.get("peak_hz") or [])[:2] + [20.0, 60.0, 200.0]
-        return [[mr * (2 * np.pi * f) ** 2 * nb, 0.02] for f in fr[:4]]
+            return [[k0, 0.02, mb], [0.3 * k0, 0.02, mb], [3 * k0, 0.02, mb]]
+        mr = self._m_red(st, mb)
+        fr = list(ctx.get("frf_hz") or [])[:1] + list(ctx.get("peak_hz") or [])[:2] + [20.0, 60.0, 200.0]
+        return [[mr * (2 * np.pi * f) ** 2 * nb, 0.02, mb] for f in fr[:4]]
 
     def nominal(self, spec):
         st = spec.preset.stage
         if st.bearings and st.bearings[0].joint is not None:
             j = st.bearings[0].joint
+            mb = sum(b.mass for b in st.bearings)
             return {"k_fi": j.stiffness * len(st.bearings),
-                    "zeta_fi": j.damping / (2 * math.sqrt(j.stiffness * self._m_red(spec)))}
-        return {"k_fi": None, "zeta_fi": None}
+                    "zeta_fi": j.damping / (2 * math.sqrt(j.stiffness * self._m_red(st, mb))), "m_b": mb}
+        return {"k_fi": None, "zeta_fi": None, "m_b": sum(b.mass for b in st.bearings) if st.bearings else None}
+
+    def derived(self, spec, theta):
+        st = spec.preset.stage
+        k, _, mb = (float(v) for v in theta)
+        nb = max(len(st.bearings), 1)
+        return {"f_joint_hz": math.sqrt(k / nb / self._m_red(st, mb)) / (2 * math.pi)}
 
     def apply(self, spec, theta):
-        k, z = float(theta[0]), float(theta[1])
+        k, z, mb = (float(v) for v in theta)
         st = spec.preset.stage
-        nb = len(st.bearings)
+        M = self._rigid(st)
+        m_old = st.table.mass
+        m_new = M - mb
+        nb = max(len(st.bearings), 1)
         kb = k / nb
-        mt = self._mt(st)
+        mr = self._m_red(st, mb)
+        joint = {"stiffness": kb, "damping": 2 * z * math.sqrt(kb * mr)}
 
         def edit(d):
-            for b in d["stage"]["bearings"]:
-                mb = b["mass"]
-                mr = mb * mt / (mb + mt)
-                b["joint"] = {"stiffness": kb, "damping": 2 * z * math.sqrt(kb * mr)}
+            sd = d["stage"]
+            if sd["bearings"]:
+                for b in sd["bearings"]:
+                    b["mass"] = mb / nb
+                    b["joint"] = dict(joint)
+            else:       # "table with friction": the friction is the bearing's, behind the joint
+                sd["bearings"] = [{"mass": mb, "joint": dict(joint), "friction": sd["table_friction"]}]
+                sd["table_friction"] = None
+            sd["table"]["mass"] = m_new
+            for md in sd["modes"]:        # the modes keep their masses
+                md["mass_ratio"] = md["mass_ratio"] * m_old / m_new
         return spec.with_changes(edit=edit)
 
 
@@ -704,10 +823,14 @@ def _lib():
                  param_doc=[("F_S", "N", "static force"), ("v_s", "m/s", "Stribeck velocity")]),
         FiCompliance("fi_compliance", "FI compliance (bearing behind a spring-damper)", "deterministic",
                      "The bearing carriages are not rigid with the table but behind a joint of stiffness k_fi "
-                     "and damping (friction isolator, Ch. 4): adds (or re-fits) stage.bearings[*].joint.",
+                     "and damping (friction isolator, Ch. 4), in any nominal with friction: adds (or re-fits) "
+                     "stage.bearings[*].joint, or -- a nominal written as a table with friction -- makes that "
+                     "friction a bearing's behind the joint; the bearing mass m_b is fitted, table + bearings "
+                     "kept (a table with friction and a table with bolted bearings give the same fit).",
                      "an oscillatory residual at the joint mode after reversals and moves, frequency "
                      "sqrt(k_fi/m_red)/(2 pi); residual vs acceleration and in the band of that mode",
-                     param_doc=[("k_fi", "N/m", "total joint stiffness"), ("zeta_fi", "-", "damping ratio")]),
+                     param_doc=[("k_fi", "N/m", "total joint stiffness"), ("zeta_fi", "-", "damping ratio"),
+                                ("m_b", "kg", "total bearing mass")]),
         PositionFriction("position_friction", "position-dependent friction", "deterministic",
                          "Friction level varies along the travel: F_C(x) = F_C + dF_0 + g_1 (x - x_c) + g_2 (x - x_c)^2 "
                          "(x_c: centre of the recorded positions), shared over the friction elements in proportion "
@@ -723,14 +846,35 @@ def _lib():
                "of velocity sign",
                param_doc=[("a_sin, a_cos", "N", "amplitudes"), ("period", "m", "spatial period")]),
         Mode("structural_mode", "structural resonance", "deterministic",
-             "An (additional) lightly damped mode: a mass on a spring-damper to the table (stage.modes).",
-             "a narrow band of the residual spectrum above the noise floor, ringing after transients",
-             param_doc=[("f", "Hz", "frequency"), ("zeta", "-", "damping ratio"), ("mass_ratio", "-", "modal mass")]),
+             "An (additional) lightly damped mode anywhere between DC and Nyquist: a part of the table's mass "
+             "on a spring-damper to the rest (stage.modes; the table mass is reduced by the modal mass, so the "
+             "total mass stays the nominal's).",
+             "a narrow resonance / anti-resonance of the command -> measurement transfer against the model's "
+             "(csd/welch, located and fitted there, any frequency up to Nyquist), a narrow band of the force "
+             "residual spectrum, ringing after transients",
+             param_doc=[("f", "Hz", "blocked frequency"), ("zeta", "-", "damping ratio"),
+                        ("fraction", "-", "modal mass / table DOF mass")]),
+        LocatedMode("located_mode", "structural resonance located on the transfer", "integer",
+                    "A lightly damped mode above the force observer's reach (the measurement's smoothing "
+                    "cutoff) up to Nyquist, as located and fitted on the command -> measurement transfer: "
+                    "blocked frequency, damping and mass fraction split off the table (stage.modes; total "
+                    "mass kept).",
+                    "a narrow resonance / anti-resonance of the measured transfer against the model's, where the "
+                    "force residual shows nothing",
+                    param_doc=[("mode", "-", "index of the located mode (derived: f [Hz], zeta, fraction)")]),
         Delay("delay", "actuator delay", "integer",
               "The drive applies the command some samples late (stage.drive.delay_samples).",
               "residual correlated with the rate of change of the command (largest where the command changes "
               "fast: reversals, starts of moves); phase lag growing with frequency",
               param_doc=[("delay_samples", "samples", "delay")]),
+        FractionalDelay("fractional_delay", "fractional actuator delay", "deterministic",
+                        "The drive delay is not a whole number of control periods: the model's delay shifted by "
+                        "a fraction of a period (stage.drive.delay_samples + stage.drive.delay_fraction; exact "
+                        "delayed zero-order hold: the command of sample k acts from k + delay). On top of the "
+                        "whole-sample actuator delay.",
+                        "as the actuator delay; the phase lag of the command -> measurement transfer grows "
+                        "linearly with frequency, by 360 deg x delay x f / rate",
+                        param_doc=[("shift", "samples", "delay added to the model's (-1 ... 1)")]),
         ForceConstant("force_constant", "force-constant error", "deterministic",
                       "The motor force per command differs from nominal (stage.drive.force_constant_ratio).",
                       "residual proportional to the command itself (residual vs command is a straight line)",
@@ -792,7 +936,8 @@ def describe(as_json: bool = False):
     rows = []
     for e in LIBRARY.values():
         rows.append({"key": e.key, "title": e.title, "kind": e.kind, "physics": e.physics, "signature": e.signature,
-                     "parameters": [{"name": n, "unit": u, "meaning": m} for n, u, m in e.param_doc],
+                     "parameters": [{"name": n, "unit": u, "unit_rotary": unit_for(u, "rotary"), "meaning": m}
+                                    for n, u, m in e.param_doc],
                      "in_preset": e.expressible, "needs": e.needs})
     rows.append({"key": "sparse_regression", "title": "sparse regression (SINDy-style)", "kind": "fallback",
                  "physics": "When no effect explains a residual: sequentially thresholded least squares of the "
@@ -809,8 +954,9 @@ def describe(as_json: bool = False):
         out.append(f"    physics:   {r['physics']}")
         out.append(f"    signature: {r['signature']}")
         if r["parameters"]:
-            out.append("    params:    " + "; ".join(f"{p['name']} [{p['unit']}] {p['meaning']}".rstrip()
-                                                     for p in r["parameters"]))
+            out.append("    params:    " + "; ".join(
+                f"{p['name']} [{p['unit']}" + (f"; rotary {p['unit_rotary']}" if p["unit_rotary"] != p["unit"] else "")
+                + f"] {p['meaning']}".rstrip() for p in r["parameters"]))
         if r["needs"]:
             out.append(f"    needs:     {r['needs']}")
     return "\n".join(out)

@@ -28,12 +28,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .data import DiagData, load_data
+from .frf import locate_modes
 from .fit import (Evaluator, FitResult, estimate_lattice, fit_effect, fit_noise_level, fit_with, joint_fit, n_eff,
                   noise_components, sparse_regression)
 from .hypotheses import LIBRARY, get_effect
 from .judge import ReplayJudge, controller_check, equivalent_reference
 from .locate import locate, lowpass
 from .model import ModelSpec, load_model
+from .openloop import OpenLoopJudge
+from .units import axis_units, convert_units
 from .predict import (NoiseFloor, Observer, band_rms, compare_replay, open_loop_windows, replay, smoothing_hz,
                       sim_batch, sim_data)
 
@@ -389,7 +392,20 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
     data = data if data is not None else load_data(recording)
     timing["read_s"] = time.perf_counter() - t
     spec0 = load_model(nominal)
+    if not data.open_loop and "controller" not in spec0.preset.model_fields_set:
+        from stage_sim.config import ConfigError
+        raise ConfigError(f"{nominal}: controller: the nominal states no controller, but the recording has a "
+                          "reference (/stage/reference): a closed-loop record is replayed through the model's "
+                          "controller; give the controller (controller.pid ...), or record open loop")
+    kind = spec0.preset.stage.kind
+    if data.axis != kind:
+        from stage_sim.config import ConfigError
+        raise ConfigError(f"{nominal}: stage.kind: the nominal is {kind} but the recording is {data.axis} "
+                          "(/experiment/config run.axis): give a nominal of the recording's axis")
     notes = list(data.notes)
+    if data.f_ext is not None and not data.open_loop and np.any(data.f_ext != 0):
+        notes.append("known external force on a closed-loop record: the force observer and the open-loop windows "
+                     "apply it, the closed-loop replay (batch engine, no external input) does not")
     rate_p = spec0.preset.controller.rate
     if abs(rate_p - data.rate) > 1e-3 * data.rate:
         notes.append(f"recording rate {data.rate:.6g} Hz differs from the model's controller.rate {rate_p:.6g} Hz; "
@@ -437,15 +453,20 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
     t = time.perf_counter()
     fl = _Floor(base, data, obs.f_o, opt.floor_seeds, data.smooth_hz)
     # the judge: closed-loop replay of the held-out trials against the run-to-run floor
-    ctl_err = controller_check(spec0, data)
+    ctl_err = controller_check(spec0, data) if not data.open_loop else 0.0
     x_eq = None
     if ctl_err > CONTROLLER_TOL:
         x_eq = equivalent_reference(spec0, data)
         notes.append(f"the model's controller reproduces the recorded command only to {100 * ctl_err:.1f} % RMS "
                      "(run on the recorded reference and measurement): the closed-loop replay follows the "
                      "equivalent reference, for which it reproduces the recorded command exactly")
-    judge = ReplayJudge(data, x_ref=x_eq)
-    fit_judge = ReplayJudge(dataclasses.replace(data, held=data.fit), x_ref=x_eq) if data.fit.any() else None
+    if data.open_loop:
+        # no reference: the same statistics on the open-loop windows re-initialised from the measurement
+        judge = OpenLoopJudge(data, obs)
+        fit_judge = OpenLoopJudge(dataclasses.replace(data, held=data.fit), obs) if data.fit.any() else None
+    else:
+        judge = ReplayJudge(data, x_ref=x_eq)
+        fit_judge = ReplayJudge(dataclasses.replace(data, held=data.fit), x_ref=x_eq) if data.fit.any() else None
     jfl0 = judge.floor(base)
     timing["floor_s"] = time.perf_counter() - t
     _log(opt, f"floor: sim B ms {fl.msB:.3f}, n_eff {fl.n_eff:.0f}; replay floor {jfl0.sigma_u:.3g} N, "
@@ -457,6 +478,14 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
     q_eff = base.preset.stage.encoder.resolution
     ctx["delta_lo"] = max(3 * q_eff, 3e-8)
     ctx["delta_hi"] = max(1e-4, 30 * ctx["delta_lo"])
+    # modes anywhere up to Nyquist: the command -> measurement transfer against the nominal's
+    try:
+        ctx["frf_modes"] = locate_modes(spec0, data)
+    except (ValueError, np.linalg.LinAlgError) as err:
+        ctx["frf_modes"] = []
+        _log(opt, f"frf mode location failed: {err!r}")
+    loc["frf_modes"] = ctx["frf_modes"]
+    ctx["smoothing_hz"] = data.smooth_hz
     timing["locate_s"] = time.perf_counter() - t
 
     # ---------------------------------------------------------------- fit and choose
@@ -481,6 +510,8 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         todo = []
         for k in keys:
             e = get_effect(k)
+            if hasattr(e, "bind"):
+                e.bind(ctx)          # before applicable: an effect's applicability may depend on this recording
             if k in taken or k in banned or e.kind not in ("deterministic", "integer"):
                 continue
             clash = {t for g in EXCLUSIVE if k in g for t in g & taken if t != k}
@@ -495,8 +526,6 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                 continue
             if e.applicable(cur) is not None:
                 continue
-            if hasattr(e, "bind"):
-                e.bind(ctx)
             todo.append((e, rep))
         return todo
 
@@ -1022,11 +1051,16 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         "stable": {"nominal": jrp_nom.ok, "improved": jrp_new.ok},
         "held_out_trials": [int(data.trial_ids[c]) for c in judge.cols], "held_out_samples": judge.n,
         "floor_recordings": judge.K, "replays": judge.sims,
-        "reference": "recorded" if x_eq is None else "equivalent (controller mismatch)",
+        "reference": "none (open-loop record)" if data.open_loop else (
+            "recorded" if x_eq is None else "equivalent (controller mismatch)"),
         "controller_check_rel": ctl_err,
-        "how": "noise-free closed-loop replay of the held-out samples (recorded reference, the model's controller) "
-               "against the recorded command and measurement; floor: RMS difference of simulated recordings of "
-               "the same model from its replay (run to run)"}
+        "how": ("noise-free closed-loop replay of the held-out samples (recorded reference, the model's controller) "
+                "against the recorded command and measurement; floor: RMS difference of simulated recordings of "
+                "the same model from its replay (run to run)") if not data.open_loop else (
+            f"noise-free open-loop prediction of the held-out samples over {judge.L / data.rate:.3g} s windows, each "
+            "re-initialised from the measurement (the recorded command and known force drive the model), against "
+            "the measurement; floor: RMS difference of the same windows simulated with the model's noise (run to "
+            "run); the command is the input (its error is 0)")}
     olw_new = open_loop_windows(current, obs, res_new, W)
 
     def _olw_rms(o):
@@ -1070,9 +1104,11 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
     report = {
         "nanostage_diagnosis": 1,
         "verdict": verdict,
+        "units": axis_units(kind),
         "replay": headline,
         "found": found,
         "recording": {"source": data.source, "rate_hz": data.rate, "trials": int(data.shape[1]),
+                      "open_loop": data.open_loop, "axis": data.axis,
                       "samples": int(data.valid.sum()), "duration_s": float(data.valid.sum() / data.rate),
                       "split": data.split, "fit_trials": [int(data.trial_ids[c]) for c in ev.fit_cols],
                       "held_out_trials": [int(data.trial_ids[c]) for c in ev.held_cols], "notes": notes},
@@ -1099,6 +1135,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         "improved_model": {"name": current.preset.name},
         "timing_s": timing,
     }
+    convert_units(report, kind)       # every parameter unit on the axis of the stage (rotary: rad, N·m, kg·m²)
     if out is not None:
         from .report import write_report
         write_report(out, report, current, spec0, data,

@@ -216,8 +216,10 @@ def _truth_effect(e: str, q: float, rng, d: dict, case: PowerCase, info: dict) -
     if e == "structural_mode":
         mu = _logu(q, 0.01, 0.5)
         f = _logu(rng.random(), 30.0, 0.3 * case.rate)
-        d["stage"]["modes"] = list(d["stage"]["modes"]) + [{"frequency": f, "damping_ratio": 0.03, "mass_ratio": mu}]
-        return {"f": f, "mass_ratio": mu}
+        from .hypotheses import rigid_mass, split_mode
+        frac = mu * d["stage"]["table"]["mass"] / rigid_mass(d["stage"])    # a mode of mu x the table mass, split off it
+        split_mode(d, f, 0.03, frac)
+        return {"f": f, "fraction": frac}
     if e == "friction_asymmetry":
         m = _logu(q, 0.01, 1.0)
         _bearings(d, lambda fr, b: fr.update(f_c_difference=sign * m * fr["f_c"]))

@@ -30,6 +30,8 @@ from scipy import signal
 
 from experiment_runner.batch import simulate
 
+from stage_sim.plant import PlantInputs, PlantState
+
 from . import engine as E
 from .data import DiagData, smooth
 from .model import ModelSpec
@@ -86,21 +88,22 @@ class Observer:
         self.ys = np.ascontiguousarray(data.ys)
         self.vs = np.ascontiguousarray(data.vs)
         self.inputs = tuple(np.ascontiguousarray(a) for a in data.plant_inputs())    # d0, d1, mode
+        self.fe = np.ascontiguousarray(data.known_force())                        # known external force
         self.calls = 0
 
     def run(self, spec: ModelSpec, cols=None, snap_every: int = 0) -> ObsResult:
         c = spec.compiled()
-        u, ys, vs, inputs = self.u, self.ys, self.vs, self.inputs
+        u, ys, vs, fe, inputs = self.u, self.ys, self.vs, self.fe, self.inputs
         if cols is not None:
-            u, ys, vs = (np.ascontiguousarray(a[:, cols]) for a in (u, ys, vs))
+            u, ys, vs, fe = (np.ascontiguousarray(a[:, cols]) for a in (u, ys, vs, fe))
             inputs = tuple(np.ascontiguousarray(a[:, cols]) for a in inputs)
         T, B = u.shape
         st = E.new_state(c.pm, ys[0], sai_mode=float(inputs[2][0, 0]))
         outs = [np.empty((T, B)) for _ in range(4)]
         ns = (T + snap_every - 1) // snap_every if snap_every > 0 else 1
         snaps = [np.zeros((ns,) + a.shape) for a in st[:4]]
-        bad = E.observe(c.pm, c.fc_tot, u, *inputs, ys, vs, *st, self.omega, c.m_eff, int(snap_every), *outs,
-                        *snaps)
+        inp = PlantInputs(u, *inputs, fe if fe is not None and np.any(fe) else np.zeros((0, 0)))
+        bad = E.observe(c.pm, c.fc_tot, inp, ys, vs, st, self.omega, c.m_eff, int(snap_every), *outs, *snaps)
         self.calls += 1
         return ObsResult(*outs, snaps=(snap_every, *snaps) if snap_every > 0 else None, bad=int(bad))
 
@@ -118,7 +121,11 @@ def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds):
 
 def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
     """Recordings simulated from ``spec`` on the recorded reference, one per seed, in ONE batch
-    call (trials x seeds); each is a :class:`DiagData` with the recording's masks and split."""
+    call (trials x seeds); each is a :class:`DiagData` with the recording's masks and split.
+    An open-loop record: :func:`.openloop.sim_batch` (the recorded command, no controller)."""
+    if data.open_loop:
+        from .openloop import sim_batch as open_sim_batch
+        return open_sim_batch(spec, data, seeds)
     B = data.shape[1]
     seeds = list(seeds)
     xr = np.tile(data.x_ref, (1, len(seeds)))
@@ -133,7 +140,12 @@ def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
 
 
 def replay(spec: ModelSpec, data: DiagData, seed: int = 1000):
-    """Closed-loop replay of the recorded reference; returns dict of (T, B) arrays."""
+    """Closed-loop replay of the recorded reference; returns dict of (T, B) arrays. An open-loop
+    record: the model's open-loop windows re-initialised from the measurement, over all samples
+    (:func:`.openloop.window_replay`; ``u`` is the recorded command)."""
+    if data.open_loop:
+        from .openloop import window_replay
+        return window_replay(spec, data)
     B = data.shape[1]
     y, u, x, inputs = closed_loop(spec, data.x_ref, data.v_ref, seed + np.arange(B))
     return {"y": y, "u": u, "x": x, "d0": inputs[0], "d1": inputs[1], "mode": inputs[2]}
@@ -269,7 +281,9 @@ def open_loop_windows(spec: ModelSpec, obs: Observer, res: ObsResult, length: in
         st += [np.zeros((c.pm.n, len(cols))), np.zeros((2 * c.pm.n, len(cols))), np.zeros(len(cols))]
         out = np.empty((length, len(cols)))
         window = [np.ascontiguousarray(a[k0:k0 + length, cols]) for a in (obs.u,) + obs.inputs]
-        E.open_loop(c.pm, *window, k0, *st, out)
+        fe = (np.ascontiguousarray(obs.fe[k0:k0 + length, cols]) if obs.fe is not None and np.any(obs.fe)
+              else np.zeros((0, 0)))
+        E.open_loop(c.pm, PlantInputs(*window, fe), k0, PlantState(*st), out)
         starts += [k0] * len(cols)
         trials += cols
         outs.append(out)

@@ -75,6 +75,7 @@ from pathlib import Path
 import numpy as np
 
 from .locate import REGIMES
+from .units import axis_units
 
 __all__ = ["write_report", "to_markdown", "jsonable"]
 
@@ -112,12 +113,19 @@ def to_markdown(rep: dict) -> str:
     rc = rep["recording"]
     L.append(f"# Diagnosis: {Path(rc['source']).name} against `{rep['nominal']['name']}`\n")
     r = rep["replay"]
-    L.append("**Held-out closed-loop replay** (what the user gets: the recorded reference through the model and its "
-             f"controller, compared with the recorded command and measurement; {r['reference']} reference; "
-             f"{len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples):\n")
+    U = rep.get("units") or axis_units("linear")
+    fu, pu = U["force"], U["position"]
+    if rep.get("recording", {}).get("open_loop"):
+        L.append("**Held-out open-loop prediction** (an open-loop record: the recorded command and known force through "
+                 "the model over windows re-initialised from the measurement, compared with the measurement; "
+                 f"{len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples):\n")
+    else:
+        L.append("**Held-out closed-loop replay** (what the user gets: the recorded reference through the model and its "
+                 f"controller, compared with the recorded command and measurement; {r['reference']} reference; "
+                 f"{len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples):\n")
     L.append("| replay error RMS | nominal | improved | run-to-run floor (nominal) | run-to-run floor (improved) |")
     L.append("|---|---|---|---|---|")
-    for k, name in (("command_rms_N", "command [N]"), ("position_rms_m", "position [m]")):
+    for k, name in (("command_rms_N", f"command [{fu}]"), ("position_rms_m", f"position [{pu}]")):
         x = r[k]
         L.append(f"| {name} | {_fmt(x['nominal'])} | {_fmt(x['improved'])} | {_fmt(x['floor_nominal'])} | "
                  f"{_fmt(x['floor'])} |")
@@ -152,29 +160,30 @@ def to_markdown(rep: dict) -> str:
     L.append("| metric (held-out samples) | nominal | improved | fall | reference |")
     L.append("|---|---|---|---|---|")
     fr = v["force_residual_rms_N"]
-    L.append(f"| force residual RMS [N] | {_fmt(fr['nominal'])} | {_fmt(fr['improved'])} | "
+    L.append(f"| force residual RMS [{fu}] | {_fmt(fr['nominal'])} | {_fmt(fr['improved'])} | "
              f"{_fmt(None if fr['fall'] is None else 100 * fr['fall'])} % | floor {_fmt(fr['floor'])} |")
     j = v["J_held"]
     L.append(f"| J (whitened) | {_fmt(j['nominal'])} | {_fmt(j['improved'])} | "
              f"{_fmt(None if j['fall'] is None else 100 * j['fall'])} % | 1 |")
-    for key, name in (("replay_command_rms_N", "closed-loop replay, command error RMS [N]"),
-                      ("replay_position_rms_m", "closed-loop replay, position error RMS [m]")):
+    how = "open-loop prediction" if rep.get("recording", {}).get("open_loop") else "closed-loop replay"
+    for key, name in (("replay_command_rms_N", f"{how}, command error RMS [{fu}]"),
+                      ("replay_position_rms_m", f"{how}, position error RMS [{pu}]")):
         x = v[key]
         L.append(f"| {name} | {_fmt(x['nominal'])} | {_fmt(x['improved'])} | "
                  f"{_fmt(None if x['fall'] is None else 100 * x['fall'])} % | run-to-run {_fmt(x['run_to_run'])} |")
     o = v["open_loop_drift_rms_m"]
-    L.append(f"| open-loop {o['window_s'] * 1e3:.3g} ms window drift RMS [m] | {_fmt(o['nominal'])} | "
+    L.append(f"| open-loop {o['window_s'] * 1e3:.3g} ms window drift RMS [{pu}] | {_fmt(o['nominal'])} | "
              f"{_fmt(o['improved'])} |  |  |")
     loc = rep["locate"]
     L.append("\n## Where the nominal model disagrees\n")
-    L.append(f"Force residual RMS {_fmt(loc['residual_rms_N'], 'N')} against a floor of "
-             f"{_fmt(loc['floor_rms_N'], 'N')} (recordings simulated from the model).\n")
-    L.append("| regime | time share | RMS [N] | floor [N] | energy share | excess share |")
+    L.append(f"Force residual RMS {_fmt(loc['residual_rms_N'], fu)} against a floor of "
+             f"{_fmt(loc['floor_rms_N'], fu)} (recordings simulated from the model).\n")
+    L.append(f"| regime | time share | RMS [{fu}] | floor [{fu}] | energy share | excess share |")
     L.append("|---|---|---|---|---|---|")
     for r in loc["regimes"]:
         L.append(f"| {r['regime']} | {100 * r['time_share']:.1f} % | {_fmt(r['rms_N'])} | {_fmt(r['floor_rms_N'])} | "
                  f"{100 * r['energy_share']:.1f} % | {100 * r['excess_share']:.1f} % |")
-    L.append("\n| band [Hz] | RMS [N] | floor [N] | power ratio | excess share |")
+    L.append(f"\n| band [Hz] | RMS [{fu}] | floor [{fu}] | power ratio | excess share |")
     L.append("|---|---|---|---|---|")
     for b in loc["bands"]:
         L.append(f"| {b['f_lo_hz']:.4g}–{b['f_hi_hz']:.4g}{' (above observer bw)' if b['above_observer_bandwidth'] else ''} | "
@@ -193,7 +202,8 @@ def to_markdown(rep: dict) -> str:
             L.append(f"Step {st['step']}: stopped: {st['stopped']} (z {_fmt(st.get('replay_z_before'))} <= "
                      f"{_fmt(st.get('z_critical'))}).\n")
             continue
-        L.append(f"Step {st['step']}: replay D before {_fmt(st.get('replay_D_before'))} (2 = at the run-to-run floor), "
+        L.append(f"Step {st['step']}: replay D before {_fmt(st.get('replay_D_before'))} "
+                 f"({1 if rep.get('recording', {}).get('open_loop') else 2} = at the run-to-run floor), "
                  f"J_held before {_fmt(st['J_held_before'])}; accepted: **{st['accepted'] or 'none'}**"
                  + (f" (confounded with {', '.join(st['confounded_with'])}: not adopted)" if st["confounded_with"] else "")
                  + "\n")
@@ -216,14 +226,14 @@ def to_markdown(rep: dict) -> str:
     q = sto["quantization"]
     n = sto["noise_level"]
     L.append("## Noise and quantization\n")
-    L.append(f"- encoder lattice: estimate {_fmt(q.get('estimate_m'), 'm')}, model {_fmt(q.get('nominal_m'), 'm')}"
+    L.append(f"- encoder lattice: estimate {_fmt(q.get('estimate_m'), pu)}, model {_fmt(q.get('nominal_m'), pu)}"
              f"{' — differs' if q.get('found') else ''}")
     L.append(f"- drive noise: estimate {_fmt(n.get('sigma'), 'A')} (model {_fmt(n.get('nominal_A'), 'A')})"
              f"{' — differs' if n.get('found') else ''}")
     sp = rep.get("sparse_regression")
     if sp:
         L.append("\n## Sparse regression of the remaining residual\n")
-        L.append(f"Explained share {100 * sp['explained']:.1f} %; terms (missing table force [N] = Σ coef·term): "
+        L.append(f"Explained share {100 * sp['explained']:.1f} %; terms (missing table force [{fu}] = Σ coef·term): "
                  + (", ".join(f"{k}: {v:.4g}" for k, v in sp["terms"].items()) or "none"))
     L.append("\n## Files\n")
     L.append("`improved_preset.yaml` (runs as is), plots: "

@@ -34,7 +34,7 @@ import yaml
 
 from stage_sim.config import load_preset, with_overrides
 
-from .hypotheses import virgin_x50
+from .hypotheses import split_mode, virgin_x50
 from .pipeline import Options, diagnose
 from .synth import synth
 
@@ -111,8 +111,13 @@ def _stribeck_edit(d):
                          "f_s": 1.6 * f["f_c"], "v_s": 1.0e-3, "exponent": 2.0}
 
 
+MODE_FRACTION = 0.15 * 1.040843214756258 / (1.040843214756258 * 1.1 + 2 * 0.427536231884058)
+"""A 150 Hz mode of 0.15 x the fi_stage_nofi table mass, split off the table's DOF (table with its 381 Hz
+mode of mass ratio 0.1, and the two bolted bearings): the total mass kept."""
+
+
 def _mode_edit(d):
-    d["stage"]["modes"] = list(d["stage"]["modes"]) + [{"frequency": 150.0, "damping_ratio": 0.03, "mass_ratio": 0.15}]
+    split_mode(d, 150.0, 0.03, MODE_FRACTION)
 
 
 def _fi_edit(d):
@@ -141,6 +146,29 @@ def _no_ilc(d):
     d["sai_manager"]["ilc"] = None
 
 
+def _table_friction(d):
+    """The nominal's rigid body written as a table with friction: the two identical bolted Dahl
+    bearings folded into the table mass and one table Dahl element of twice their F_C and k_sigma
+    (two identical Dahl elements in parallel are exactly that)."""
+    st = d["stage"]
+    fr = dict(st["bearings"][0]["friction"])
+    fr.update(f_c=2 * fr["f_c"], k_sigma=2 * fr["k_sigma"], viscous=2 * fr["viscous"])
+    m_old = st["table"]["mass"]
+    st["table"]["mass"] = m_old + sum(b["mass"] for b in st["bearings"])
+    for md in st["modes"]:                  # the table's structural mode keeps its mass
+        md["mass_ratio"] *= m_old / st["table"]["mass"]
+    st["bearings"] = []
+    st["bearing_sensor"] = None
+    st["table_friction"] = fr
+
+
+def _fi_truth(d):
+    """The truth of the FI compliance: the nominal's stage with its bearings behind the FI joints."""
+    nom = load_preset(NOMINAL).model_dump(mode="json")
+    _fi_edit(nom)
+    d["stage"] = nom["stage"]
+
+
 def _nominal_fc():
     return sum(b.friction.f_c for b in load_preset(NOMINAL).stage.bearings)
 
@@ -157,7 +185,7 @@ CASES = [
     Case("gms_table_4.4", "gms", edit=_gms_edit, expect=_gms_truth()),
     Case("stribeck", "stribeck", edit=_stribeck_edit, expect={"F_S": 1.6 * 5.31, "v_s": 1.0e-3}),
     Case("fi_compliance", "fi_compliance", edit=_fi_edit, expect={"k_fi": 8.27e4}, experiment="steps"),
-    Case("structural_mode_150Hz", "structural_mode", edit=_mode_edit, expect={"f": 150.0, "mass_ratio": 0.15}),
+    Case("structural_mode_150Hz", "structural_mode", edit=_mode_edit, expect={"f": 150.0, "fraction": MODE_FRACTION}),
     Case("ripple", "ripple", {"stage.force_ripple": [{"amplitude": 0.2, "period": 4.0e-4, "phase": 0.3}]},
          expect={"amplitude": 0.2, "period": 4.0e-4}),
     Case("position_friction", "position_friction", _both("friction.f_c_gradient", 30.0), expect={"g_1": 60.0}),
@@ -215,8 +243,19 @@ CASES = [
          expect={"force_constant": {"ratio": 0.8}, "friction_asymmetry": {"dF_C": 0.8, "dc": 10.0}},
          experiment="sine", seed=135),
     Case("mode+coulomb_sine", ("structural_mode", "coulomb"), _both("friction.f_c", 2.655 * 1.3), edit=_mode_edit,
-         expect={"structural_mode": {"f": 150.0, "mass_ratio": 0.15}, "coulomb": {"F_C": 5.31 * 1.3}},
+         expect={"structural_mode": {"f": 150.0, "fraction": MODE_FRACTION}, "coulomb": {"F_C": 5.31 * 1.3}},
          experiment="sine", seed=136),
+    Case("mode+coulomb", ("structural_mode", "coulomb"), _both("friction.f_c", 2.655 * 1.3), edit=_mode_edit,
+         expect={"structural_mode": {"f": 150.0, "fraction": MODE_FRACTION}, "coulomb": {"F_C": 5.31 * 1.3}},
+         seed=137),
+    # issue 12: a whole-sample and a fractional drive delay (2.4 samples); the FI compliance found from a
+    # nominal written as a table with friction (the bearing mass fitted). (A 1.5 kHz mode split off the
+    # table does not change these closed-loop replays beyond their floor -- 0.99x -- so it is no case here:
+    # modes up to Nyquist are tested on open-loop records, test_diagnosis_inputs.py)
+    Case("delay_2.4", ("delay", "fractional_delay"), {"stage.drive.delay_samples": 2, "stage.drive.delay_fraction": 0.4},
+         expect={"delay": {"delay_samples": 2}, "fractional_delay": {"shift": 0.4}}, seed=151),
+    Case("fi_compliance_table_friction", "fi_compliance", edit=_fi_truth, nominal_edit=_table_friction,
+         expect={"k_fi": 8.27e4, "m_b": 2 * 0.427536231884058}, experiment="steps", seed=152),
     # more negative controls: other seeds, the stepped sine, the FI stage on other recordings
     Case("negative_sine_a", None, experiment="sine", seed=221),
     Case("negative_sine_b", None, experiment="sine", seed=222),

@@ -50,6 +50,8 @@ GROWTH = 100.0                    # unstable: |y - D| beyond 100 D
 UM = 1e6                          # N/(um s) -> N/(m s)
 KI_GRID = (0.0, 10.0, 100.0, 300.0, 1e3, 2e3, 3e3, 4e3, 5e3, 6e3, 8e3, 1e4)   # [N/(um s)]
 KI_BEST_SEED, KI_LC_SEED = 3e3, 6e3
+ROUND_KI = tuple(float(k) for k in np.arange(2500.0, 3500.0 + 1.0, 100.0))   # rounds to "3 × 10^3"
+ROUND_KI_CONT = (2500.0, 2750.0, 3000.0, 3250.0, 3500.0)                       # same, continuous check
 DELTAS = (-0.65, -0.5, 0.0, 0.5, 1.0)
 K_SIGMA_N = 8e6                   # nominal k_sigma [N/m] (Table A.1)
 SPREAD_MIN = 0.25                 # "varies significantly": (max - min)/mean >= 25 %
@@ -254,28 +256,53 @@ def claims(out: Path) -> list[Claim]:
     rel = ts500 / b500 - 1 if math.isfinite(ts500) else math.inf
     ov500 = by_ki[KI_BEST_SEED][1]["overshoot"]
     cross = _continuous_check()
+    cross["cont_dmeas_ki3e3_50nm"] = _continuous_run(KI_BEST_SEED * UM, True, False, D=STEPS[0])
+    scan_eng, scan_dmeas = _rounding_scan(pid, x_ref, v_ref, t_step, b500, cross["cont_dmeas_bench"])
+    eng_fin = [v for v in scan_eng if v is not None]
+    dm_near = [ki for ki, v in zip(ROUND_KI_CONT, scan_dmeas) if v is not None and abs(v - SEED_SLOWER) <= TOL_PP]
+    dm_unst = [ki for ki, v in zip(ROUND_KI_CONT, scan_dmeas) if v is None]
+    red50_dm = 1 - cross["cont_dmeas_ki3e3_50nm"] / cross["cont_dmeas_bench"]
     result.append(Claim(
         id="A.2/ki3e3-500nm-slower", source="Fig. A.2(b)",
         claim="K_I = 3e3 N/(µm·s) (best for 50 nm) gives a very large overshoot and a 31 % longer 500 nm settling time than the benchmark",
         seed="very large overshoot, settling 31 % longer than benchmark",
         ours=(f"overshoot {ov500:.0%}; settling {_ms(ts500)} vs benchmark {_ms(b500)} "
-              f"({rel:+.0%})"),
+              f"({rel:+.0%}); over K_I = 2.5e3…3.5e3 (what rounds to 3e3): "
+              f"{min(eng_fin):+.0%} … {max(eng_fin):+.0%}"),
         agrees=bool(rel > 0 and abs(rel - SEED_SLOWER) <= TOL_PP),
         numbers={"settling_ki_3e3_500nm": _nan_to_none(ts500), "benchmark_500nm": b500,
                  "relative_change": _nan_to_none(float(rel)) if math.isfinite(rel) else None,
                  "overshoot": ov500,
                  "settling_time_500nm": [_nan_to_none(s[1]["settling_time"]) for s in sweep],
-                 "kind_500nm": [s[1]["kind"] for s in sweep], **cross},
+                 "kind_500nm": [s[1]["kind"] for s in sweep], **cross,
+                 "rounding_ki": [k * UM for k in ROUND_KI],
+                 "rounding_rel_change_engine": scan_eng,
+                 "rounding_ki_cont": [k * UM for k in ROUND_KI_CONT],
+                 "rounding_rel_change_cont_dmeas": scan_dmeas,
+                 "cont_dmeas_reduction_50nm_ki3e3": red50_dm},
         note=("agrees if slower than the benchmark by 31 % ± 10 percentage points. DISAGREES: the large overshoot "
               "is reproduced, but after it the error re-enters the ±100 nm window on its first return "
-              "and stays, so the step settles faster than the benchmark. The settling time of such an "
-              "oscillatory response in a ±20 % window jumps by about half an oscillation period when "
-              "one lobe crosses the window edge, so it depends on details the seed does not state. "
-              "A continuous-time check (solve_ivp, same Table A.1 model) gives "
-              f"{_ms(cross['cont_ki3e3'])} vs {_ms(cross['cont_bench'])} with derivative on the error "
-              f"(as in our servo), and {_ms(cross['cont_dmeas_ki3e3'])} vs "
-              f"{_ms(cross['cont_dmeas_bench'])} with derivative on the measurement (no kick). "
-              "Neither gives +31 %. We keep the preset and report the difference.")))
+              "and stays, so the step settles faster than the benchmark. Why the seed's number cannot be "
+              "pinned by its parameters: at 500 nm the Dahl friction saturates (F_C/k_σ = 125 nm) and the "
+              "sliding loop is unstable for K_I > K_P K_D/m ≈ 450 N/(µm·s); the response grows until the "
+              "stage re-sticks, and its settling time in the ±20 % window jumps by about half an "
+              "oscillation period when one lobe crosses the window edge. Over K_I = 2.5e3…3.5e3 N/(µm·s) "
+              "(every value the seed's one-significant-figure '3 × 10^3' can stand for) the engine gives "
+              + ", ".join(f"{v:+.0%}" if v is not None else "none" for v in scan_eng)
+              + " (K_I step 100): the sign itself is not determined, and the late-lobe branch reaches "
+              f"{max(eng_fin):+.0%}, short of +31 %. The controller's form is the other unstated detail: "
+              "a continuous-time model (solve_ivp, same Table A.1 plant) gives "
+              f"{_ms(cross['cont_ki3e3'])} vs {_ms(cross['cont_bench'])} with the derivative on the error "
+              f"(as our servo and the seed's C(s) = K_p + K_i/s + K_d s of Eq. 6.2), and "
+              f"{_ms(cross['cont_dmeas_ki3e3'])} vs {_ms(cross['cont_dmeas_bench'])} with the derivative on the "
+              "measurement (no kick); at K_I = 2.5e3, 2.75e3 … 3.5e3 that form gives "
+              + ", ".join(f"{v:+.0%}" if v is not None else "unstable" for v in scan_dmeas)
+              + (f" — within ±10 points of +31 % at K_I = {', '.join(f'{k:g}' for k in dm_near)}" if dm_near else "")
+              + (f", unstable from {min(dm_unst):g}" if dm_unst else "")
+              + f"; it keeps the 50 nm claim ({red50_dm:.0%} at 3e3). So the seed's +31 % is "
+              "consistent with a derivative on the measurement, but neither form is stated and the result "
+              "flips within the rounding of K_I: we keep the preset (derivative on the error) and report "
+              "the difference.")))
 
     # ---- 4. K_I = 6e3: limit cycle (50 nm), unstable (500 nm)
     k6 = by_ki[KI_LC_SEED]
@@ -361,30 +388,53 @@ def _settle(t, y, D, t_step, frac):
     return float(settling_time(t, y, D, t_step, frac * D))
 
 
-def _continuous_check():
-    """Continuous-time (solve_ivp) check of the 500 nm, K_I = 3e3 case vs the benchmark.
+def _continuous_run(ki, fric, kick, D=STEPS[1], T=0.1):  # noqa: N803 (seed symbol)
+    """Continuous-time (solve_ivp) settling time [s] of one Table A.1 step response (nan if none).
 
-    ``m x'' = u - F``, ``dF/dt = k_s (v - F |v| / F_C)`` (Eq. 1.1, nu = 1), PID on the
-    error; the ideal step's derivative kick is the impulse ``K_D D`` -> ``v(0+) = K_D D/m``.
-    ``dmeas``: derivative on the measurement instead (no kick, ``v(0+) = 0``).
+    ``m x'' = u - F``, ``dF/dt = k_s (v - F |v| / F_C)`` (Eq. 1.1, nu = 1), PID with the
+    integral and proportional terms on the error. ``kick``: derivative on the error, the ideal
+    step's kick is the impulse ``K_D D`` -> ``v(0+) = K_D D/m``; otherwise derivative on the
+    measurement (no kick, ``v(0+) = 0``).
     """
+    import warnings
+
     from scipy.integrate import solve_ivp
 
     p = load_preset("als130h")
     m, kp, kd = p.stage.table.mass, p.controller.pid.kp, p.controller.pid.kd
     ks, fc = p.stage.table_friction.k_sigma, p.stage.table_friction.f_c
-    D, T = STEPS[1], 0.1
 
-    def run(ki, fric, kick):
-        def f(_, s):
-            x, v, F, integ = s
-            return [v, (kp * (D - x) + integ - kd * v - (F if fric else 0.0)) / m,
-                    ks * (v - F * abs(v) / fc), ki * (D - x)]
-        te = np.arange(0.0, T, 1e-5)
+    def f(_, s):
+        x, v, F, integ = s
+        return [v, (kp * (D - x) + integ - kd * v - (F if fric else 0.0)) / m,
+                ks * (v - F * abs(v) / fc), ki * (D - x)]
+
+    te = np.arange(0.0, T, 1e-5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")          # LSODA complains once an unstable case diverges
         sol = solve_ivp(f, (0.0, T), [0.0, kd * D / m if kick else 0.0, 0.0, 0.0], t_eval=te,
                         method="LSODA", rtol=1e-9, atol=[1e-14, 1e-11, 1e-9, 1e-9], max_step=2e-5)
-        return float(settling_time(sol.t, sol.y[0], D, 0.0, WINDOW * D))
+    if not sol.success or sol.t.size < te.size or np.max(np.abs(sol.y[0] - D)) > GROWTH * D:
+        return math.nan
+    return float(settling_time(sol.t, sol.y[0], D, 0.0, WINDOW * D))
 
-    return {"cont_bench": run(0.0, False, True), "cont_ki3e3": run(KI_BEST_SEED * UM, True, True),
-            "cont_dmeas_bench": run(0.0, False, False),
-            "cont_dmeas_ki3e3": run(KI_BEST_SEED * UM, True, False)}
+
+def _continuous_check():
+    """Continuous-time check of the 500 nm, K_I = 3e3 case vs the benchmark (see _continuous_run)."""
+    return {"cont_bench": _continuous_run(0.0, False, True),
+            "cont_ki3e3": _continuous_run(KI_BEST_SEED * UM, True, True),
+            "cont_dmeas_bench": _continuous_run(0.0, False, False),
+            "cont_dmeas_ki3e3": _continuous_run(KI_BEST_SEED * UM, True, False)}
+
+
+def _rounding_scan(pid, x_ref, v_ref, t_step, b500, b500_dmeas):
+    """500 nm settling time relative to the benchmark for K_I that round to 3e3.
+
+    Engine (derivative on the error, 10 kHz) over ROUND_KI and continuous time with the
+    derivative on the measurement over ROUND_KI_CONT; None where it does not settle (unstable)."""
+    eng = []
+    for ki in ROUND_KI:
+        _, _, info = _run(with_overrides(pid, {"controller.pid.ki": ki * UM}), x_ref, v_ref, t_step)
+        eng.append(info[1]["settling_time"] / b500 - 1.0)
+    dmeas = [_continuous_run(ki * UM, True, False) / b500_dmeas - 1.0 for ki in ROUND_KI_CONT]
+    return ([_nan_to_none(float(v)) for v in eng], [_nan_to_none(float(v)) for v in dmeas])

@@ -41,7 +41,7 @@ from scipy import signal
 from experiment_runner.metrics import settling_time
 from experiment_runner.paper import Claim
 from stage_sim.config import load_preset, with_overrides
-from stage_sim.plant import OK, SimulationError, build_plant, init_plant_state, plant_step
+from stage_sim.plant import OK, SimulationError, build_plant, init_plant_state, plant_inputs, plant_step
 
 STEPS = (50e-9, 500e-9)          # App. A test steps [m]
 DITHER_FORCE = 2.0               # a w^2 [N]
@@ -63,16 +63,17 @@ def _full(preset, rate, steps, force_amp, omega):
     dt = 1.0 / rate
     D = np.asarray(steps, float)
     B = D.size
-    z, fr, ps, dbuf, f, zn, force = init_plant_state(pm, B, 0.0)
+    st = init_plant_state(pm, B, 0.0)
+    inp = plant_inputs(B)                   # u set below; no dither on the piezos, isolator compliant
     n_pre = int(round(T_PRE * rate))
     N = n_pre + int(round(T_POST * rate))
     x = np.empty((B, N))
     zero = np.zeros(B)
-    mode, seeds = np.ones(B), np.zeros(B, np.int64)
+    seeds = np.zeros(B, np.int64)
     meas, status = np.zeros((2, B)), np.zeros(B, np.int64)
-    meas[0] = z[0]
+    meas[0] = st.z[0]
     e_prev = np.zeros(B)
-    u = np.zeros(B)
+    u = inp.u
     for k in range(N):
         xr = D if k >= n_pre else zero
         e = xr - meas[0]
@@ -81,8 +82,8 @@ def _full(preset, rate, steps, force_amp, omega):
         # dither evaluated at the sample midpoint: the zero-order hold then has no net delay
         u[:] = kp * e + kd * (e - e_prev) / dt + env * force_amp * math.sin(omega * (tk + 0.5 * dt))
         e_prev = e
-        x[:, k] = z[0]
-        plant_step(pm, z, fr, ps, dbuf, f, zn, force, u, zero, zero, mode, k, seeds, meas, status)
+        x[:, k] = st.z[0]
+        plant_step(pm, st, inp, k, seeds, meas, status)
     if (status != OK).any():
         raise SimulationError(f"appendix B full simulation failed: status {status.tolist()}")
     return (np.arange(N) - n_pre) * dt, x

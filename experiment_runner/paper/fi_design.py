@@ -36,6 +36,22 @@ breakpoints where blocks start slipping are walked in order), then the blocks ar
 advanced with the exact kernel :func:`stage_sim.friction.gms_update`. ``γ`` = RMS of
 ``F_Dahl - F_GMS`` over the cycle (uniform in time/phase). The same series solver with a
 single non-slipping block ``k_f`` gives ``k_c`` and, by perturbing ``k_f``, ``κ``.
+
+This series connection is the seed's own: Table 4.5 (the FI-case GMS, "obtained from the
+re-constructed virgin curve, by combining frictional stiffness and FI stiffness in series",
+Sec. 4.4.3) is reproduced by the series solver applied to Table 4.4 and ``k_fi`` = 8.27e4 N/m
+to 0.5 % of F_C over the whole virgin curve (:func:`table_4_5_check`); putting each block in
+series with its own ``k_fi`` instead misses it by 38 % of F_C.
+
+Dahl and GMS must describe the same bearing. Both are identified from the same sine-sweep
+FRFs (Sec. 4.4.3: ``k_σ`` from the friction resonance of the smallest-amplitude, 0.11 N FRF;
+the GMS virgin curve from ten FRFs starting at that amplitude), so the GMS's initial stiffness
+``Σk_i`` is ``k_σ`` by construction — Tables 4.3/4.4 agree to 0.2 %. The Ch. 6 tables do not
+(Table 6.4 ``k_σ`` = 2.19e6 N/m, a copy of Table 4.3's value, vs Table 6.5 ``Σk_i`` = 6.17e5
+N/m). The γ analysis therefore uses Table 6.5's block distribution (``α_i`` and the ratios
+``k_i/Σk``) with ``Σk_i = k_σ`` (:func:`gms_consistent`); the location of the optimum in
+``η`` does not depend on which of the two values is the common one (scale invariance, checked
+in the claim's numbers), only on the two models sharing it.
 """
 from __future__ import annotations
 
@@ -59,6 +75,13 @@ F_C = 5.31                        # Table 6.4: F_C [N]
 GMS_K = np.array([3.9e5, 4.6e4, 2.3e4, 1.7e4, 1.1e4, 4.9e4, 1.4e4, 2.2e4, 3.1e4, 1.4e4])   # Table 6.5
 GMS_ALPHA = np.array([0.0104, 0.0605, 0.0916, 0.1333, 0.1453,
                       0.0961, 0.0448, 0.1055, 0.2025, 0.1100])                            # Table 6.5
+GMS4_K = np.array([1.34e6, 4.93e5, 8.61e4, 5.55e4, 5.87e4, 2.42e4, 3.85e4, 1.75e4, 2.69e4, 4.58e4])  # Table 4.4
+GMS4_ALPHA = np.array([0.0136, 0.0568, 0.037, 0.047, 0.0805,
+                       0.0508, 0.1139, 0.0732, 0.1540, 0.3733])                           # Table 4.4
+GMS45_K = np.array([4.44e3, 8.49e3, 3.93e3, 3.75e3, 5.88e3, 3.38e3, 7.29e3, 4.49e3, 9.30e3, 2.96e4])  # Table 4.5
+GMS45_ALPHA = np.array([0.0012, 0.0123, 0.0121, 0.0181, 0.0393,
+                        0.0295, 0.0797, 0.0606, 0.1520, 0.5951])                          # Table 4.5
+K_FI_4 = 8.27e4                   # Table 4.3: k_fi of the Ch. 4 FI [N/m]
 FI_PRESETS = {"LS-LD": "sai_fi_ls_ld", "LS-HD": "sai_fi_ls_hd", "HS-HD": "sai_fi_hs_hd"}   # Table 6.2
 CIRCLE_R = 5e-3                   # Sec. 6.4: 5 mm radius circle
 ZETA_F = 0.05                     # estimate: damping ratio of the No-FI friction mode -> c_f
@@ -147,6 +170,35 @@ def norm_maps(m_t, m_b, pid, k_f, c_f, k_grid=K_GRID, c_grid=C_GRID):
 def point_norms(m_t, m_b, pid, k_fi, c_fi, k_f, c_f):
     E, D, _, _ = norm_maps(m_t, m_b, pid, k_f, c_f, np.array([k_fi]), np.array([c_fi]))
     return float(E[0, 0]), float(D[0, 0])
+
+
+def ge_optimum_estimate(m_t, pid, f=F_E):
+    """First-order estimate of the k_fi that minimises ||G_e|| at c_fi -> 0, and the rise at k_fi -> 0.
+
+    In the band the bearing is held by ``k_f`` (>> ``m_b ω²``, ``k_fi``) and ``|C| >> |1/G|``, so
+    ``|G_e(jω)| ≈ |k_c - m_t ω² + j c_fi ω| / |C(jω)|`` (``k_c`` ≈ ``k_fi``): G_e's numerator is
+    the FI branch's own dynamic stiffness. With ``X = m_t ω²`` and the weight ``w = |C|⁻²`` over
+    the band, ``||G_e||²`` ∝ ``E_w[(k_c - X)²]`` (c_fi → 0), minimal at ``k* = E_w[X]``; at
+    ``k_c → 0`` it is ``E_w[X²]``, so the rise is ``sqrt(1 + E_w[X]²/Var_w[X]) - 1`` > 0 for any
+    band, plant mass and controller: a softer FI than ``k*`` is always worse in this model.
+
+    Returns
+    -------
+    (k_star, rise) : (float, float)
+        [N/m], [-].
+    """
+    w = 2.0 * np.pi * np.asarray(f, float)
+    wt = 1.0 / np.abs(pid_tf(pid)(1j * w)) ** 2
+    x = m_t * w ** 2
+    mean = np.trapezoid(x * wt, f) / np.trapezoid(wt, f)
+    var = np.trapezoid((x - mean) ** 2 * wt, f) / np.trapezoid(wt, f)
+    return float(mean), float(math.sqrt(1.0 + mean ** 2 / var) - 1.0)
+
+
+def ge_norm_control(m_t, m_b, pid, k_fi, c_fi, k_f, c_f, f=F_E):
+    """||G_e|| over the band from python-control's ``feedback`` (independent of :func:`norm_maps`)."""
+    ge = ct.feedback(1, pid_tf(pid) * plant_fi(m_t, m_b, k_fi, c_fi, k_f, c_f))
+    return float(np.sqrt(np.trapezoid(np.abs(ge(2j * np.pi * np.asarray(f))) ** 2, f)))
 
 
 def max_closed_loop_real_part(m_t, m_b, pid, k_f, c_f, k_grid=K_GRID, c_grid=C_GRID):
@@ -298,16 +350,35 @@ def gamma_curve(etas=ETA_GRID, k_f=K_F, f_c=F_C, gms_k=GMS_K, gms_alpha=GMS_ALPH
     return gam, bias, gam2
 
 
-def gamma_per_block(etas=ETA_GRID):
-    """Variant: every GMS block k_i in series with its own k_fi (Sec. 6.4.1 'equivalent parameters')."""
-    _, xt = circle_x_path()
-    gam = np.empty(len(etas))
-    for i, eta in enumerate(etas):
-        k_fi = eta * K_F
-        fd = _dahl_path(xt, k_fi * K_F / (k_fi + K_F), F_C)
-        fg, _ = _series_gms(xt, 1e30, GMS_K * k_fi / (GMS_K + k_fi), GMS_ALPHA, F_C)
-        gam[i] = math.sqrt(np.mean((fd - fg) ** 2))
-    return gam
+def gms_consistent(k_f=K_F, gms_k=GMS_K):
+    """GMS block stiffnesses with the distribution of ``gms_k`` and initial stiffness ``Σk_i = k_f``.
+
+    The seed identifies Dahl's ``k_σ`` and the GMS virgin curve from the same FRFs, so they share
+    the initial stiffness (see the module docstring); Tables 6.4/6.5 do not, and this restores it.
+    """
+    gms_k = np.asarray(gms_k, float)
+    return gms_k * (k_f / gms_k.sum())
+
+
+def virgin_curve(x, k, alpha, f_c, k_fi=None):
+    """Virgin force curve [N] of GMS blocks (k, alpha) along table displacement ``x`` >= 0 [m].
+
+    With ``k_fi`` the blocks sit in series with that spring (exact series solver)."""
+    x = np.asarray(x, float)
+    if k_fi is None:
+        return np.minimum(np.asarray(k)[None, :] * x[:, None], np.asarray(alpha) * f_c).sum(axis=1)
+    return _series_gms(x, k_fi, np.asarray(k, float), np.asarray(alpha, float), f_c)[0]
+
+
+def table_4_5_check(x_max=400e-6, n=4001):
+    """Max |F| deviation / F_C of two series constructions from the seed's Table 4.5 virgin curve.
+
+    Returns (exact series of Table 4.4 with k_fi, each Table 4.4 block in series with k_fi)."""
+    x = np.linspace(0.0, x_max, n)
+    ref = virgin_curve(x, GMS45_K, GMS45_ALPHA, F_C)
+    series = virgin_curve(x, GMS4_K, GMS4_ALPHA, F_C, k_fi=K_FI_4)
+    per_block = virgin_curve(x, GMS4_K * K_FI_4 / (GMS4_K + K_FI_4), GMS4_ALPHA, F_C)
+    return float(np.abs(series - ref).max() / F_C), float(np.abs(per_block - ref).max() / F_C)
 
 
 def combined_stiffness(k_fi, k_f, x=1e-6):
@@ -331,7 +402,7 @@ def kappa_eq42(eta):
 
 
 # ============================================================================= plots
-def _plots(out, m_t, m_b, pid, k_f, c_f, fis, E, D, e0, d0, ge, etas, gam, bias, gam_blk,
+def _plots(out, m_t, m_b, pid, k_f, c_f, fis, E, D, e0, d0, ge, etas, gam, bias, gam_printed,
            kap_sim):
     import matplotlib
     matplotlib.use("Agg")
@@ -378,7 +449,7 @@ def _plots(out, m_t, m_b, pid, k_f, c_f, fis, E, D, e0, d0, ge, etas, gam, bias,
     th, xt = circle_x_path()
     fig, axes = plt.subplots(1, 3, figsize=(14, 4), sharey=True)
     for ax, eta in zip(axes, (0.01, 0.1, 1.0)):
-        fd, fg = force_pair(eta, xt)
+        fd, fg = force_pair(eta, xt, gms_k=gms_consistent(k_f))
         ax.plot(th / (2 * np.pi), fg, label="FI + GMS (series, exact)")
         ax.plot(th / (2 * np.pi), fd, "--", label="FI + Dahl (k_σ,FI)")
         ax.set_title(f"k_fi/k_f = {eta:g}")
@@ -391,8 +462,8 @@ def _plots(out, m_t, m_b, pid, k_f, c_f, fis, E, D, e0, d0, ge, etas, gam, bias,
 
     # Fig. 6.8
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    ax.semilogx(etas, gam, "b", label="γ: Dahl vs GMS in series with k_fi (exact)")
-    ax.semilogx(etas, gam_blk, "g:", label="variant: each GMS block in series with k_fi")
+    ax.semilogx(etas, gam, "b", label="γ: Dahl vs GMS in series with k_fi (exact), Σk_i = k_σ")
+    ax.semilogx(etas, gam_printed, "g:", label="Tables 6.4/6.5 as printed (Σk_i = 0.28 k_σ)")
     ax.semilogx(etas, bias, "r--", lw=0.8, label="mean (F_Dahl − F_GMS)·sgn(v)  (+ = over-comp.)")
     ax.axvspan(0.05, 0.1, color="orange", alpha=0.2, label="seed optimum 0.05-0.1")
     ax.axhline(0, color="k", lw=0.5)
@@ -457,17 +528,26 @@ def claims(out: Path) -> list[Claim]:
                              ge_rise_max_c_le_1000=float(gev["rise_below"][C_GRID <= 1000.0].max()),
                              ge_table_ok=gev["table_ok"], ge_mono_c=gev["mono_c"],
                              gd_agrees=gdv["agrees"])
+    k_star_est, rise_est = ge_optimum_estimate(m_t, pid)
+    ge_ctrl = {lab: ge_norm_control(m_t, m_b, pid, k, c, K_F, c_f) for lab, (k, c) in fis.items()}
+    ge_ctrl_dev = max(abs(ge_ctrl[lab] / fis_e[lab] - 1.0) for lab in fis)
     k_near = int(np.argmin(np.abs(np.log(K_GRID / 3.3e4))))
     c_lo = C_GRID <= 1000.0
     j240 = int(np.argmin(np.abs(np.log(C_GRID / 240.0))))
 
     # ---- Sec. 6.4.2
-    gam, bias, gam2 = gamma_curve()
+    gk = gms_consistent()                                   # Table 6.5 distribution, Σk_i = k_σ
+    gam, bias, gam2 = gamma_curve(gms_k=gk)
     eta_min2 = float(ETA_GRID[int(np.argmin(gam2))])
-    gam_blk = gamma_per_block()
     i_min = int(np.argmin(gam))
     eta_min = float(ETA_GRID[i_min])
-    eta_min_blk = float(ETA_GRID[int(np.argmin(gam_blk))])
+    # sensitivity: the tables as printed (Σk_i = 6.17e5 N/m vs Dahl k_σ = 2.19e6 N/m), the Ch. 4
+    # bearing (Tables 4.3/4.4, consistent), and the common scale taken from Table 6.5 instead
+    gam_pr, _, gam2_pr = gamma_curve(gms_k=GMS_K)
+    gam_ch4, _, gam2_ch4 = gamma_curve(gms_k=GMS4_K, gms_alpha=GMS4_ALPHA)
+    gam_s65, _, gam2_s65 = gamma_curve(k_f=float(GMS_K.sum()), gms_k=GMS_K)
+    eta_of = lambda g: float(ETA_GRID[int(np.argmin(g))])          # noqa: E731
+    t45_series, t45_per_block = table_4_5_check()
     lo_tol, hi_tol = 0.05 / 10 ** 0.1, 0.1 * 10 ** 0.1        # seed range +- 1/10 decade
     under_small = bool(bias[0] < 0)                                 # eta = 1e-3
     over_large = bool(np.all(bias[ETA_GRID >= 1.0] > 0))
@@ -484,7 +564,7 @@ def claims(out: Path) -> list[Claim]:
     kap_lim0, kap_liminf = float(kappa_simulated(1e-4)), float(kappa_simulated(1e4))
     kappa_ok = bool(kap_err < 1e-4 and kap_small and kap_lim0 < 1e-6 and kap_liminf > 0.999)
 
-    _plots(out, m_t, m_b, pid, K_F, c_f, fis, E, D, e0, d0, ge, ETA_GRID, gam, bias, gam_blk, kap_sim)
+    _plots(out, m_t, m_b, pid, K_F, c_f, fis, E, D, e0, d0, ge, ETA_GRID, gam, bias, gam_pr, kap_sim)
     runtime_total = time.perf_counter() - t0
 
     common = dict(m_t=m_t, m_b=m_b, k_f=K_F, c_f=c_f, zeta_f=ZETA_F, kp=pid["kp"], ki=pid["ki"],
@@ -521,7 +601,9 @@ def claims(out: Path) -> list[Claim]:
                          Ge_rise_below_kopt_at_c240=float(ge["rise_below"][j240]),
                          Ge_monotone_above_kopt=ge["above_ok"], Ge_flat_below_kopt=ge["below_flat"],
                          sensitivity_c_f={str(z): v for z, v in sens.items()},
-                         variants=variants, runtime_s=runtime_total),
+                         variants=variants, Ge_k_opt_estimate=k_star_est,
+                         Ge_rise_estimate=rise_est, Ge_python_control_max_rel_dev=ge_ctrl_dev,
+                         runtime_s=runtime_total),
             note=(f"criterion: every Table 6.2 FI ≤ {MUCH_LOWER:g}× No FI; ||G_e|| non-decreasing in c_fi "
                   f"at every k_fi with ≥ 1 decade of c_fi within {100 * FLAT:.0f} % of the smallest value; "
                   f"non-decreasing in k_fi above its optimum k*(c_fi) and within {100 * FLAT:.0f} % of the "
@@ -538,8 +620,17 @@ def claims(out: Path) -> list[Claim]:
                   f"sits inside the 1-50 Hz band and raises the loop gain "
                   f"there; for k_fi → 0 the table becomes a free {m_t:.1f} kg mass whose |G_e| is larger in "
                   f"30-50 Hz. Not an artefact of the estimated c_f ({sens_txt}), of the mass split or of the "
-                  f"derivative filter ({var_txt}). The seed's Fig. 6.3(b) axis ranges are not stated; if "
-                  f"they start near k*, its 'thresholds' may be this optimum seen from above."),
+                  f"derivative filter ({var_txt}). It is structural, not a parameter: in the band the bearing "
+                  f"is held by k_f and |C| ≫ |1/G|, so |G_e| ≈ |k_fi − m_t ω² + j c_fi ω| / |C| — G_e's numerator "
+                  f"is the FI branch's own dynamic stiffness, which a soft FI cannot make smaller than the "
+                  f"table's m_t ω². Weighting by |C|⁻² over 1-50 Hz this first-order estimate puts the optimum at "
+                  f"k* = E[m_t ω²] = {k_star_est:.2e} N/m and the k_fi → 0 rise at "
+                  f"sqrt(1 + E²/Var) − 1 = +{100 * rise_est:.0f} % (exact: {ge['k_opt'][0]:.1e} N/m, "
+                  f"+{100 * ge['rise_below'][0]:.0f} %), > 0 for any band, mass and controller; FI damping "
+                  f"adds a k_fi-independent c_fi²ω² term that flattens it (+{100 * ge['rise_below'][j240]:.0f} % "
+                  f"at 240 N·s/m). So the seed's 'thresholds' can only be this optimum seen from above, if "
+                  f"Fig. 6.3(b)'s k_fi axis (not stated) starts near k*. G_e cross-checked with "
+                  f"python-control's feedback(): max deviation {ge_ctrl_dev:.1e} (rel.) at the Table 6.2 FIs."),
         ),
         Claim(
             id="6.3.2/Gd-monotone",
@@ -592,21 +683,30 @@ def claims(out: Path) -> list[Claim]:
                          bias_sign_change_eta=float(cross), u_shaped=u_shape,
                          underestimates_small=under_small, overcompensates_large=over_large,
                          eta_min_second_cycle=eta_min2, gamma_min_second_cycle=float(gam2.min()),
-                         eta_min_per_block_variant=eta_min_blk,
-                         gamma_min_per_block_variant=float(gam_blk.min()),
-                         gms_initial_stiffness=float(GMS_K.sum()), gms_alpha_sum=float(GMS_ALPHA.sum()),
+                         gms_initial_stiffness=float(gk.sum()), gms_alpha_sum=float(GMS_ALPHA.sum()),
+                         gms_scale_vs_table_6_5=float(gk.sum() / GMS_K.sum()),
+                         eta_min_as_printed=eta_of(gam_pr), eta_min_second_cycle_as_printed=eta_of(gam2_pr),
+                         eta_min_common_scale_table_6_5=eta_of(gam_s65),
+                         eta_min_second_cycle_common_scale_table_6_5=eta_of(gam2_s65),
+                         eta_min_ch4_tables=eta_of(gam_ch4), eta_min_second_cycle_ch4_tables=eta_of(gam2_ch4),
+                         table_4_5_dev_series=t45_series, table_4_5_dev_per_block=t45_per_block,
                          acceptance_range=[lo_tol, hi_tol]),
             note=(f"criterion: argmin of γ within 0.05-0.1 widened by 1/10 decade "
                   f"({lo_tol:.3f}-{hi_tol:.3f}), mean (F_Dahl−F_GMS)·sgn(v) < 0 at η = 1e-3 and > 0 for η ≥ 1. "
-                  f"The U shape and the under/over-compensation reproduce, but the exact series solution puts "
-                  f"the optimum at η ≈ {eta_min:.3f}, a factor 2-4 below the seed. Why: Table 6.5's GMS starts "
-                  f"at Σk_i = {GMS_K.sum():.2e} N/m, 3.5× softer than the Dahl k_σ = 2.19e6 it is compared "
-                  f"with, so Dahl over-compensates as soon as k_fi stops dominating. If instead every GMS "
-                  f"block k_i is put in series with k_fi (the 'equivalent parameters ... combining in series' "
-                  f"of Sec. 6.4.1 applied block by block) the optimum moves to η ≈ {eta_min_blk:.3f}, inside "
-                  f"the seed's range — plausibly what the seed did, but that model is not the series "
-                  f"connection (its small-k_fi stiffness tends to N·k_fi = 10 k_fi). One cycle from the "
-                  f"relaxed state; the steady second cycle gives its optimum at η ≈ {eta_min2:.3f}."),
+                  f"Model: FI + GMS = the GMS blocks in exact series with k_fi — the seed's construction: "
+                  f"applied to Table 4.4 with k_fi = 8.27e4 N/m it reproduces the seed's Table 4.5 virgin "
+                  f"curve to {100 * t45_series:.1f} % of F_C (each block in series with its own k_fi: "
+                  f"{100 * t45_per_block:.0f} %). Dahl and GMS share the initial stiffness (both from the same "
+                  f"FRFs, Sec. 4.4.3; Tables 4.3/4.4 agree to 0.2 %), so Table 6.5's block distribution is "
+                  f"used with Σk_i = k_σ = {K_F:.3g} N/m (Table 6.4; ×{gk.sum() / GMS_K.sum():.2f} on the "
+                  f"printed k_i, whose Σ = {GMS_K.sum():.3g} N/m contradicts Table 6.4). The optimum does "
+                  f"not depend on which value is the common one: with Σk_i = k_σ = {GMS_K.sum():.3g} N/m "
+                  f"(Table 6.5's scale) it is at η = {eta_of(gam_s65):.3f} as well. With the tables as "
+                  f"printed (Dahl 3.5× stiffer than the GMS it is compared with) Dahl over-compensates as "
+                  f"soon as k_fi stops dominating and the optimum falls to η = {eta_of(gam_pr):.3f}, outside "
+                  f"the seed's range. The block distribution matters: the Ch. 4 bearing (Tables 4.3/4.4, "
+                  f"consistent) puts it at η = {eta_of(gam_ch4):.3f}. One cycle from the relaxed state; the "
+                  f"steady second cycle gives η = {eta_min2:.3f}."),
         ),
         Claim(
             id="6.4.2/kappa-eq4.2",

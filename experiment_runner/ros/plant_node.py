@@ -30,7 +30,7 @@ from msg_defs import cdr, convert
 from msg_defs.topics import SAI_COMMAND
 from experiment_runner.batch import Models
 from stage_sim.config import load_preset, preset_from_dict
-from stage_sim.plant import DIVERGED, OUT_OF_TRAVEL, STATUS_TEXT, plant_step
+from stage_sim.plant import DIVERGED, OUT_OF_TRAVEL, STATUS_TEXT, plant_inputs, plant_step
 
 INPUT_TOPIC = {"command": "/stage/command", "dither": "/stage/dither", "sai": SAI_COMMAND.name}
 """Topic of each lockstep input of the plant."""
@@ -52,19 +52,19 @@ class PlantTrial:
     def __init__(self, models: Models, x0: float, seed: int):
         init = models.initial_state([x0])
         self.pm = models.plant
-        self.state = tuple(init.plant)
+        self.state = init.plant
         self.meas = init.meas
         self.seeds = np.array([seed], np.int64)
         self.status = np.zeros(1, np.int64)
-        self.u, self.d0, self.d1, self.mode = (np.zeros(1) for _ in range(4))
+        self.inputs = plant_inputs(1)
         self.k = 0
 
     def step(self, u: float, d0: float, d1: float, mode: float) -> int:
         """Apply ``u`` [N], dither ``d0, d1`` [N] and SAI ``mode`` over one period; the plant
         status after it (0 ok, else :data:`stage_sim.plant.STATUS_TEXT`)."""
-        self.u[0], self.d0[0], self.d1[0], self.mode[0] = u, d0, d1, mode
-        plant_step(self.pm, *self.state, self.u, self.d0, self.d1, self.mode, self.k, self.seeds, self.meas,
-                   self.status)
+        inp = self.inputs
+        inp.u[0], inp.d0[0], inp.d1[0], inp.mode[0] = u, d0, d1, mode
+        plant_step(self.pm, self.state, inp, self.k, self.seeds, self.meas, self.status)
         self.k += 1
         return int(self.status[0])
 

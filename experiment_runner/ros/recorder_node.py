@@ -58,6 +58,7 @@ class RecorderNode(StageNode):
         self.now_ns = 0
         self.last_ns = {}                   # per-sample topic -> stamp written last
         self.lost = {}                      # per-sample topic -> samples that never came (gaps)
+        self.early_steps = {}               # per-sample topic -> stamp steps seen before the config
         self.dt_ns = None                   # control period of the run (from its config)
         self.end_ns = None                  # last sample of the last trial that ended
         self.last_heard = time.monotonic()
@@ -79,18 +80,31 @@ class RecorderNode(StageNode):
         last = self.last_ns.get(topic, -1)
         if stamp <= last:
             return
-        # a gap in the stamps: samples that never came (after run_end nothing belongs to the run)
-        if self.open_run and self.dt_ns and last >= 0 and stamp - last > self.dt_ns:
-            self.lost[topic] = self.lost.get(topic, 0) + (stamp - last) // self.dt_ns - 1
+        # a gap in the stamps: samples that never came (after run_end nothing belongs to the run);
+        # before the config (and with it the control period) is heard -- it may arrive after the
+        # first samples on a loaded machine -- the steps are kept and counted when it comes
+        if last >= 0:
+            if self.dt_ns is None:
+                self.early_steps.setdefault(topic, []).append(stamp - last)
+            elif self.open_run:
+                self._count_gap(topic, stamp - last)
         self.last_ns[topic] = stamp
         self.now_ns = max(self.now_ns, stamp)
         self._write(topic, canonical(data), stamp)
 
+    def _count_gap(self, topic: str, step_ns: int):
+        if step_ns > self.dt_ns:
+            self.lost[topic] = self.lost.get(topic, 0) + step_ns // self.dt_ns - 1
+
     def _config_in(self, msg):
         self.last_heard = time.monotonic()
         rate = ((yaml.safe_load(msg.data) or {}).get("preset") or {}).get("controller", {}).get("rate")
-        if rate:
+        if rate and self.dt_ns is None:
             self.dt_ns = int(round(1e9 / float(rate)))
+            for topic, steps in self.early_steps.items():
+                for step in steps:
+                    self._count_gap(topic, step)
+            self.early_steps.clear()
         if self.rec is None:
             self.open_run = True
             self.rec = McapRecorder(self._free_path(), msg.data, overwrite=self.overwrite)

@@ -1,6 +1,6 @@
 """Campaign trials in chunks on an executor, streamed to disk, resumable.
 
-:func:`run_trials` runs the trials of one case at one condition of a campaign as chunks
+:func:`run_trial_jobs` runs the trials of a campaign's cases and conditions as chunks
 of a few trials (:func:`chunk_task`) on an :class:`~experiment_runner.executor.Executor`
 (in process, local processes or Dask), and appends every trial's metrics to the
 campaign's stream as its chunk completes. Only metrics travel and stay in memory, never
@@ -22,7 +22,7 @@ other settings or other model code is refused (:class:`~stage_sim.config.ConfigE
 never mixed in.
 
 Trial ``i`` is simulated and judged exactly as by
-:func:`experiment_runner.campaign.simulate_case`: the batch engine's noise is a pure
+:func:`experiment_runner.campaigns.trials.simulate_trials`: the batch engine's noise is a pure
 function of (trial seed, sample, channel) and trials do not interact, so a trial's
 result does not depend on which chunk, process or machine ran it.
 """
@@ -33,28 +33,36 @@ import hashlib
 import json
 import math
 import os
+import socket
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from stage_sim.config import ConfigError
+from experiment_runner.batch import Models
+from experiment_runner.campaigns.spec import Campaign, conditions
+from experiment_runner.campaigns.trials import metric_record, plain, reference, simulate_trials
+from stage_sim.config import ConfigError, Preset
 
-__all__ = ["TrialStream", "run_trials", "simulate_trials", "representative_trial", "chunk_task",
+__all__ = ["TrialStream", "run_trials", "run_trial_jobs", "warm_up", "representative_trial", "chunk_task",
            "campaign_key", "code_fingerprint", "STREAM_NAME", "CODE_MODULES"]
 
 FORMAT = "nanostage-trials"
 VERSION = 1
 STREAM_NAME = "trials.jsonl"
-_ROOT = Path(__file__).resolve().parent.parent
-CODE_MODULES = ("stage_sim/config.py", "stage_sim/friction.py", "stage_sim/plant.py",
+_ROOT = Path(__file__).resolve().parents[2]
+CODE_MODULES = ("stage_sim/config.py", "stage_sim/schema.py", *sorted(f"stage_sim/friction/{p.name}" for p in
+                                                (_ROOT / "stage_sim" / "friction").glob("*.py")),
+                "stage_sim/plant.py",
                 "stage_control/dither.py", "stage_control/filters.py", "stage_control/sai.py",
                 "stage_control/servo.py", "experiment_runner/batch.py", "experiment_runner/metrics.py",
                 "experiment_runner/experiment.py", "experiment_runner/profiles.py",
-                "experiment_runner/stream.py")
+                "experiment_runner/campaigns/trials.py", "experiment_runner/campaigns/stream.py")
 """Source files (relative to the repository) whose content decides a trial's result."""
-CHUNK_BYTES = 64e6
-"""Budget of one chunk's recorded trajectories [bytes] (about 13 float64 signals per sample)."""
+CHUNK_BYTES = 128e6
+"""Budget of one chunk's recorded trajectories [bytes] (about 13 float64 signals per sample): ~40
+trials of 1.5 s at 10 kHz. The batch engine's time per trial falls with the batch (table_4_2, one
+thread: ~6 ms per trial in chunks of 10, ~4.5 in chunks of 20, ~4.2 in chunks of 40)."""
 _BYTES_PER_SAMPLE = 13 * 8 * 2    # signals x float64 x (engine buffers + BatchResult copy)
 
 
@@ -78,7 +86,7 @@ def campaign_key(camp, presets: dict) -> str:
 
     Parameters
     ----------
-    camp : experiment_runner.campaign.Campaign
+    camp : experiment_runner.campaigns.spec.Campaign
         The campaign as run (trial count and dwell overrides applied).
     presets : dict
         ``(case name, condition key) -> Preset`` as run (overrides, calibration, sweep applied).
@@ -219,56 +227,14 @@ class TrialStream:
         self.close()
 
 
-# =========================================================================== trials
-def simulate_trials(camp, case, cond, preset, indices, correction=None, models=None):
-    """Trials ``indices`` of ``case`` at ``cond`` on the batch engine.
-
-    Returns
-    -------
-    ref : profiles.Reference
-        The shared (start-at-0) reference.
-    trials : list of experiment.Trial
-        As :func:`experiment_runner.campaign.make_trials` gives them (index, start, seed).
-    res : batch.BatchResult
-        Row ``j`` is trial ``indices[j]``; not checked (failed trials have a status).
-    """
-    from experiment_runner.batch import simulate
-    from experiment_runner.campaign import reference, start_position
-    from experiment_runner.experiment import Trial
-    ref = reference(camp, cond, preset.controller.rate)
-    base = preset.simulation.seed
-    trials = []
-    for i in indices:
-        x0 = start_position(camp, preset, ref, int(i))
-        trials.append(Trial(case=case.name, index=int(i), x_ref=ref.x + x0, v_ref=np.asarray(ref.v),
-                            seed=base + int(i), window=camp.test.window, segments=tuple(ref.segments)))
-    x0 = np.array([tr.x_ref[0] - ref.x[0] for tr in trials])
-    res = simulate(preset, ref.x, ref.v, n_trials=len(trials), x0=x0, seeds=[tr.seed for tr in trials],
-                   correction=correction, models=models, check=False)
-    return ref, trials, res
-
-
-def _metric_record(trial, res, j, rate) -> dict:
-    """Per-trial metrics as :func:`experiment_runner.campaign.simulate_case` gives them."""
-    from experiment_runner.campaign import METRIC_INFO
-    from experiment_runner.experiment import trial_metrics
-    from stage_sim.plant import STATUS_TEXT
-    if res.status[j] != 0:
-        return {"trial": trial.index, "case": trial.case, **{k: None for k in METRIC_INFO},
-                "failed": STATUS_TEXT[int(res.status[j])]}
-    return trial_metrics(trial, res.y[j], res.x_ref[j], rate)
-
-
+# =========================================================================== chunks
 @functools.lru_cache(maxsize=8)
 def _campaign(camp_json: str):
-    from experiment_runner.campaign import Campaign
     return Campaign.model_validate_json(camp_json)
 
 
 @functools.lru_cache(maxsize=8)
 def _preset_models(preset_json: str):
-    from experiment_runner.batch import Models
-    from stage_sim.config import Preset
     preset = Preset.model_validate_json(preset_json)
     return preset, Models.from_preset(preset)
 
@@ -297,9 +263,7 @@ def chunk_task(camp_json: str, case_name: str, cond_key: str, preset_json: str,
     list of dict
         One stream record per trial: case, condition, trial, x0_m [m], metrics.
     """
-    from experiment_runner.campaign import conditions
     if code != code_fingerprint():
-        import socket
         raise RuntimeError(f"worker on {socket.gethostname()} (pid {os.getpid()}) runs other model code "
                            f"({code_fingerprint()}) than the campaign ({code}): install the same version")
     camp = _campaign(camp_json)
@@ -310,69 +274,92 @@ def chunk_task(camp_json: str, case_name: str, cond_key: str, preset_json: str,
     ref, trials, res = simulate_trials(camp, case, cond, preset, indices, corr, models)
     rate = preset.controller.rate
     return [{"case": case_name, "condition": cond_key, "trial": tr.index, "x0_m": float(tr.x_ref[0] - ref.x[0]),
-             "metrics": _plain(_metric_record(tr, res, j, rate))} for j, tr in enumerate(trials)]
+             "metrics": plain(metric_record(tr, res, j, rate))} for j, tr in enumerate(trials)]
 
 
-def _plain(d: dict) -> dict:
-    """numpy scalars -> Python numbers (JSON)."""
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, np.integer):
-            v = int(v)
-        elif isinstance(v, np.floating):
-            v = float(v)
-        out[k] = v
-    return out
+def warm_up(camp, case, cond, preset, executor) -> None:
+    """Warm ``executor``'s workers in the background (:meth:`~experiment_runner.executor.Executor.warm`)
+    with trial 0 of ``case`` at ``cond``: its modules imported, the batch engine's kernels loaded,
+    the preset's models built (cached for the real chunks)."""
+    executor.warm(chunk_task, (camp.model_dump_json(), case.name, cond.key, preset.model_dump_json(), None, [0],
+                               code_fingerprint()))
 
 
-def chunk_size(n: int, samples: int, workers: int) -> int:
-    """Trials per chunk: at least two chunks per worker, at most :data:`CHUNK_BYTES` of trajectories."""
+def chunk_size(n: int, samples: int, workers: int, total: Optional[int] = None) -> int:
+    """Trials per chunk of a job of ``n`` trials of ``samples`` samples each: as large as
+    :data:`CHUNK_BYTES` allows (larger batches run faster per trial) while the task list of
+    ``total`` trials (every job's, default ``n``) keeps at least two chunks per worker (a worker
+    that finishes early takes another); the job is split into equal chunks.
+
+    >>> chunk_size(40, 15_000, 2, total=160), chunk_size(40, 15_000, 1, total=160), chunk_size(50, 15_000, 2)
+    (40, 40, 13)
+    """
     cap = max(1, int(CHUNK_BYTES // (samples * _BYTES_PER_SAMPLE)))
-    return max(1, min(cap, math.ceil(n / (2 * workers))))
+    want = max(1, min(cap, n, math.ceil((total or n) / (2 * workers))))
+    return math.ceil(n / math.ceil(n / want))
+
+
+def run_trial_jobs(camp, jobs: list, executor, stream: TrialStream, chunk: Optional[int] = None,
+                   on_chunk=None) -> None:
+    """All ``camp.trials`` trials of every job not yet in ``stream``, in chunks on ``executor``, appended
+    to ``stream`` as they complete. The chunks of all jobs go to the executor as one task list, so
+    the workers never wait for the last chunk of one case and condition before the next starts.
+
+    Parameters
+    ----------
+    camp : experiment_runner.campaigns.spec.Campaign
+        The campaign as run.
+    jobs : list of (case, cond, preset, correction)
+        A case, a condition, the case's preset at it and its SAI Step II correction [m] (or None).
+    executor : experiment_runner.executor.Executor
+    stream : TrialStream
+    chunk : int, optional
+        Trials per task (default :func:`chunk_size` of each job).
+    on_chunk : callable, optional
+        ``on_chunk(case, cond, done, n)`` after every completed chunk: trials of that case and
+        condition in the stream, of ``n`` (progress).
+    """
+    n = camp.trials
+    camp_json = camp.model_dump_json()
+    code = stream.header["code"]
+    named = {(case.name, cond.key): (case, cond) for case, cond, _, _ in jobs}
+    todo = {key: sorted(set(range(n)) - stream.done(*key)) for key in named}
+    total = sum(len(t) for t in todo.values())
+
+    def tasks():
+        for case, cond, preset, correction in jobs:
+            left = todo[case.name, cond.key]
+            if not left:
+                continue
+            samples = len(reference(camp, cond, preset.controller.rate).x)
+            size = chunk or chunk_size(len(left), samples, executor.workers, total)
+            preset_json = preset.model_dump_json()
+            corr = None if correction is None else np.asarray(correction, float).tolist()
+            for a in range(0, len(left), size):
+                yield ((case.name, cond.key, left[a]),
+                       (camp_json, case.name, cond.key, preset_json, corr, left[a:a + size], code))
+
+    for (case_name, cond_key, _), records in executor.map(chunk_task, tasks()):
+        stream.append(records)
+        if on_chunk is not None:
+            on_chunk(*named[case_name, cond_key], len(stream.done(case_name, cond_key)), n)
 
 
 def run_trials(camp, case, cond, preset, correction, executor, stream: TrialStream,
                chunk: Optional[int] = None, on_chunk=None) -> tuple[list, list]:
-    """All ``camp.trials`` trials of ``case`` at ``cond``: the ones not in ``stream`` run in chunks
-    on ``executor`` and are appended to it as they complete; then all are read back from it.
-
-    Parameters
-    ----------
-    camp, case, cond, preset
-        Campaign (as run), case, condition and the case's preset at it.
-    correction : array_like or None
-        SAI Step II correction [m].
-    executor : experiment_runner.executor.Executor
-    stream : TrialStream
-    chunk : int, optional
-        Trials per task (default :func:`chunk_size`).
-    on_chunk : callable, optional
-        ``on_chunk(done, n)`` after every completed chunk: trials of this case and condition
-        in the stream, of ``n`` (progress).
+    """All ``camp.trials`` trials of ``case`` at ``cond`` (:func:`run_trial_jobs` of one job), read
+    back from ``stream``.
 
     Returns
     -------
     metrics : list of dict
-        Per trial ``0 .. n-1``, as :func:`experiment_runner.campaign.simulate_case`.
+        Per trial ``0 .. n-1``, as :func:`experiment_runner.campaigns.trials.metric_record`.
     x0 : list of float
         Start position of every trial [m].
     """
-    from experiment_runner.campaign import reference
-    n = camp.trials
-    todo = sorted(set(range(n)) - stream.done(case.name, cond.key))
-    if todo:
-        samples = len(reference(camp, cond, preset.controller.rate).x)
-        size = chunk or chunk_size(len(todo), samples, executor.workers)
-        camp_json, preset_json = camp.model_dump_json(), preset.model_dump_json()
-        corr = None if correction is None else np.asarray(correction, float).tolist()
-        tasks = ((("chunk", case.name, cond.key, todo[a]),
-                  (camp_json, case.name, cond.key, preset_json, corr, todo[a:a + size], stream.header["code"]))
-                 for a in range(0, len(todo), size))
-        for _, records in executor.map(chunk_task, tasks):
-            stream.append(records)
-            if on_chunk is not None:
-                on_chunk(len(stream.done(case.name, cond.key)), n)
-    return stream.read(case.name, cond.key, n)
+    run_trial_jobs(camp, [(case, cond, preset, correction)], executor, stream, chunk,
+                   None if on_chunk is None else (lambda _case, _cond, done, n: on_chunk(done, n)))
+    return stream.read(case.name, cond.key, n=camp.trials)
 
 
 def representative_trial(camp, case, cond, preset, index: int, correction, metrics: dict):
@@ -390,7 +377,7 @@ def representative_trial(camp, case, cond, preset, index: int, correction, metri
         outside :data:`CODE_MODULES` changed; rerun with ``--restart``).
     """
     ref, (trial,), res = simulate_trials(camp, case, cond, preset, [index], correction)
-    again = _plain(_metric_record(trial, res, 0, preset.controller.rate))
+    again = plain(metric_record(trial, res, 0, preset.controller.rate))
     if json.dumps(again, sort_keys=True) != json.dumps(metrics, sort_keys=True):
         raise RuntimeError(f"trial {index} of {case.name} at {cond.key} gives {again}, the stream has {metrics}: "
                            "the stream is stale; rerun with --restart")

@@ -1,112 +1,89 @@
-"""Plots and Markdown reports of campaigns (:mod:`experiment_runner.campaign`).
+"""Plots and Markdown reports of campaign runs.
 
-* :func:`write_plots` -- settling plots like Fig. 4.7 (position error of a representative
-  trial per case, whole move and the settling portion with the ±window band), the
-  distribution of every metric over the trials (box + strip, the seed's mean marked),
-  in-position error spectra (Fig. 3.15 style), the Step II learning curve (Fig. 5.9 style)
-  and the calibration evaluations; tracking-error plots for circle campaigns.
-* :func:`write_report` -- ``report.md``: seed vs simulation table, the direction of every
-  seed finding in the simulation (with the reason where it disagrees), the calibration,
-  Step II, the ROS-graph runs and the settings.
+* :func:`write_plots` -- ``out_dir/plots/*.png``: the kind's plots (its
+  :meth:`~experiment_runner.campaigns.base.CampaignKind.plots`); for trial campaigns these
+  end with the shared ones here: the distribution of every metric over the trials (box +
+  strip, the seed's mean marked), the Step II learning curve (Fig. 5.9 style), the settling
+  mechanism and the calibration evaluations.
+* :func:`write_report` -- ``report.md``: a head, the kind's section (for trial campaigns
+  :func:`trial_section`: seed vs simulation table, the direction of every seed finding in the
+  simulation with the reason where it disagrees, the calibration, Step II, the ROS-graph runs),
+  the plots and the settings.
 * :func:`write_index` -- the main job's summary over several campaigns.
+
+Metric names, units and formats come from :mod:`experiment_runner.campaigns.registry`.
 """
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+from matplotlib.ticker import NullFormatter
 
-__all__ = ["write_plots", "write_report", "write_index", "summary_lines", "fmt_metric", "fmt_change"]
+from experiment_runner.campaigns import mechanism
+from experiment_runner.campaigns.base import CampaignRun
+from experiment_runner.campaigns.registry import METRICS, fmt_change, fmt_metric
+from experiment_runner.campaigns.spec import fmt_length
 
-_INFO = {  # label, unit, scale
-    "settling_time_s": ("settling time", "ms", 1e3),
-    "rms_in_position_m": ("RMS in-position error", "nm", 1e9),
-    "peak_tracking_error_m": ("peak tracking error", "µm", 1e6),
-    "rms_tracking_error_m": ("RMS tracking error", "µm", 1e6),
-    "bandwidth_hz": ("-3 dB closed-loop bandwidth", "Hz", 1.0),    # frequency_response (frf_campaign)
-    "gain_margin_db": ("gain margin", "dB", 1.0),
-    "phase_margin_deg": ("phase margin", "°", 1.0),
-}
-
-
-def fmt_metric(v, metric, digits=3) -> str:
-    """``0.044, 'settling_time_s' -> '44 ms'``.
-
-    >>> fmt_metric(0.0441, "settling_time_s"), fmt_metric(1.6e-9, "rms_in_position_m"), fmt_metric(None, "x")
-    ('44.1 ms', '1.6 nm', '–')
-    """
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "–"
-    _, unit, scale = _INFO[metric]
-    return f"{v * scale:.{digits}g} {unit}"
-
-
-def fmt_change(r) -> str:
-    """Relative change as a signed percentage.
-
-    >>> fmt_change(-0.634), fmt_change(None)
-    ('-63%', '–')
-    """
-    if r is None or (isinstance(r, float) and not math.isfinite(r)):
-        return "–"
-    return f"{r * 100:+.0f}%".replace("+-", "-")
-
-
-def _metrics(cr):
-    if cr.campaign.test.kind == "frequency_response":
-        return ("bandwidth_hz", "gain_margin_db", "phase_margin_deg")
-    return ("settling_time_s", "rms_in_position_m") if cr.campaign.test.kind == "point_to_point" \
-        else ("peak_tracking_error_m", "rms_tracking_error_m")
-
+__all__ = ["write_outputs", "write_plots", "write_report", "write_index", "summary_lines", "trial_section",
+           "trial_plots", "report_head", "findings_table", "plots_md", "cases_md"]
 
 def _plt():
-    import matplotlib
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (selected before pyplot is imported)."""
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt          # noqa: PLC0415 - pyplot needs the backend chosen first
     return plt
 
 
-def _colors(n):
+def colors(n):
     return [f"C{i % 10}" for i in range(n)]
 
 
+# =========================================================================== outputs
+def write_outputs(cr: CampaignRun, *, report: bool, plots: bool, t_start: float) -> None:
+    """Results files (the kind's ``write_results``), PNG plots and ``report.md``; the results are
+    written first (kept if a plot fails) and again with the final timing."""
+    t3 = time.monotonic()
+    cr.kind.write_results(cr)
+    if report:
+        if plots:
+            cr.files["plots"] = write_plots(cr)
+        cr.timing["total_s"] = time.monotonic() - t_start
+        cr.files["report"] = write_report(cr)
+    cr.timing["output_s"] = time.monotonic() - t3
+    cr.timing["total_s"] = time.monotonic() - t_start
+    cr.kind.write_results(cr)
+
+
 # =========================================================================== plots
-def write_plots(cr) -> list:
+def write_plots(cr: CampaignRun) -> list:
     """Write the PNG plots of a campaign run into ``out_dir/plots``; returns their paths."""
-    if cr.campaign.test.kind == "frequency_response":      # Bode plots, bandwidth/margins vs amplitude
-        from experiment_runner.frf_campaign import write_frf_plots
-        return write_frf_plots(cr)
     plt = _plt()
     out = cr.out_dir / "plots"
     out.mkdir(exist_ok=True)
-    camp = cr.campaign
-    files = []
-    cases = camp.cases
-    cols = _colors(len(cases))
-    for cond in cr.conditions:
-        if camp.test.kind == "point_to_point":
-            files.append(_plot_settling(plt, cr, cond, cases, cols, out))
-            files.append(_plot_spectrum(plt, cr, cond, cases, cols, out))
-        else:
-            files.append(_plot_tracking(plt, cr, cond, cases, cols, out))
-    if camp.test.kind == "circle":
-        files.append(_plot_reduction(plt, cr, cases, cols, out))
-    if camp.test.kind == "point_to_point" and len(camp.test.steps) > 2 and camp.sweep is None:
-        files.append(_plot_vs_step(plt, cr, cases, cols, out))
-    for metric in _metrics(cr):
-        files.append(_plot_distribution(plt, cr, metric, cases, cols, out))
-    if cr.step_ii:
-        files.append(_plot_step_ii(plt, cr, out))
-    from experiment_runner import mechanism
-    files += mechanism.plot(cr, out)
-    if cr.calibration and cr.calibration.get("parameters"):
-        files.append(_plot_calibration(plt, cr, out))
+    files = cr.kind.plots(cr, plt, out)
     plt.close("all")
     return [f for f in files if f is not None]
 
 
-def _save(plt, fig, path: Path) -> Path:
+def trial_plots(cr: CampaignRun, plt, out: Path) -> list:
+    """The plots every trial campaign ends with: the distribution of each metric, the Step II
+    learning, the settling mechanism (point-to-point) and the calibration."""
+    camp = cr.campaign
+    cols = colors(len(camp.cases))
+    files = [_plot_distribution(plt, cr, metric, camp.cases, cols, out) for metric in cr.kind.metrics]
+    if cr.step_ii:
+        files.append(_plot_step_ii(plt, cr, out))
+    files += mechanism.plot(cr, plt, out)
+    if cr.calibration and cr.calibration.get("parameters"):
+        files.append(_plot_calibration(plt, cr, out))
+    return files
+
+
+def save_figure(plt, fig, path: Path) -> Path:
     """Lay out, write ``path`` (PNG, 110 dpi), close the figure; returns ``path``."""
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -114,161 +91,8 @@ def _save(plt, fig, path: Path) -> Path:
     return path
 
 
-def _plot_settling(plt, cr, cond, cases, cols, out):
-    w = cr.campaign.test.window
-    fig, (ax0, ax1) = plt.subplots(2, 1, figsize=(9, 7.5), gridspec_kw={"height_ratios": [1, 1.6]})
-    t_end = 0.0
-    tr0 = cr.runs[(cases[0].name, cond.key)].trace
-    span = float(np.max(np.abs(tr0.x_ref - tr0.x_ref[0]))) or 1e-9
-    punit, pscale = next((u, 1 / s) for u, s in (("mm", 1e-3), ("µm", 1e-6), ("nm", 1e-9)) if span >= s * 0.999)
-    ax0.plot(tr0.t, (tr0.x_ref - tr0.x_ref[0]) * pscale, color="k", lw=0.8, ls=":", label="reference")
-    for case, c in zip(cases, cols):
-        rr = cr.runs[(case.name, cond.key)]
-        tr = rr.trace
-        ts = tr.settling_time
-        lab = f"{case.label} (trial {tr.trial}: " + (f"{ts * 1e3:.1f} ms" if ts is not None else "not settled") + ")"
-        ax0.plot(tr.t, (tr.y - tr.y[0]) * pscale, color=c, lw=1, label=lab)
-        tau = tr.t - tr.settle_start
-        ax1.plot(tau * 1e3, tr.e * 1e9, color=c, lw=1, label=lab)
-        if ts is not None:
-            ax1.axvline(ts * 1e3, color=c, ls="--", lw=0.8)
-        t_end = max(t_end, (ts or 0.1))
-    ss = tr0.settle_start
-    x1 = min(max(0.1, 1.6 * t_end + 0.02), tr0.t[-1] - ss)
-    ax0.axvspan(ss, ss + x1, color="k", alpha=0.08, lw=0)
-    ax0.set_xlim(0, min(tr0.t[-1], ss + 1.3 * x1))
-    ax0.set_xlabel("time [s]")
-    ax0.set_ylabel(f"position from start [{punit}]")
-    ax0.set_title(f"{cr.campaign.title}\n{cond.label}: representative trials (median settling time)", fontsize=10)
-    ax0.legend(fontsize=8, loc="best")
-    ax0.grid(alpha=0.3)
-    ax1.axhspan(-w * 1e9, w * 1e9, color="g", alpha=0.12, lw=0, label=f"±{w * 1e9:g} nm")
-    ax1.axhline(w * 1e9, color="g", lw=0.8)
-    ax1.axhline(-w * 1e9, color="g", lw=0.8)
-    ax1.set_xlim(-0.05 * x1 * 1e3, x1 * 1e3)
-    ax1.set_ylim(-5 * w * 1e9, 5 * w * 1e9)
-    ax1.set_xlabel("time after the reference reaches the target [ms] (settling portion)")
-    ax1.set_ylabel("position error [nm]")
-    ax1.grid(alpha=0.3)
-    ax1.legend(fontsize=8, loc="upper right")
-    return _save(plt, fig, out / f"settling_{cond.key}.png")
-
-
-def _plot_spectrum(plt, cr, cond, cases, cols, out):
-    from experiment_runner.metrics import error_spectrum
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    any_ = False
-    for case, c in zip(cases, cols):
-        tr = cr.runs[(case.name, cond.key)].trace
-        if tr.settling_time is None:
-            continue
-        k0 = int(np.searchsorted(tr.t, tr.settle_start + tr.settling_time - 1e-12))
-        e = tr.e[k0:]
-        if e.size < 64:
-            continue
-        fs = 1.0 / (tr.t[1] - tr.t[0])
-        f, a = error_spectrum(e - e.mean(), fs)
-        rms = float(np.sqrt(np.mean(e ** 2)))
-        ax.loglog(f[1:], a[1:] * 1e9, color=c, lw=0.8, label=f"{case.label} (RMS {rms * 1e9:.2f} nm)")
-        any_ = True
-    if not any_:
-        plt.close(fig)
-        return None
-    ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel("amplitude [nm]")
-    ax.set_title(f"In-position error spectrum after settling, {cond.label} (representative trials)", fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
-    return _save(plt, fig, out / f"spectrum_{cond.key}.png")
-
-
-def _plot_tracking(plt, cr, cond, cases, cols, out):
-    fig, ax = plt.subplots(figsize=(9, 4.5))
-    for case, c in zip(cases, cols):
-        tr = cr.runs[(case.name, cond.key)].trace
-        ax.plot(tr.t, tr.e * 1e6, color=c, lw=0.8, label=f"{case.label} (trial {tr.trial})")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("tracking error x_ref - y [µm]")
-    ax.set_title(f"{cr.campaign.title}\n{cond.label}", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    return _save(plt, fig, out / f"tracking_{cond.key}.png")
-
-
-def _plot_reduction(plt, cr, cases, cols, out):
-    """Reduction of the peak and RMS tracking errors vs the baseline over the speed, one row per
-    radius (Fig. 3.21/3.22, 4.13/4.14); with a sweep, the mean over its values and a ±1σ band
-    (Fig. 4.18/4.19)."""
-    camp = cr.campaign
-    others = [(c, col) for c, col in zip(cases, cols) if c.name != camp.baseline]
-    radii = sorted({c.radius for c in cr.conditions}, reverse=True)
-    if not others or not radii:
-        return None
-    fig, axs = plt.subplots(len(radii), 2, figsize=(11, 3.6 * len(radii)), squeeze=False)
-    from matplotlib.ticker import NullFormatter
-
-    from experiment_runner.campaign import fmt_length
-    for row, r in zip(axs, radii):
-        speeds = sorted({c.speed for c in cr.conditions if c.radius == r})
-        for ax, metric in zip(row, ("peak_tracking_error_m", "rms_tracking_error_m")):
-            for case, col in others:
-                mean, lo, hi = [], [], []
-                for v in speeds:
-                    red = []
-                    for cond in (c for c in cr.conditions if c.radius == r and c.speed == v):
-                        a = cr.runs[(case.name, cond.key)].stats[metric].mean
-                        b = cr.runs[(camp.baseline, cond.key)].stats[metric].mean
-                        if b and math.isfinite(a) and math.isfinite(b):
-                            red.append(100.0 * (1.0 - a / b))
-                    m = float(np.mean(red)) if red else math.nan
-                    sd = float(np.std(red)) if len(red) > 1 else 0.0
-                    mean.append(m)
-                    lo.append(m - sd)
-                    hi.append(m + sd)
-                x = np.array(speeds) * (1e3 if r >= 1e-4 else 1e6)
-                ax.plot(x, mean, "o-", color=col, label=case.label)
-                if camp.sweep is not None:
-                    ax.fill_between(x, lo, hi, color=col, alpha=0.15, lw=0)
-            ax.axhline(0.0, color="k", lw=0.8)
-            ax.set_xscale("log")
-            ax.set_xticks(x)
-            ax.set_xticklabels([f"{v:g}" for v in x])
-            ax.xaxis.set_minor_formatter(NullFormatter())
-            ax.set_xlabel(f"tangential speed [{'mm/s' if r >= 1e-4 else 'µm/s'}]")
-            ax.set_ylabel(f"{_INFO[metric][0]} reduction vs {camp.case(camp.baseline).label} [%]")
-            ax.set_title(f"R {fmt_length(r)}" + (f" (mean and ±1σ over {camp.sweep.label})" if camp.sweep else ""),
-                         fontsize=9)
-            ax.grid(alpha=0.3, which="both")
-            ax.legend(fontsize=7)
-    fig.suptitle(camp.title, fontsize=10)
-    return _save(plt, fig, out / "reduction_vs_speed.png")
-
-
-def _plot_vs_step(plt, cr, cases, cols, out):
-    """Mean settling time and RMS in-position error vs step size with ±1σ bands (Fig. C.1, C.12)."""
-    fig, axs = plt.subplots(1, 2, figsize=(11, 4.2))
-    conds = sorted(cr.conditions, key=lambda c: abs(c.step))
-    x = np.array([abs(c.step) for c in conds])
-    for ax, metric in zip(axs, ("settling_time_s", "rms_in_position_m")):
-        label, unit, scale = _INFO[metric]
-        for case, col in zip(cases, cols):
-            st = [cr.runs[(case.name, c.key)].stats[metric] for c in conds]
-            m = np.array([s.mean for s in st]) * scale
-            sd = np.array([s.std for s in st]) * scale
-            unsettled = sum(s.n - s.n_valid for s in st)
-            ax.plot(x, m, "o-", color=col, label=case.label + (f" ({unsettled} unsettled trials)" if unsettled else ""))
-            ax.fill_between(x, m - sd, m + sd, color=col, alpha=0.15, lw=0)
-        ax.set_xscale("log")
-        ax.set_xlabel("step size [m]")
-        ax.set_ylabel(f"{label} [{unit}]")
-        ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=8)
-    fig.suptitle(f"{cr.campaign.title}: mean and ±1σ over {cr.campaign.trials} trials", fontsize=10)
-    return _save(plt, fig, out / "vs_step.png")
-
-
 def _plot_distribution(plt, cr, metric, cases, cols, out):
-    label, unit, scale = _INFO[metric]
+    label, unit, scale, _ = METRICS[metric]
     n = len(cr.conditions)
     fig, axs = plt.subplots(1, n, figsize=(max(4.0, 2.2 + 1.3 * len(cases)) * n, 4.5), squeeze=False)
     rng = np.random.default_rng(0)
@@ -301,7 +125,7 @@ def _plot_distribution(plt, cr, metric, cases, cols, out):
     axs[0][0].plot([], [], "D", color="crimson", label="seed (mean)")
     axs[0][0].legend(fontsize=8, loc="best")
     fig.suptitle(f"{camp.title}: {label} over {camp.trials} trials", fontsize=10)
-    return _save(plt, fig, out / f"distribution_{metric}.png")
+    return save_figure(plt, fig, out / f"distribution_{metric}.png")
 
 
 def _plot_step_ii(plt, cr, out):
@@ -321,17 +145,16 @@ def _plot_step_ii(plt, cr, out):
     ax1.set_ylabel("reference correction [nm]")
     ax1.set_title("learned correction", fontsize=10)
     ax1.grid(alpha=0.3)
-    return _save(plt, fig, out / "step_ii.png")
+    return save_figure(plt, fig, out / "step_ii.png")
 
 
 def _plot_calibration(plt, cr, out):
-    from matplotlib.ticker import NullFormatter
     cal = cr.calibration
     params = cal["parameters"]
     fig, axs = plt.subplots(1, len(params), figsize=(5.2 * len(params), 4), squeeze=False)
     for ax, p in zip(axs[0], params):
         metric = p["target"]["metric"]
-        _, unit, scale = _INFO[metric]
+        _, unit, scale, _ = METRICS[metric]
         prof = [q for q in p.get("profile", []) if q["metric"] is not None and math.isfinite(q["metric"])]
         if prof:
             ax.plot([q["value"] for q in prof], [q["metric"] * scale for q in prof], "o-", color="C0", ms=4,
@@ -350,15 +173,14 @@ def _plot_calibration(plt, cr, out):
                 ax.set_xticks([q["value"] for q in prof])
                 ax.set_xticklabels([f"{q['value']:.3g}" for q in prof], fontsize=8)
         ax.set_xlabel(f"{p['name']}" + (f" [{p['unit']}]" if p["unit"] else ""))
-        ax.set_ylabel(f"{_INFO[metric][0]} [{unit}]")
+        ax.set_ylabel(f"{METRICS[metric].label} [{unit}]")
         ax.set_title(f"fitted to {p['target']['case']} {_cond_label(p['target'])}", fontsize=9)
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
-    return _save(plt, fig, out / "calibration.png")
+    return save_figure(plt, fig, out / "calibration.png")
 
 
 def _cond_label(at: dict) -> str:
-    from experiment_runner.campaign import fmt_length
     parts = []
     if at.get("step") is not None:
         parts.append(f"{fmt_length(at['step'])} step")
@@ -396,14 +218,14 @@ def comparison_table(cr) -> list[str]:
     sep = "|---|---|" + "---|---|" * len(camp.cases)
     lines = [head, sep]
     for cond in cr.conditions:
-        for metric in _metrics(cr):
+        for metric in cr.kind.metrics:
             cells = []
             for case in camp.cases:
                 st = cr.runs[(case.name, cond.key)].stats[metric]
                 seed = camp.seed_value(case.name, metric, **cond.at())
                 is_cal = case.name == camp.baseline and (metric, tuple(sorted(cond.at().items()))) in cal_targets
                 cells += [fmt_metric(seed, metric), _sim_cell(st, metric, is_cal)]
-            lines.append(f"| {cond.label} | {_INFO[metric][0]} | " + " | ".join(cells) + " |")
+            lines.append(f"| {cond.label} | {METRICS[metric].label} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -417,7 +239,7 @@ def excess_notes(cr) -> list[str]:
             continue
         m = t["metric"]
         floor = math.sqrt(max(t["sim_after"] ** 2 - t["sim_effective"] ** 2, 0.0))
-        out.append(f"† {_INFO[m][0]} of the baseline ({_cond_label(t)}): `{p['name']}` is fitted to its part above "
+        out.append(f"† {METRICS[m].label} of the baseline ({_cond_label(t)}): `{p['name']}` is fitted to its part above "
                    f"the seed's {fmt_metric(t['seed_floor'], m)} quantisation floor, in quadrature (seed "
                    f"{fmt_metric(t['seed_effective'], m)}, simulation {fmt_metric(t['sim_effective'], m)}); the "
                    f"simulated stage's own noise-free level is {fmt_metric(floor, m)} (encoder quantisation "
@@ -495,7 +317,7 @@ def calibration_lines(cr) -> list[str]:
             val = f"×{p['value']:.4g}"
         else:
             val = f"{p['value']:.4g}{unit}"
-        fitted = f"{base_label} {_cond_label(t)}, {_INFO[m][0]}"
+        fitted = f"{base_label} {_cond_label(t)}, {METRICS[m].label}"
         seed = fmt_metric(t["seed"], m)
         note = []
         if t["form"] == "quadrature_excess":
@@ -524,16 +346,6 @@ def _short(v):
     return str(v)
 
 
-def write_rows_csv(path: Path, rows: list[dict]) -> None:
-    """``rows`` (dicts with the same keys) as CSV, None as an empty cell."""
-    import csv
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: ("" if v is None else v) for k, v in r.items()})
-
-
 def report_head(camp, how: str) -> list[str]:
     """The first lines of a campaign's ``report.md``: title, description, seed, ``how`` it was
     run, seed notes."""
@@ -546,17 +358,32 @@ def report_head(camp, how: str) -> list[str]:
     return L
 
 
-def write_report(cr) -> Path:
-    """``out_dir/report.md``."""
-    if cr.campaign.test.kind == "frequency_response":      # bandwidth/margins per amplitude table
-        from experiment_runner.frf_campaign import write_frf_report
-        return write_frf_report(cr)
+def write_report(cr: CampaignRun) -> Path:
+    """``out_dir/report.md``: head, the kind's section, plots, settings."""
+    L = report_head(cr.campaign, cr.kind.report_how(cr))
+    L += cr.kind.report_section(cr)
+    L += plots_md(cr)
+    L += cr.kind.report_settings(cr)
+    path = cr.out_dir / "report.md"
+    path.write_text("\n".join(L))
+    return path
+
+
+def trial_how(cr: CampaignRun) -> str:
+    """How a trial campaign was run (the report's head)."""
     camp = cr.campaign
-    L = report_head(camp, f"{camp.trials} trials per case and condition, run on the batch engine"
-                    + (" (representative trials also through the ROS 2 graph)" if cr.settings.get("graph") else "")
-                    + f"; wall time {cr.timing.get('total_s', float('nan')):.0f} s "
-                    f"(calibration {cr.timing.get('calibration_s', 0):.0f} s, simulation "
-                    f"{cr.timing.get('simulation_s', 0):.0f} s, graph {cr.timing.get('graph_s', 0):.0f} s).")
+    return (f"{camp.trials} trials per case and condition, run on the batch engine"
+            + (" (representative trials also through the ROS 2 graph)" if cr.settings.get("graph") else "")
+            + f"; wall time {cr.timing.get('total_s', float('nan')):.0f} s "
+            f"(calibration {cr.timing.get('calibration_s', 0):.0f} s, simulation "
+            f"{cr.timing.get('simulation_s', 0):.0f} s, graph {cr.timing.get('graph_s', 0):.0f} s).")
+
+
+def trial_section(cr: CampaignRun) -> list[str]:
+    """The body of a trial campaign's report: seed vs simulation, findings, mechanism,
+    calibration, Step II, the ROS-graph runs."""
+    camp = cr.campaign
+    L = []
     L += ["## Seed vs simulation", "",
           "Simulation: mean ± standard deviation over the trials (SI values in `results.csv`). "
           "† = calibration target (baseline): fitted, not predicted.", ""]
@@ -580,7 +407,6 @@ def write_report(cr) -> Path:
             L.append(f"* **{f['id']}** ({f['claim']}): {why}.{extra}"
                      + (f" {f['explanation'].strip()}" if f["explanation"] else ""))
         L.append("")
-    from experiment_runner import mechanism
     L += mechanism.report_lines(cr)
     L += ["## Calibration", ""]
     L += calibration_lines(cr)
@@ -613,7 +439,7 @@ def write_report(cr) -> Path:
               "|---|---|---|---|---|---|---|---|"]
         for (case, key), rr in graph_runs:
             g = rr.graph
-            ms = _metrics(cr)
+            ms = cr.kind.metrics
             gm = ", ".join(fmt_metric((g.get("metrics") or {}).get(m), m) for m in ms)
             bm = ", ".join(fmt_metric((g.get("batch_metrics") or {}).get(m), m) for m in ms)
             d = g.get("max_abs_diff_m")
@@ -622,17 +448,20 @@ def write_report(cr) -> Path:
                      f"{'–' if d is None else f'{d * 1e9:.3g} nm'} | {g.get('wall_s', 0):.1f} s | "
                      f"{'yes' if ok else 'no: ' + str(g.get('aborted') or g.get('read_error'))} |")
         L.append("")
-    L += plots_md(cr)
-    L += ["## Settings", "",
-          f"* Test: `{camp.test.model_dump()}`",
-          f"* Starts: trial i at `random_starts(1, travel, {camp.starts.margin}, {camp.starts.seed} + i)`, noise seed "
-          f"`simulation.seed + i` (the same in every case).", "* Cases:"]
+    return L
+
+
+def trial_settings(cr: CampaignRun) -> list[str]:
+    """The settings at the end of a trial campaign's report."""
+    camp = cr.campaign
+    L = ["## Settings", "",
+         f"* Test: `{camp.test.model_dump()}`",
+         f"* Starts: trial i at `random_starts(1, travel, {camp.starts.margin}, {camp.starts.seed} + i)`, noise seed "
+         f"`simulation.seed + i` (the same in every case).", "* Cases:"]
     L += cases_md(cr)
     L += ["", "Files: `results.csv`, `results.json` (per-trial metrics too), `calibration.json`, `plots/`, "
           "`recordings/` (MCAP, rosbag2 layout).", ""]
-    path = cr.out_dir / "report.md"
-    path.write_text("\n".join(L))
-    return path
+    return L
 
 
 def write_index(runs, out_dir, runtime_s: float, extras: dict | None = None) -> Path:
@@ -661,7 +490,6 @@ def write_index(runs, out_dir, runtime_s: float, extras: dict | None = None) -> 
             L.append(f"* {f['id']}: {f['status']}." + (f" {f['explanation'].strip()}" if f["explanation"] else ""))
         if bad:
             L.append("")
-        from experiment_runner import mechanism
         L += mechanism.report_lines(cr, images=(rel.parent / "plots").as_posix() if cr.files.get("plots") else "")
         L += (extras or {}).get(cr.campaign.name, [])
         g = [rr.graph for rr in cr.runs.values() if rr.graph is not None]

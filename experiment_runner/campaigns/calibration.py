@@ -1,6 +1,6 @@
 """Calibration of a campaign's *baseline* case, before any prediction.
 
-A campaign file (:mod:`experiment_runner.campaign`) names a few physically meaningful
+A campaign file (:mod:`experiment_runner.campaigns.spec`) names a few physically meaningful
 parameters of the simulated stage that the seed does not give (e.g. the drive's current
 noise, the PID integral corner), each with bounds and the *one* baseline number it is
 fitted to (e.g. the No FI mean settling time of the 5 mm step, Table 4.2). This module
@@ -25,11 +25,14 @@ others held (Gauss-Seidel), for a few rounds until no parameter moves by more th
 reach, and the report says so). Evaluations use the same trials (start positions and
 noise seeds) every time, so the objective is deterministic; they are cached.
 
+:func:`calibrate` sets up and runs that fit for a campaign's baseline (and a sensitivity profile
+around it), :func:`source_calibration` reuses another campaign's (``calibration: {from: NAME}``).
+
 Examples
 --------
 A toy "simulation" whose metric is ``2 p``, fitted to a seed value of 3:
 
->>> from experiment_runner.calibration import ParamSpec, fit
+>>> from experiment_runner.campaigns.calibration import ParamSpec, fit
 >>> spec = ParamSpec(name="p", bounds=(0.1, 10.0), log=True, seed_value=3.0)
 >>> res = fit([spec], {"p": 1.0}, lambda v: {"p": 2.0 * v["p"]})
 >>> round(res.values["p"], 4), res.params[0].at_bound
@@ -37,15 +40,25 @@ A toy "simulation" whose metric is ``2 p``, fitted to a seed value of 3:
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Callable, Optional
 
 from scipy.optimize import brentq
 
+from experiment_runner.batch import Models
+from experiment_runner.campaigns.base import Stat
+from experiment_runner.campaigns.spec import (Campaign, _expand, _py, calibration_source, case_preset, conditions,
+                                              resolve)
+from experiment_runner.campaigns.trials import metric_record, simulate_trials
 from experiment_runner.metrics import finite_or_none
 
-__all__ = ["ParamSpec", "ParamFit", "CalibrationResult", "fit"]
+__all__ = ["ParamSpec", "ParamFit", "CalibrationResult", "fit", "calibrate", "calibration_fingerprint",
+           "source_calibration"]
 
 _CLIP = 20.0      # |log ratio| used for a metric that is 0, nan or not reached
 
@@ -213,3 +226,123 @@ def fit(specs: list[ParamSpec], start: dict, evaluate: Callable[[dict], dict], *
             sim_effective=finite_or_none(sim_eff), residual=residual(spec, values)))
     return CalibrationResult(values=values, params=fits, evaluations=len(cache), rounds=n_rounds,
                              converged=converged, history=history)
+
+
+def calibrate(camp: Campaign, n_trials: int, bar=None) -> dict:
+    """Fit the campaign's calibration parameters on its baseline case; returns calibration.json content."""
+    cal = camp.calibration
+    base = camp.case(camp.baseline)
+    preset0 = case_preset(camp, base)
+    specs, start, preset_values = [], {}, {}
+    for p in cal.parameters:
+        seed = camp.seed_value(camp.baseline, p.target.metric, **p.target.at())
+        specs.append(ParamSpec(name=p.name, bounds=tuple(p.bounds), seed_value=seed, log=p.log,
+                               form=p.target.form, seed_floor=p.target.seed_floor, null=p.neutral))
+        if p.mode == "scale":
+            start[p.name] = 1.0
+            preset_values[p.name] = 1.0
+        else:
+            vals = {v if not isinstance(v, list) else tuple(v) for v in
+                    (old for _, old in _expand(preset0.model_dump(), p.paths[0]))}
+            v0 = next(iter(vals))
+            start[p.name] = float(v0) if v0 is not None else float(p.bounds[0])
+            preset_values[p.name] = v0
+    conds = {}
+    for p in cal.parameters:
+        c = next(c for c in conditions(camp) if c.matches(**p.target.at()))
+        conds[c.key] = c
+
+    def evaluate(values):
+        out = {}
+        per_cond = {}
+        for key, c in conds.items():
+            preset = case_preset(camp, base, values, c)
+            _, trials, res = simulate_trials(camp, base, c, preset, range(n_trials), models=Models.from_preset(preset))
+            mets = [metric_record(tr, res, j, preset.controller.rate) for j, tr in enumerate(trials)]
+            per_cond[key] = mets
+        for p in cal.parameters:
+            c = next(c for c in conds.values() if c.matches(**p.target.at()))
+            st = Stat.of([m.get(p.target.metric) for m in per_cond[c.key]])
+            # an unsettled trial makes the mean undefined: report nan (the fit treats it as too large)
+            out[p.name] = st.mean if st.n_valid == st.n else math.nan
+        return out
+
+    t0 = time.monotonic()
+    res = fit(specs, start, evaluate, rounds=cal.rounds, rtol=cal.rtol,
+              progress=(lambda: bar.update(1)) if bar is not None else None)
+    # sensitivity profile around the fit (one parameter at a time, the others at their fit)
+    profile = {}
+    for spec in specs:
+        lo, hi = spec.bounds
+        v = res.values[spec.name]
+        pts = sorted({min(max(v * f if spec.log or v else v + f - 1.0, lo), hi) for f in (0.5, 0.71, 1.0, 1.41, 2.0)})
+        prof = []
+        for x in pts:
+            m = evaluate({**res.values, spec.name: x})
+            if bar is not None:
+                bar.update(1)
+            prof.append({"value": x, "metric": m[spec.name]})
+        profile[spec.name] = prof
+    params = []
+    for p, pf in zip(cal.parameters, res.params):
+        per_case = {c.name: resolve(case_preset(camp, c), p.paths, p.mode, pf.value) for c in camp.cases}
+        params.append({
+            "name": p.name, "description": p.description, "paths": p.paths, "mode": p.mode, "unit": p.unit,
+            "bounds": list(p.bounds), "log": p.log, "preset_value": _py(preset_values[p.name]),
+            "start": pf.start, "value": pf.value, "at_bound": pf.at_bound, "applied": per_case,
+            "target": {"case": camp.baseline, **p.target.at(), "metric": p.target.metric, "form": p.target.form,
+                       "seed_floor": p.target.seed_floor, "seed": pf.seed_value, "seed_effective": pf.seed_effective,
+                       "sim_before": pf.sim_start, "sim_after": pf.sim_value, "sim_effective": pf.sim_effective,
+                       "log_residual": pf.residual},
+            "profile": profile[p.name]})
+    return {"campaign": camp.name, "baseline": camp.baseline, "trials": n_trials,
+            "fingerprint": calibration_fingerprint(camp, n_trials),
+            "method": "paired bounded 1-D root finding (brentq on log(sim/seed)), Gauss-Seidel rounds",
+            "rounds": res.rounds, "converged": res.converged, "evaluations": res.evaluations,
+            "wall_s": time.monotonic() - t0, "values": res.values, "parameters": params,
+            "history": [{"values": v, "metrics": m} for v, m in res.history]}
+
+
+def calibration_fingerprint(camp: Campaign, n_trials: int) -> str:
+    """Hash of everything a baseline calibration depends on: the test, starts, the baseline
+    case and its resolved preset, the calibration spec and its seed targets, the trial count."""
+    base = camp.case(camp.baseline)
+    doc = {"test": camp.test.model_dump(mode="json"), "starts": camp.starts.model_dump(mode="json"),
+           "baseline": base.model_dump(mode="json"), "preset": case_preset(camp, base).model_dump(mode="json"),
+           "calibration": camp.calibration.model_dump(mode="json", exclude={"trials"}),
+           "targets": [camp.seed_value(camp.baseline, p.target.metric, **p.target.at())
+                       for p in camp.calibration.parameters], "trials": int(n_trials)}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def source_calibration(camp: Campaign, out_dir: Path, n_trials: Optional[int] = None, bar=None) -> dict:
+    """The calibration of ``calibration: {from: NAME}``: loaded from a matching ``calibration.json``
+    (this output folder, then ``out_dir/../NAME/``), else fitted on NAME's baseline.
+
+    The result's ``applied`` overrides are those of this campaign's cases; ``source`` tells
+    where the values come from (``loaded_from`` is None when fitted in this run).
+    """
+    src = calibration_source(camp)
+    n = int(n_trials or camp.calibration.trials or src.calibration.trials)
+    fp = calibration_fingerprint(src, n)
+    doc, loaded = None, None
+    for path in (out_dir / "calibration.json", out_dir.parent / src.name / "calibration.json"):
+        try:
+            got = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if got.get("fingerprint") == fp and got.get("campaign") == src.name:
+            doc, loaded = got, path
+            break
+    if doc is None:
+        doc = calibrate(src, n, bar)
+    doc = dict(doc)
+    doc["reused"] = loaded is not None
+    doc["source"] = {"campaign": src.name, "title": src.title, "baseline": src.baseline,
+                     "baseline_label": src.case(src.baseline).label,
+                     "loaded_from": str(loaded) if loaded is not None else None}
+    for p in doc["parameters"]:
+        spec = next(q for q in src.calibration.parameters if q.name == p["name"])
+        p["applied"] = {c.name: resolve(case_preset(camp, c), spec.paths, spec.mode, p["value"]) for c in camp.cases}
+    return doc
+

@@ -39,6 +39,10 @@ from typing import Optional
 
 import numpy as np
 
+from experiment_runner.campaigns.trials import simulate_trials
+from experiment_runner.experiment import trial_metrics
+from stage_sim.config import with_overrides
+
 __all__ = ["turning_points", "frictionless_twin", "premotion_range", "analyse", "summary"]
 
 FRICTION_LIMITED_RATIO = 1.5     # settling / twin settling at least this ...
@@ -89,7 +93,6 @@ def turning_points(x, hysteresis: float) -> list[int]:
 def frictionless_twin(preset):
     """The preset's equivalent frictionless stage: bearings bolted rigidly, no friction (bearings
     and table), no isolator lock, SAI manager or dither; controller, masses, modes and drive kept."""
-    from stage_sim.config import with_overrides
     ov = {"stage.table_friction": None, "stage.sai": None, "stage.bearing_sensor": None,
           "sai_manager": None, "dither": None}
     for i in range(len(preset.stage.bearings)):
@@ -101,14 +104,14 @@ def frictionless_twin(preset):
 
 def premotion_range(preset) -> float:
     """Displacement after a reversal at which the bearings' friction is (nearly) saturated [m]:
-    the largest block's ``2 alpha_i F_C / k_i`` for GMS (Masing: twice the virgin range), ``2 x 3
-    F_C / k_sigma`` for Dahl (95% of the swing); nan for other models."""
+    the largest block's ``2 alpha_i F_C / k_i`` for GMS and its rate-and-state variant (Masing: twice
+    the virgin range), ``2 x 3 F_C / k_sigma`` for Dahl (95% of the swing); nan for other models."""
     out = []
     for b in preset.stage.bearings:
         f = b.friction
         if f is None:
             continue
-        if f.model == "gms":
+        if f.model in ("gms", "gms_rate_state"):
             out.append(max(2 * a * f.f_c / k for a, k in zip(f.alpha, f.k)))
         elif f.model == "dahl":
             out.append(2 * 3 * f.f_c / f.k_sigma)
@@ -116,7 +119,6 @@ def premotion_range(preset) -> float:
 
 
 def _settling(camp, trial, res, row, rate) -> Optional[float]:
-    from experiment_runner.experiment import trial_metrics
     m = trial_metrics(trial, res.y[row], res.x_ref[row], rate)
     v = m.get("settling_time_s")
     return None if v is None or not math.isfinite(v) else float(v)
@@ -129,7 +131,6 @@ def analyse(camp, case, cond, preset, trial: int, correction=None, hysteresis: f
     ``t`` [s] after the reference stopped, ``e`` and ``e_twin`` (true table position minus
     target, signed along the move) [m].
     """
-    from experiment_runner.stream import simulate_trials
     rate = preset.controller.rate
     ref, (tr,), res = simulate_trials(camp, case, cond, preset, [trial], correction)
     twin = frictionless_twin(preset)
@@ -230,12 +231,9 @@ def report_lines(cr, images: str = "") -> list[str]:
     return L
 
 
-def plot(cr, out) -> list:
+def plot(cr, plt, out) -> list:
     """``out/mechanism_<condition>.png`` for every condition: |error| (log) through the settling portion
     of each case's representative trial, its reversal instants (▼) and the friction-free twin (dashed)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     files = []
     cols = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for cond in cr.conditions:
@@ -275,59 +273,3 @@ def plot(cr, out) -> list:
         plt.close(fig)
         files.append(path)
     return files
-
-
-def frf_lines(frf_cr, settling_cr=None, images: str = "") -> list[str]:
-    """Markdown: closed-loop bandwidth and margins vs force amplitude of a frequency-response
-    campaign run (Fig. 4.6), next to the settling times of the point-to-point run on the same
-    stage, and why the isolated stage's margins differ (rigid-body loop gain at the crossover)."""
-    from stage_control.tuning import margins
-    camp = frf_cr.campaign
-    cases = camp.cases
-    L = [f"### Closed-loop bandwidth and margins vs force amplitude ({camp.name}, Fig. 4.6)", "",
-         "The same PID on the plant FRF measured at each force amplitude (stepped sine, "
-         f"[{camp.name}/report.md]({camp.name}/report.md)): the stage without isolation loses its bandwidth in "
-         "the pre-motion regime (small amplitudes), which is where the point-to-point trials above settle.", "",
-         "| amplitude | " + " | ".join(f"{c.label}: BW / GM / PM" for c in cases) + " |",
-         "|---|" + "---|" * len(cases)]
-
-    def cell(case, cond):
-        st = frf_cr.runs[(case.name, cond.key)].stats
-        v = [st[m].mean for m in ("bandwidth_hz", "gain_margin_db", "phase_margin_deg")]
-        return " / ".join("–" if not math.isfinite(x) else f"{x:.3g}{u}" for x, u in zip(v, (" Hz", " dB", "°")))
-    for cond in frf_cr.conditions:
-        L.append(f"| {cond.label} | " + " | ".join(cell(c, cond) for c in cases) + " |")
-    if settling_cr is not None:
-        L += ["", "Settling times of the same cases (above): " + "; ".join(
-            f"{settling_cr.campaign.case(c.name).label} {cond.label} "
-            f"{settling_cr.stat(c.name, cond.key, 'settling_time_s').mean * 1e3:.1f} ms"
-            for c in settling_cr.campaign.cases for cond in settling_cr.conditions
-            if (c.name, cond.key) in settling_cr.runs) + "."]
-    # why the isolated stage's margins are lower: above its FI mode the PID sees the table alone
-    presets = {c.name: frf_cr.runs[(c.name, frf_cr.conditions[-1].key)].preset for c in cases}
-    p0 = next(iter(presets.values()))
-    pid = p0.controller.pid.model_dump()
-    m_all = p0.stage.table.mass * (1 + sum(md.mass_ratio for md in p0.stage.modes)) + sum(
-        b.mass for b in p0.stage.bearings)
-    jointed = [p for p in presets.values() if any(b.joint is not None for b in p.stage.bearings)]
-    if jointed:
-        p = jointed[0]
-        m_table = p.stage.table.mass * (1 + sum(md.mass_ratio for md in p.stage.modes)) + sum(
-            b.mass for b in p.stage.bearings if b.joint is None)
-        a, b = margins(m_all, pid), margins(m_table, pid)
-        L += ["", f"Why the isolated stage's margins are lower: above its FI mode the bearings are decoupled and "
-              f"the PID (designed on the {m_all:.3g} kg rigid stage) drives the {m_table:.3g} kg table alone, "
-              f"{20 * math.log10(m_all / m_table):.1f} dB more loop gain at every frequency above the mode. "
-              f"On the rigid bodies alone that moves the crossover from {a['crossover_hz']:.0f} to "
-              f"{b['crossover_hz']:.0f} Hz and lowers the gain margin from {a['gain_margin_db']:.1f} to "
-              f"{b['gain_margin_db']:.1f} dB (phase margin {a['phase_margin_deg']:.0f}° vs "
-              f"{b['phase_margin_deg']:.0f}°): the whole gain-margin difference of the FRFs; the stiff stage's "
-              "phase margin is raised instead by the friction's damping at its crossover."]
-        if camp.name == "frf_fi":       # the Ch. 4 stage: the seed's Table C.1 measures the same mass ratio
-            L[-1] += (" The seed's own Table C.1 has the same ratio (Z = 13.8 vs 7.9 N/(A kg), 4.8 dB), so its "
-                      "'similar or slightly better' FI margins (Sec. 4.3) require No FI margins lowered by the "
-                      "friction resonance's interaction with its ~400 Hz mode, which the model's appended-mass "
-                      "mode (a mass on the table, independent of friction) does not have.")
-    if images:
-        L += [""] + [f"![{camp.name} {n}]({images}/{n}.png)" for n in ("bandwidth_margins",)]
-    return L + [""]

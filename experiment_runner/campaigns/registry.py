@@ -1,0 +1,72 @@
+"""The one table of campaign metrics: name -> label, display unit, scale from SI, formatter.
+
+Every metric a campaign measures (per trial: :func:`experiment_runner.experiment.trial_metrics`;
+per frequency response: :mod:`experiment_runner.campaigns.frf`) is listed here once; the
+report, ``results.csv`` / ``results.json`` and the findings name and format metrics through it.
+
+Examples
+--------
+>>> fmt_metric(0.0441, "settling_time_s"), fmt_metric(1.6e-9, "rms_in_position_m"), fmt_metric(None, "x")
+('44.1 ms', '1.6 nm', '–')
+>>> METRICS["phase_margin_deg"].compact(45.25)
+'45.2°'
+"""
+from __future__ import annotations
+
+import math
+from typing import Literal, NamedTuple, Optional
+
+__all__ = ["MetricInfo", "METRICS", "Metric", "TRIAL_METRICS", "fmt_metric", "fmt_change"]
+
+
+class MetricInfo(NamedTuple):
+    """How a metric is named and shown."""
+    label: str                       # e.g. "settling time"
+    unit: str                        # display unit, e.g. "ms"
+    scale: float                     # display value = SI value x scale
+    short: Optional[str] = None      # compact format of a table cell ("{:.1f}°"); default: fmt_metric
+
+    def compact(self, v) -> str:
+        """A table cell: ``short`` (or :func:`fmt_metric`'s ``3 significant digits unit``), ``–`` if undefined."""
+        if v is None or not math.isfinite(v):
+            return "–"
+        return self.short.format(v * self.scale) if self.short else f"{v * self.scale:.3g} {self.unit}"
+
+
+METRICS: dict[str, MetricInfo] = {
+    # per trial (time domain)
+    "settling_time_s": MetricInfo("settling time", "ms", 1e3),
+    "rms_in_position_m": MetricInfo("RMS in-position error", "nm", 1e9),
+    "peak_tracking_error_m": MetricInfo("peak tracking error", "µm", 1e6),
+    "rms_tracking_error_m": MetricInfo("RMS tracking error", "µm", 1e6),
+    # per case and amplitude (frequency response)
+    "bandwidth_hz": MetricInfo("-3 dB closed-loop bandwidth", "Hz", 1.0, "{:.3g} Hz"),
+    "gain_margin_db": MetricInfo("gain margin", "dB", 1.0, "{:.1f} dB"),
+    "phase_margin_deg": MetricInfo("phase margin", "°", 1.0, "{:.1f}°"),
+}
+
+Metric = Literal["settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m",
+                 "bandwidth_hz", "gain_margin_db", "phase_margin_deg"]
+"""A metric name (the schema's type; the keys of :data:`METRICS`)."""
+
+TRIAL_METRICS = ("settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m")
+"""The metrics of one simulated trial (a failed trial has them all None)."""
+
+
+def fmt_metric(v, metric: str, digits: int = 3) -> str:
+    """``0.044, 'settling_time_s' -> '44 ms'``: ``digits`` significant digits in the display unit."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    info = METRICS[metric]
+    return f"{v * info.scale:.{digits}g} {info.unit}"
+
+
+def fmt_change(r) -> str:
+    """Relative change as a signed percentage.
+
+    >>> fmt_change(-0.634), fmt_change(None)
+    ('-63%', '–')
+    """
+    if r is None or (isinstance(r, float) and not math.isfinite(r)):
+        return "–"
+    return f"{r * 100:+.0f}%".replace("+-", "-")

@@ -1,0 +1,145 @@
+"""The trials of a campaign: the one place they are built, simulated and judged.
+
+Trial ``i`` of a case at a condition starts at ``random_starts(1, travel, margin, starts.seed + i)``
+(inside the travel that the whole reference keeps within) with noise seed
+``simulation.seed + i``: every trial is reproducible on its own and the same in every case
+(common random numbers make the case comparisons paired), in every chunk, process or
+machine that runs it. The one-trial experiment file written for the ROS graph
+(:func:`graph_experiment`) reproduces exactly that trial. :func:`learn_step_ii` learns a
+case's SAI Step II correction with trials at rest.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from experiment_runner import profiles
+from experiment_runner.batch import Models, simulate
+from experiment_runner.campaigns.registry import TRIAL_METRICS
+from experiment_runner.campaigns.spec import Campaign, Case, Condition, case_overrides, case_preset
+from experiment_runner.experiment import Trial, trial_metrics
+from stage_control.sai import ilc_update
+from stage_sim.config import Preset
+from stage_sim.plant import STATUS_TEXT
+
+__all__ = ["reference", "start_position", "make_trials", "simulate_trials", "metric_record", "plain",
+           "graph_experiment", "learn_step_ii"]
+
+
+def reference(camp: Campaign, cond: Condition, rate: float) -> profiles.Reference:
+    """The shared (start-at-0) reference of a condition at the control rate."""
+    return camp.test.reference(cond, rate)
+
+
+def start_position(camp: Campaign, preset: Preset, ref: profiles.Reference, i: int) -> float:
+    """Start of trial ``i``: as :func:`experiment_runner.experiment.build_trials` for a one-trial
+    experiment with ``starts.seed = campaign starts.seed + i``."""
+    travel = preset.stage.travel
+    lo = travel.min - min(0.0, float(ref.x.min()))
+    hi = travel.max - max(0.0, float(ref.x.max()))
+    return float(profiles.random_starts(1, (lo, hi), camp.starts.margin, camp.starts.seed + i)[0])
+
+
+def make_trials(camp: Campaign, case: Case, preset: Preset, ref: profiles.Reference, indices) -> list[Trial]:
+    """Trials ``indices`` of ``case`` on ``ref`` (start position and noise seed of each)."""
+    base = preset.simulation.seed
+    out = []
+    for i in indices:
+        x0 = start_position(camp, preset, ref, int(i))
+        out.append(Trial(case=case.name, index=int(i), x_ref=ref.x + x0, v_ref=np.asarray(ref.v),
+                         seed=base + int(i), window=camp.test.window, segments=tuple(ref.segments)))
+    return out
+
+
+def simulate_trials(camp: Campaign, case: Case, cond: Condition, preset: Preset, indices, correction=None,
+                    models=None):
+    """Trials ``indices`` of ``case`` at ``cond`` on the batch engine.
+
+    Returns
+    -------
+    ref : profiles.Reference
+        The shared (start-at-0) reference.
+    trials : list of experiment.Trial
+        As :func:`make_trials` gives them (index, start, seed).
+    res : batch.BatchResult
+        Row ``j`` is trial ``indices[j]``; not checked (failed trials have a status).
+    """
+    ref = reference(camp, cond, preset.controller.rate)
+    trials = make_trials(camp, case, preset, ref, indices)
+    x0 = np.array([tr.x_ref[0] - ref.x[0] for tr in trials])
+    res = simulate(preset, ref.x, ref.v, n_trials=len(trials), x0=x0, seeds=[tr.seed for tr in trials],
+                   correction=correction, models=models, check=False)
+    return ref, trials, res
+
+
+def metric_record(trial: Trial, res, j: int, rate: float) -> dict:
+    """Metrics of trial ``trial`` (row ``j`` of ``res``): :func:`experiment_runner.experiment.trial_metrics`,
+    or every metric None and ``failed`` (the plant's status) for a trial that failed."""
+    if res.status[j] != 0:
+        return {"trial": trial.index, "case": trial.case, **{k: None for k in TRIAL_METRICS},
+                "failed": STATUS_TEXT[int(res.status[j])]}
+    return trial_metrics(trial, res.y[j], res.x_ref[j], rate)
+
+
+def plain(d: dict) -> dict:
+    """numpy scalars -> Python numbers (JSON)."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, np.integer):
+            v = int(v)
+        elif isinstance(v, np.floating):
+            v = float(v)
+        out[k] = v
+    return out
+
+
+def graph_experiment(camp: Campaign, case: Case, cond: Condition, trial: int, cal_values=None) -> dict:
+    """A one-trial experiment file (:mod:`experiment_runner.experiment`) reproducing trial
+    ``trial`` of ``case`` at ``cond`` through the ROS graph."""
+    preset = case_preset(camp, case, cal_values, cond)
+    ov = case_overrides(camp, case, cal_values, cond)
+    ov["simulation.seed"] = int(preset.simulation.seed + trial)
+    t = camp.test
+    return {"name": f"{camp.name}_{case.name}_{cond.key}_t{trial}",
+            "description": f"{camp.title}: {case.label}, {cond.label}, trial {trial} (written by nanostage campaign)",
+            "preset": case.preset, "overrides": ov, "profile": t.graph_profile(cond), "trials": 1,
+            "starts": {"margin": camp.starts.margin, "seed": camp.starts.seed + trial}, "window": t.window}
+
+
+def learn_step_ii(camp: Campaign, case: Case, preset: Preset, progress=None) -> dict:
+    """Step II of Sec. 5.3 at rest: ILC (Eq. 5.2) of the reference correction after a switch."""
+    spec = case.step_ii
+    ilc = preset.sai_manager.ilc
+    rate = preset.controller.rate
+    q = int(round(ilc.length * rate))
+    n_pre = int(round(spec.settle_before * rate))
+    n_comp = int(round(spec.compliant_time * rate))
+    n_post = q + int(round(0.01 * rate))
+    x = np.zeros(n_pre + n_comp + n_post)
+    v = np.zeros_like(x)
+    v[n_pre:n_pre + n_comp] = 1e-12       # p2p rule: compliant while v_ref != 0 (no feedforward uses it)
+    travel = preset.stage.travel
+    x0 = profiles.random_starts(spec.trials, (travel.min, travel.max), camp.starts.margin,
+                                camp.starts.seed + 100_000)
+    seeds = preset.simulation.seed + 100_000 + np.arange(spec.trials)
+    models = Models.from_preset(preset)
+    iterations = ilc.iterations if spec.iterations is None else spec.iterations
+    u = np.zeros(q)
+    hist, peak = [], []
+    for it in range(iterations + 1):
+        r = simulate(preset, x, v, n_trials=spec.trials, x0=x0, seeds=seeds, correction=u, models=models)
+        errs = []
+        for b in range(spec.trials):
+            edges = np.flatnonzero((r.mode[b, :-1] == 1.0) & (r.mode[b, 1:] == 0.0))
+            k0 = int(edges[0]) + 1
+            e = (x0[b] + x - r.y[b])[k0:k0 + q]
+            errs.append(np.pad(e, (0, q - e.size)))
+        e_mean = np.mean(errs, axis=0)
+        hist.append(float(np.sqrt(np.mean(np.square(errs)))))
+        peak.append(float(np.max(np.abs(errs))))
+        if progress:
+            progress()
+        if it < iterations:
+            u = ilc_update(u, e_mean, ilc, rate)
+    return {"correction": u, "rms_history_m": hist, "peak_history_m": peak, "iterations": iterations,
+            "length_s": ilc.length, "trials": spec.trials, "compliant_time_s": spec.compliant_time}
+

@@ -1,0 +1,264 @@
+"""Open-loop records: the judge's predictor and the simulated recordings without a reference.
+
+A record without ``/stage/reference`` (a force/torque-mode identification run, an open-loop
+excitation) has no loop to replay: the recorded command drove the plant. What the user gets
+from a model is then its **open-loop prediction**: the recorded command (and the known
+external force, ``/stage/external_force``) through the model's plant over windows, each
+window started from the model's state *re-initialised from the measurement* (the force
+observer of :mod:`.predict`, which makes the model follow the measured position, gives the
+state at the window start, friction and joint states included); the window's initial position
+and velocity are then re-estimated from the measured window (least squares of an offset and a
+velocity offset, :func:`_initial_offset`: the smoothed measurement's velocity at the start is
+biased where the command steps). Over a window the model runs on its own, so a missing force
+shows as a curvature of the predicted position away from the measured one.
+
+:class:`OpenLoopJudge` is :class:`.judge.ReplayJudge` with this predictor: the same
+statistics (run-to-run floor from ``K`` simulated recordings with fixed noise seeds,
+the simulation-calibrated adoption test, the score test on the data's own residual, the
+consistency z), one channel (position [m]; the command is an input, its "error" is zero by
+construction). The floor's ``K`` simulated recordings are made near the data
+(:func:`sim_batch`) and predicted exactly as the data is (windows re-initialised from their own
+measurement), so the floor holds the model's noise (drive, bearing, quantization) and the
+uncertainty of the re-initialised state.
+
+:func:`sim_batch` makes whole simulated recordings of an open-loop record (for the force
+observer's noise floor and the drive-noise components): the model driven by the recorded
+command, the known force and the force the model is missing (its observer's tracking force on
+the data, low-passed, passed on as a known force: :func:`missing_force`), with noise: a recording near the data whose observer
+residual is the model's noise alone.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from . import engine as E
+from .data import DiagData
+from .judge import FLOOR_SEEDS, Floor, Replay, ReplayJudge
+from .model import ModelSpec
+from stage_sim.plant import PlantInputs, PlantState
+
+__all__ = ["WINDOW_S", "OpenLoopJudge", "sim_batch", "window_replay", "noisy_model", "quiet_model"]
+
+WINDOW_S = 0.05
+"""Length of the judge's open-loop windows [s] (at least 20 samples)."""
+
+
+def quiet_model(spec: ModelSpec):
+    """The full plant of ``spec`` without its random parts, the sensor's quantization kept
+    (deterministic): the predictor's model."""
+    pm = spec.compiled().pm_full
+    return pm._replace(noise_std=0.0, fr_noise=np.zeros_like(pm.fr_noise), q_bearing=0.0)
+
+
+def noisy_model(spec: ModelSpec):
+    """The full plant of ``spec`` (noise and quantization): the simulated recordings' model."""
+    return spec.compiled().pm_full
+
+
+class OpenLoopJudge(ReplayJudge):
+    """:class:`.judge.ReplayJudge` whose predictor is the open-loop windows (module docstring).
+
+    Parameters
+    ----------
+    data : DiagData
+        The open-loop record; its held-out samples (all usable ones if none) inside complete
+        windows are judged.
+    obs : predict.Observer
+        The force observer on ``data`` (its smoothing and masks): it re-initialises the windows.
+    window_s : float
+        Window length [s] (at least 20 samples); windows tile each trial from its start.
+    seeds, alpha, z_block, block_s
+        As :class:`.judge.ReplayJudge`.
+    """
+
+    def __init__(self, data: DiagData, obs, window_s: float = WINDOW_S, seeds=FLOOR_SEEDS, alpha: float = 1e-3,
+                 z_block: float = 2.0, block_s: float = 0.02):
+        self.L = max(20, int(round(window_s * data.rate)))
+        held = data.held if data.held.any() else (data.fit | data.held)
+        k = np.arange(data.shape[0])[:, None]
+        covered = k < (data.lengths[None, :] // self.L) * self.L
+        super().__init__(dataclasses.replace(data, held=held & covered), seeds=seeds, alpha=alpha,
+                         z_block=z_block, block_s=block_s)
+        self.obs = obs
+        self.fe = np.ascontiguousarray(data.known_force()[:, self.cols])
+        self.inputs = tuple(np.ascontiguousarray(a[:, self.cols]) for a in data.plant_inputs())
+        # the windows holding a judged sample: per window start s, the judged columns (indices into cols)
+        n_s = data.shape[0] // self.L
+        self.windows = [(s, np.flatnonzero(self.mask[s * self.L:(s + 1) * self.L].any(axis=0)))
+                        for s in range(n_s)]
+        self.windows = [(s, j) for s, j in self.windows if len(j)]
+        # initial position and velocity offsets of a window: least squares of (1, t) over the window
+        tt = np.arange(self.L) / data.rate
+        self._basis = np.linalg.pinv(np.stack([np.ones(self.L), tt], axis=1)), np.stack([np.ones(self.L), tt], axis=1)
+
+    # ------------------------------------------------------------------ predictor
+    def _observed(self, spec: ModelSpec):
+        """Observer run of ``spec`` on the judged trials: (snapshots every window start, tracking
+        force (T, B)) (cached on the spec)."""
+        key = ("open_loop_obs", self.token)
+        hit = spec._compiled.get(key)
+        if hit is None:
+            res = self.obs.run(spec, cols=self.cols, snap_every=self.L)
+            hit = spec._compiled[key] = (res.snaps[1:], res.r)
+        return hit
+
+    def _windows(self, pm, snaps, y, u, fe, inputs, seeds, cols):
+        """Measured positions over every judged window (columns ``cols`` of the judged trials,
+        repeated for each seed): the command ``u``, known force ``fe`` and plant inputs (T, C)
+        from the states ``snaps``; other samples keep ``y`` (T, C). Returns (y, bad windows)."""
+        sz, sf, sps, sdb = snaps
+        y = y.copy()
+        bad = 0
+        L, n = self.L, pm.n
+        for s, j in self.windows:
+            jj = np.concatenate([j + i * len(self.cols) for i in range(len(seeds))]) if len(seeds) > 1 else j
+            k0 = s * L
+            W = len(jj)
+            st = [np.ascontiguousarray(a[s][..., jj]) for a in (sz, sf, sps, sdb)]
+            st += [np.zeros((n, W)), np.zeros((2 * n, W)), np.zeros(W)]
+            u_w, fe_w, *in_w = (np.ascontiguousarray(a[k0:k0 + L, jj]) for a in (u, fe) + tuple(inputs))
+            sd = np.concatenate([sk + cols[j] for sk in seeds]).astype(np.int64)
+            out_x, out_y = np.empty((L, W)), np.empty((L, W))
+            bad += E.open_loop(pm, PlantInputs(u_w, *in_w, fe_w), k0, PlantState(*st), out_x, sd, out_y)
+            y[k0:k0 + L, jj] = out_y + _initial_offset(y[k0:k0 + L, jj] - out_y, self._basis)
+        self.sims += 1
+        return y, bad
+
+    def replay(self, spec: ModelSpec) -> Replay:
+        """Noise-free open-loop windows of ``spec`` (cached on the spec); ``u`` = the recorded command."""
+        key = ("judge_replay", self.token)
+        hit = spec._compiled.get(key)
+        if hit is not None:
+            return hit
+        snaps, _ = self._observed(spec)
+        y, bad = self._windows(quiet_model(spec), snaps, self.y, self.u, self.fe, self.inputs, [0], self.cols)
+        ok, why = True, ""
+        if bad or not np.all(np.isfinite(y[self.mask])):
+            ok, why = False, f"open-loop prediction diverged or left the travel in {bad} window(s)"
+        r = Replay(u=self.u, y=y, ok=ok, why=why)
+        spec._compiled[key] = r
+        return r
+
+    def floor(self, spec: ModelSpec) -> Floor:
+        """Run-to-run floor of ``spec``: ``K`` recordings simulated from it near the data (the
+        recorded command, known force and the model's observer force, with noise; :func:`sim_batch`),
+        each predicted as the data is -- windows re-initialised from ITS measurement -- so the floor
+        holds the model's noise and the uncertainty of the re-initialised state. The simulated
+        recording ``k`` is stored as the data's prediction plus its own prediction error, so the
+        judge's statistics (``S_k - R``) are those of the closed-loop judge."""
+        from .predict import Observer
+        rp = self.replay(spec)
+        _, r = self._observed(spec)
+        r = missing_force(r, self.obs.data.lengths[self.cols], self.rate, self.obs.f_o)
+        K, B = self.K, len(self.cols)
+        tile = lambda a: np.ascontiguousarray(np.tile(a, (1, K)))  # noqa: E731
+        pm = noisy_model(spec)
+        fe = tile(self.fe + r)
+        inputs = [tile(a) for a in self.inputs]
+        st = list(E.new_state(pm, tile(self.obs.ys[:1, self.cols])[0], sai_mode=float(self.inputs[2][0, 0])))
+        T = self.u.shape[0]
+        out_x, ys = np.empty((T, B * K)), np.empty((T, B * K))
+        sd = np.concatenate([s + self.cols for s in self.seeds]).astype(np.int64)
+        u = tile(self.u)
+        E.open_loop(pm, PlantInputs(u, *inputs, fe), 0, PlantState(*st), out_x, sd, ys)
+        d = self.obs.data
+        lengths = np.tile(d.lengths[self.cols], K)
+        valid = tile(d.valid[:, self.cols])
+        sim = DiagData(rate=d.rate, t0=np.tile(d.t0[self.cols], K), x_ref=ys, v_ref=tile(d.v_ref[:, self.cols]), u=u,
+                       y=ys, valid=valid, fit=valid.copy(), held=valid.copy(), lengths=lengths,
+                       trial_ids=list(range(B * K)), f_ext=fe, open_loop=True, d0=inputs[0], d1=inputs[1],
+                       mode=inputs[2])
+        so = Observer(sim, bandwidth=self.obs.f_o, smooth_hz=d.smooth_hz)
+        res = so.run(spec, snap_every=self.L)
+        pred, bad = self._windows(quiet_model(spec), res.snaps[1:], ys, u, fe, inputs, self.seeds, self.cols)
+        eps = (ys - pred).reshape(T, K, B).transpose(1, 0, 2)
+        y = rp.y[None] + eps
+        de = eps[:, self.mask]
+        sy = float(np.sqrt(np.mean(de ** 2))) if de.size else 1.0
+        q = spec.preset.stage.encoder.resolution
+        tiny_u = 1e-4 * (float(np.sqrt(np.mean(self.u[self.mask] ** 2))) if self.n else 1.0) or 1e-12
+        return Floor(spec=spec, replay=rp, u=np.broadcast_to(self.u, y.shape), y=y, sigma_u=tiny_u,
+                     sigma_y=max(sy, q / math.sqrt(12.0), 1e-15))
+
+    def rms(self, rp: Replay) -> tuple[float, float]:
+        """RMS errors on the judged samples: command (0: it is the input), position [m]."""
+        if not self.n:
+            return float("nan"), float("nan")
+        return 0.0, float(np.sqrt(np.mean((self.y - rp.y)[self.mask] ** 2)))
+
+    def floor_ratio(self, rp: Replay, fl: Floor) -> float:
+        """Data's prediction error over the floor's, RMS ratio (1 = at the run-to-run floor; one channel)."""
+        n = max(self.n, 1)
+        Dd = self.data_blocks(rp, fl).sum() / n
+        Dk = self.sim_blocks(rp, fl).sum(axis=1) / n
+        return float(math.sqrt(Dd / max(float(np.mean(Dk)), 1.0)))
+
+
+MISSING_LP = 0.2
+"""Cutoff of the low-pass of the observer force passed to the simulated recordings, in observer
+bandwidths."""
+
+
+def missing_force(r: np.ndarray, lengths, rate: float, f_o: float) -> np.ndarray:
+    """The force a model misses on the data, for its simulated recordings: the observer's tracking
+    force ``r`` (T, B) low-passed (zero phase) at ``MISSING_LP * f_o``. Near the smoothing cutoff the
+    tracking force also holds the smoothing's own misfit of fast command changes; a simulated recording
+    must show that misfit itself (as the data does), not have it added: below the cutoff it keeps the
+    simulated recording near the data (the model's missing physics), above it the model runs free."""
+    from .data import smooth
+    return smooth(r, rate, MISSING_LP * f_o, lengths)[0]
+
+
+def _initial_offset(e: np.ndarray, basis) -> np.ndarray:
+    """(L, W): the part of the window errors ``e`` (measured - predicted) that an initial position
+    and velocity offset explain (least squares of ``a + b t`` per column): the window's start state
+    re-estimated from the measurement over the window. The observer's state at the window start
+    follows the *smoothed* measurement, whose velocity is biased where the command steps; left in,
+    that bias is a model-dependent error a wrong delay or mass could cancel."""
+    pinv, X = basis
+    return X @ (pinv @ e)
+
+
+def window_replay(spec: ModelSpec, data: DiagData) -> dict:
+    """The open-loop windows of ``spec`` over every usable sample of ``data`` as a replay dict
+    (:func:`.predict.replay`'s keys; ``u`` the recorded command, ``y``/``x`` the prediction)."""
+    from .predict import Observer
+    obs = Observer(data, bandwidth=data.rate / 25.0, smooth_hz=data.smooth_hz or None)
+    j = OpenLoopJudge(dataclasses.replace(data, held=data.valid.copy()), obs)
+    rp = j.replay(spec)
+    y = data.y.copy()
+    y[:, j.cols] = np.where(j.mask, rp.y, np.nan)
+    d0, d1, mode = data.plant_inputs()
+    return {"y": y, "u": data.u.copy(), "x": y, "d0": d0, "d1": d1, "mode": mode}
+
+
+def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
+    """Recordings simulated from ``spec`` on an open-loop record, one per seed (one kernel call):
+    the recorded command, the known force plus ``spec``'s observer force on the data (as a known
+    force), the model's noise; each a :class:`DiagData` with the record's masks and split."""
+    from .predict import Observer
+    obs = Observer(data, bandwidth=data.rate / 25.0, smooth_hz=data.smooth_hz or None)
+    res = obs.run(spec)
+    pm = noisy_model(spec)
+    seeds = list(seeds)
+    T, B = data.shape
+    K = len(seeds)
+    fe = data.known_force() + missing_force(res.r, data.lengths, data.rate, obs.f_o)
+    st = list(E.new_state(pm, np.tile(obs.ys[0], K), sai_mode=float(obs.inputs[2][0, 0])))
+    tile = lambda a: np.ascontiguousarray(np.tile(a, (1, K)))  # noqa: E731
+    out_x, out_y = np.empty((T, B * K)), np.empty((T, B * K))
+    sd = np.concatenate([s + np.arange(B) for s in seeds]).astype(np.int64)
+    E.open_loop(pm, PlantInputs(tile(data.u), *(tile(a) for a in obs.inputs), tile(fe)), 0, PlantState(*st), out_x, sd,
+                out_y)
+    part = lambda a, i: np.ascontiguousarray(a[:, i * B:(i + 1) * B])  # noqa: E731
+    out = []
+    for i, s in enumerate(seeds):
+        y = part(out_y, i)
+        out.append(DiagData(rate=data.rate, t0=data.t0.copy(), x_ref=y, v_ref=data.v_ref, u=data.u, y=y,
+                            valid=data.valid.copy(), fit=data.fit.copy(), held=data.held.copy(), lengths=data.lengths,
+                            trial_ids=list(data.trial_ids), source=f"simulated open loop (seed {s})", split=data.split,
+                            d0=data.d0, d1=data.d1, mode=data.mode, f_ext=fe, open_loop=True))
+    return out

@@ -1,0 +1,323 @@
+"""Issue 12: the diagnosis on records as they come -- open-loop records with a known external
+force, rotary axes -- each on recordings written by code other than the project's simulator
+(scipy's ZOH discretisation of the continuous plant and ``scipy.signal.dlsim``), imported with
+``nanostage convert table``, at 1 kHz and 10 kHz.
+"""
+import json
+
+import numpy as np
+import pytest
+import yaml
+from scipy import signal
+
+from experiment_runner.diagnosis.data import load_data
+from experiment_runner.diagnosis.model import load_model
+from experiment_runner.diagnosis.openloop import OpenLoopJudge
+from experiment_runner.diagnosis.pipeline import Options, diagnose
+from experiment_runner.diagnosis.predict import Observer
+from experiment_runner.tabular import convert_table
+from stage_sim.config import ConfigError
+
+
+def _record(tmp_path, rate, T=3.0, m=2.0, c=30.0, q=1e-8, noise=0.02, shaker=3.0, seed=1, units="linear"):
+    """An open-loop record of a mass-damper ``m x'' = u + f + w - c x'`` (force/torque mode):
+    ``u`` a random staircase (5 ms steps) plus a square wave, ``f`` a known 7 Hz shaker force
+    (``--input``), ``w`` unknown white drive noise; exact ZOH by scipy (cont2discrete + dlsim),
+    measurement quantized to ``q``. Written as .npz and converted (no reference column)."""
+    rng = np.random.default_rng(seed)
+    n = int(T * rate)
+    t = np.arange(n) / rate
+    hold = int(round(0.005 * rate))
+    u = np.repeat(rng.normal(0, 4.0, n // hold + 1), hold)[:n] + 6.0 * np.sign(np.sin(2 * np.pi * 1.5 * t))
+    f = shaker * np.sin(2 * np.pi * 7.0 * t)
+    w = rng.normal(0, noise, n)
+    plant = signal.StateSpace([[0, 1], [0, -c / m]], [[0], [1 / m]], [[1, 0]], [[0]]).to_discrete(1 / rate, method="zoh")
+    _, y, _ = signal.dlsim(plant, u + f + w, x0=[0.0, 0.0])
+    y = q * np.floor(y[:, 0] / q + 0.5)
+    src = tmp_path / f"run{int(rate)}.npz"
+    np.savez(src, t=t, u=u, x=y, f=f)
+    mapping = {"time": "t", "command": "u", "measured": "x", "input": "f", "units": units}
+    return convert_table(src, mapping, tmp_path / f"run{int(rate)}.mcap", overwrite=True)
+
+
+def _nominal(m=2.0, c=0.0, q=1e-8, noise=0.02, kind="linear", travel=1.0):
+    """A nominal without a controller (a model of open-loop data)."""
+    st = {"kind": kind, "table": {"mass": m},
+          "drive": {"force_constant": 1.0, "peak_force": 200.0, "continuous_force": 200.0, "noise_current_rms": noise},
+          "encoder": {"resolution": q}, "travel": {"min": -travel, "max": travel}}
+    if c:
+        st["table_friction"] = {"model": "coulomb", "f_c": 0.0, "viscous": c}
+    return {"name": "open_loop_nominal", "stage": st}
+
+
+def _judge(rec, nominal, drop_input=False):
+    d = load_data(rec)
+    assert d.open_loop and d.f_ext is not None
+    if drop_input:
+        d.f_ext = None
+    spec = load_model(nominal).with_changes({"controller.rate": d.rate})
+    obs = Observer(d)
+    j = OpenLoopJudge(d, obs)
+    fl = j.floor(spec)
+    return j, spec, fl, j.floor_ratio(fl.replay, fl)
+
+
+def test_open_loop_judge_truth_at_its_floor_nominal_far_known_force_needed(tmp_path):
+    """The open-loop judge on an open-loop record (1 kHz): the truth model's held-out window
+    prediction is at its run-to-run floor (error/floor RMS ratio 1 +- 0.3, consistency z below
+    the critical value), the nominal lacking the 30 N·s/m damper is far above it (> 10x), and
+    the truth is adopted over the nominal by the judge's test; without the known shaker force
+    the truth model itself is far from its floor (the input is used)."""
+    rec = _record(tmp_path, 1000.0, T=2.0)
+    j, spec_t, fl_t, ratio_t = _judge(rec, _nominal(c=30.0))
+    assert 0.7 < ratio_t < 1.3
+    assert j.consistency(fl_t.replay, fl_t) < j.t_q
+    _, spec_n, fl_n, ratio_n = _judge(rec, _nominal(c=0.0))
+    assert ratio_n > 10
+    cmp = j.compare(fl_n, j.replay(spec_t))
+    assert cmp.accepted, cmp.why
+    _, _, _, ratio_blind = _judge(rec, _nominal(c=30.0), drop_input=True)
+    assert ratio_blind > 5
+
+
+def test_nominal_without_controller_refused_for_a_closed_loop_record(tmp_path):
+    """A nominal that states no controller models open-loop data only: on a record with a
+    reference the diagnosis says so (ConfigError naming the field), before any work."""
+    from experiment_runner.diagnosis.synth import synth
+    rec = tmp_path / "cl.mcap"
+    synth("fi_stage_nofi", "fi_p2p_5um", rec, trials=1)
+    nom = _nominal(m=load_model("fi_stage_nofi").preset.stage.table.mass)
+    with pytest.raises(ConfigError, match="controller"):
+        diagnose(rec, nom, options=Options(plots=False))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate", [1000.0, 10000.0])
+def test_open_loop_record_diagnosed(tmp_path, rate):
+    """End to end on the open-loop record (no reference, known shaker force), nominal without a
+    controller and without the damper: exactly the viscous term is found, within 3 % of the
+    30 N·s/m the scipy integrator used, and the improved model's held-out prediction is at its
+    run-to-run floor (ratio < 1.3); the report says it judged open-loop windows."""
+    rec = _record(tmp_path, rate, T=3.0 if rate < 5000 else 1.5)
+    rep = diagnose(rec, _nominal(), out=tmp_path / "out", options=Options(plots=False))
+    assert [f["effect"] for f in rep["found"]] == ["viscous"]
+    c = rep["found"][0]["params"][0]["value"]
+    assert abs(c / 30.0 - 1) < 0.03
+    assert rep["replay"]["floor_ratio"]["improved"] < 1.3 < 10 < rep["replay"]["floor_ratio"]["nominal"]
+    assert rep["replay"]["reference"] == "none (open-loop record)"
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "Held-out open-loop prediction" in md
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate", [1000.0, 10000.0])
+def test_rotary_axis_diagnosed_in_rotary_units(tmp_path, rate, capsys):
+    """A rotary axis (inertia 0.05 kg·m², torque mode, angle in rad, a 0.4 N·m·s/rad damper the
+    nominal lacks), converted with --units rotary: the diagnosis finds the viscous term within
+    3 % and reports every unit as rotary -- the parameter [N·m·s/rad], report.json's units,
+    report.md's tables and stdout ([rad], N·m)."""
+    from experiment_runner.cli import main
+    rec = _record(tmp_path, rate, T=3.0 if rate < 5000 else 1.5, m=0.05, c=0.4, q=1e-7, noise=0.002, shaker=0.1,
+                  units="rotary")
+    nom = tmp_path / "rotary_nominal.yaml"
+    nom.write_text(yaml.safe_dump(_nominal(m=0.05, q=1e-7, noise=0.002, kind="rotary", travel=1e3)))
+    out = tmp_path / "out"
+    assert main(["diagnose", str(rec), str(nom), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["units"]["position"] == "rad" and rep["units"]["force"] == "N·m" and rep["units"]["mass"] == "kg·m²"
+    assert [f["effect"] for f in rep["found"]] == ["viscous"]
+    p = rep["found"][0]["params"][0]
+    assert p["unit"] == "N·m·s/rad" and abs(p["value"] / 0.4 - 1) < 0.03
+    md = (out / "report.md").read_text()
+    assert "position [rad]" in md and "N·m·s/rad" in md and "position [m]" not in md
+    assert " rad " in text and "N·m·s/rad" in text and " m " not in text.split("report:")[0]
+
+
+def test_axis_mismatch_refused(tmp_path):
+    """A rotary record diagnosed against a linear nominal: one message naming stage.kind."""
+    rec = _record(tmp_path, 1000.0, T=0.5, units="rotary")
+    with pytest.raises(ConfigError, match="stage.kind"):
+        diagnose(rec, _nominal(), options=Options(plots=False))
+
+
+# --------------------------------------------------------------------------- fractional delay
+def _delayed(u, rate, delay, m, c, over=50):
+    """Mass-damper response to the command ``u`` applied ``delay`` control periods late (exact
+    delayed ZOH), by scipy on a grid ``over`` times finer (``delay * over`` whole fine steps)."""
+    shift = int(round(delay * over))
+    assert abs(shift - delay * over) < 1e-9
+    uf = np.concatenate([np.zeros(shift), np.repeat(u, over)])[:len(u) * over]
+    plant = signal.StateSpace([[0, 1], [0, -c / m]], [[0], [1 / m]], [[1, 0]], [[0]]).to_discrete(
+        1 / (rate * over), method="zoh")
+    _, y, _ = signal.dlsim(plant, uf, x0=[0.0, 0.0])
+    return y[::over, 0]
+
+
+@pytest.mark.parametrize("rate", [1000.0, 10000.0])
+@pytest.mark.parametrize("delay", [0.3, 2.74])
+def test_plant_fractional_delay_is_the_exact_delayed_zoh(rate, delay):
+    """stage.drive.delay_samples + delay_fraction: the plant's response of a mass-damper to a
+    random command equals scipy's exact delayed zero-order hold to 1e-9 relative (the fraction's
+    linear part is exact, not an average over the period)."""
+    from stage_sim.config import preset_from_dict
+    from stage_sim.plant import PlantSim, build_plant
+    m, c = 2.0, 30.0
+    d = _nominal(m=m, c=c, q=0.0, noise=0.0)
+    d["stage"]["drive"].update(delay_samples=int(delay), delay_fraction=delay - int(delay))
+    d["controller"] = {"rate": rate, "pid": {"kp": 0.0}}
+    sim = PlantSim(build_plant(preset_from_dict(d).stage, rate))
+    u = np.random.default_rng(3).normal(0, 5.0, 400)
+    y = np.array([float(sim.step(uk)[0, 0]) for uk in u])       # position after each period
+    ref = _delayed(u, rate, delay, m, c)[1:]                      # dlsim: the position before each input
+    assert np.max(np.abs(y[:-1] - ref)) < 1e-9 * np.max(np.abs(ref))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate", [1000.0, 10000.0])
+def test_fractional_delay_diagnosed(tmp_path, rate):
+    """An open-loop record whose drive acts 1.4 control periods late (scipy, exact delayed ZOH on
+    a 50x finer grid): against a nominal without delay the diagnosis names the whole-sample delay
+    and the fractional delay on top, together within 0.1 sample of 1.4 (measured: 1.399 at 1 kHz, 1.351 at
+    10 kHz; a whole-sample delay alone cannot express it)."""
+    m, c = 2.0, 30.0
+    n = int((4.0 if rate < 5000 else 1.0) * rate)
+    rng = np.random.default_rng(5)
+    hold = int(round(0.002 * rate))
+    u = np.repeat(rng.normal(0, 5.0, n // hold + 1), hold)[:n] + 6.0 * np.sign(np.sin(2 * np.pi * 5.0 * np.arange(n) / rate))
+    w = rng.normal(0, 0.002, n)
+    y = _delayed(u + w, rate, 1.4, m, c)
+    q = 1e-9
+    y = q * np.floor(y / q + 0.5)
+    np.savez(tmp_path / "d.npz", t=np.arange(n) / rate, u=u, x=y)
+    rec = convert_table(tmp_path / "d.npz", {"time": "t", "command": "u", "measured": "x"}, tmp_path / "d.mcap")
+    rep = diagnose(rec, _nominal(m=m, c=c, q=q, noise=0.002), options=Options(plots=False))
+    found = {f["effect"]: f for f in rep["found"]}
+    assert set(found) == {"delay", "fractional_delay"}, list(found)
+    total = found["delay"]["params"][0]["value"] + found["fractional_delay"]["params"][0]["value"]
+    assert abs(total - 1.4) < 0.1, total
+
+
+# --------------------------------------------------------------------------- isolator in any rigid nominal
+def _isolated_record(tmp_path, rate, T, m_t=1.7, m_b=0.3, f_j=60.0, zeta=0.05, c_b=40.0, seed=7):
+    """Open-loop record of a table (m_t) whose friction is a bearing (m_b, viscous c_b to ground)
+    behind a joint of blocked... reduced-mass frequency ``f_j`` and damping ratio ``zeta``;
+    scipy's exact ZOH of the 2-DOF state space. Returns (recording, joint stiffness)."""
+    m_r = m_t * m_b / (m_t + m_b)
+    k = m_r * (2 * np.pi * f_j) ** 2
+    c = 2 * zeta * np.sqrt(k * m_r)
+    A = [[0, 0, 1, 0], [0, 0, 0, 1], [-k / m_t, k / m_t, -c / m_t, c / m_t],
+         [k / m_b, -k / m_b, c / m_b, -(c + c_b) / m_b]]
+    plant = signal.StateSpace(A, [[0], [0], [1 / m_t], [0]], [[1, 0, 0, 0]], [[0]]).to_discrete(1 / rate, method="zoh")
+    rng = np.random.default_rng(seed)
+    n = int(T * rate)
+    hold = max(1, int(round(0.002 * rate)))
+    u = np.repeat(rng.normal(0, 5.0, n // hold + 1), hold)[:n] + 6.0 * np.sign(np.sin(2 * np.pi * 5.0 * np.arange(n) / rate))
+    _, y, _ = signal.dlsim(plant, u + rng.normal(0, 0.002, n), x0=np.zeros(4))
+    q = 1e-9
+    np.savez(tmp_path / "iso.npz", t=np.arange(n) / rate, u=u, x=q * np.floor(y[:, 0] / q + 0.5))
+    return convert_table(tmp_path / "iso.npz", {"time": "t", "command": "u", "measured": "x"},
+                         tmp_path / "iso.mcap", overwrite=True), k
+
+
+def _rigid_nominals(m_t=1.7, m_b=0.3, c_b=40.0):
+    """The same rigid body written twice: a table with the bearing's friction, and a table with a
+    rigidly bolted bearing carrying that friction."""
+    fr = {"model": "coulomb", "f_c": 0.0, "viscous": c_b}
+    a = _nominal(m=m_t + m_b, c=c_b, q=1e-9, noise=0.002)
+    b = _nominal(m=m_t, q=1e-9, noise=0.002)
+    b["stage"]["bearings"] = [{"mass": m_b, "friction": fr}]
+    return a, b
+
+
+def test_isolator_hypothesis_in_any_rigid_nominal_same_candidate():
+    """fi_compliance applies to a table with friction (its friction becomes the bearing's behind the
+    joint) and to a table with bolted bearings; the same parameters give the same plant in both
+    writings (every DOF mass, joint, friction), the rigid mass kept."""
+    from experiment_runner.diagnosis.hypotheses import get_effect
+    from stage_sim.plant import build_plant
+    e = get_effect("fi_compliance")
+    a, b = (load_model(x).with_changes({"controller.rate": 1000.0}) for x in _rigid_nominals())
+    assert e.applicable(a) is None and e.applicable(b) is None
+    theta = [3.0e4, 0.05, 0.25]
+    pa, pb = (build_plant(e.apply(s, theta).preset.stage, 1000.0) for s in (a, b))
+    for name in ("phi", "gam", "fr_par", "fr_dof"):
+        assert np.allclose(getattr(pa, name), getattr(pb, name), rtol=1e-12, atol=0), name
+    sa = e.apply(a, theta).preset.stage
+    assert sa.table_friction is None and sa.bearings[0].mass == 0.25 and abs(sa.table.mass - 1.75) < 1e-12
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate", [1000.0, 10000.0])
+def test_table_with_friction_and_bolted_bearings_give_the_same_diagnosis(tmp_path, rate):
+    """A record of a table whose bearing sits behind a joint (scipy, 2-DOF), diagnosed against the
+    rigid body written as "table with friction" and as "table + bolted bearing with that friction":
+    both name the FI compliance first, with the joint stiffness and the bearing mass within 20 % of
+    the truth, and the two diagnoses agree (same effects, parameters within 1 %)."""
+    rec, k = _isolated_record(tmp_path, rate, T=3.0 if rate < 5000 else 1.0, f_j=60.0 if rate < 5000 else 300.0)
+    reps = [diagnose(rec, nom, options=Options(plots=False)) for nom in _rigid_nominals()]
+    keys = [[f["effect"] for f in r["found"]] for r in reps]
+    assert keys[0] == keys[1] and keys[0][0] == "fi_compliance", keys
+    vals = [{p["name"]: p["value"] for p in r["found"][0]["params"]} for r in reps]
+    assert abs(vals[0]["k_fi"] / k - 1) < 0.2 and abs(vals[0]["m_b"] / 0.3 - 1) < 0.2, vals
+    for name in vals[0]:
+        assert abs(vals[0][name] / vals[1][name] - 1) < 0.01, (name, vals)
+
+
+# --------------------------------------------------------------------------- modes up to Nyquist
+def _mode_record(tmp_path, rate, T, M=2.0, fraction=0.2, f_b=None, zeta=0.02, c=30.0, seed=11):
+    """Open-loop record of a table of rigid mass ``M`` with a mode: ``fraction`` of it on a spring-
+    damper (blocked frequency ``f_b``, damping ratio ``zeta``), viscous ``c`` on the table; a white
+    random command (every sample) plus a square wave; scipy's exact ZOH of the 2-DOF state space."""
+    ms, mt = fraction * M, (1 - fraction) * M
+    w = 2 * np.pi * f_b
+    k, cm = ms * w * w, 2 * zeta * ms * w
+    A = [[0, 0, 1, 0], [0, 0, 0, 1], [-k / mt, k / mt, -(cm + c) / mt, cm / mt], [k / ms, -k / ms, cm / ms, -cm / ms]]
+    plant = signal.StateSpace(A, [[0], [0], [1 / mt], [0]], [[1, 0, 0, 0]], [[0]]).to_discrete(1 / rate, method="zoh")
+    rng = np.random.default_rng(seed)
+    n = int(T * rate)
+    u = rng.normal(0, 5.0, n) + 6.0 * np.sign(np.sin(2 * np.pi * 5.0 * np.arange(n) / rate))
+    _, y, _ = signal.dlsim(plant, u + rng.normal(0, 0.002, n), x0=np.zeros(4))
+    q = 1e-10
+    np.savez(tmp_path / "mode.npz", t=np.arange(n) / rate, u=u, x=q * np.floor(y[:, 0] / q + 0.5))
+    return convert_table(tmp_path / "mode.npz", {"time": "t", "command": "u", "measured": "x"},
+                         tmp_path / "mode.mcap", overwrite=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate", [1000.0, 10000.0])
+def test_mode_located_from_the_transfer_up_to_nyquist(tmp_path, rate):
+    """A 2 % damped mode at 0.3 x Nyquist (150 Hz at 1 kHz, 1.5 kHz at 10 kHz: far above the force
+    observer's rate/25), 20 % of the table's mass: located and fitted from the command ->
+    measurement transfer against the rigid nominal (csd/welch): frequency within 3 %, mass fraction
+    within 20 %, damping within a factor 1.5; the rigid truth shows no mode."""
+    from experiment_runner.diagnosis.frf import locate_modes
+    f_b = 0.15 * rate
+    rec = _mode_record(tmp_path, rate, T=2.0 if rate < 5000 else 0.5, f_b=f_b)
+    d = load_data(rec)
+    spec = load_model(_nominal(m=2.0, c=30.0, q=1e-10, noise=0.002)).with_changes({"controller.rate": rate})
+    modes = locate_modes(spec, d)
+    assert modes, "no mode located"
+    m = modes[0]
+    assert abs(m["f_hz"] / f_b - 1) < 0.03 and abs(m["fraction"] / 0.2 - 1) < 0.2 and 1 / 1.5 < m["zeta"] / 0.02 < 1.5, m
+    rigid = _record(tmp_path, rate, T=2.0 if rate < 5000 else 0.5)
+    assert locate_modes(spec, load_data(rigid)) == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate", [1000.0])
+def test_mode_diagnosed_with_its_mass_split_off_the_table(tmp_path, rate):
+    """End to end: the diagnosis names the structural mode first (frequency within 5 %, fraction
+    within 20 %), its mass taken out of the table (improved table + mode mass = the nominal's 2 kg).
+    Above the smoothing cutoff of the force observer (2.5 x rate/25) it is the mode as located and
+    fitted on the transfer (``located_mode``). (At 10 kHz the mode is located -- previous test -- but
+    not adopted: the open-loop judge finds the nominal within its floor, z = -5.2; README, open points.)"""
+    f_b = 0.15 * rate
+    rec = _mode_record(tmp_path, rate, T=2.0 if rate < 5000 else 0.5, f_b=f_b)
+    rep = diagnose(rec, _nominal(m=2.0, c=30.0, q=1e-10, noise=0.002), options=Options(plots=False))
+    first = rep["found"][0] if rep["found"] else {}
+    assert first.get("effect") in ("structural_mode", "located_mode"), [f["effect"] for f in rep["found"]]
+    v = {p["name"]: p["value"] for p in first["params"]} if first["effect"] == "structural_mode" else first["derived"]
+    assert abs(v["f"] / f_b - 1) < 0.05 and abs(v["fraction"] / 0.2 - 1) < 0.2, v
+    st = rep["_improved_spec"].preset.stage
+    assert abs(st.table.mass * (1 + sum(m.mass_ratio for m in st.modes)) - 2.0) < 1e-9
