@@ -53,7 +53,8 @@ KNOWN = frozenset({"force_constant"})
 CONTROLLER_TOL = 0.02
 # candidates are refined by the replay (output error on the fit samples) before they are compared: the
 # stable ones with at most REFINE_MAX_PARAMS parameters among the REFINE_PROPOSALS best replays and the
-# REFINE_PROPOSALS best force-observer fits, larger ones among the REFINE_TOP best replays;
+# REFINE_PROPOSALS best force-observer fits, and every one-parameter one; larger ones among the REFINE_TOP
+# best replays;
 # from the second step on together with the adopted effects if REFINE_JOINT_MAX parameters are not exceeded
 REFINE_MAX_PARAMS = 3
 REFINE_PROPOSALS = 4
@@ -668,8 +669,10 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         by_replay = sorted(stable, key=lambda j: j["cmp"].D_after)
         by_observer = sorted(stable, key=lambda j: j["fit"].J_held)
         top = {id(j) for j in by_replay[:REFINE_TOP]}
+        # every one-parameter candidate too (a level the observer fits off where the replay is sensitive
+        # may rank low on both: a Coulomb level behind multi-parameter fits of the observer residual)
         small = [j for j in by_replay[:REFINE_PROPOSALS] + by_observer[:REFINE_PROPOSALS]
-                 if len(j["fit"].theta) <= REFINE_MAX_PARAMS]
+                 if len(j["fit"].theta) <= REFINE_MAX_PARAMS] + [j for j in stable if len(j["fit"].theta) == 1]
         stable = [j for j in stable if any(j is x for x in small) or id(j) in top]
         out = []
         for j in judged:
