@@ -468,6 +468,11 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
     else:
         judge = ReplayJudge(data, x_ref=x_eq)
         fit_judge = ReplayJudge(dataclasses.replace(data, held=data.fit), x_ref=x_eq) if data.fit.any() else None
+    # output-error refinement by the replay of the fit samples (closed-loop records): an open-loop
+    # record's windows are re-initialised from each candidate's own observer state, so their error is
+    # not an output error of the candidate alone (a refined isolator then "explained" a located mode's
+    # remainder below the floor): open-loop records keep the force observer's values
+    refine = fit_judge is not None and not data.open_loop
     jfl0 = judge.floor(base)
     timing["floor_s"] = time.perf_counter() - t
     _log(opt, f"floor: sim B ms {fl.msB:.3f}, n_eff {fl.n_eff:.0f}; replay floor {jfl0.sigma_u:.3g} N, "
@@ -661,7 +666,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         than ``REFINE_MAX_PARAMS`` parameters are refined only among the ``REFINE_TOP`` best replays.
         From the second step on, the adopted effects are refined with the candidate (at most
         ``REFINE_JOINT_MAX`` parameters in all). A refined row replaces the observer's."""
-        if fit_judge is None:
+        if not refine:
             return judged
         judged = [refine_integer(j, selected, jfl, s0) if LIBRARY[j["fit"].key].kind == "integer" else j
                   for j in judged]
@@ -751,7 +756,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                     continue
                 best_wo = (fit_D(spec_wo), spec_wo, None)
                 others = [s for s in rest if s is not last]
-                if fit_judge is not None and LIBRARY[last.key].kind == "deterministic":
+                if refine and LIBRARY[last.key].kind == "deterministic":
                     n_o = sum(len(s.theta) for s in others if LIBRARY[s.key].kind == "deterministic")
                     ref = _refine_by_replay(last, others, base, ctx_for(ctx, others), fit_judge, path["jfl"],
                                             with_selected=0 < n_o and n_o + len(last.theta) <= REFINE_JOINT_MAX)
@@ -888,7 +893,7 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
                 if refit is not None and not refit.on_bound and replay_D(refit.spec) <= best["cmp"].D_after:
                     adopt(refit)
                     new_spec = refit.spec
-            if fit_judge is not None and LIBRARY[bf.key].kind == "deterministic":
+            if refine and LIBRARY[bf.key].kind == "deterministic":
                 # the adopted effects refined together by the replay of the fit samples (output error),
                 # kept off their bounds and if the held-out replay is not worse
                 n_sel = sum(len(f.theta) for f in selected if LIBRARY[f.key].kind == "deterministic")
