@@ -54,7 +54,7 @@ from experiment_runner.batch import Models, simulate
 from experiment_runner.executor import make_executor
 from experiment_runner.metrics import rms_in_position, settling_time
 from experiment_runner.paper import fi_design
-from stage_sim.config import ConfigError, GmsFriction, Preset, load_preset, with_overrides
+from stage_sim.config import GmsFriction, Preset, load_preset, with_overrides
 from stage_sim.friction import initial_stiffness
 from stage_sim.plant import build_plant
 

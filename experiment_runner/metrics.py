@@ -226,7 +226,8 @@ def cross_spectra(u, y, fs, nperseg, detrend="constant"):
     Returns
     -------
     freqs_hz, s_uu, s_yy, s_uy : numpy.ndarray
-        Frequencies [Hz] (0 to ``fs / 2``) and the spectral densities.
+        Frequencies [Hz] (0 to ``fs / 2``) and the spectral densities: the H1 FRF is
+        ``s_uy / s_uu`` [unit of y / unit of u], the coherence ``|s_uy|**2 / (s_uu s_yy)``.
 
     Examples
     --------
@@ -239,32 +240,6 @@ def cross_spectra(u, y, fs, nperseg, detrend="constant"):
     _, s_yy = signal.welch(y, fs=fs, nperseg=nperseg, detrend=detrend)
     _, s_uy = signal.csd(u, y, fs=fs, nperseg=nperseg, detrend=detrend)
     return f, s_uu, s_yy, s_uy
-
-
-def frf_welch(u, y, fs, nperseg, detrend="constant"):
-    """H1 FRF estimate and coherence from broadband data.
-
-    ``H1 = S_uy / S_uu`` and coherence ``|S_uy|**2 / (S_uu S_yy)`` from the spectra of
-    :func:`cross_spectra` (same parameters).
-
-    Returns
-    -------
-    freqs_hz : numpy.ndarray
-        Frequencies [Hz], 0 to ``fs / 2``.
-    H : numpy.ndarray
-        Complex FRF [unit of y / unit of u].
-    coherence : numpy.ndarray
-        Magnitude-squared coherence, 0 to 1.
-
-    Examples
-    --------
-    >>> u = np.random.default_rng(0).standard_normal(20000)
-    >>> f, H, coh = frf_welch(u, 3.0 * u, fs=1e4, nperseg=1000)
-    >>> bool(np.allclose(H, 3.0) and np.allclose(coh, 1.0))
-    True
-    """
-    f, s_uu, s_yy, s_uy = cross_spectra(u, y, fs, nperseg, detrend)
-    return f, s_uy / s_uu, np.abs(s_uy) ** 2 / (s_uu * s_yy)
 
 
 def error_spectrum(e, fs, window="hann"):
