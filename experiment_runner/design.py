@@ -25,7 +25,8 @@ smallest ``c_fi``. It reports the settling time this buys against the same stage
 bearings bolted rigidly (No FI) and the FF accuracy at that stiffness (Sec. 6.4.2): ``γ`` = RMS
 difference of the Dahl and GMS friction forces over one 5 mm circle cycle with ``η = k_fi/k_f``
 (:func:`experiment_runner.paper.fi_design.gamma_curve`; GMS blocks of the preset when its
-bearings use GMS, else Table 6.5) and ``κ`` of Eq. 4.2.
+bearings use GMS, else Table 6.5's block distribution scaled to the preset's initial stiffness, as
+:func:`experiment_runner.paper.fi_design.gms_consistent` does for Fig. 6.8) and ``κ`` of Eq. 4.2.
 
 Caveat: with Dahl bearings (``fi_stage``) a stiff FI or No FI drifts out of the window after
 settling (the single-state Dahl ratchet under drive noise, see the ``table_4_2`` campaign), so the
@@ -53,7 +54,7 @@ from experiment_runner.batch import Models, simulate
 from experiment_runner.executor import make_executor
 from experiment_runner.metrics import rms_in_position, settling_time
 from experiment_runner.paper import fi_design
-from stage_sim.config import ConfigError, GmsFriction, Preset, load_preset, with_overrides
+from stage_sim.config import GmsFriction, Preset, load_preset, with_overrides
 from stage_sim.friction import initial_stiffness
 from stage_sim.plant import build_plant
 
@@ -92,7 +93,7 @@ class LumpedStage:
     k_fi: float           # the preset's own total FI stiffness [N/m]
     c_fi: float           # the preset's own total FI damping [N·s/m]
     pid: dict             # PID gains (stage_control.tuning.pid_tf keys)
-    gms_k: list           # GMS blocks for γ [N/m] (preset's or Table 6.5)
+    gms_k: list           # GMS blocks for γ [N/m] (preset's, or Table 6.5's distribution with Σk_i = k_f)
     gms_alpha: list       # GMS fractions for γ [-]
     gms_source: str
 
@@ -122,7 +123,10 @@ def lumped_stage(preset) -> LumpedStage:
         ga = [a * fr.f_c / f_c for fr in gms for a in fr.alpha]
         src = f"{p.name} GMS blocks"
     else:
-        gk, ga, src = list(fi_design.GMS_K), list(fi_design.GMS_ALPHA), "Table 6.5"
+        # the seed identifies Dahl and GMS from the same FRFs: they share the initial stiffness
+        # (fi_design.gms_consistent), so Table 6.5's block distribution is scaled to the preset's k_f
+        gk = list(fi_design.gms_consistent(k_f)) if k_f else list(fi_design.GMS_K)
+        ga, src = list(fi_design.GMS_ALPHA), "Table 6.5 distribution, Σk_i = k_f"
     return LumpedStage(m_t=m_t, m_b=m_b, k_f=k_f, c_f=fi_design.c_f_estimate(m_t, m_b, k_f=k_f) if k_f else 0.0,
                        f_c=f_c, n_joints=len(jointed), k_fi=sum(b.joint.stiffness for b in jointed),
                        c_fi=sum(b.joint.damping for b in jointed), pid=p.controller.pid.model_dump(),

@@ -208,92 +208,38 @@ def sine_phasor(t, s, f):
     return out.reshape(s.shape[:-1]) if s.ndim > 1 else complex(out[0])
 
 
-def frf_sine(t, u, y, segments):
-    """FRF ``H = Y / U`` from a stepped-sine test.
-
-    For every segment of kind ``"sine"`` (see
-    :func:`experiment_runner.profiles.sine_sweep`), the complex amplitudes of
-    ``u`` and ``y`` at the segment's frequency ``f`` are estimated by
-    :func:`sine_phasor` over the segment and divided.
+def cross_spectra(u, y, fs, nperseg, detrend="constant"):
+    """Welch-averaged auto- and cross-spectra of an input and an output (Hann window, 50 %
+    overlap): :func:`scipy.signal.welch` and :func:`scipy.signal.csd`.
 
     Parameters
     ----------
-    t : array_like, shape (T,)
-        Time [s].
-    u : array_like, shape (..., T)
-        Input signal (e.g. force [N] or reference position [m]).
-    y : array_like, shape (..., T)
-        Output signal (e.g. position [m]).
-    segments : iterable of Segment
-        Segments; those of kind ``"sine"`` are used, with their
-        ``frequency`` [Hz].
-
-    Returns
-    -------
-    freqs_hz : numpy.ndarray, shape (n,)
-        Frequencies [Hz].
-    H : numpy.ndarray, shape (..., n)
-        Complex frequency response [unit of y / unit of u].
-
-    Examples
-    --------
-    >>> from experiment_runner.profiles import sine_sweep
-    >>> ref = sine_sweep([20.0], amplitude=1.0)
-    >>> y = 0.5 * np.sin(2 * np.pi * 20.0 * ref.t - np.pi / 4)  # gain 0.5, -45 deg
-    >>> f, H = frf_sine(ref.t, ref.x, y, ref.segments)
-    >>> float(f[0]), round(float(abs(H[0])), 6), round(float(np.angle(H[0], deg=True)), 4)
-    (20.0, 0.5, -45.0)
-    """
-    t = np.asarray(t, dtype=float)
-    u = np.asarray(u, dtype=float)
-    y = np.asarray(y, dtype=float)
-    sines = [s for s in segments if s.kind == "sine"]
-    freqs = np.array([s.frequency for s in sines])
-    H = [sine_phasor(t[s.start:s.stop], y[..., s.start:s.stop], f)
-         / sine_phasor(t[s.start:s.stop], u[..., s.start:s.stop], f) for s, f in zip(sines, freqs)]
-    return freqs, np.stack(H, axis=-1)
-
-
-def frf_welch(u, y, fs, nperseg):
-    """H1 FRF estimate and coherence from broadband data.
-
-    ``H1 = S_uy / S_uu`` with Welch-averaged (Hann window, 50 % overlap)
-    cross- and auto-spectra from :func:`scipy.signal.csd` and
-    :func:`scipy.signal.welch`; coherence
-    ``|S_uy|**2 / (S_uu S_yy)``.
-
-    Parameters
-    ----------
-    u : array_like, shape (T,)
-        Input signal (e.g. force [N]).
-    y : array_like, shape (T,)
-        Output signal (e.g. position [m]).
+    u, y : array_like, shape (T,)
+        Input (e.g. force [N]) and output (e.g. position [m]).
     fs : float
         Sample rate [Hz].
     nperseg : int
         Segment length [samples]; sets the resolution ``fs / nperseg`` [Hz].
+    detrend : str
+        Per-segment detrending (``"constant"`` or ``"linear"``; a drifting stage wants linear).
 
     Returns
     -------
-    freqs_hz : numpy.ndarray
-        Frequencies [Hz], 0 to ``fs / 2``.
-    H : numpy.ndarray
-        Complex FRF [unit of y / unit of u].
-    coherence : numpy.ndarray
-        Magnitude-squared coherence, 0 to 1.
+    freqs_hz, s_uu, s_yy, s_uy : numpy.ndarray
+        Frequencies [Hz] (0 to ``fs / 2``) and the spectral densities: the H1 FRF is
+        ``s_uy / s_uu`` [unit of y / unit of u], the coherence ``|s_uy|**2 / (s_uu s_yy)``.
 
     Examples
     --------
-    >>> u = np.random.default_rng(0).standard_normal(20000)
-    >>> f, H, coh = frf_welch(u, 3.0 * u, fs=1e4, nperseg=1000)
-    >>> bool(np.allclose(H, 3.0) and np.allclose(coh, 1.0))
+    >>> u = np.random.default_rng(0).standard_normal(4000)
+    >>> f, suu, syy, suy = cross_spectra(u, -2.0 * u, fs=1e3, nperseg=200)
+    >>> bool(np.allclose(syy, 4.0 * suu) and np.allclose(suy, -2.0 * suu))
     True
     """
-    f, s_uu = signal.welch(u, fs=fs, nperseg=nperseg)
-    _, s_yy = signal.welch(y, fs=fs, nperseg=nperseg)
-    _, s_uy = signal.csd(u, y, fs=fs, nperseg=nperseg)
-    return f, s_uy / s_uu, np.abs(s_uy) ** 2 / (s_uu * s_yy)
-
+    f, s_uu = signal.welch(u, fs=fs, nperseg=nperseg, detrend=detrend)
+    _, s_yy = signal.welch(y, fs=fs, nperseg=nperseg, detrend=detrend)
+    _, s_uy = signal.csd(u, y, fs=fs, nperseg=nperseg, detrend=detrend)
+    return f, s_uu, s_yy, s_uy
 
 
 def error_spectrum(e, fs, window="hann"):

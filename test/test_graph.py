@@ -417,9 +417,12 @@ def test_recorder_killed_mid_run_leaves_a_salvageable_file_and_a_restarted_one_t
     assert isinstance(rec.salvaged, str) and rec.salvaged, "a cut file says what was salvaged"
     _, trials, res = _batch("fi_p2p_5um")
     n0 = len(trials[0].x_ref)
-    assert n0 <= len(rec) < sum(len(t.x_ref) for t in trials)    # trial 0 at least, not the whole run
-    want = np.concatenate([res.y[t.index] for t in trials])[:len(rec)]
-    assert np.array_equal(rec.y, want)                             # what was salvaged is right
+    # samples indexed by their stage time (the run starts at 0): a recorder matched late with a
+    # publisher (a loaded machine) may lack the run's first samples of a topic, which the reading
+    # then leaves out (with a warning); what it has must be right
+    k = rec.stamp_ns // 100_000
+    assert k[-1] >= n0 - 1 and len(rec) < sum(len(t.x_ref) for t in trials)   # trial 0 at least, not the whole run
+    assert np.array_equal(rec.y, np.concatenate([res.y[t.index] for t in trials])[k])   # what was salvaged is right
     assert rec.config is not None and rec.results[0]["trial"] == 0
 
 

@@ -8,7 +8,7 @@ import pytest
 from scipy import optimize, signal
 
 from experiment_runner.metrics import (
-    error_spectrum, frf_sine, frf_welch, rms_in_position, settling_time, tracking_errors)
+    cross_spectra, error_spectrum, sine_phasor, rms_in_position, settling_time, tracking_errors)
 from experiment_runner.profiles import sine_sweep
 from stage_control.tuning import closed_loop_bandwidth, loop_margins
 
@@ -98,7 +98,8 @@ def test_tracking_errors():
                                rtol=1e-6)
 
 
-def test_frf_sine_recovers_mass_spring_damper():
+def test_sine_phasors_give_the_frf_of_a_mass_spring_damper():
+    """The stepped-sine FRF the FRF campaign computes: Y/U of the phasors per sine segment."""
     m, fn, zeta = 2.0, 80.0, 0.2  # [kg], [Hz], [-]
     wn = 2 * np.pi * fn
     plant = signal.lti([1 / m], [1, 2 * zeta * wn, wn**2])  # force -> position
@@ -107,28 +108,34 @@ def test_frf_sine_recovers_mass_spring_damper():
     # lsim interpolates the input linearly between samples, which scales a
     # sine by sinc(f dt)**2 (0.3 % at 300 Hz): stay well below Nyquist
     _, y, _ = signal.lsim(plant, ref.x, ref.t)
-    f, H = frf_sine(ref.t, ref.x, y, ref.segments)
+    sines = [s for s in ref.segments if s.kind == "sine"]
+    f = np.array([s.frequency for s in sines])
+    H = np.array([sine_phasor(ref.t[s.start:s.stop], y[s.start:s.stop], s.frequency)
+                  / sine_phasor(ref.t[s.start:s.stop], ref.x[s.start:s.stop], s.frequency) for s in sines])
     _, H_true = signal.freqresp(plant, 2 * np.pi * f)
     np.testing.assert_allclose(f, freqs, rtol=2.5e-3)
     np.testing.assert_allclose(H, H_true, rtol=0.01)
-    # batch of two trials at once
-    _, H2 = frf_sine(ref.t, np.stack([ref.x, ref.x]), np.stack([y, 2 * y]),
-                     ref.segments)
-    np.testing.assert_allclose(H2, [H, 2 * H], rtol=1e-12)
+    # a batch of two outputs at once
+    s = sines[2]
+    Y2 = sine_phasor(ref.t[s.start:s.stop], np.stack([y, 2 * y])[:, s.start:s.stop], s.frequency)
+    np.testing.assert_allclose(Y2 / sine_phasor(ref.t[s.start:s.stop], ref.x[s.start:s.stop], s.frequency),
+                               [H[2], 2 * H[2]], rtol=1e-12)
 
 
-def test_frf_welch_h1_of_discrete_filter():
+def test_cross_spectra_give_the_h1_frf_of_a_discrete_filter():
     fs = 1e4
     b, a = signal.butter(2, 500.0, fs=fs)
     u = np.random.default_rng(0).standard_normal(100_000)
     y = 1e-6 * signal.lfilter(b, a, u)
-    f, H, coh = frf_welch(u, y, fs, nperseg=2048)
+    f, suu, syy, suy = cross_spectra(u, y, fs, nperseg=2048)
+    H, coh = suy / suu, np.abs(suy) ** 2 / (suu * syy)
     _, H_true = signal.freqz(1e-6 * b, a, worN=f, fs=fs)
     band = (f > 10) & (f < 1000)
     np.testing.assert_allclose(H[band], H_true[band], rtol=0.02)
     assert np.all(coh[band] > 0.99)
     # uncorrelated output: coherence collapses
-    _, _, coh_noise = frf_welch(u, np.roll(u, 5000), fs, nperseg=2048)
+    _, suu, syy, suy = cross_spectra(u, np.roll(u, 5000), fs, nperseg=2048)
+    coh_noise = np.abs(suy) ** 2 / (suu * syy)
     assert np.median(coh_noise) < 0.05
 
 

@@ -44,7 +44,7 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -99,10 +99,6 @@ class CalibrationResult:
     rounds: int
     converged: bool
     history: list = field(default_factory=list)   # (values, metrics) of every evaluation
-
-    def to_dict(self) -> dict:
-        return {"values": dict(self.values), "params": [asdict(p) for p in self.params],
-                "evaluations": self.evaluations, "rounds": self.rounds, "converged": self.converged}
 
 
 def _seed_effective(spec: ParamSpec) -> float:

@@ -2,7 +2,7 @@
 
 The force observer of :mod:`.predict` sees a missing force only below its bandwidth (rate/25);
 a structural mode above it barely shows in the force residual. The command -> measurement
-transfer does: :func:`measured_frf` estimates it from the recording (``scipy.signal.csd`` /
+transfer does: :func:`measured_frf` estimates it from the recording (:func:`experiment_runner.metrics.cross_spectra`: ``scipy.signal.csd`` /
 ``welch``, with its coherence), :func:`model_frf` is the nominal plant's own (its exact ZOH
 discretisation over a control period, force constant and drive delay included; friction
 enters only through its viscous part), and :func:`locate_modes` looks for a narrow resonance or
@@ -22,10 +22,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import optimize, signal
+from scipy import optimize
 
 from .data import DiagData
 from .model import ModelSpec
+from experiment_runner.metrics import cross_spectra
 
 __all__ = ["measured_frf", "model_frf", "mode_ratio", "locate_modes"]
 
@@ -41,9 +42,7 @@ def measured_frf(data: DiagData, nperseg: int | None = None):
         if n < nps:
             continue
         u, y = data.u[:n, b], data.y[:n, b]
-        f, puy = signal.csd(u, y, data.rate, nperseg=nps, detrend="linear")
-        _, puu = signal.welch(u, data.rate, nperseg=nps, detrend="linear")
-        _, pyy = signal.welch(y, data.rate, nperseg=nps, detrend="linear")
+        f, puu, pyy, puy = cross_spectra(u, y, data.rate, nps, detrend="linear")
         w = n / nps
         num = puy * w if num is None else num + puy * w
         den = puu * w if den is None else den + puu * w

@@ -125,14 +125,6 @@ def _fi_edit(d):
         b["joint"] = {"stiffness": 4.135e4, "damping": 2.2691}
 
 
-def _pair(*edits):
-    """One edit applying several edits in turn."""
-    def edit(d):
-        for e in edits:
-            e(d)
-    return edit
-
-
 def _frictionless(d):
     """The nominal stage without friction: bearings folded into the table mass."""
     st = d["stage"]
@@ -167,10 +159,6 @@ def _fi_truth(d):
     nom = load_preset(NOMINAL).model_dump(mode="json")
     _fi_edit(nom)
     d["stage"] = nom["stage"]
-
-
-def _nominal_fc():
-    return sum(b.friction.f_c for b in load_preset(NOMINAL).stage.bearings)
 
 
 CASES = [
