@@ -8,7 +8,9 @@ returns 2, never a traceback. Bad arguments are argparse's one-line error (exit 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import io
 import os
 import sys
 
@@ -118,12 +120,46 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def python_only_stdout(enabled: bool):
+    """With ``enabled`` (a ``--json`` run): stdout carries only what Python prints.
+
+    Compiled libraries write diagnostics straight to file descriptor 1 (LAPACK's "On entry to
+    DLASCL parameter number 4 had an illegal value" when a numerical routine meets a NaN, in
+    this process or in worker processes, which inherit it), which would break the JSON a reader
+    parses. Descriptor 1 is pointed at stderr for the command's duration; ``sys.stdout`` keeps
+    writing to the real standard output.
+    """
+    if not enabled:
+        yield
+        return
+    sys.stdout.flush()
+    try:
+        direct = sys.stdout.fileno() == 1           # else Python's stdout is elsewhere (a capture)
+    except (AttributeError, OSError, ValueError):
+        direct = False
+    real = os.dup(1)
+    os.dup2(2, 1)
+    saved = sys.stdout
+    if direct:
+        sys.stdout = io.TextIOWrapper(os.fdopen(real, "wb", closefd=False),
+                                      encoding=saved.encoding or "utf-8", line_buffering=True)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        sys.stdout = saved
+        os.dup2(real, 1)
+        os.close(real)
+
+
 def main(argv=None) -> int:
     """Run one ``nanostage`` subcommand; bad input prints its message (exit 2, see the module docstring)."""
     args = build_parser().parse_args(argv)
     prefix = f"nanostage {args.command}: "
     try:
-        return int(args.func(args) or 0)
+        with python_only_stdout(bool(getattr(args, "json", False))):
+            return int(args.func(args) or 0)
     except USER_ERRORS as err:
         print(f"{prefix}{err}", file=sys.stderr)
         return 2

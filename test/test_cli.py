@@ -183,3 +183,22 @@ def test_a_closed_output_pipe_is_not_a_traceback():
     proc.stdout.close()
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 141 and "Traceback" not in err, err
+
+
+def test_json_stdout_carries_only_what_python_prints():
+    """A compiled library writing to descriptor 1 (LAPACK's 'On entry to DLASCL ...' on a NaN)
+    must not break the JSON of a --json run: it goes to stderr, the JSON stays parseable."""
+    import json
+    import subprocess
+    import sys
+    code = ("import os, json\n"
+            "from experiment_runner.cli import python_only_stdout\n"
+            "with python_only_stdout(True):\n"
+            "    os.write(1, b' ** On entry to DLASCL parameter number  4 had an illegal value\\n')\n"
+            "    print(json.dumps({'ok': 1}))\n"
+            "print('after')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    first, after = out.stdout.splitlines()
+    assert json.loads(first) == {"ok": 1} and after == "after"
+    assert "DLASCL" in out.stderr
