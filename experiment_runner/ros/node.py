@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import array
 import math
+import time
 
 import numpy as np
 import yaml
@@ -87,15 +88,23 @@ class StageNode(Node):
         read = cdr.JointStateReader().read
         return self.subscribe(topic, lambda data: callback(*read(data)), record=record, raw=True)
 
-    def join_runs(self, callback):
+    def join_runs(self, callback, ready=None, ready_timeout: float = 0.0):
         """Subscribe ``callback`` to ``/experiment/trajectory`` -- the subscription the sequencer
         counts before it starts a run -- at the first spin, after every endpoint the constructor
         made: discovery announces a node's subscriptions in the order they are made, so a
-        sequencer that has matched this one has matched the node's others too."""
+        sequencer that has matched this one has matched the node's others too.
+
+        ``ready``: a further condition to wait for (polled every 20 ms), at most ``ready_timeout``
+        seconds (then the node joins anyway: a node started deliberately late must not block the run).
+        """
+        start = time.monotonic()
+
         def join():
+            if ready is not None and not ready() and time.monotonic() - start < ready_timeout:
+                return
             timer.cancel()
             self.subscribe(TRAJECTORY, callback)
-        timer = self.create_timer(0.0, join)
+        timer = self.create_timer(0.0 if ready is None else 0.02, join)
 
     def listen_config(self, callback):
         """Call ``callback(config_dict)`` when the run configuration arrives (latched)."""

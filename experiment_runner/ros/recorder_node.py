@@ -29,7 +29,8 @@ from experiment_runner.recording import McapRecorder, bag_layout
 from experiment_runner.ros.node import StageNode
 from experiment_runner.ros.run import run_node
 from msg_defs import cdr, convert
-from msg_defs.topics import CLOCK, COMMAND, CONFIG, DITHER, MEASURED, REFERENCE, TOPICS, TRAJECTORY, TRUTH
+from msg_defs.topics import (CLOCK, COMMAND, CONFIG, CONTRACT_TOPICS, DITHER, MEASURED, REFERENCE, TOPICS, TRAJECTORY,
+                             TRUTH)
 
 RECORDED = tuple(name for name in TOPICS if name != CONFIG.name)
 RAW = (REFERENCE.name, COMMAND.name, MEASURED.name, TRUTH.name, DITHER.name, CLOCK.name)
@@ -42,6 +43,10 @@ discovery matched it with their publisher (up to 0.1 s of them), and makes its
 
 DRAIN_IDLE_S = 0.3
 """On stop: the recorder closes once no message has come for this long [s]."""
+
+READY_TIMEOUT_S = 5.0
+"""The recorder joins runs once it has matched a publisher of every contract topic, or after
+this long [s] (a node started deliberately late must not hold the run)."""
 
 
 class RecorderNode(StageNode):
@@ -63,15 +68,21 @@ class RecorderNode(StageNode):
         self.end_ns = None                  # last sample of the last trial that ended
         self.last_heard = time.monotonic()
         self.subscribe(CONFIG.name, self._config_in)
+        subs = {}
         for name in RECORDED:
             if name in RAW:
                 canonical = (cdr.JointStateReader().canonical if TOPICS[name].msg_type == cdr.JOINT_STATE
                              else lambda data: cdr.canonical(data, cdr.CLOCK))
-                self.subscribe(name, lambda data, name=name, c=canonical: self._write_raw(name, data, c),
-                               record=True, raw=True)
+                subs[name] = self.subscribe(name, lambda data, name=name, c=canonical: self._write_raw(name, data, c),
+                                            record=True, raw=True)
             elif name != TRAJECTORY.name:
-                self.subscribe(name, lambda m, name=name: self._write(name, m), record=True)
-        self.join_runs(lambda m: self._write(TRAJECTORY.name, m))
+                subs[name] = self.subscribe(name, lambda m, name=name: self._write(name, m), record=True)
+        # ready for a run once every contract topic's publisher is matched (a run that starts
+        # before the recorder hears the plant or the servo loses their first samples, or all of
+        # them if that node stops early), at most READY_TIMEOUT_S
+        contract = [subs[t] for t in CONTRACT_TOPICS if t in subs]
+        self.join_runs(lambda m: self._write(TRAJECTORY.name, m),
+                       ready=lambda: all(s.get_publisher_count() > 0 for s in contract), ready_timeout=READY_TIMEOUT_S)
 
     def _write_raw(self, topic: str, data: bytes, canonical):
         """A per-sample message (JointState or Clock, CDR bytes), written in its canonical CDR;
