@@ -71,8 +71,9 @@ def main_campaign(args) -> int:
         if args.main:
             # the main job always starts anew: its trials are regenerated in ~2 min, and a stream
             # left by other settings or code must not stop the README's first command
-            main_job(args.out or "out/campaigns", progress=not args.quiet, workers=args.workers,
-                     cluster=args.cluster, resume=False)
+            path = main_job(args.out or "out/campaigns", progress=not args.quiet, workers=args.workers,
+                            cluster=args.cluster, resume=False)
+            print(f"report: {path}")
             return 0
         if not args.campaign:
             raise ConfigError("give a CAMPAIGN (name or YAML path), --list or --main")

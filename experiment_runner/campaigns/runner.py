@@ -84,6 +84,4 @@ def main_job(out_dir="out/campaigns", settings: RunSettings | None = None, **cha
             name = MAIN_JOB_FRF[cr.campaign.name]
             frf = run_campaign(name, out_dir / name, progress=settings.progress)
             extras[cr.campaign.name] = frf_lines(frf, cr, images=f"{name}/plots")
-    path = write_index(runs, out_dir, time.monotonic() - t0, extras)
-    print(f"report: {path}")
-    return path
+    return write_index(runs, out_dir, time.monotonic() - t0, extras)
