@@ -323,6 +323,45 @@ class Stribeck(Effect):
         return spec.with_changes(edit=edit)
 
 
+class RegularizedCoulomb(Effect):
+    """Friction with a smooth zero-velocity transition: each friction element becomes
+    ``F_C tanh(v / v_reg) + viscous v`` (:mod:`stage_sim.friction.regularized`, F_C and viscous
+    kept). Below ``v_reg`` the friction is a steep damper ``F_C / v_reg`` instead of a stick: a
+    force below F_C at rest makes the stage creep at ``v_reg atanh(F / F_C)``."""
+
+    def applicable(self, spec):
+        return None if friction_elements(spec.preset) else "the model has no friction element"
+
+    def params(self, spec, ctx):
+        vmax = max(ctx.get("v_max", 1e-3), 1e-9)
+        return [Param("v_reg", "m/s", vmax * 1e-6, vmax * 0.3, vmax * 1e-2, log=True,
+                      doc="regularisation velocity (F = 76 % of F_C at v_reg)")]
+
+    def starts(self, spec, ctx):
+        vmax = max(ctx.get("v_max", 1e-3), 1e-9)
+        return [[vmax * s] for s in (1e-4, 1e-3, 1e-2, 0.1)]
+
+    def nominal(self, spec):
+        els = friction_elements(spec.preset)
+        if els and all(fr.model == "regularized_coulomb" for _, fr in els):
+            return {"v_reg": els[0][1].v_reg}
+        return {"v_reg": None}
+
+    def derived(self, spec, theta):
+        fc = coulomb_total(spec.preset)
+        return {"c_rest": fc / float(theta[0]) if fc > 0 else float("nan")}
+
+    def apply(self, spec, theta):
+        v_reg = float(theta[0])
+        els = friction_elements(spec.preset)
+
+        def edit(d):
+            for path, fr in els:
+                set_dotted(d, path, {"model": "regularized_coulomb", "f_c": fr.f_c, "v_reg": v_reg,
+                                     "viscous": fr.viscous, **_variation(fr, fr.f_c)})
+        return spec.with_changes(edit=edit)
+
+
 # --------------------------------------------------------------------------- rigid body, drive
 class Mass(Effect):
     def params(self, spec, ctx):
@@ -821,6 +860,15 @@ def _lib():
                  "residual with the sign of velocity, largest at low speed (just after reversals, before "
                  "constant velocity), vanishing above a few v_s",
                  param_doc=[("F_S", "N", "static force"), ("v_s", "m/s", "Stribeck velocity")]),
+        RegularizedCoulomb("regularized_coulomb", "smooth zero-velocity friction (regularised Coulomb)",
+                           "deterministic",
+                           "Friction without stiction: F = F_C tanh(v / v_reg) + c v in every friction element "
+                           "(F_C, c kept). Near rest it acts as a steep damper F_C / v_reg, so a force below F_C "
+                           "makes the stage creep instead of sticking.",
+                           "residual during holds and dwell where the model sticks: the stage creeps under "
+                           "forces below F_C; residual vs velocity is a step of width ~v_reg rounding the "
+                           "Coulomb step at v = 0",
+                           param_doc=[("v_reg", "m/s", "regularisation velocity")]),
         FiCompliance("fi_compliance", "FI compliance (bearing behind a spring-damper)", "deterministic",
                      "The bearing carriages are not rigid with the table but behind a joint of stiffness k_fi "
                      "and damping (friction isolator, Ch. 4), in any nominal with friction: adds (or re-fits) "

@@ -46,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .pipeline import EXCLUSIVE
+
 __all__ = ["PowerCase", "make_cases", "run_power", "DEFAULT_CASES", "EFFECTS"]
 
 DEFAULT_CASES = 150
@@ -57,7 +59,6 @@ EFFECTS = ("coulomb", "viscous", "mass", "force_constant", "delay", "dahl", "gms
 """Every effect of the library (:data:`.hypotheses.LIBRARY`), in the order they are dealt."""
 
 STOCHASTIC = {"noise_level", "quantization"}
-EXCLUSIVE = ({"dahl", "gms", "stribeck"}, {"gms", "coulomb"})
 NOISE = 7.1e-4                   # the Ch. 4 presets' drive noise [A RMS]
 MASTER_SEED = 20240611
 
