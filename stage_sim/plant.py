@@ -222,12 +222,13 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
     fr_var = np.zeros((nf, 6))
     k_tangent = np.zeros((n, n))
     c_explicit = np.zeros(n)
+    c_implicit = np.zeros(n)     # slopes an implicit law solves stably, resolved for accuracy only
     for e, (law, (fr, dof, _)) in enumerate(zip(laws, fr_list)):
         fr_par[e, :len(pars[e])] = pars[e]
         fr_var[e] = _variation(fr)
         cmat[dof, dof] += fr.viscous
         k_tangent[dof, dof] += law.stiffness_at_rest(fr) * (1.0 + abs(fr_var[e, 1]))
-        c_explicit[dof] += law.explicit_damping(fr)
+        (c_implicit if law.IMPLICIT else c_explicit)[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
 
     sai_dof, k_lock, c_lock, cap, rc_a, arm_steps, pulse_force, pulse_steps = -1, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0
     sai = stage.sai
@@ -251,6 +252,10 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
         raise ValueError(
             f"stage needs {n_sub} sub-steps per control period (stiffest mode "
             f"{omega_max / (2 * math.pi):.0f} Hz); limit is simulation.max_substeps={max_substeps}")
+    # an implicit law's slope (regularised Coulomb at rest) is stable at any sub-step but its
+    # transients are resolved like explicit damping, up to max_substeps (beyond, stable but coarse)
+    rate_implicit = float(np.max(c_implicit / np.array(masses)))
+    n_sub = max(n_sub, min(max_substeps, math.ceil(rate_implicit * dt / max_omega_h)))
     h = dt / n_sub
 
     a = np.zeros((2 * n, 2 * n))

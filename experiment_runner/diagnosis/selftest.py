@@ -111,6 +111,12 @@ def _stribeck_edit(d):
                          "f_s": 1.6 * f["f_c"], "v_s": 1.0e-3, "exponent": 2.0}
 
 
+def _regularized_edit(d):
+    for b in d["stage"]["bearings"]:
+        f = b["friction"]
+        b["friction"] = {"model": "regularized_coulomb", "f_c": f["f_c"], "v_reg": 1.0e-4, "viscous": f["viscous"]}
+
+
 MODE_FRACTION = 0.15 * 1.040843214756258 / (1.040843214756258 * 1.1 + 2 * 0.427536231884058)
 """A 150 Hz mode of 0.15 x the fi_stage_nofi table mass, split off the table's DOF (table with its 381 Hz
 mode of mass ratio 0.1, and the two bolted bearings): the total mass kept."""
@@ -172,6 +178,10 @@ CASES = [
          experiment="steps"),
     Case("gms_table_4.4", "gms", edit=_gms_edit, expect=_gms_truth()),
     Case("stribeck", "stribeck", edit=_stribeck_edit, expect={"F_S": 1.6 * 5.31, "v_s": 1.0e-3}),
+    # friction without stiction (issue 12): the bearings creep at v_reg atanh(F/F_C) under the
+    # servo's holding force instead of holding elastically (Dahl)
+    Case("regularized_coulomb", "regularized_coulomb", edit=_regularized_edit, expect={"v_reg": 1.0e-4},
+         experiment="steps"),
     Case("fi_compliance", "fi_compliance", edit=_fi_edit, expect={"k_fi": 8.27e4}, experiment="steps"),
     Case("structural_mode_150Hz", "structural_mode", edit=_mode_edit, expect={"f": 150.0, "fraction": MODE_FRACTION}),
     Case("ripple", "ripple", {"stage.force_ripple": [{"amplitude": 0.2, "period": 4.0e-4, "phase": 0.3}]},
