@@ -109,21 +109,22 @@ class BatchResult:
 
 
 @njit(cache=True, parallel=True)
-def _run(pm, sm, dm, am, lead, x_ref, v_ref, seeds, correction, plant, ss, ds, sa,
+def _run(pm, sm, dm, am, lead, x_ref, v_ref, f_ext, seeds, correction, plant, ss, ds, sa,
          o_xr, o_y, o_yb, o_u, o_xt, o_xb, o_d0, o_d1, o_mode, status, fail):
     """The trials in chunks, one chunk per task (``prange``); arrays are (chunk, ..., trial),
-    ``plant`` a chunked :class:`~stage_sim.plant.PlantState`."""
+    ``plant`` a chunked :class:`~stage_sim.plant.PlantState`; ``f_ext`` (chunk, 0, trial): none."""
     for c in prange(x_ref.shape[0]):
-        _run_chunk(pm, sm, dm, am, lead, x_ref[c], v_ref[c], seeds[c], correction, state_chunk(plant, c),
+        _run_chunk(pm, sm, dm, am, lead, x_ref[c], v_ref[c], f_ext[c], seeds[c], correction, state_chunk(plant, c),
                    ss[c], ds[c], sa[c], o_xr[c], o_y[c], o_yb[c], o_u[c], o_xt[c], o_xb[c], o_d0[c], o_d1[c],
                    o_mode[c], status[c], fail[c])
 
 
 @njit(cache=True, error_model="numpy")
-def _run_chunk(pm, sm, dm, am, lead, xrc, vrc, seed, correction, pc, ssc, dsc, sac,
+def _run_chunk(pm, sm, dm, am, lead, xrc, vrc, fec, seed, correction, pc, ssc, dsc, sac,
                o_xr, o_y, o_yb, o_u, o_xt, o_xb, o_d0, o_d1, o_mode, st, fail):
     """Closed loop over time for one chunk of trials: the step order SAI -> dither -> servo ->
-    plant, written once; arrays are (..., trial), outputs (sample, trial)."""
+    plant, written once; arrays are (..., trial), outputs (sample, trial); ``fec`` the known
+    external table force (sample, trial), or (0, trial) for none."""
     n_steps, nb = xrc.shape
     zc = pc.z
     meas = np.empty((2, nb))
@@ -137,7 +138,9 @@ def _run_chunk(pm, sm, dm, am, lead, xrc, vrc, seed, correction, pc, ssc, dsc, s
     xr = np.zeros(nb)
     vr = np.zeros(nb)
     va = np.zeros(nb)
-    inp = PlantInputs(u, d0, d1, mode, np.zeros(0))
+    ext = fec.shape[0] > 0
+    fe = np.zeros(nb if ext else 0)
+    inp = PlantInputs(u, d0, d1, mode, fe)
     for b in range(nb):
         meas[0, b] = quantize(zc[0, b], pm.q_table)
         meas[1, b] = quantize(zc[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
@@ -164,6 +167,9 @@ def _run_chunk(pm, sm, dm, am, lead, xrc, vrc, seed, correction, pc, ssc, dsc, s
             o_d0[k, b] = d0[b]
             o_d1[k, b] = d1[b]
             o_mode[k, b] = mode[b]
+        if ext:
+            for b in range(nb):
+                fe[b] = fec[k, b]
         plant_step(pm, pc, inp, k, seed, meas, st)
         for b in range(nb):
             if st[b] != OK and fail[b] < 0:
@@ -187,7 +193,7 @@ def _unchunked(a, n_trials):
 
 
 def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None, seeds=None,
-             correction=None, models: Models | None = None, check: bool = True) -> BatchResult:
+             correction=None, models: Models | None = None, check: bool = True, f_ext=None) -> BatchResult:
     """Run closed-loop trials of ``preset`` following a reference.
 
     Parameters
@@ -209,6 +215,9 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
         Pre-compiled models (saves rebuilding in sweeps).
     check : bool
         Raise :class:`SimulationError` if any trial diverged or left the travel.
+    f_ext : array_like, shape (T,) or (n_trials, T), optional
+        Known external force on the table at each sample [N] (``/stage/external_force``; not
+        through the drive), held over the control period; default none.
 
     Returns
     -------
@@ -228,6 +237,8 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     seeds = (np.arange(n_trials) + preset.simulation.seed if seeds is None
              else np.asarray(seeds)).astype(np.int64)
     corr = np.zeros(0) if correction is None else np.asarray(correction, float)
+    if f_ext is not None:
+        f_ext = np.broadcast_to(np.asarray(f_ext, float), x_ref.shape)
 
     n_chunks = max(1, min(numba.get_num_threads(), n_trials))
     size = -(-n_trials // n_chunks)
@@ -240,8 +251,9 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     outs = [np.zeros((n_chunks, T, size)) for _ in range(9)]
     status = np.zeros((n_chunks, size), np.int64)
     fail = -np.ones((n_chunks, size), np.int64)
+    fe = np.zeros((n_chunks, 0, size)) if f_ext is None else _chunked(f_ext, n_chunks, size)
     _run(pm, models.servo, models.dither, models.sai, models.lead,
-         _chunked(x_ref, n_chunks, size), _chunked(v_ref, n_chunks, size),
+         _chunked(x_ref, n_chunks, size), _chunked(v_ref, n_chunks, size), fe,
          _chunked(seeds, n_chunks, size), corr, plant, *states, *outs, status, fail)
     xr, y, yb, u, xt, xb, d0, d1, mode = (_unchunked(o, n_trials) for o in outs)
     res = BatchResult(t=np.arange(T) / preset.controller.rate, x_ref=xr, x_correction=xr - x_ref,

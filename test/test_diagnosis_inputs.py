@@ -370,3 +370,31 @@ def test_regularized_coulomb_diagnosed(tmp_path, rate):
     v_reg = rep["found"][0]["params"][0]["value"]
     assert abs(v_reg / 1e-3 - 1) < 0.1, v_reg
     assert rep["replay"]["floor_ratio"]["improved"] < 1.5 < 5 < rep["replay"]["floor_ratio"]["nominal"]
+
+
+# --------------------------------------------------------------------------- known force, closed loop
+def test_known_force_applied_in_the_closed_loop_replay():
+    """A closed-loop record (fi_stage_nofi, 5 um point-to-point moves, 3 trials) with a known
+    0.3 N, 7 Hz force on the table (``/stage/external_force``): the model's noise-free replay
+    of its held-out trial applies it -- the truth is at its run-to-run floor (error/floor
+    RMS ratio 0.5 ... 1.5; measured 0.79) -- and without the known force the same model is far
+    off (> 5x; measured 16.1x). Before, the replay applied no external force."""
+    from experiment_runner.batch import simulate
+    from experiment_runner.diagnosis.data import from_trials
+    from experiment_runner.diagnosis.judge import ReplayJudge
+    from experiment_runner.profiles import point_to_point
+    spec = load_model("fi_stage_nofi")
+    rate = spec.preset.controller.rate
+    ref = point_to_point(5e-6, dt=1.0 / rate, dwell=0.1)
+    B, T = 3, len(ref.x)
+    f = 0.3 * np.sin(2 * np.pi * 7.0 * np.arange(T) / rate + np.arange(B)[:, None])
+    res = simulate(spec.preset, ref.x, ref.v, n_trials=B, seeds=[71, 72, 73], f_ext=f)
+    trials = [a for a in (list(res.x_ref), list(res.v_ref), list(res.u), list(res.y))]
+    d = from_trials(rate, np.zeros(B), *trials, f_ext=list(f))
+    with_f = ReplayJudge(d)
+    fl = with_f.floor(spec)
+    assert 0.5 < with_f.floor_ratio(with_f.replay(spec), fl) < 1.5
+    d.f_ext = None
+    without = ReplayJudge(d)
+    fl0 = without.floor(spec)
+    assert without.floor_ratio(without.replay(spec), fl0) > 5

@@ -46,3 +46,19 @@ def test_stepping_equals_batch(name):
     single = _step_by_step(preset, ref.x + x0, ref.v, seed=8)
     np.testing.assert_array_equal(single, batch.y[1])
     assert np.ptp(single) > 4e-6          # the trial really moved
+
+
+def test_batch_external_force_is_a_table_force():
+    """The batch engine's known external force (``f_ext``, the closed-loop replay's
+    ``/stage/external_force``): a constant 0.2 N is bit for bit the preset's
+    ``stage.force_offset`` of 0.2 N, and zeros are bit for bit no input."""
+    p = load_preset("fi_stage_nofi")
+    ref = point_to_point(5e-6, dt=1.0 / p.controller.rate, dwell=0.05)
+    none = simulate(p, ref.x, ref.v, n_trials=2)
+    zeros = simulate(p, ref.x, ref.v, n_trials=2, f_ext=np.zeros(len(ref.x)))
+    assert np.array_equal(none.y, zeros.y) and np.array_equal(none.u, zeros.u)
+    offset = simulate(p.model_copy(update={"stage": p.stage.model_copy(update={"force_offset": 0.2})}),
+                      ref.x, ref.v, n_trials=2)
+    ext = simulate(p, ref.x, ref.v, n_trials=2, f_ext=0.2)
+    assert np.array_equal(offset.y, ext.y) and np.array_equal(offset.u, ext.u)
+    assert np.abs(ext.y - none.y).max() > 1e-8                       # the force moved the stage

@@ -140,6 +140,8 @@ class ReplayJudge:
         xr = data.x_ref if x_ref is None else x_ref
         self.x_ref = np.ascontiguousarray(xr[:, c])
         self.v_ref = np.ascontiguousarray(data.v_ref[:, c])
+        fe = data.f_ext
+        self.f_ext = None if fe is None or not np.any(fe[:, c]) else np.ascontiguousarray(fe[:, c])
         self.u = np.ascontiguousarray(data.u[:, c])
         self.y = np.ascontiguousarray(data.y[:, c])
         self.seeds = tuple(int(s) for s in seeds)
@@ -178,7 +180,8 @@ class ReplayJudge:
         models = spec._compiled.get("batch_models")
         if models is None:
             models = spec._compiled["batch_models"] = Models.from_preset(p)
-        res = simulate(p, xr, vr, seeds=sd, check=False, models=models)
+        fe = None if self.f_ext is None else np.tile(self.f_ext.T, (K, 1))
+        res = simulate(p, xr, vr, seeds=sd, check=False, models=models, f_ext=fe)
         self.sims += 1
         u = res.u.reshape(K, B, -1).transpose(0, 2, 1)
         y = res.y.reshape(K, B, -1).transpose(0, 2, 1)

@@ -404,9 +404,6 @@ def _diagnose(recording, nominal, out, opt, data, ex) -> dict:
         raise ConfigError(f"{nominal}: stage.kind: the nominal is {kind} but the recording is {data.axis} "
                           "(/experiment/config run.axis): give a nominal of the recording's axis")
     notes = list(data.notes)
-    if data.f_ext is not None and not data.open_loop and np.any(data.f_ext != 0):
-        notes.append("known external force on a closed-loop record: the force observer and the open-loop windows "
-                     "apply it, the closed-loop replay (batch engine, no external input) does not")
     rate_p = spec0.preset.controller.rate
     if abs(rate_p - data.rate) > 1e-3 * data.rate:
         notes.append(f"recording rate {data.rate:.6g} Hz differs from the model's controller.rate {rate_p:.6g} Hz; "

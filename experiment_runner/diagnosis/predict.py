@@ -109,12 +109,14 @@ class Observer:
 
 
 # --------------------------------------------------------------------------- closed loop
-def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds):
-    """Closed-loop runs of ``spec`` on references (T, B) with noise ``seeds`` (B,): the batch
-    engine (:func:`experiment_runner.batch.simulate`) itself; returns (y, u, x_true, inputs),
-    each (T, B), ``inputs`` = (d0, d1, mode) the plant's dither forces and SAI command."""
+def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds, f_ext=None):
+    """Closed-loop runs of ``spec`` on references (T, B) with noise ``seeds`` (B,) and the known
+    external table force ``f_ext`` (T, B; None: none): the batch engine
+    (:func:`experiment_runner.batch.simulate`) itself; returns (y, u, x_true, inputs), each
+    (T, B), ``inputs`` = (d0, d1, mode) the plant's dither forces and SAI command."""
+    fe = None if f_ext is None or not np.any(f_ext) else np.asarray(f_ext, float).T
     res = simulate(spec.preset, np.asarray(x_ref, float).T, np.asarray(v_ref, float).T,
-                   seeds=np.asarray(seeds, np.int64), check=False)
+                   seeds=np.asarray(seeds, np.int64), check=False, f_ext=fe)
     inputs = (res.dither[..., 0].T.copy(), res.dither[..., 1].T.copy(), res.mode.T.copy())
     return res.y.T.copy(), res.u.T.copy(), res.x_table.T.copy(), inputs
 
@@ -130,12 +132,14 @@ def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
     seeds = list(seeds)
     xr = np.tile(data.x_ref, (1, len(seeds)))
     vr = np.tile(data.v_ref, (1, len(seeds)))
-    y, u, _, inputs = closed_loop(spec, xr, vr, np.concatenate([s + np.arange(B) for s in seeds]))
+    fe = None if data.f_ext is None else np.tile(data.f_ext, (1, len(seeds)))
+    y, u, _, inputs = closed_loop(spec, xr, vr, np.concatenate([s + np.arange(B) for s in seeds]), fe)
     part = lambda a, i: np.ascontiguousarray(a[:, i * B:(i + 1) * B])  # noqa: E731
     return [DiagData(rate=data.rate, t0=data.t0.copy(), x_ref=data.x_ref, v_ref=data.v_ref,
                      u=part(u, i), y=part(y, i), valid=data.valid.copy(), fit=data.fit.copy(), held=data.held.copy(),
                      lengths=data.lengths, trial_ids=list(data.trial_ids), source=f"simulated (seed {s})",
-                     split=data.split, d0=part(inputs[0], i), d1=part(inputs[1], i), mode=part(inputs[2], i))
+                     split=data.split, d0=part(inputs[0], i), d1=part(inputs[1], i), mode=part(inputs[2], i),
+                     f_ext=data.f_ext)
             for i, s in enumerate(seeds)]
 
 
@@ -147,7 +151,7 @@ def replay(spec: ModelSpec, data: DiagData, seed: int = 1000):
         from .openloop import window_replay
         return window_replay(spec, data)
     B = data.shape[1]
-    y, u, x, inputs = closed_loop(spec, data.x_ref, data.v_ref, seed + np.arange(B))
+    y, u, x, inputs = closed_loop(spec, data.x_ref, data.v_ref, seed + np.arange(B), data.f_ext)
     return {"y": y, "u": u, "x": x, "d0": inputs[0], "d1": inputs[1], "mode": inputs[2]}
 
 
