@@ -16,6 +16,7 @@ from experiment_runner.diagnosis.openloop import OpenLoopJudge
 from experiment_runner.diagnosis.pipeline import Options, diagnose
 from experiment_runner.diagnosis.predict import Observer
 from experiment_runner.tabular import convert_table
+from independent import regularized_coulomb_rk4
 from stage_sim.config import ConfigError
 
 
@@ -326,30 +327,14 @@ def test_mode_diagnosed_with_its_mass_split_off_the_table(tmp_path, rate):
 # --------------------------------------------------------------------------- regularised Coulomb
 def _regularized_record(tmp_path, rate, T, m=2.0, f_c=5.0, v_reg=1e-3, c=30.0, noise=0.02, q=1e-8, seed=3):
     """An open-loop record of ``m x'' = u + w - F_C tanh(v / v_reg) - c v`` by classical RK4 on
-    a 10 us grid (the command held over each sample), written as .npz and converted. The forces
+    a 10 us grid (``independent.py``; the command held over each sample), written as .npz and converted. The forces
     stay mostly below F_C: a Coulomb model sticks there, this one creeps at v_reg atanh(F/F_C)."""
     rng = np.random.default_rng(seed)
     n = int(T * rate)
     hold = int(round(0.02 * rate))
     u = np.repeat(rng.normal(0, 3.0, n // hold + 1), hold)[:n] + 4.0 * np.sign(np.sin(2 * np.pi * np.arange(n) / rate))
     w = rng.normal(0, noise, n)
-    sub = int(round(1e5 / rate))
-    h = 1.0 / rate / sub
-    x = np.zeros(n)
-    xx = v = 0.0
-    for k in range(n):
-        x[k] = xx
-        F = u[k] + w[k]
-
-        def acc(v):
-            return (F - f_c * np.tanh(v / v_reg) - c * v) / m
-        for _ in range(sub):
-            a1 = acc(v)
-            a2 = acc(v + 0.5 * h * a1)
-            a3 = acc(v + 0.5 * h * a2)
-            a4 = acc(v + h * a3)
-            xx += h / 6 * (6 * v + h * (a1 + a2 + a3))
-            v += h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
+    x = np.r_[0.0, regularized_coulomb_rk4(u + w, rate, m, f_c, v_reg, c)[:-1]]     # sample k: before u[k]
     x = q * np.floor(x / q + 0.5)
     np.savez(tmp_path / "rc.npz", t=np.arange(n) / rate, u=u, x=x)
     return convert_table(tmp_path / "rc.npz", {"time": "t", "command": "u", "measured": "x"}, tmp_path / "rc.mcap")
