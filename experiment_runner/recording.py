@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msg_defs import convert
+from msg_defs import cdr, convert
 from msg_defs.topics import (BEARING, CLOCK, COMMAND, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS, EXTERNAL_FORCE,
                              ISOLATOR, ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS,
                              SOURCE_CHANNELS, TABLE, TOPICS, TRUTH, Qos, qos_yaml)
@@ -634,11 +634,14 @@ def _load(path) -> _Raw:
                 if problem:
                     raise _IndexMismatch(f"the index has a chunk {problem}")
             schemas, channels, messages = {}, {}, []
-            for schema, channel, message in reader.iter_messages(log_time_order=True):
+            # file order, then a stable sort by log time: the order iter_messages(log_time_order=True)
+            # gives (ties by position in the file), without its per-message heap in Python
+            for schema, channel, message in reader.iter_messages(log_time_order=False):
                 if schema is not None:
                     schemas[schema.id] = schema
                 channels[channel.id] = channel
                 messages.append(message)
+            messages.sort(key=lambda m: m.log_time)
             if summary is not None:
                 schemas.update(summary.schemas)
                 channels.update(summary.channels)
@@ -654,19 +657,47 @@ def _load(path) -> _Raw:
     return raw
 
 
+@dataclass(frozen=True, slots=True)
+class _Joints:
+    """A JointState as the reader needs it (read by :class:`msg_defs.cdr.JointStateReader`)."""
+    stamp_ns: int
+    name: tuple
+    position: tuple
+    velocity: tuple
+    effort: tuple
+
+
+def _stamp_ns(m):
+    """A message's header stamp [ns], None if it has none."""
+    if isinstance(m, _Joints):
+        return m.stamp_ns
+    return convert.stamp_ns(m) if hasattr(m, "header") else None
+
+
 def _joint_series(topic: str, items) -> JointSeries:
     """(log_time, decoded JointState) pairs -> arrays, columns by joint name."""
+    n = len(items)
+    stamps = np.fromiter((lt for lt, _ in items), np.int64, n)
+    first = tuple(items[0][1].name) if n else ()
+    shapes = {(tuple(m.name), len(m.position), len(m.velocity), len(m.effort)) for _, m in items}
+    if len(shapes) == 1 and len(set(first)) == len(first):       # every message names the same joints
+        _, *lens = next(iter(shapes))
+        arrs = {}
+        for k, ln in zip(("position", "velocity", "effort"), lens):
+            if ln and ln != len(first):
+                raise RecordingError(f"{topic}: message at {items[0][0]} ns has {len(first)} names but "
+                                     f"{ln} {k} values")
+            arrs[k] = (np.array([getattr(m, k) for _, m in items], float).reshape(n, len(first)) if ln
+                       else np.full((n, len(first)), np.nan))
+        return JointSeries(stamps, list(first), arrs["position"], arrs["velocity"], arrs["effort"])
     names: list[str] = []
     for _, m in items:
-        for n in m.name:
-            if n not in names:
-                names.append(n)
-    col = {n: i for i, n in enumerate(names)}
-    n = len(items)
+        for nm in m.name:
+            if nm not in names:
+                names.append(nm)
+    col = {nm: i for i, nm in enumerate(names)}
     arrs = {k: np.full((n, len(names)), np.nan) for k in ("position", "velocity", "effort")}
-    stamps = np.empty(n, np.int64)
     for r, (lt, m) in enumerate(items):
-        stamps[r] = lt
         idx = [col[x] for x in m.name]
         for k, a in arrs.items():
             vals = getattr(m, k)
@@ -740,6 +771,7 @@ def read_recording(path, require_reference: bool = True) -> Recording:
     by_topic: dict[str, list] = {t: [] for t in TOPICS}
     counts: Counter = Counter()
     decoders = {}
+    joint_readers = {}
     for m in raw.messages:
         ch = raw.channels.get(m.channel_id)
         if ch is None:
@@ -764,8 +796,11 @@ def read_recording(path, require_reference: bool = True) -> Recording:
                     f"{raw.path}: {ch.topic}: cannot decode message encoding {ch.message_encoding!r} with "
                     f"schema encoding {getattr(schema, 'encoding', None)!r}; the contract wants cdr + ros2msg")
             decoders[ch.id] = dec
+            if TOPICS[ch.topic].msg_type == cdr.JOINT_STATE:      # the schema parsed: read its CDR directly
+                joint_readers[ch.id] = cdr.JointStateReader().read
         try:
-            by_topic[ch.topic].append((m.log_time, dec(m.data)))
+            jr = joint_readers.get(ch.id)
+            by_topic[ch.topic].append((m.log_time, _Joints(*jr(m.data)) if jr is not None else dec(m.data)))
         except Exception as err:          # noqa: BLE001
             raise RecordingError(f"{raw.path}: {ch.topic}: message at {m.log_time} ns does not decode "
                                  f"as {topics[ch.topic]} ({err})") from None
@@ -791,7 +826,7 @@ def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Count
               if by_topic[t]}
     sample_topics = tuple(t for t in CONTRACT_TOPICS if not (open_loop and t == REFERENCE.name))
     for t in series:
-        bad = sum(1 for lt, m in by_topic[t] if hasattr(m, "header") and convert.stamp_ns(m) != lt)
+        bad = sum(1 for lt, m in by_topic[t] if _stamp_ns(m) not in (None, lt))
         if bad:
             warnings.append(f"{t}: {bad} message(s) with header.stamp != log time (log time used)")
 
