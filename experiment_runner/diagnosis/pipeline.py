@@ -57,6 +57,8 @@ CONTROLLER_TOL = 0.02
 # best replays;
 # from the second step on together with the adopted effects if REFINE_JOINT_MAX parameters are not exceeded
 REFINE_MAX_PARAMS = 3
+# block lengths [s] of the replay refinement's robust standard errors (time windows of each trial)
+REFINE_BLOCKS_S = (0.02, 0.05, 0.1, 0.2)
 REFINE_PROPOSALS = 4
 REFINE_TOP = 2
 REFINE_JOINT_MAX = 8
@@ -186,6 +188,34 @@ def _spec_without(selected: list, base: ModelSpec) -> ModelSpec:
     return spec
 
 
+def _block_covariance(J: np.ndarray, r: np.ndarray, block: np.ndarray, min_blocks: int = 10) -> np.ndarray:
+    """Covariance of least-squares parameters from the Jacobian ``J`` (n, p) and residual ``r``
+    (n,) at the optimum, with residuals correlated within blocks (``block`` (n,) ids) and
+    independent between them: the cluster-robust sandwich ``B M B``, ``B = (J'J)^-1``,
+    ``M = G/(G-1) sum_g (J_g' r_g)(J_g' r_g)'`` over the ``G`` blocks. With fewer than
+    ``min_blocks`` blocks, the classical ``s^2 (J'J)^-1``.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> n, L = 4000, 20                          # a mean fitted to noise correlated over blocks of 20
+    >>> r = np.repeat(rng.normal(size=n // L), L) + 0.1 * rng.normal(size=n)
+    >>> J = np.ones((n, 1))
+    >>> classical = np.sqrt(_block_covariance(J, r - r.mean(), np.zeros(n, int))[0, 0])
+    >>> robust = np.sqrt(_block_covariance(J, r - r.mean(), np.arange(n) // L)[0, 0])
+    >>> bool(3.5 < robust / classical < 5.5)    # ~sqrt(20): 20 samples carry one sample's information
+    True
+    """
+    p = J.shape[1]
+    bread = np.linalg.pinv(J.T @ J)
+    ids, g = np.unique(block, return_inverse=True)
+    G = len(ids)
+    if G < min_blocks:
+        return bread * (r @ r) / max(len(r) - p, 1)
+    score = np.stack([np.bincount(g, weights=J[:, j] * r, minlength=G) for j in range(p)], axis=1)
+    return bread @ (score.T @ score * (G / (G - 1))) @ bread
+
+
 def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict, fj: ReplayJudge, jfl,
                       max_nfev: int = 8, with_selected: bool = False, start=None) -> dict | None:
     """Output-error refinement of candidate ``bf``: least squares of the closed-loop replay error on
@@ -201,8 +231,10 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
 
     Returns None (no gain, or a failure) or a dict: ``spec``, ``theta``/``sigma``/``at_bound``
     of the candidate's own parameters, and ``joint`` (a :class:`FitResult` over the selected
-    effects' and the candidate's parameters, or None). ``sigma``: from the replay Jacobian,
-    scaled by the residual's mean square (the replay's own scatter)."""
+    effects' and the candidate's parameters, or None). ``sigma``: from the replay Jacobian and
+    residual, block-robust (:func:`_block_covariance`, the largest over blocks of
+    :data:`REFINE_BLOCKS_S` with at least 10 blocks per parameter: the replay error is correlated
+    over tens of milliseconds, not independent per sample)."""
     from scipy.optimize import least_squares
 
     from .fit import _Joint, _Transform
@@ -265,8 +297,16 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
         J = out.jac
         if not (np.all(np.isfinite(J)) and np.all(np.isfinite(theta))):
             return None
-        s2 = 2 * out.cost / max(len(out.fun) - len(theta), 1)
-        cov_z = np.linalg.pinv(J.T @ J) * s2
+        T_, B_ = m.shape
+        t_of = np.broadcast_to(np.arange(T_)[:, None], m.shape)[m]
+        b_of = np.broadcast_to(np.arange(B_)[None, :], m.shape)[m]
+        var = np.zeros(len(theta))
+        for span in REFINE_BLOCKS_S:          # the largest over block lengths: the error's correlation time is unknown
+            L = max(1, int(round(span * fj.rate)))
+            ids = b_of * (T_ // L + 1) + t_of // L
+            if len(np.unique(ids)) >= 10 * len(theta) or span == REFINE_BLOCKS_S[0]:
+                var = np.maximum(var, np.diag(_block_covariance(J, out.fun, np.concatenate([ids, ids]))))
+        cov_z = np.diag(var)
         sigma = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * np.abs(tr.dtheta_dz(theta))
         spec = model.apply(prev, theta)
         k = len(theta) - len(bf.theta)
