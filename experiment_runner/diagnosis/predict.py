@@ -114,7 +114,7 @@ def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds, f_ext=None):
     external table force ``f_ext`` (T, B; None: none): the batch engine
     (:func:`experiment_runner.batch.simulate`) itself; returns (y, u, x_true, inputs), each
     (T, B), ``inputs`` = (d0, d1, mode) the plant's dither forces and SAI command."""
-    fe = None if f_ext is None or not np.any(f_ext) else np.asarray(f_ext, float).T
+    fe = None if f_ext is None else np.asarray(f_ext, float).T
     res = simulate(spec.preset, np.asarray(x_ref, float).T, np.asarray(v_ref, float).T,
                    seeds=np.asarray(seeds, np.int64), check=False, f_ext=fe)
     inputs = (res.dither[..., 0].T.copy(), res.dither[..., 1].T.copy(), res.mode.T.copy())
