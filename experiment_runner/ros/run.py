@@ -159,7 +159,7 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
     status = [0]
     stopping, cleanup = _exit_guard(rclpy.get_default_context(), status, stop,
                                     EXIT_GRACE_S + (DRAIN_MAX_S if drain else 0.0))
-    node = None
+    node = ex = None
     try:
         try:
             node = factory()
@@ -191,11 +191,26 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
             if on_exit:
                 with cleanup:
                     status[0] = on_exit(node) or 0
-            node.destroy_node()
+            # what must be kept is kept: from here a GIL-free watchdog (a C thread) ends the
+            # process should ROS teardown block while holding the GIL (where the Python guard
+            # above can no longer run)
+            faulthandler.dump_traceback_later(EXIT_GRACE_S + 2.0, exit=True)
+            _teardown(ex, node)
         if rclpy.ok():
             rclpy.shutdown()
     if status[0]:
         sys.exit(status[0])
+
+
+def _teardown(ex, node) -> None:
+    """Stop ``ex`` and let go of its entities while ``node`` and the context are alive, then
+    destroy ``node``. The other order (node destroyed under a live executor, the executor
+    dropped later by garbage collection, after ``rclpy.shutdown``) finalises the node's QoS
+    event handles from the executor's destructor at an arbitrary point; on a loaded machine
+    that blocked a plant for good (CI: stuck in ``EventHandler.__exit__`` holding the GIL)."""
+    if ex is not None:
+        ex.shutdown(timeout_sec=EXIT_GRACE_S)
+    node.destroy_node()
 
 
 def _exit_guard(context, status, stop, grace: float):
