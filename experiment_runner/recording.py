@@ -633,14 +633,17 @@ def _load(path) -> _Raw:
                 problem = _size_problem(ci.compression, ci.compressed_size, ci.uncompressed_size)
                 if problem:
                     raise _IndexMismatch(f"the index has a chunk {problem}")
-            schemas, channels, messages = {}, {}, []
+            schemas, channels = {}, {}
+            messages = _indexed_messages(f, summary, validate_crcs=True)
+            if messages is None:
+                messages = []
+                for schema, channel, message in reader.iter_messages(log_time_order=False):
+                    if schema is not None:
+                        schemas[schema.id] = schema
+                    channels[channel.id] = channel
+                    messages.append(message)
             # file order, then a stable sort by log time: the order iter_messages(log_time_order=True)
             # gives (ties by position in the file), without its per-message heap in Python
-            for schema, channel, message in reader.iter_messages(log_time_order=False):
-                if schema is not None:
-                    schemas[schema.id] = schema
-                channels[channel.id] = channel
-                messages.append(message)
             messages.sort(key=lambda m: m.log_time)
             if summary is not None:
                 schemas.update(summary.schemas)
@@ -655,6 +658,62 @@ def _load(path) -> _Raw:
             raw = _salvage(path, f, size, err)
             raw.profile = header.profile
     return raw
+
+
+_RECORD_HEAD = struct.Struct("<BQ")                 # opcode, record length
+_MESSAGE_HEAD = struct.Struct("<HIQQ")              # channel id, sequence, log time, publish time
+_OP_MESSAGE = 0x05
+
+
+def _indexed_messages(f, summary, validate_crcs: bool = True) -> list | None:
+    """The messages of an indexed MCAP file in the order ``SeekingReader.iter_messages(
+    log_time_order=False)`` yields them (chunk index order, then record order in the chunk),
+    as the same ``mcap.records.Message`` objects; ``None`` where that reader would not use
+    the index (no summary or no chunk index). Chunks are read and CRC-checked by the mcap
+    library; only the per-record loop is replaced (the library's Python stream reader costs
+    ~10 us a message: half of reading a 10 kHz recording). A message on a channel the
+    summary does not declare raises ``KeyError``, as the library does.
+
+    >>> import io
+    >>> from mcap.reader import make_reader
+    >>> from mcap.writer import Writer
+    >>> buf = io.BytesIO(); w = Writer(buf); w.start()
+    >>> ch = w.register_channel("/t", "raw", w.register_schema("s", "raw", b""))
+    >>> for t in (3, 1, 2): w.add_message(ch, log_time=t, data=bytes([t]), publish_time=t)
+    >>> w.finish()
+    >>> _ = buf.seek(0); reader = make_reader(buf)
+    >>> ours = _indexed_messages(buf, reader.get_summary())
+    >>> ours == [m for _, _, m in reader.iter_messages(log_time_order=False)]
+    True
+    """
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import get_chunk_data_stream
+    from mcap.data_stream import ReadDataStream
+    if summary is None or not summary.chunk_indexes:
+        return None
+    head, msg_head = _RECORD_HEAD.unpack_from, _MESSAGE_HEAD.unpack_from
+    out = []
+    for ci in summary.chunk_indexes:
+        f.seek(ci.chunk_start_offset + 1 + 8)
+        chunk = Chunk.read(ReadDataStream(f))
+        stream, n = get_chunk_data_stream(chunk, validate_crc=validate_crcs)
+        buf = stream.read(n)
+        off = 0
+        while off < n:
+            op, ln = head(buf, off)
+            end = off + 9 + ln
+            if end > n:
+                raise ValueError(f"record at byte {off} of a chunk at {ci.chunk_start_offset} runs past "
+                                 f"the chunk ({ln} bytes, {n - off - 9} left)")
+            if op == _OP_MESSAGE:
+                if ln < _MESSAGE_HEAD.size:
+                    raise ValueError(f"message record of {ln} bytes in the chunk at {ci.chunk_start_offset}")
+                cid, seq, log_time, pub_time = msg_head(buf, off + 9)
+                summary.channels[cid]                        # noqa: B018 - undeclared channel: KeyError
+                out.append(Message(channel_id=cid, sequence=seq, log_time=log_time,
+                                   publish_time=pub_time, data=buf[off + 9 + _MESSAGE_HEAD.size:end]))
+            off = end
+    return out
 
 
 @dataclass(frozen=True, slots=True)

@@ -201,13 +201,19 @@ class JointStateReader:
             at += 4
             if n:
                 pad = -(at - 4) % 8
-                pads.extend(range(at, at + pad))
+                if pad:
+                    pads.append((at, at + pad, bytes(pad)))   # (start, end, zeros)
                 at += pad + 8 * n
         self._pads = tuple(pads)
 
     def _known(self, data) -> bool:
-        return (self._layout is not None and len(data) == self._size and data[1] == 1
-                and data[12:self._end] == self._static and not any(data[i] for i in self._pads))
+        if not (self._layout is not None and len(data) == self._size and data[1] == 1
+                and data[12:self._end] == self._static):
+            return False
+        for a, b, zeros in self._pads:
+            if data[a:b] != zeros:
+                return False
+        return True
 
     def read(self, data) -> tuple:
         """``(stamp_ns, names, position, velocity, effort)`` as :func:`read_joint_state`."""
