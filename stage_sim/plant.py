@@ -44,6 +44,10 @@ from .config import Stage
 # per-trial scalar state slots
 P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX, P_FPREV = range(9)
 N_PSTATE = 9
+BRISTLE_H = 0.01
+"""Sub-step x (explicitly held law damping / mass) at most this: LuGre's bristle damping
+``sigma1 dz/dt`` is held over a sub-step, a first-order error in the sub-step (against RK4:
+4.3 um over 0.45 mm of travel at 1 kHz with 4 sub-steps, 0.17 um at 0.01)."""
 # status codes returned by plant_step
 OK, DIVERGED, OUT_OF_TRAVEL = 0, 1, 2
 STATUS_TEXT = {OK: "ok", DIVERGED: "state diverged (non-finite or beyond 1e3 x travel)",
@@ -223,12 +227,15 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
     k_tangent = np.zeros((n, n))
     c_explicit = np.zeros(n)
     c_implicit = np.zeros(n)     # slopes an implicit law solves stably, resolved for accuracy only
+    c_bristle = np.zeros(n)      # damping an explicit law holds over a sub-step, resolved for accuracy
     for e, (law, (fr, dof, _)) in enumerate(zip(laws, fr_list)):
         fr_par[e, :len(pars[e])] = pars[e]
         fr_var[e] = _variation(fr)
         cmat[dof, dof] += fr.viscous
         k_tangent[dof, dof] += law.stiffness_at_rest(fr) * (1.0 + abs(fr_var[e, 1]))
         (c_implicit if law.IMPLICIT else c_explicit)[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
+        if not law.IMPLICIT:
+            c_bristle[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
 
     sai_dof, k_lock, c_lock, cap, rc_a, arm_steps, pulse_force, pulse_steps = -1, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0
     sai = stage.sai
@@ -256,6 +263,10 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
     # transients are resolved like explicit damping, up to max_substeps (beyond, stable but coarse)
     rate_implicit = float(np.max(c_implicit / np.array(masses)))
     n_sub = max(n_sub, min(max_substeps, math.ceil(rate_implicit * dt / max_omega_h)))
+    # a law's explicitly held damping (LuGre's bristle damping sigma1 dz/dt) is first-order
+    # accurate in the sub-step: resolved to BRISTLE_H of its rate, up to max_substeps
+    rate_bristle = float(np.max(c_bristle / np.array(masses)))
+    n_sub = max(n_sub, min(max_substeps, math.ceil(rate_bristle * dt / BRISTLE_H)))
     h = dt / n_sub
 
     a = np.zeros((2 * n, 2 * n))
