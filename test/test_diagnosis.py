@@ -170,7 +170,7 @@ def test_list_effects_covers_the_issue():
     for k in ("dahl", "gms", "coulomb", "viscous", "stribeck", "fi_compliance", "position_friction", "ripple",
               "structural_mode", "delay", "force_constant", "mass", "noise_level", "quantization",
               "dither_imbalance", "isolator_transient", "sparse_regression", "fractional_delay", "located_mode",
-              "regularized_coulomb"):
+              "regularized_coulomb", "lugre"):
         assert k in keys
     text = describe()
     assert "signature" in text and "needs" in text

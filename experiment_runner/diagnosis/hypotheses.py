@@ -323,6 +323,56 @@ class Stribeck(Effect):
         return spec.with_changes(edit=edit)
 
 
+class LugreDamping(Effect):
+    """Pre-motion friction with bristle damping (LuGre, Canudas de Wit et al. 1995): each friction
+    element becomes ``sigma0 z + sigma1 dz/dt`` with ``dz/dx = 1 - sigma0 sgn(v) z / g(v)``;
+    ``sigma0`` and ``sigma1`` are fitted as totals shared in proportion to F_C, F_C and viscous
+    kept, the Stribeck curve kept from a LuGre element (else none: F_S = F_C, where sigma1 = 0
+    is Dahl with shape 1). At rest the contact is a Kelvin-Voigt solid: a force change below
+    F_C is followed by creep over ``tau = sigma1 / sigma0`` instead of an instant deflection,
+    and the pre-motion resonance is damped."""
+
+    def applicable(self, spec):
+        return None if friction_elements(spec.preset) else "the model has no friction element to give pre-motion"
+
+    def _k0(self, spec):
+        k0 = float(sum(friction.initial_stiffness(fr) for _, fr in friction_elements(spec.preset)))
+        return k0 if k0 > 0 else max(coulomb_total(spec.preset), 1e-3) / 1e-6
+
+    def params(self, spec, ctx):
+        k0 = self._k0(spec)
+        return [Param("sigma0", "N/m", k0 * 1e-2, k0 * 1e2, k0, log=True,
+                      doc="total bristle (pre-motion) stiffness"),
+                Param("sigma1", "N·s/m", k0 * 1e-7, k0 * 1e-2, k0 * 1e-4, log=True,
+                      doc="total bristle damping (creep time sigma1 / sigma0: 0.1 us ... 10 ms)")]
+
+    def starts(self, spec, ctx):
+        k0 = self._k0(spec)
+        return [[k0, k0 * t] for t in (1e-5, 1e-4, 1e-3, 5e-3)]
+
+    def nominal(self, spec):
+        els = friction_elements(spec.preset)
+        if els and all(fr.model == "lugre" for _, fr in els):
+            return {"sigma0": self._k0(spec), "sigma1": float(sum(fr.sigma1 for _, fr in els))}
+        return {"sigma0": None, "sigma1": None}
+
+    def derived(self, spec, theta):
+        return {"tau": float(theta[1]) / float(theta[0])}
+
+    def apply(self, spec, theta):
+        s0, s1 = float(theta[0]), float(theta[1])
+        els, w = _fric_weights(spec)
+
+        def edit(d):
+            for (path, fr), we in zip(els, w):
+                fc = max(fr.f_c, 1e-9)
+                lugre = fr.model == "lugre"
+                set_dotted(d, path, {"model": "lugre", "sigma0": s0 * we, "sigma1": s1 * we, "viscous": fr.viscous,
+                                     "f_c": fc, "f_s": fr.f_s if lugre else fc, "v_s": fr.v_s if lugre else 1e-3,
+                                     "exponent": fr.exponent if lugre else 2.0, **_variation(fr, fc)})
+        return spec.with_changes(edit=edit)
+
+
 class RegularizedCoulomb(Effect):
     """Friction with a smooth zero-velocity transition: each friction element becomes
     ``F_C tanh(v / v_reg) + viscous v`` (:mod:`stage_sim.friction.regularized`, F_C and viscous
@@ -860,6 +910,17 @@ def _lib():
                  "residual with the sign of velocity, largest at low speed (just after reversals, before "
                  "constant velocity), vanishing above a few v_s",
                  param_doc=[("F_S", "N", "static force"), ("v_s", "m/s", "Stribeck velocity")]),
+        LugreDamping("lugre", "pre-motion friction with bristle damping (LuGre)", "deterministic",
+                     "LuGre bristles (Canudas de Wit et al. 1995): F = sigma0 z + sigma1 dz/dt, dz/dx = 1 - sigma0 "
+                     "sgn(v) z / g(v), in every friction element (F_C, viscous and a LuGre Stribeck curve kept; "
+                     "else F_S = F_C). At rest the contact is a spring and damper: after a force change below "
+                     "F_C the stage creeps over tau = sigma1 / sigma0 instead of deflecting at once, and the "
+                     "pre-motion resonance is damped.",
+                     "like Dahl, plus a creep of ~tau after each force change during holds and settling, and a "
+                     "damped (shorter) ringing of the pre-motion mode; residual correlated with the velocity "
+                     "in the first micrometres after reversals",
+                     param_doc=[("sigma0", "N/m", "total bristle stiffness"),
+                                ("sigma1", "N·s/m", "total bristle damping")]),
         RegularizedCoulomb("regularized_coulomb", "smooth zero-velocity friction (regularised Coulomb)",
                            "deterministic",
                            "Friction without stiction: F = F_C tanh(v / v_reg) + c v in every friction element "

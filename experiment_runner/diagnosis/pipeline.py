@@ -44,7 +44,7 @@ __all__ = ["Options", "diagnose"]
 
 # at most one effect of each group: alternative friction models; and GMS fits the Coulomb force
 # itself (the sum of its block capacities)
-EXCLUSIVE = ({"dahl", "gms", "stribeck", "regularized_coulomb"}, {"gms", "coulomb"})
+EXCLUSIVE = ({"dahl", "gms", "stribeck", "lugre", "regularized_coulomb"}, {"gms", "coulomb"})
 # quantities a nominal states as known (a data-sheet force constant): among candidates the replay
 # cannot tell apart, one of these is adopted last (it moves only when the data demand it)
 KNOWN = frozenset({"force_constant"})

@@ -111,6 +111,18 @@ def _stribeck_edit(d):
                          "f_s": 1.6 * f["f_c"], "v_s": 1.0e-3, "exponent": 2.0}
 
 
+def _lugre_edit(d):
+    for b in d["stage"]["bearings"]:
+        f = b["friction"]
+        b["friction"] = {"model": "lugre", "sigma0": f["k_sigma"], "sigma1": LUGRE_SIGMA1, "viscous": f["viscous"],
+                         "f_c": f["f_c"], "f_s": f["f_c"], "v_s": 1.0e-3, "exponent": 2.0}
+
+
+LUGRE_SIGMA1 = 500.0
+"""Bristle damping per bearing [N·s/m] of the ``lugre`` case: damping ratio ~0.37 of a bearing's
+pre-motion mode (0.43 kg on 1.095e6 N/m, 254 Hz), creep time sigma1 / sigma0 = 0.46 ms."""
+
+
 def _regularized_edit(d):
     for b in d["stage"]["bearings"]:
         f = b["friction"]
@@ -181,6 +193,9 @@ CASES = [
     # friction without stiction (issue 12): the bearings creep at v_reg atanh(F/F_C) under the
     # servo's holding force instead of holding elastically (Dahl)
     Case("regularized_coulomb", "regularized_coulomb", edit=_regularized_edit, expect={"v_reg": 1.0e-4},
+         experiment="steps"),
+    # bristle damping (issue 12): the Dahl bearings' pre-motion becomes a Kelvin-Voigt contact
+    Case("lugre", "lugre", edit=_lugre_edit, expect={"sigma0": 2.19e6, "sigma1": 2 * LUGRE_SIGMA1},
          experiment="steps"),
     Case("fi_compliance", "fi_compliance", edit=_fi_edit, expect={"k_fi": 8.27e4}, experiment="steps"),
     Case("structural_mode_150Hz", "structural_mode", edit=_mode_edit, expect={"f": 150.0, "fraction": MODE_FRACTION}),
