@@ -55,8 +55,14 @@ DEFAULT_CASES = 150
 
 EFFECTS = ("coulomb", "viscous", "mass", "force_constant", "delay", "dahl", "gms", "stribeck", "fi_compliance",
            "position_friction", "ripple", "structural_mode", "friction_asymmetry", "offset", "dither_imbalance",
-           "isolator_transient", "noise_level", "quantization")
-"""Every effect of the library (:data:`.hypotheses.LIBRARY`), in the order they are dealt."""
+           "isolator_transient", "noise_level", "quantization", "lugre", "regularized_coulomb", "fractional_delay")
+"""Every effect of the library (:data:`.hypotheses.LIBRARY`) that a truth can be written with, in
+the order they are dealt (not ``located_mode``: a structural mode fitted on the transfer, dealt as
+``structural_mode``; not ``sparse_regression``: a residual term, no physics to conceal)."""
+
+SEPARATE = ({"delay", "fractional_delay"},)
+"""Effects never dealt as a pair (besides the friction laws of :data:`.pipeline.EXCLUSIVE`): one
+drive delay, whole and fractional samples."""
 
 STOCHASTIC = {"noise_level", "quantization"}
 NOISE = 7.1e-4                   # the Ch. 4 presets' drive noise [A RMS]
@@ -239,6 +245,25 @@ def _truth_effect(e: str, q: float, rng, d: dict, case: PowerCase, info: dict) -
         f = math.exp(sign * _logu(q, 0.1, 2.5))
         d["stage"]["sai"]["impact_impulse"] = j * f
         return {"impact_impulse": j * f}
+    if e == "lugre":
+        tau = _logu(q, 2e-5, 1e-3)            # creep time sigma1 / sigma0 [s]
+
+        def lug(fr, b):
+            k = fr.get("k_sigma") or fr["f_c"] / 1e-6
+            b["friction"] = {"model": "lugre", "sigma0": k, "sigma1": tau * k, "viscous": fr.get("viscous", 0.0),
+                             "f_c": fr["f_c"], "f_s": fr["f_c"], "v_s": 1e-3, "exponent": 2.0}
+        _bearings(d, lug)
+        els = [b["friction"] for b in d["stage"]["bearings"]]
+        return {"sigma0": sum(x["sigma0"] for x in els), "sigma1": sum(x["sigma1"] for x in els)}
+    if e == "regularized_coulomb":
+        v = _logu(q, 1e-4, 3e-2) * info["v_max"]
+        _bearings(d, lambda fr, b: b.update(friction={"model": "regularized_coulomb", "f_c": fr["f_c"], "v_reg": v,
+                                                      "viscous": fr.get("viscous", 0.0)}))
+        return {"v_reg": v}
+    if e == "fractional_delay":
+        f = _logu(q, 0.05, 0.9)
+        d["stage"]["drive"]["delay_fraction"] = f
+        return {"shift": f}
     if e == "noise_level":
         f = math.exp(sign * _logu(q, 0.05, 1.6))
         d["stage"]["drive"]["noise_current_rms"] *= f
@@ -260,6 +285,8 @@ def _compatible(e: str, stage: str, friction: str, rate: float) -> bool:
         return friction in ("dahl", "coulomb")
     if e == "gms":
         return friction in ("dahl", "gms")
+    if e in ("lugre", "regularized_coulomb"):
+        return friction in ("dahl", "coulomb")       # one element per bearing to rewrite
     return True
 
 
@@ -320,7 +347,7 @@ def make_cases(n: int = DEFAULT_CASES, master_seed: int = MASTER_SEED) -> list[P
     pairs = []
     while len(pairs) < n_pair:
         a, b = (str(x) for x in rng0.choice([e for e in order if e != "isolator_transient"], 2, replace=False))
-        if any({a, b} <= g for g in EXCLUSIVE) or (a, b) in pairs or (b, a) in pairs:
+        if any({a, b} <= g for g in EXCLUSIVE + SEPARATE) or (a, b) in pairs or (b, a) in pairs:
             continue
         pairs.append((a, b))
     specs = [(s,) for s in singles] + pairs + [()] * n_neg
