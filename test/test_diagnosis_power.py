@@ -63,8 +63,10 @@ def test_replay_refined_candidates_name_the_simpler_true_effect():
     the Coulomb level reaches the floor, the friction slope adds nothing beyond it, and the
     simpler true effect is named first, its value within 2 % (the issue asks 20 %)."""
     from experiment_runner.diagnosis.power import run_case
-    case = make_cases(150)[54]
-    assert case.effects == ("coulomb",)
+    # the case as dealt before lugre / regularised Coulomb / fractional delay joined the deal
+    case = PowerCase(index=54, effects=("coulomb",), stage="rigid", friction="gms", rate=1000.0, noise=0.5,
+                     record="p2p1", quantiles=(0.008776320631489587,), seed=176666255, trials=1,
+                     profile={"kind": "point_to_point", "distance": -0.0017649611270172064, "dwell": 0.25})
     r = run_case(case)
     assert "error" not in r, r.get("traceback")
     assert r["replay_change"]["truth"] >= 3
