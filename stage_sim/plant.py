@@ -225,17 +225,15 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
     fr_noise = np.array([noise for _, _, noise in fr_list], float)
     fr_var = np.zeros((nf, 6))
     k_tangent = np.zeros((n, n))
-    c_explicit = np.zeros(n)
     c_implicit = np.zeros(n)     # slopes an implicit law solves stably, resolved for accuracy only
-    c_bristle = np.zeros(n)      # damping an explicit law holds over a sub-step, resolved for accuracy
+    c_law = np.zeros(n)          # damping an explicit law holds over a sub-step (LuGre's sigma1)
     for e, (law, (fr, dof, _)) in enumerate(zip(laws, fr_list)):
         fr_par[e, :len(pars[e])] = pars[e]
         fr_var[e] = _variation(fr)
         cmat[dof, dof] += fr.viscous
         k_tangent[dof, dof] += law.stiffness_at_rest(fr) * (1.0 + abs(fr_var[e, 1]))
-        (c_implicit if law.IMPLICIT else c_explicit)[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
-        if not law.IMPLICIT:
-            c_bristle[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
+        (c_implicit if law.IMPLICIT else c_law)[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
+    c_explicit = c_law.copy()    # and the SAI lock's: explicit damping the sub-steps keep stable
 
     sai_dof, k_lock, c_lock, cap, rc_a, arm_steps, pulse_force, pulse_steps = -1, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0
     sai = stage.sai
@@ -259,14 +257,12 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
         raise ValueError(
             f"stage needs {n_sub} sub-steps per control period (stiffest mode "
             f"{omega_max / (2 * math.pi):.0f} Hz); limit is simulation.max_substeps={max_substeps}")
-    # an implicit law's slope (regularised Coulomb at rest) is stable at any sub-step but its
-    # transients are resolved like explicit damping, up to max_substeps (beyond, stable but coarse)
-    rate_implicit = float(np.max(c_implicit / np.array(masses)))
-    n_sub = max(n_sub, min(max_substeps, math.ceil(rate_implicit * dt / max_omega_h)))
-    # a law's explicitly held damping (LuGre's bristle damping sigma1 dz/dt) is first-order
-    # accurate in the sub-step: resolved to BRISTLE_H of its rate, up to max_substeps
-    rate_bristle = float(np.max(c_bristle / np.array(masses)))
-    n_sub = max(n_sub, min(max_substeps, math.ceil(rate_bristle * dt / BRISTLE_H)))
+    # resolved for accuracy, up to max_substeps (beyond: stable but coarse): an implicit law's
+    # slope (regularised Coulomb at rest) like explicit damping, a law's explicitly held damping
+    # (LuGre's sigma1 dz/dt, first order in the sub-step) to BRISTLE_H of its rate
+    need = max(math.ceil(float(np.max(c_implicit / np.array(masses))) * dt / max_omega_h),
+               math.ceil(float(np.max(c_law / np.array(masses))) * dt / BRISTLE_H))
+    n_sub = max(n_sub, min(max_substeps, need))
     h = dt / n_sub
 
     a = np.zeros((2 * n, 2 * n))

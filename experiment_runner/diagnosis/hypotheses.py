@@ -194,17 +194,19 @@ class Viscous(Effect):
 
 
 # --------------------------------------------------------------------------- pre-motion friction
+def _contact_stiffness(spec: ModelSpec) -> float:
+    """The model's total pre-motion stiffness at rest [N/m] (:func:`stage_sim.friction.initial_stiffness`
+    summed), or -- friction without pre-motion -- that of a 1 um pre-motion length at F_C."""
+    k0 = float(sum(friction.initial_stiffness(fr) for _, fr in friction_elements(spec.preset)))
+    return k0 if k0 > 0 else max(coulomb_total(spec.preset), 1e-3) / 1e-6
+
+
 class Dahl(Effect):
     def applicable(self, spec):
         return None if friction_elements(spec.preset) else "the model has no friction element to give pre-motion"
 
-    def _k0(self, spec):
-        return float(sum(friction.initial_stiffness(fr) for _, fr in friction_elements(spec.preset)))
-
     def params(self, spec, ctx):
-        k0 = self._k0(spec)
-        if k0 <= 0:
-            k0 = max(coulomb_total(spec.preset), 1e-3) / 1e-6
+        k0 = _contact_stiffness(spec)
         return [Param("k_sigma", "N/m", k0 * 1e-3, k0 * 1e3, k0, log=True,
                       doc="total pre-motion (contact) stiffness of the Dahl model")]
 
@@ -215,7 +217,7 @@ class Dahl(Effect):
 
     def nominal(self, spec):
         els = friction_elements(spec.preset)
-        return {"k_sigma": self._k0(spec) if all(fr.model == "dahl" for _, fr in els) and els else None}
+        return {"k_sigma": _contact_stiffness(spec) if all(fr.model == "dahl" for _, fr in els) and els else None}
 
     def derived(self, spec, theta):
         sp = self.apply(spec, theta)
@@ -335,25 +337,21 @@ class LugreDamping(Effect):
     def applicable(self, spec):
         return None if friction_elements(spec.preset) else "the model has no friction element to give pre-motion"
 
-    def _k0(self, spec):
-        k0 = float(sum(friction.initial_stiffness(fr) for _, fr in friction_elements(spec.preset)))
-        return k0 if k0 > 0 else max(coulomb_total(spec.preset), 1e-3) / 1e-6
-
     def params(self, spec, ctx):
-        k0 = self._k0(spec)
+        k0 = _contact_stiffness(spec)
         return [Param("sigma0", "N/m", k0 * 1e-2, k0 * 1e2, k0, log=True,
                       doc="total bristle (pre-motion) stiffness"),
                 Param("sigma1", "N·s/m", k0 * 1e-7, k0 * 1e-2, k0 * 1e-4, log=True,
                       doc="total bristle damping (creep time sigma1 / sigma0: 0.1 us ... 10 ms)")]
 
     def starts(self, spec, ctx):
-        k0 = self._k0(spec)
+        k0 = _contact_stiffness(spec)
         return [[k0, k0 * t] for t in (1e-5, 1e-4, 1e-3, 5e-3)]
 
     def nominal(self, spec):
         els = friction_elements(spec.preset)
         if els and all(fr.model == "lugre" for _, fr in els):
-            return {"sigma0": self._k0(spec), "sigma1": float(sum(fr.sigma1 for _, fr in els))}
+            return {"sigma0": _contact_stiffness(spec), "sigma1": float(sum(fr.sigma1 for _, fr in els))}
         return {"sigma0": None, "sigma1": None}
 
     def derived(self, spec, theta):
