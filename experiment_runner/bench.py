@@ -83,11 +83,11 @@ def core_figures(quick: bool = False) -> dict:
         numba.set_num_threads(1)
         single = _rtf(preset, ref, 1, models, repeats)
         single_cpu = _rtf(preset, ref, 1, models, repeats, time.process_time)
-        batch_one_core = _rtf(preset, ref, 100, models, max(1, repeats // 2))
-        batch_cpu = _rtf(preset, ref, 100, models, max(1, repeats // 2), time.process_time)
+        batch_one_core = _rtf(preset, ref, 100, models, repeats)
+        batch_cpu = _rtf(preset, ref, 100, models, repeats, time.process_time)
     finally:
         numba.set_num_threads(threads)
-    batch_all = _rtf(preset, ref, 100, models, max(1, repeats // 2))
+    batch_all = _rtf(preset, ref, 100, models, repeats)
     return {
         "core_single_rtf": round(single, 1),
         "core_batch_rtf": round(batch_one_core, 1),

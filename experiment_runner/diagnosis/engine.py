@@ -43,7 +43,7 @@ def observer_model(pm: PlantModel) -> PlantModel:
     return pm._replace(noise_std=0.0, fr_noise=np.zeros_like(pm.fr_noise), q_table=0.0, q_bearing=0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def friction_norm(pm, z, fr, b, fc_tot):
     """Normalised friction force on the table DOF (-1 ... 1) of trial ``b``: pre-motion state aware."""
     n = pm.n
@@ -55,6 +55,14 @@ def friction_norm(pm, z, fr, b, fc_tot):
         return tot / fc_tot
     v = z[n, b]
     return math.tanh(v / 1e-6)
+
+
+@njit(cache=True, inline="always")
+def _copy2(dst, src):
+    """``dst[:] = src`` for 2-D arrays, element by element (no temporary: no runtime needed)."""
+    for i in range(src.shape[0]):
+        for j in range(src.shape[1]):
+            dst[i, j] = src[i, j]
 
 
 @njit(cache=True, nogil=True)
@@ -72,6 +80,16 @@ def observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every,
     samples the plant state into ``snap_*`` (for :func:`open_loop`). Returns the number of
     samples at which the plant reported a non-OK status.
     """
+    B = ys.shape[1]
+    return _observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every, out_d, out_x, out_v, out_phi,
+                    snap_z, snap_fr, snap_ps, snap_dbuf, np.zeros((5, B)), np.zeros((2, B), np.int64))
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every, out_d, out_x, out_v, out_phi,
+             snap_z, snap_fr, snap_ps, snap_dbuf, work, iwork):
+    """:func:`observe`'s loop, compiled without the runtime (no reference counting in the
+    per-sample loop; ``work`` (5, B), ``iwork`` (2, B) zeroed scratch)."""
     T, B = ys.shape
     n = pm.n
     z, fr, ps, dbuf = st.z, st.fr, st.ps, st.dbuf
@@ -79,21 +97,18 @@ def observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every,
     kp = 3.0 * m_eff * omega * omega
     kd = 3.0 * m_eff * omega
     ki = m_eff * omega * omega * omega
-    integ = np.zeros(B)
-    d = np.zeros(B)
-    dk = np.zeros(B)
+    integ, d, dk, meas = work[0], work[1], work[2], work[3:5]
     known = inp.f_ext.shape[0] > 0
-    seeds = np.zeros(B, np.int64)
-    meas = np.zeros((2, B))
-    status = np.zeros(B, np.int64)
+    seeds, status = iwork[0], iwork[1]
     bad = 0
     for k in range(T):
         if snap_every > 0 and k % snap_every == 0:
             s = k // snap_every
-            snap_z[s] = z
-            snap_fr[s] = fr
-            snap_ps[s] = ps
-            snap_dbuf[s] = dbuf
+            _copy2(snap_z[s], z)
+            for e in range(fr.shape[0]):
+                _copy2(snap_fr[s, e], fr[e])
+            _copy2(snap_ps[s], ps)
+            _copy2(snap_dbuf[s], dbuf)
         for b in range(B):
             e = ys[k, b] - z[0, b]
             ev = vs[k, b] - z[n, b]
