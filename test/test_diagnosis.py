@@ -146,10 +146,8 @@ def test_noise_floor_whitening_is_unit_for_the_model_itself(coulomb_case):
 # --------------------------------------------------------------------------- library, model files
 @pytest.mark.parametrize("key", list(LIBRARY))
 def test_every_effect_applies_to_the_nominal(key):
-    e = get_effect(key)
-    if hasattr(e, "bind"):
-        e.bind({"x_center": 0.0, "x_half_span": 5e-3, "delta_lo": 3e-8, "delta_hi": 1e-4, "smoothing_hz": 1000.0,
-                "frf_modes": [{"f_hz": 1500.0, "zeta": 0.02, "fraction": 0.05}]})
+    e = get_effect(key).bound({"x_center": 0.0, "x_half_span": 5e-3, "delta_lo": 3e-8, "delta_hi": 1e-4,
+                               "smoothing_hz": 1000.0, "frf_modes": [{"f_hz": 1500.0, "zeta": 0.02, "fraction": 0.05}]})
     spec = ModelSpec(NOM)
     if e.applicable(spec) is not None:            # needs what the nominal lacks (isolator_transient: an SAI)
         assert key == "isolator_transient", e.applicable(spec)

@@ -163,16 +163,11 @@ class FitResult:
     joint: "FitResult | None" = None    # fitted together with the selected effects (fit_with)
     replaces: str | None = None          # an adopted effect of its exclusive group this one replaces
     refined: bool = False                # values from the closed-loop replay (output error), not the observer
+    effect: "Effect | None" = None       # the (bound) effect fitted: what applies theta to a model
 
     def params(self) -> list[dict]:
         return [{"name": n, "unit": u, "value": float(v), "sigma": float(s) if np.isfinite(s) else None,
                  "nominal": self.nominal.get(n)} for n, u, v, s in zip(self.names, self.units, self.theta, self.sigma)]
-
-
-def _bind(effect: Effect, ctx: dict) -> Effect:
-    if hasattr(effect, "bind"):
-        effect.bind(ctx)
-    return effect
 
 
 class _Transform:
@@ -202,7 +197,7 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
     """Fit ``effect`` added to ``base`` on the fit samples; judge it on the held-out ones."""
     if effect.applicable(base) is not None or effect.kind not in ("deterministic", "integer"):
         return None
-    _bind(effect, ctx)
+    effect = effect.bound(ctx)
     t0 = time.perf_counter()
     count = [0]
     params = effect.params(base, ctx)
@@ -287,7 +282,8 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
     return FitResult(key=effect.key, title=effect.title, names=names, units=units, theta=np.asarray(theta, float),
                      sigma=np.asarray(sigma, float), corr=corr, spec=spec, J_fit=J_fit, J_held=J_held, n_eff_held=ne,
                      evals=count[0] + 1, seconds=time.perf_counter() - t0, nominal=effect.nominal(base),
-                     derived=effect.derived(base, theta), expressible=effect.expressible, on_bound=on_bound)
+                     derived=effect.derived(base, theta), expressible=effect.expressible, on_bound=on_bound,
+                     effect=effect)
 
 
 def gauss_newton(fun, z0, lo, hi, r0=None, max_iter: int = 8, h: float = 1e-3, rtol: float = 1e-4) -> dict:
@@ -380,8 +376,8 @@ def joint_fit(fits: list[FitResult], base: ModelSpec, ev: Evaluator, ctx: dict,
         return None
     spec0 = base
     for f in fixed:
-        spec0 = LIBRARY[f.key].apply(spec0, f.theta)
-    joint = _Joint([(_bind(LIBRARY[f.key], ctx), len(f.theta)) for f in cont], [f.theta for f in cont])
+        spec0 = f.effect.apply(spec0, f.theta)
+    joint = _Joint([(f.effect, len(f.theta)) for f in cont], [f.theta for f in cont])
     x0 = np.concatenate([f.theta for f in cont])
     # bounds of each part relative to the model it is applied to
     r = fit_effect(joint, spec0, ev, ctx, starts=[list(x0)], max_nfev=max_iter)
@@ -403,15 +399,15 @@ def fit_with(effect: Effect, selected: list[FitResult], base: ModelSpec, ev: Eva
     spec0 = base
     for f in selected:
         if LIBRARY[f.key].kind != "deterministic":
-            spec0 = LIBRARY[f.key].apply(spec0, f.theta)
-    _bind(effect, ctx)
+            spec0 = f.effect.apply(spec0, f.theta)
+    effect = effect.bound(ctx)
     n_e = len(effect.params(spec0, ctx))
     x_sel = list(np.concatenate([f.theta for f in cont]))
     cur = spec0
     for f in cont:
-        cur = LIBRARY[f.key].apply(cur, f.theta)
+        cur = f.effect.apply(cur, f.theta)
     starts = effect.starts(cur, ctx)
-    joint = _Joint([(_bind(LIBRARY[f.key], ctx), len(f.theta)) for f in cont] + [(effect, n_e)],
+    joint = _Joint([(f.effect, len(f.theta)) for f in cont] + [(effect, n_e)],
                    [f.theta for f in cont] + [starts[0]])
     jf = fit_effect(joint, spec0, ev, ctx, starts=[x_sel + list(st) for st in starts])
     if jf is None:
@@ -424,7 +420,7 @@ def fit_with(effect: Effect, selected: list[FitResult], base: ModelSpec, ev: Eva
                      J_held=jf.J_held, n_eff_held=jf.n_eff_held, evals=jf.evals, seconds=jf.seconds,
                      nominal=effect.nominal(spec0), derived=effect.derived(cur, th), expressible=effect.expressible,
                      on_bound=[n.split(".", 1)[1] for n in jf.on_bound if n.startswith(effect.key + ".")],
-                     joint=jf)
+                     joint=jf, effect=effect)
 
 
 # --------------------------------------------------------------------------- stochastic

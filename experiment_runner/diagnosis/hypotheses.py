@@ -21,6 +21,7 @@ all of them.
 """
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -60,6 +61,13 @@ class Effect:
     expressible: bool = True
     needs: str = ""
     param_doc: list = field(default_factory=list)   # (name, unit, meaning) for the listing
+
+    def bound(self, ctx: dict) -> "Effect":
+        """This effect for a recording whose locate context is ``ctx``: a copy that carries what
+        its model change needs from the recording (block slip distances, located modes, the
+        position centre). The library's instances are never changed, so fits on threads and
+        concurrent diagnoses share them safely; a context-free effect is its own bound form."""
+        return self
 
     def applicable(self, spec: ModelSpec) -> str | None:
         """``None`` if the effect can be added to ``spec``, else the reason it cannot."""
@@ -286,9 +294,10 @@ class Gms(Effect):
                                      "viscous": fr.viscous, **_variation(fr, fc * we)})
         return spec.with_changes(edit=edit)
 
-    def bind(self, ctx):
-        self._d = self.deltas(ctx)
-        return self
+    def bound(self, ctx):
+        e = copy.copy(self)
+        e._d = self.deltas(ctx)
+        return e
 
 
 class Stribeck(Effect):
@@ -554,10 +563,11 @@ class LocatedMode(Effect):
     decides on the held-out data."""
     _modes = None
 
-    def bind(self, ctx):
+    def bound(self, ctx):
         fs = float(ctx.get("smoothing_hz") or 0.0)
-        self._modes = tuple(m for m in ctx.get("frf_modes") or () if m["f_hz"] > fs)
-        return self
+        e = copy.copy(self)
+        e._modes = tuple(m for m in ctx.get("frf_modes") or () if m["f_hz"] > fs)
+        return e
 
     def applicable(self, spec):
         if self._modes is not None and not self._modes:
@@ -767,9 +777,10 @@ class PositionFriction(Effect):
             node["position_center"] = c
         return spec.with_changes(edit=_edit_elements(spec, fn))
 
-    def bind(self, ctx):
-        self._c = float(ctx.get("x_center", 0.0))
-        return self
+    def bound(self, ctx):
+        e = copy.copy(self)
+        e._c = float(ctx.get("x_center", 0.0))
+        return e
 
 
 class Asymmetry(Effect):
@@ -1030,6 +1041,12 @@ def _lib():
 
 
 LIBRARY: dict[str, Effect] = {e.key: e for e in _lib()}
+
+
+def library(ctx: dict) -> dict:
+    """Every effect of :data:`LIBRARY` bound to a recording's locate context ``ctx``
+    (:meth:`Effect.bound`): one diagnosis' library."""
+    return {k: e.bound(ctx) for k, e in LIBRARY.items()}
 
 
 def get_effect(key: str) -> Effect:
