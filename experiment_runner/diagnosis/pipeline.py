@@ -449,6 +449,7 @@ class _Run:
         return self.report()
 
     def read(self):
+        """Load the recording and the nominal (checked against each other), replay the nominal, build the force observer."""
         recording, nominal, opt, data = self.recording, self.nominal, self.opt, self.data
         T0 = time.perf_counter()
         timing = {}
@@ -483,6 +484,7 @@ class _Run:
         self.notes, self.rp_nom, self.obs, self.f_band, self.W = notes, rp_nom, obs, f_band, W
 
     def quantization(self):
+        """The encoder's lattice from the measured positions (a stochastic effect, decided by its own estimate)."""
         opt, data, spec0 = self.opt, self.data, self.spec0
         # ---------------------------------------------------------------- stochastic: quantization
         found = []           # effects in the order they were named
@@ -513,6 +515,7 @@ class _Run:
         self.found, self.stochastic, self.base = found, stochastic, base
 
     def predict(self):
+        """The nominal's force-observer residual and open-loop windows, the noise floors and the replay judge."""
         opt, data, timing, t, spec0, notes = self.opt, self.data, self.timing, self.t, self.spec0, self.notes
         obs, W, base = self.obs, self.W, self.base
         # ---------------------------------------------------------------- predict (nominal)
@@ -549,6 +552,7 @@ class _Run:
         self.judge, self.fit_judge, self.refine, self.jfl0 = judge, fit_judge, refine, jfl0
 
     def locate(self):
+        """Where and what the nominal's residual holds (regimes, spectra, bins, modes on the transfer); binds the library."""
         opt, data, timing, t, spec0, obs = self.opt, self.data, self.timing, self.t, self.spec0, self.obs
         f_band, base, res_nom, fl = self.f_band, self.base, self.res_nom, self.fl
         # ---------------------------------------------------------------- locate
@@ -570,6 +574,7 @@ class _Run:
         self.library = library(ctx)      # the effects bound to this recording (never the shared LIBRARY)
 
     def prepare(self):
+        """The evaluator, the nominal's and base model's costs and the candidate effects."""
         opt, t, spec0, obs, base, fl = self.opt, self.t, self.spec0, self.obs, self.base, self.fl
         # ---------------------------------------------------------------- fit and choose
         t = time.perf_counter()
@@ -583,6 +588,7 @@ class _Run:
         self.neff, self.tol_ad, self.keys = neff, tol_ad, keys
 
     def select(self):
+        """Forward selection (:meth:`forward`), the candidate-fit tasks' shared state set first."""
         opt, data, ex, obs, found, base = self.opt, self.data, self.ex, self.obs, self.found, self.base
         # candidate fits as executor tasks (local processes / Dask): what every task needs, once
         token, blob = None, None
@@ -602,6 +608,7 @@ class _Run:
         self.floor_cur, self.jfl, self.steps, self.selected = floor_cur, jfl, steps, selected
 
     def refit_jointly(self):
+        """The selected deterministic effects fitted together; used if the replay is not worse and nothing is at a bound."""
         opt, timing, t, found, base, judge = self.opt, self.timing, self.t, self.found, self.base, self.judge
         ctx, ev, current, J_cur, jfl, selected = self.ctx, self.ev, self.current, self.J_cur, self.jfl, self.selected
         # joint fit of the selected deterministic effects: used only if the replay is not worse and no
@@ -645,6 +652,7 @@ class _Run:
         self.current, self.J_cur, self.jfl, self.joint = current, J_cur, jfl, joint
 
     def drive_noise(self):
+        """The drive-noise level proposed from the residual spectrum, decided by the replay's run-to-run consistency."""
         opt, data, timing, t, spec0, obs = self.opt, self.data, self.timing, self.t, self.spec0, self.obs
         found, stochastic, judge, ev, current, J_cur = self.found, self.stochastic, self.judge, self.ev, self.current, self.J_cur
         floor_cur, jfl, steps = self.floor_cur, self.jfl, self.steps
@@ -652,7 +660,8 @@ class _Run:
         t = time.perf_counter()
         ninfo = {"nominal_A": spec0.preset.stage.drive.noise_current_rms, "found": False}
         try:
-            comps = noise_components(current, data, lambda d: Observer(d, bandwidth=obs.f_o, smooth_hz=data.smooth_hz), seeds=tuple(opt.floor_seeds[0] + 11 + i for i in range(4)))
+            comps = noise_components(current, data, lambda d: Observer(d, bandwidth=obs.f_o, smooth_hz=data.smooth_hz),
+                                     seeds=tuple(opt.floor_seeds[0] + 11 + i for i in range(4)))
             r_cur = obs.run(current).r
             est = fit_noise_level(r_cur, data.fit, data.rate, comps, f_max=0.75 * obs.f_o)
             ninfo.update({k: v for k, v in est.items() if k != "ok"})
@@ -696,6 +705,7 @@ class _Run:
         self.t, self.current, self.J_cur, self.floor_cur, self.jfl = t, current, J_cur, floor_cur, jfl
 
     def validate(self):
+        """The improved model against the nominal on the held-out data (replay, force residual, open-loop windows)."""
         opt, data, timing, t, obs, f_band = self.opt, self.data, self.timing, self.t, self.obs, self.f_band
         W, res_nom, olw_nom, fl, ctl_err, x_eq = self.W, self.res_nom, self.olw_nom, self.fl, self.ctl_err, self.x_eq
         judge, jfl0, ev, current, floor_cur, jfl = self.judge, self.jfl0, self.ev, self.current, self.floor_cur, self.jfl
@@ -766,6 +776,7 @@ class _Run:
         self.z_nom, self.z_new, self.headline, self.validation = z_nom, z_new, headline, validation
 
     def report(self):
+        """The report dict (and, with ``out``, the files); ``_improved_spec`` is the improved model."""
         nominal, out, opt, data, T0, timing = self.nominal, self.out, self.opt, self.data, self.T0, self.timing
         t, spec0, kind, notes, rp_nom, obs = self.t, self.spec0, self.kind, self.notes, self.rp_nom, self.obs
         f_band, W, found, stochastic, res_nom, olw_nom = self.f_band, self.W, self.found, self.stochastic, self.res_nom, self.olw_nom
