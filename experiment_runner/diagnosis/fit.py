@@ -482,9 +482,10 @@ def noise_components(spec: ModelSpec, data: DiagData, obs_factory, seeds=(7001,)
     return f, out[0], np.maximum(out[1] - out[0], 0.0), sigma_ref
 
 
-def fit_noise_level(r_meas: np.ndarray, mask: np.ndarray, rate: float, comps, f_max: float | None = None) -> dict:
+def fit_noise_level(r_meas: np.ndarray, mask: np.ndarray, rate: float, comps, f_max: float | None = None,
+                    f_min: float = 0.0) -> dict:
     """Drive-noise RMS current implied by the measured residual spectrum (robust median over
-    the bands where drive noise dominates the floor)."""
+    the bands between ``f_min`` and ``f_max`` where drive noise dominates the floor)."""
     from scipy import signal
     f, S_q, S_n, sigma_ref = comps
     psd = []
@@ -497,7 +498,7 @@ def fit_noise_level(r_meas: np.ndarray, mask: np.ndarray, rate: float, comps, f_
     if not psd:
         return {"ok": False, "why": "not enough samples"}
     S_m = np.mean(psd, axis=0)
-    inband = (np.arange(len(f)) >= 4) & (f <= (f_max or f[-1]))
+    inband = (np.arange(len(f)) >= 4) & (f >= f_min) & (f <= (f_max or f[-1]))
     dom = (S_n > 1.0 * S_q) & inband
     if dom.sum() < 6:
         dom = (S_n > 0.3 * S_q) & inband

@@ -35,7 +35,7 @@ from .hypotheses import LIBRARY, get_effect, library
 from .judge import ReplayJudge, controller_check, equivalent_reference
 from .locate import locate, lowpass
 from .model import ModelSpec, load_model
-from .openloop import OpenLoopJudge
+from .openloop import MISSING_LP, OpenLoopJudge
 from .units import axis_units, convert_units
 from .predict import (NoiseFloor, Observer, band_rms, compare_replay, open_loop_windows, replay, smoothing_hz,
                       sim_batch, sim_data)
@@ -663,7 +663,11 @@ class _Run:
             comps = noise_components(current, data, lambda d: Observer(d, bandwidth=obs.f_o, smooth_hz=data.smooth_hz),
                                      seeds=tuple(opt.floor_seeds[0] + 11 + i for i in range(4)))
             r_cur = obs.run(current).r
-            est = fit_noise_level(r_cur, data.fit, data.rate, comps, f_max=0.75 * obs.f_o)
+            # an open-loop record's simulated recordings carry the data's own residual below
+            # MISSING_LP x f_o as a known force (openloop.sim_batch): there their residual is not the
+            # data's, and the level is read above it only
+            f_min = 2.0 * MISSING_LP * obs.f_o if data.open_loop else 0.0
+            est = fit_noise_level(r_cur, data.fit, data.rate, comps, f_max=0.75 * obs.f_o, f_min=f_min)
             ninfo.update({k: v for k, v in est.items() if k != "ok"})
             s0 = current.preset.stage.drive.noise_current_rms
             if est.get("ok"):
