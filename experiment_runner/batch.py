@@ -256,7 +256,8 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     n_chunks = max(1, min(numba.get_num_threads(), n_trials))
     size = -(-n_trials // n_chunks)
     pm = models.plant
-    init = models.initial_state(_chunked(x_ref[:, 0], 1, n_chunks * size)[0])
+    # padded trials repeat the last one (as _run_chunk reads their inputs)
+    init = models.initial_state(x_ref[np.minimum(np.arange(n_chunks * size), n_trials - 1), 0])
     plant = chunk_state(init.plant, n_chunks)
     T = x_ref.shape[1]
     states = [np.ascontiguousarray(np.moveaxis(a.reshape(-1, n_chunks, size), 1, 0))

@@ -63,7 +63,8 @@ CHUNK_BYTES = 128e6
 """Budget of one chunk's recorded trajectories [bytes] (about 13 float64 signals per sample): ~40
 trials of 1.5 s at 10 kHz. The batch engine's time per trial falls with the batch (table_4_2, one
 thread: ~6 ms per trial in chunks of 10, ~4.5 in chunks of 20, ~4.2 in chunks of 40)."""
-_BYTES_PER_SAMPLE = 13 * 8 * 2    # signals x float64 x (engine buffers + BatchResult copy)
+_BYTES_PER_SAMPLE = 13 * 8 * 2    # signals x float64 x 2 (the engine's buffers were copied into the
+                                  # BatchResult; since it returns them, the 2 is headroom: kept, so chunks stay)
 
 
 # =========================================================================== identity

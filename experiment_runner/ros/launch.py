@@ -186,7 +186,7 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
     import rclpy
     from rclpy.parameter import Parameter
 
-    from experiment_runner.ros.run import make_executor, spin_for
+    from experiment_runner.ros.run import make_executor, spin_for, teardown
     args = run_args(experiment, out, params)
     args["recorder"]["overwrite"] = True
     rclpy.init()
@@ -207,9 +207,7 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
         recorder.close()
         summary = {"results": seq.results, "aborted": seq.aborted, "done": seq.done,
                    "wall_s": time.monotonic() - t0, "recording": str(recorder.rec.path if recorder.rec else None)}
-        ex.shutdown(timeout_sec=5.0)             # executor first, while nodes and context live
-        for n in made.values():
-            n.destroy_node()
+        teardown(ex, *made.values())             # executor first, while nodes and context live
     finally:
         rclpy.shutdown()
     return summary

@@ -195,22 +195,23 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
             # process should ROS teardown block while holding the GIL (where the Python guard
             # above can no longer run)
             faulthandler.dump_traceback_later(EXIT_GRACE_S + 2.0, exit=True)
-            _teardown(ex, node)
+            teardown(ex, node)
         if rclpy.ok():
             rclpy.shutdown()
     if status[0]:
         sys.exit(status[0])
 
 
-def _teardown(ex, node) -> None:
-    """Stop ``ex`` and let go of its entities while ``node`` and the context are alive, then
-    destroy ``node``. The other order (node destroyed under a live executor, the executor
-    dropped later by garbage collection, after ``rclpy.shutdown``) finalises the node's QoS
+def teardown(ex, *nodes) -> None:
+    """Stop ``ex`` and let go of its entities while the ``nodes`` and the context are alive, then
+    destroy the nodes. The other order (nodes destroyed under a live executor, the executor
+    dropped later by garbage collection, after ``rclpy.shutdown``) finalises the nodes' QoS
     event handles from the executor's destructor at an arbitrary point; on a loaded machine
     that blocked a plant for good (CI: stuck in ``EventHandler.__exit__`` holding the GIL)."""
     if ex is not None:
         ex.shutdown(timeout_sec=EXIT_GRACE_S)
-    node.destroy_node()
+    for node in nodes:
+        node.destroy_node()
 
 
 def _exit_guard(context, status, stop, grace: float):
