@@ -45,8 +45,9 @@ DRAIN_IDLE_S = 0.3
 """On stop: the recorder closes once no message has come for this long [s]."""
 
 READY_TIMEOUT_S = 5.0
-"""The recorder joins runs once it has matched a publisher of every contract topic, or after
-this long [s] (a node started deliberately late must not hold the run)."""
+"""The recorder joins runs once it has matched every publisher the graph knows of each recorded
+topic (at least one of each contract topic), or after this long [s] (a node started
+deliberately late must not hold the run)."""
 
 
 class RecorderNode(StageNode):
@@ -77,12 +78,14 @@ class RecorderNode(StageNode):
                                             record=True, raw=True)
             elif name != TRAJECTORY.name:
                 subs[name] = self.subscribe(name, lambda m, name=name: self._write(name, m), record=True)
-        # ready for a run once every contract topic's publisher is matched (a run that starts
-        # before the recorder hears the plant or the servo loses their first samples, or all of
-        # them if that node stops early), at most READY_TIMEOUT_S
-        contract = [subs[t] for t in CONTRACT_TOPICS if t in subs]
-        self.join_runs(lambda m: self._write(TRAJECTORY.name, m),
-                       ready=lambda: all(s.get_publisher_count() > 0 for s in contract), ready_timeout=READY_TIMEOUT_S)
+        # ready for a run once every recorded topic's publishers that the graph knows are matched,
+        # and at least one of each contract topic (a run that starts before the recorder hears a
+        # node loses that node's first samples beyond the topic's history, or all of them if the
+        # node stops early: CI lost the dither's, an optional topic), at most READY_TIMEOUT_S
+        def ready():
+            return all(s.get_publisher_count() >= max(int(t in CONTRACT_TOPICS), self.count_publishers(t))
+                       for t, s in subs.items())
+        self.join_runs(lambda m: self._write(TRAJECTORY.name, m), ready=ready, ready_timeout=READY_TIMEOUT_S)
 
     def _write_raw(self, topic: str, data: bytes, canonical):
         """A per-sample message (JointState or Clock, CDR bytes), written in its canonical CDR;
