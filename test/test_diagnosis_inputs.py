@@ -179,8 +179,9 @@ def test_plant_fractional_delay_is_the_exact_delayed_zoh(rate, delay):
 def test_fractional_delay_diagnosed(tmp_path, rate):
     """An open-loop record whose drive acts 1.4 control periods late (scipy, exact delayed ZOH on
     a 50x finer grid): against a nominal without delay the diagnosis names the whole-sample delay
-    and the fractional delay on top, together within 0.1 sample of 1.4 (measured: 1.399 at 1 kHz, 1.351 at
-    10 kHz; a whole-sample delay alone cannot express it)."""
+    and the fractional delay on top and nothing else, together within 0.01 sample of 1.4 (measured:
+    1.40001 at 1 kHz, 1.4011 at 10 kHz, refined by the open-loop windows; 1.399 and 1.351 from the
+    force observer alone; a whole-sample delay alone cannot express it)."""
     m, c = 2.0, 30.0
     n = int((4.0 if rate < 5000 else 1.0) * rate)
     rng = np.random.default_rng(5)
@@ -196,7 +197,7 @@ def test_fractional_delay_diagnosed(tmp_path, rate):
     found = {f["effect"]: f for f in rep["found"]}
     assert set(found) == {"delay", "fractional_delay"}, list(found)
     total = found["delay"]["params"][0]["value"] + found["fractional_delay"]["params"][0]["value"]
-    assert abs(total - 1.4) < 0.1, total
+    assert abs(total - 1.4) < 0.01, total
 
 
 # --------------------------------------------------------------------------- isolator in any rigid nominal
@@ -253,16 +254,20 @@ def test_isolator_hypothesis_in_any_rigid_nominal_same_candidate():
 def test_table_with_friction_and_bolted_bearings_give_the_same_diagnosis(tmp_path, rate):
     """A record of a table whose bearing sits behind a joint (scipy, 2-DOF), diagnosed against the
     rigid body written as "table with friction" and as "table + bolted bearing with that friction":
-    both name the FI compliance first, with the joint stiffness and the bearing mass within 20 % of
-    the truth, and the two diagnoses agree (same effects, parameters within 1 %)."""
+    both name the FI compliance first, with the joint stiffness, its damping and the bearing mass
+    within 2 % of the truth, and the two diagnoses agree (same effects, parameters within 2 %:
+    measured at 1 kHz k_fi 36249 / 36226 N/m (truth 36241), zeta_fi 0.0496 / 0.0505, m_b 0.29996 /
+    0.29998 kg; the damping's optimum is shallow, the two refinements stop 1.6 % apart)."""
     rec, k = _isolated_record(tmp_path, rate, T=3.0 if rate < 5000 else 1.0, f_j=60.0 if rate < 5000 else 300.0)
     reps = [diagnose(rec, nom, options=Options(plots=False)) for nom in _rigid_nominals()]
     keys = [[f["effect"] for f in r["found"]] for r in reps]
     assert keys[0] == keys[1] and keys[0][0] == "fi_compliance", keys
     vals = [{p["name"]: p["value"] for p in r["found"][0]["params"]} for r in reps]
-    assert abs(vals[0]["k_fi"] / k - 1) < 0.2 and abs(vals[0]["m_b"] / 0.3 - 1) < 0.2, vals
+    truth = {"k_fi": k, "zeta_fi": 0.05, "m_b": 0.3}
+    for v in vals:
+        assert all(abs(v[n] / truth[n] - 1) < 0.02 for n in truth), vals
     for name in vals[0]:
-        assert abs(vals[0][name] / vals[1][name] - 1) < 0.01, (name, vals)
+        assert abs(vals[0][name] / vals[1][name] - 1) < 0.02, (name, vals)
 
 
 # --------------------------------------------------------------------------- modes up to Nyquist
@@ -305,21 +310,45 @@ def test_mode_located_from_the_transfer_up_to_nyquist(tmp_path, rate):
     assert locate_modes(spec, load_data(rigid)) == []
 
 
+def test_open_loop_judge_prewhitened_sees_a_mode_the_drift_buries(tmp_path):
+    """A 1.5 kHz mode of 20 % of the mass on a 10 kHz open-loop record (scipy): in RMS the rigid
+    nominal's window errors are within their floor (0.93x: the re-initialised state's drift
+    dominates); prewhitened by the floor's own AR filter the rigid nominal is far above it (> 10x)
+    while the truth stays at its floor (1 +- 0.2), and the judge adopts the truth over the nominal."""
+    from experiment_runner.diagnosis.hypotheses import get_effect
+    rate = 10000.0
+    rec = _mode_record(tmp_path, rate, T=0.5, f_b=1500.0)
+    d = load_data(rec)
+    nom = load_model(_nominal(m=2.0, c=30.0, q=1e-10, noise=0.002)).with_changes({"controller.rate": rate})
+    truth = get_effect("structural_mode").apply(nom, [1500.0, 0.02, 0.2])
+    j = OpenLoopJudge(d, Observer(d))
+    fl_n, fl_t = j.floor(nom), j.floor(truth)
+    assert j.floor_ratio(fl_n.replay, fl_n) > 10
+    assert abs(j.floor_ratio(fl_t.replay, fl_t) - 1) < 0.2
+    assert j.consistency(fl_t.replay, fl_t) < j.t_q
+    e_rms = j.rms(fl_n.replay)[1]
+    assert e_rms < 1.2 * fl_n.sigma_y          # in metres the drift hides it
+    assert j.compare(fl_n, j.replay(truth)).accepted
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("rate", [1000.0])
+@pytest.mark.parametrize("rate", [1000.0, 10000.0])
 def test_mode_diagnosed_with_its_mass_split_off_the_table(tmp_path, rate):
-    """End to end: the diagnosis names the structural mode first (frequency within 5 %, fraction
-    within 20 %), its mass taken out of the table (improved table + mode mass = the nominal's 2 kg).
-    Above the smoothing cutoff of the force observer (2.5 x rate/25) it is the mode as located and
-    fitted on the transfer (``located_mode``). (At 10 kHz the mode is located -- previous test -- but
-    not adopted: the open-loop judge finds the nominal within its floor, z = -5.2; README, open points.)"""
+    """End to end: the diagnosis names exactly the structural mode (frequency within 1 %, damping
+    within 10 %, fraction within 5 %), its mass taken out of the table (improved table + mode mass =
+    the nominal's 2 kg), and the improved model's held-out prediction is at its run-to-run floor
+    (ratio 1 +- 0.2). Above the smoothing cutoff of the force observer (2.5 x rate/25) it is the
+    mode located and fitted on the transfer (``located_mode``), refined by the open-loop windows.
+    (At 10 kHz it was located but not adopted before the open-loop judge was prewhitened: the
+    nominal's windows were at 0.93x their floor, the mode's band buried under the drift.)"""
     f_b = 0.15 * rate
     rec = _mode_record(tmp_path, rate, T=2.0 if rate < 5000 else 0.5, f_b=f_b)
     rep = diagnose(rec, _nominal(m=2.0, c=30.0, q=1e-10, noise=0.002), options=Options(plots=False))
-    first = rep["found"][0] if rep["found"] else {}
-    assert first.get("effect") in ("structural_mode", "located_mode"), [f["effect"] for f in rep["found"]]
+    assert [f["effect"] for f in rep["found"]] in (["structural_mode"], ["located_mode"]), [f["effect"] for f in rep["found"]]
+    first = rep["found"][0]
     v = {p["name"]: p["value"] for p in first["params"]} if first["effect"] == "structural_mode" else first["derived"]
-    assert abs(v["f"] / f_b - 1) < 0.05 and abs(v["fraction"] / 0.2 - 1) < 0.2, v
+    assert abs(v["f"] / f_b - 1) < 0.01 and abs(v["zeta"] / 0.02 - 1) < 0.1 and abs(v["fraction"] / 0.2 - 1) < 0.05, v
+    assert abs(rep["replay"]["floor_ratio"]["improved"] - 1) < 0.2, rep["replay"]["floor_ratio"]
     st = rep["_improved_spec"].preset.stage
     assert abs(st.table.mass * (1 + sum(m.mass_ratio for m in st.modes)) - 2.0) < 1e-9
     # the drive noise is the nominal's (0.002): not raised to hide what the windows cannot

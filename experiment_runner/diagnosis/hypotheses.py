@@ -584,6 +584,12 @@ class LocatedMode(Effect):
     def _mode(self, theta):
         return self._modes[int(round(float(theta[0])))]
 
+    def with_mode(self, i: int, mode: dict) -> "LocatedMode":
+        """A copy whose located mode ``i`` has the values of ``mode`` (a refinement of the transfer's fit)."""
+        e = copy.copy(self)
+        e._modes = tuple(dict(m, **mode) if k == i else m for k, m in enumerate(self._modes))
+        return e
+
     def derived(self, spec, theta):
         m = self._mode(theta)
         return {"f": m["f_hz"], "zeta": m["zeta"], "fraction": m["fraction"]}

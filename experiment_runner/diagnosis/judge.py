@@ -90,6 +90,7 @@ class Floor:
     y: np.ndarray            # (K, T, B) simulated measurements
     sigma_u: float           # RMS command error of a simulated recording vs the replay [N]
     sigma_y: float           # RMS position error [m]
+    white: np.ndarray | None = None     # prewhitening filter of the errors (open-loop judge), else None
 
 
 @dataclass
@@ -234,6 +235,13 @@ class ReplayJudge:
 
     def _e2(self, u, y, rp: Replay, fl: Floor) -> np.ndarray:
         return ((u - rp.u) / fl.sigma_u) ** 2 + ((y - rp.y) / fl.sigma_y) ** 2
+
+    def residual(self, rp: Replay, fl: Floor) -> np.ndarray:
+        """The data's replay error against ``rp`` on the judged samples in ``fl``'s floor units, as one
+        vector (command, then position): its sum of squares is ``n D``. What an output-error fit
+        minimises."""
+        m = self.mask
+        return np.concatenate([((self.u - rp.u) / fl.sigma_u)[m], ((self.y - rp.y) / fl.sigma_y)[m]])
 
     def data_blocks(self, rp: Replay, fl: Floor) -> np.ndarray:
         """Per-block sums of the data's normalised squared replay error against ``rp``."""

@@ -215,7 +215,8 @@ def _block_covariance(J: np.ndarray, r: np.ndarray, block: np.ndarray, min_block
 
 
 def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict, fj: ReplayJudge, jfl,
-                      max_nfev: int = 8, with_selected: bool = False, start=None) -> dict | None:
+                      max_nfev: int = 8, with_selected: bool = False, start=None,
+                      diff_step: float = 2e-2) -> dict | None:
     """Output-error refinement of candidate ``bf``: least squares of the closed-loop replay error on
     the *fit* samples (``fj``), command and position in units of the current run-to-run floor
     ``jfl``, started at the force-observer fit. The force observer's fit is off where the replay
@@ -232,7 +233,8 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
     effects' and the candidate's parameters, or None). ``sigma``: from the replay Jacobian and
     residual, block-robust (:func:`_block_covariance`, the largest over blocks of
     :data:`REFINE_BLOCKS_S` with at least 10 blocks per parameter: the replay error is correlated
-    over tens of milliseconds, not independent per sample)."""
+    over tens of milliseconds, not independent per sample). ``diff_step``: the optimiser's relative
+    finite-difference step (of the log for log parameters)."""
     from scipy.optimize import least_squares
 
     from .fit import _Joint, _Transform
@@ -263,8 +265,7 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
         eps = 1e-6 * (hi - lo)
         z0 = np.clip(tr.to_z(theta0), lo + eps, hi - eps)
         m = fj.mask
-        su, sy = jfl.sigma_u, jfl.sigma_y
-        bad = np.full(2 * int(m.sum()), 1e3)
+        bad = None
 
         def res(z):
             th = tr.to_theta(z)
@@ -273,14 +274,15 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
             rp = fj.replay(model.apply(prev, th))
             if not rp.ok:
                 return bad
-            r = np.concatenate([((fj.u - rp.u) / su)[m], ((fj.y - rp.y) / sy)[m]])
+            r = fj.residual(rp, jfl)
             return r if np.all(np.isfinite(r)) else bad
 
         r0 = res(z0)
-        if r0 is bad:
+        if r0 is None:
             return None
+        bad = np.full(len(r0), 1e3)
         out = least_squares(res, z0, bounds=(lo, hi), max_nfev=max_nfev, x_scale="jac",
-                            diff_step=2e-2)
+                            diff_step=diff_step)
         if not out.success and out.status < 0 or out.cost >= 0.5 * float(r0 @ r0):
             return None
         tol = 1e-3 * (hi - lo)
@@ -298,7 +300,7 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
             L = max(1, int(round(span * fj.rate)))
             ids = b_of * (T_ // L + 1) + t_of // L
             if len(np.unique(ids)) >= 10 * len(theta) or span == REFINE_BLOCKS_S[0]:
-                var = np.maximum(var, np.diag(_block_covariance(J, out.fun, np.concatenate([ids, ids]))))
+                var = np.maximum(var, np.diag(_block_covariance(J, out.fun, np.tile(ids, len(out.fun) // len(ids)))))
         cov_z = np.diag(var)
         sigma = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * np.abs(tr.dtheta_dz(theta))
         spec = model.apply(prev, theta)
@@ -315,6 +317,9 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
     except Exception:   # noqa: BLE001 - the refinement is an improvement, never a failure of the diagnosis
         return None
 
+
+REFINE_MODE_PASSES = 3
+"""Passes of the located-mode refinement, each weighted by the floor of the previous pass' model."""
 
 PROPOSAL_KEYS = ("ripple_period", "peak_hz", "line_hz")
 
@@ -346,6 +351,23 @@ def _unidentified(f: FitResult) -> bool:
     sig, th = np.asarray(f.sigma, float), np.asarray(f.theta, float)
     ok = np.isfinite(sig)
     return bool(ok.all() and np.all(sig > np.abs(th)))
+
+
+NOMINAL_Z = 2.0
+"""An effect whose every parameter is within this many standard errors of the current model's value
+(a stated mass, force constant, delay) is not adopted: the data do not demand the change."""
+
+
+def _at_nominal(f: FitResult) -> bool:
+    """Every parameter of ``f`` has a current-model value and is within :data:`NOMINAL_Z` standard
+    errors of it."""
+    if not f.names:
+        return False
+    nom = [f.nominal.get(n) for n in f.names]
+    sig = np.asarray(f.sigma, float)
+    if any(v is None for v in nom) or not np.all(np.isfinite(sig)) or len(sig) != len(nom):
+        return False
+    return bool(np.all(np.abs(np.asarray(f.theta, float) - np.asarray(nom, float)) <= NOMINAL_Z * sig))
 
 
 def _log(opt, *a):
@@ -543,7 +565,7 @@ class _Run:
         # record's windows are re-initialised from each candidate's own observer state, so their error is
         # not an output error of the candidate alone (a refined isolator then "explained" a located mode's
         # remainder below the floor): open-loop records keep the force observer's values
-        refine = fit_judge is not None and not data.open_loop
+        refine = fit_judge is not None
         jfl0 = judge.floor(base)
         timing["floor_s"] = time.perf_counter() - t
         _log(opt, f"floor: sim B ms {fl.msB:.3f}, n_eff {fl.n_eff:.0f}; replay floor {jfl0.sigma_u:.3g} N, "
@@ -949,6 +971,9 @@ class _Run:
                 why = f"not identified: {', '.join(bound)} at its bound"
             elif c.accepted and _unidentified(f):
                 why = "not identified: every parameter's standard error exceeds its value"
+            elif c.accepted and _at_nominal(f):
+                why = (f"the data do not move it: every parameter within {NOMINAL_Z:g} standard errors of "
+                       "the current model's value")
             elif c.accepted and LIBRARY[f.key].kind == "integer" and all(
                     f.nominal.get(n) is not None and float(f.nominal[n]) == float(v) for n, v in zip(f.names, f.theta)):
                 # the improvement is the re-fit of the others, not this effect
@@ -981,6 +1006,41 @@ class _Run:
         f2 = dataclasses.replace(f, spec=best[2], theta=np.array([float(best[1])]), joint=None, refined=True)
         j2 = self.judge_rows([f2], jfl, s0, first=not selected)[0]
         j2["why"] += " (chosen by the replay)"
+        return j2
+
+    def refine_located(self, j, selected, jfl, s0):
+        """A mode located on the transfer (``located_mode``) refined by the replay of the fit samples:
+        its frequency, damping and mass fraction as the ``structural_mode`` parameters, started at the
+        transfer's fit (small finite-difference steps: a lightly damped mode's replay changes over a
+        fraction of its bandwidth). The errors are weighted by the floor of the model with the mode
+        (an open-loop floor's prewhitening weighs most where its model is quiet: a rigid model's floor
+        would weigh the mode's band and the windows' re-initialisation of the mode), renewed after each
+        of :data:`REFINE_MODE_PASSES` passes. The row keeps its key, with the refined mode and its
+        standard errors."""
+        base, fit_judge, ctx = self.base, self.fit_judge, self.ctx
+        f = j["fit"]
+        i = int(round(float(f.theta[0])))
+        m = f.effect._modes[i]
+        sm = LIBRARY["structural_mode"].bound(ctx)
+        bf = dataclasses.replace(f, key="structural_mode", effect=sm, names=["f", "zeta", "fraction"],
+                                 theta=np.array([m["f_hz"], m["zeta"], m["fraction"]]), on_bound=[], joint=None)
+        sel = [s for s in selected if s.key != f.replaces]
+        ref, fl = None, fit_judge.floor(f.spec)
+        for _ in range(REFINE_MODE_PASSES):
+            r = _refine_by_replay(bf, sel, base, ctx_for(ctx, sel), fit_judge, fl, max_nfev=30, diff_step=4e-3)
+            if r is None or r["at_bound"]:
+                break
+            ref, bf = r, dataclasses.replace(bf, theta=r["theta"])
+            fl = fit_judge.floor(r["spec"])
+        if ref is None:
+            return j
+        (fr, z, phi), sig = ref["theta"], ref["sigma"]
+        e2 = f.effect.with_mode(i, {"f_hz": float(fr), "zeta": float(z), "fraction": float(phi)})
+        derived = {"f": float(fr), "zeta": float(z), "fraction": float(phi),
+                   "f_sigma": float(sig[0]), "zeta_sigma": float(sig[1]), "fraction_sigma": float(sig[2])}
+        f2 = dataclasses.replace(f, spec=ref["spec"], effect=e2, derived=derived, refined=True, joint=None)
+        j2 = self.judge_rows([f2], jfl, s0, first=not selected)[0]
+        j2["why"] += " (refined by the replay)"
         return j2
 
     def replay_start(self, f, sel, jfl):
@@ -1020,6 +1080,8 @@ class _Run:
             return judged
         judged = [self.refine_integer(j, selected, jfl, s0) if LIBRARY[j["fit"].key].kind == "integer" else j
                   for j in judged]
+        judged = [self.refine_located(j, selected, jfl, s0) if j["fit"].key == "located_mode" and j["cmp"].stable
+                  else j for j in judged]
         stable = [j for j in judged if j["cmp"].stable and LIBRARY[j["fit"].key].kind == "deterministic"]
         by_replay = sorted(stable, key=lambda j: j["cmp"].D_after)
         by_observer = sorted(stable, key=lambda j: j["fit"].J_held)
@@ -1222,6 +1284,38 @@ class _Run:
             refitted = True
         if refitted:
             self.renew_floor(path["current"])
+        if step > 1 and self.refine and self.data.open_loop:
+            self.rerefine()
+
+    def rerefine(self) -> None:
+        """Open-loop records: the selected deterministic effects refined by the replay again, weighted
+        by the current model's own floor (an open-loop floor's prewhitening depends on the model: the
+        effect was refined under the floor of the model without it), kept on the same terms as
+        :meth:`refit_selected`'s; the floors renewed if they were."""
+        path = self.path
+        selected = path["selected"]
+        det = [s for s in selected if LIBRARY[s.key].kind == "deterministic"]
+        if not det:
+            return
+        last = det[-1]
+        others = [s for s in selected if s is not last]
+        n_o = sum(len(s.theta) for s in others if LIBRARY[s.key].kind == "deterministic")
+        ref = _refine_by_replay(last, others, self.base, ctx_for(self.ctx, others), self.fit_judge, path["jfl"],
+                                with_selected=0 < n_o and n_o + len(last.theta) <= REFINE_JOINT_MAX, max_nfev=20)
+        if ref is None or (ref["joint"].on_bound if ref["joint"] is not None else ref["at_bound"]):
+            return
+        if not self.fit_D(ref["spec"]) < self.fit_D(path["current"]) \
+                or self.replay_D(ref["spec"]) > self.replay_D(path["current"]):
+            return
+        if ref["joint"] is not None:
+            self.adopt(ref["joint"])
+        else:
+            k = next(i for i, s in enumerate(selected) if s is last)
+            last.theta, last.sigma = ref["theta"], ref["sigma"]
+            path["found"][k]["params"] = last.params()
+            path["found"][k]["derived"] = last.effect.derived(self.base, last.theta)
+        path["current"] = ref["spec"]
+        self.renew_floor(ref["spec"])
 
     def choose(self, judged: list, jfl) -> tuple:
         """``(best, confounded, alternatives)`` among the judged candidates of a step (best None:
