@@ -163,6 +163,33 @@ def test_every_effect_applies_to_the_nominal(key):
     new.compiled()
 
 
+def test_viscous_lands_where_the_friction_is():
+    """The viscous hypothesis changes the friction elements' total: on the isolated stage (bearings
+    behind the FI joint) the bearings' viscous, behind the joint, as the power study's truths and a
+    bearing's lubricant put it -- not a damper on the table, which a joint would not filter; a
+    decrease scales the bearings down; a table-only nominal keeps it on the table."""
+    from experiment_runner.diagnosis.hypotheses import get_effect
+    from stage_sim.config import load_preset
+    e = get_effect("viscous")
+    iso = ModelSpec(load_preset("fi_stage"))
+    st0 = iso.preset.stage
+    c0 = e.nominal(iso)["c"]
+    assert c0 == pytest.approx(sum(b.friction.viscous for b in st0.bearings)
+                               + (st0.table_friction.viscous if st0.table_friction else 0.0))
+    up = e.apply(iso, [c0 + 8.0]).preset.stage
+    assert all(b.joint is not None for b in up.bearings)
+    assert [b.friction.viscous for b in up.bearings] == pytest.approx([b.friction.viscous + 8.0 / len(st0.bearings)
+                                                                      for b in st0.bearings])
+    assert (up.table_friction.viscous if up.table_friction else 0.0) == (st0.table_friction.viscous if st0.table_friction else 0.0)
+    assert e.nominal(e.apply(iso, [c0 + 8.0]))["c"] == pytest.approx(c0 + 8.0)
+    down = e.apply(iso, [0.5 * c0])
+    assert e.nominal(down)["c"] == pytest.approx(0.5 * c0) and all(b.friction.viscous >= 0 for b in down.preset.stage.bearings)
+    table_only = ModelSpec(NOM).with_changes(edit=lambda d: d["stage"].update(
+        bearings=[], table_friction={"model": "coulomb", "f_c": 1.0, "f_s": None, "viscous": 2.0}))
+    t = e.apply(table_only, [12.0]).preset.stage
+    assert t.table_friction.viscous == pytest.approx(12.0) and not t.bearings
+
+
 def test_list_effects_covers_the_issue():
     keys = {r["key"] for r in describe(as_json=True)}
     for k in ("dahl", "gms", "coulomb", "viscous", "stribeck", "fi_compliance", "position_friction", "ripple",
@@ -231,3 +258,19 @@ def test_experiment_sine_sweep_profile():
     with pytest.raises(Exception, match="frequencies"):
         Experiment.model_validate({**exp.model_dump(), "profile": {"kind": "sine_sweep", "frequencies": [],
                                                                    "amplitude": 1e-4}})
+
+
+def test_noise_floor_of_a_model_that_leaves_no_residual():
+    """Simulated recordings with no force residual at all (a stage held by Coulomb friction whose
+    measurement never changes) still give a floor: the white lower bound of one encoder step's force
+    at the observer bandwidth. Whitening is finite; a 1 N residual is far above it, a residual at
+    that bound is at it (without the bound the scale was 1/0 and every observer fit undefined)."""
+    from experiment_runner.diagnosis.predict import force_resolution
+    rate, T = 1000.0, 4000
+    mask = np.ones((T, 1), bool)
+    f_min = force_resolution(ModelSpec(NOM), 40.0)
+    fl = NoiseFloor(rate, [np.zeros((T, 1))], [mask], f_max=40.0, rms_min=f_min)
+    assert np.isfinite(fl.scale) and np.all(np.isfinite(fl.psd))
+    r = np.random.default_rng(0).normal(0, 1.0, (T, 1))
+    assert fl.ms(r, mask) > 1e6
+    assert 0.1 < fl.ms(r * f_min, mask) < 10

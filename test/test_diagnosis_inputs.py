@@ -391,20 +391,39 @@ def test_regularized_coulomb_diagnosed(tmp_path, rate):
     assert rep["replay"]["floor_ratio"]["improved"] < 1.5 < 5 < rep["replay"]["floor_ratio"]["nominal"]
 
 
+# --------------------------------------------------------------------------- drive noise, open loop
+@pytest.mark.slow
+@pytest.mark.parametrize("rate", [1000.0, 10000.0])
+def test_drive_noise_level_of_an_open_loop_record(tmp_path, rate):
+    """An open-loop record (scipy) whose drive noise is 10x the nominal's (0.2 A against 0.02 A),
+    the model otherwise exact: the diagnosis names the drive-noise level alone, within 5 % of the
+    truth, and the improved model's held-out windows are at their floor. At 1 kHz the residual
+    spectrum's bands above the known-force band disagree (0.17-0.28 A, spread 0.37: not adopted
+    before); the level at which the fit samples' prewhitened windows are at their floor, inside
+    that range, is adopted (measured 0.1986 +- 0.0061 A; 10 kHz from the spectrum, 0.2028 A)."""
+    rec = _record(tmp_path, rate, T=2.0 if rate < 5000 else 0.8, noise=0.2)
+    rep = diagnose(rec, _nominal(c=30.0, noise=0.02), options=Options(plots=False))
+    assert [f["effect"] for f in rep["found"]] == ["noise_level"], [f["effect"] for f in rep["found"]]
+    p = rep["found"][0]["params"][0]
+    assert abs(p["value"] / 0.2 - 1) < 0.05, p
+    assert abs(p["value"] - 0.2) < 3 * p["sigma"], p
+    assert rep["replay"]["floor_ratio"]["improved"] < 1.3 < 2 < rep["replay"]["floor_ratio"]["nominal"]
+
+
 # --------------------------------------------------------------------------- LuGre bristle damping
 @pytest.mark.slow
-@pytest.mark.parametrize("rate, sigma1, T, tol, floor", [(1000.0, 1.0e4, 2.0, 0.25, 4.0),
-                                                        (10000.0, 1500.0, 0.8, 0.05, 1.5)])
-def test_lugre_bristle_damping_diagnosed(tmp_path, rate, sigma1, T, tol, floor):
+@pytest.mark.parametrize("rate, sigma1, T", [(1000.0, 1500.0, 2.0), (1000.0, 1.0e4, 2.0), (10000.0, 1500.0, 0.8)])
+def test_lugre_bristle_damping_diagnosed(tmp_path, rate, sigma1, T):
     """A stage whose contact has bristle damping (LuGre: 2 kg, sigma0 2e6 N/m, F_C 5 N, 30 N·s/m;
     RK4 in (x, v, z) in the test, ``independent.py``) against a nominal with the same contact as a
-    Dahl element (sigma1 = 0): the diagnosis names exactly ``lugre``, sigma1 within ``tol``, and the
-    improved model's held-out prediction falls to ``floor`` x its run-to-run floor (nominal > 5x).
-    At 10 kHz sigma1 = 1500 N·s/m damps the 159 Hz pre-motion mode (zeta 0.37); at 1 kHz that mode
-    is beyond the force observer's reach (40 Hz) and open-loop records are not replay-refined, so
-    the case there is sigma1 = 1e4 N·s/m: an overdamped contact that creeps over sigma1 / sigma0 =
-    5 ms after each force change (measured: sigma1 +17 %, 25 -> 3.1 x the floor; 10 kHz: +0.1 %,
-    22.6 -> 1.10 x)."""
+    Dahl element (sigma1 = 0): the diagnosis names exactly ``lugre``, sigma0 and sigma1 within 5 %,
+    and the improved model's held-out prediction falls to 1.5x its run-to-run floor (nominal
+    beyond 3x that). sigma1 = 1500 N·s/m damps the 159 Hz pre-motion mode (zeta 0.37); 1e4 is an
+    overdamped contact that creeps over sigma1 / sigma0 = 5 ms after each force change. Measured
+    (the open-loop windows refine the observer's fit): 1 kHz sigma1 -1.4 %, 5.3 -> 1.10x; 1 kHz
+    1e4 +1.6 %, 11.3 -> 1.07x; 10 kHz +0.14 %, 13.7 -> 1.00x. (Before, at 1 kHz the mode was beyond
+    the force observer's reach (40 Hz) and open-loop records were not refined: only the 1e4 case
+    was found, sigma1 +17 %, 3.1x the floor.)"""
     rng = np.random.default_rng(3)
     m, s0, f_c, c, q = 2.0, 2e6, 5.0, 30.0, 1e-9
     n = int(T * rate)
@@ -420,8 +439,8 @@ def test_lugre_bristle_damping_diagnosed(tmp_path, rate, sigma1, T, tol, floor):
     rep = diagnose(rec, nom, options=Options(plots=False))
     assert [f["effect"] for f in rep["found"]] == ["lugre"], [f["effect"] for f in rep["found"]]
     got = {p["name"]: p["value"] for p in rep["found"][0]["params"]}
-    assert abs(got["sigma1"] / sigma1 - 1) < tol and abs(got["sigma0"] / s0 - 1) < tol, got
-    assert rep["replay"]["floor_ratio"]["improved"] < floor < 5 < rep["replay"]["floor_ratio"]["nominal"]
+    assert abs(got["sigma1"] / sigma1 - 1) < 0.05 and abs(got["sigma0"] / s0 - 1) < 0.05, got
+    assert rep["replay"]["floor_ratio"]["improved"] < 1.5 < 4.5 < rep["replay"]["floor_ratio"]["nominal"]
 
 
 # --------------------------------------------------------------------------- known force, closed loop

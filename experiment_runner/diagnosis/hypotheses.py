@@ -168,36 +168,52 @@ class Coulomb(Effect):
 
 
 class Viscous(Effect):
+    """Viscous friction where the stage's friction is: its bearings (shared equally; behind their
+    joint on an isolated stage, where a bearing's lubricant shears), else the table's friction.
+    ``c`` is the total over the friction elements (table and bearings)."""
+
     def _c0(self, spec):
         st = spec.preset.stage
         c = st.table_friction.viscous if st.table_friction is not None else 0.0
-        return c + sum(b.friction.viscous for b in st.bearings if b.joint is None)
+        return c + sum(b.friction.viscous for b in st.bearings)
 
     def params(self, spec, ctx):
         c0 = self._c0(spec)
         cmax = max(10 * c0, ctx.get("u_max", 10.0) / max(ctx.get("v_max", 1e-3), 1e-9))
-        return [Param("c", "N·s/m", 0.0, cmax, c0 if c0 > 0 else 0.01 * cmax, doc="total viscous coefficient at the table")]
+        return [Param("c", "N·s/m", 0.0, cmax, c0 if c0 > 0 else 0.01 * cmax,
+                      doc="total viscous coefficient of the friction elements")]
 
     def nominal(self, spec):
         return {"c": self._c0(spec)}
 
     def apply(self, spec, theta):
-        c = float(theta[0])
+        c = max(0.0, float(theta[0]))
         c0 = self._c0(spec)
         st = spec.preset.stage
         tf0 = st.table_friction.viscous if st.table_friction is not None else 0.0
-        target = max(0.0, tf0 + (c - c0))
+        nb = len(st.bearings)
 
         def edit(d):
+            if nb:
+                # the change on the bearings: added equally; a decrease scales them down (the table's
+                # own viscous kept unless the bearings have none left to give)
+                vb = [b["friction"]["viscous"] for b in d["stage"]["bearings"]]
+                tot = sum(vb)
+                if c >= c0:
+                    for b in d["stage"]["bearings"]:
+                        b["friction"]["viscous"] += (c - c0) / nb
+                    return
+                keep_tf = min(tf0, c)
+                for b, v in zip(d["stage"]["bearings"], vb):
+                    b["friction"]["viscous"] = v * (c - keep_tf) / tot if tot > 0 else (c - keep_tf) / nb
+                if d["stage"]["table_friction"] is not None:
+                    d["stage"]["table_friction"]["viscous"] = keep_tf
+                return
             tf = d["stage"]["table_friction"]
             if tf is None:
-                d["stage"]["table_friction"] = {"model": "coulomb", "f_c": 0.0, "f_s": None, "viscous": target}
+                d["stage"]["table_friction"] = {"model": "coulomb", "f_c": 0.0, "f_s": None, "viscous": c}
             else:
-                tf["viscous"] = target
-            if c < c0 - tf0:   # need to take viscous from rigid bearings
-                for b in d["stage"]["bearings"]:
-                    if b["joint"] is None:
-                        b["friction"]["viscous"] *= max(0.0, c) / max(c0 - tf0, 1e-300)
+                tf["viscous"] = c
         return spec.with_changes(edit=edit)
 
 
@@ -916,7 +932,8 @@ def _lib():
                 param_doc=[("F_C", "N", "total Coulomb force")]),
         Viscous(
             "viscous", "viscous friction", "deterministic",
-            "A force proportional to velocity (table_friction.viscous).",
+            "A force proportional to velocity, where the friction is: the bearings' friction.viscous "
+            "(behind their joint on an isolated stage), else table_friction.viscous.",
             "residual proportional to velocity; largest at constant velocity, zero at rest",
             param_doc=[("c", "N·s/m", "total viscous coefficient")]),
         Stribeck("stribeck", "Stribeck effect (LuGre)", "deterministic",

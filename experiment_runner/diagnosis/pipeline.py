@@ -37,8 +37,8 @@ from .locate import locate, lowpass
 from .model import ModelSpec, load_model
 from .openloop import MISSING_LP, OpenLoopJudge
 from .units import axis_units, convert_units
-from .predict import (NoiseFloor, Observer, band_rms, compare_replay, open_loop_windows, replay, smoothing_hz,
-                      sim_batch, sim_data)
+from .predict import (NoiseFloor, Observer, band_rms, compare_replay, force_resolution, open_loop_windows, replay,
+                      sim_batch, sim_data, smoothing_hz)
 
 __all__ = ["Options", "diagnose"]
 
@@ -96,7 +96,7 @@ class _Floor:
         self.resA = oa.run(spec)
         self.resB = ob.run(spec)
         mA = self.simA.fit | self.simA.held
-        self.floor = NoiseFloor(data.rate, [self.resA.r], [mA], f_max=f_o)
+        self.floor = NoiseFloor(data.rate, [self.resA.r], [mA], f_max=f_o, rms_min=force_resolution(spec, f_o))
         mB = self.simB.held if self.simB.held.any() else self.simB.fit
         self.msB = self.floor.ms(self.resB.r, mB)
         self.n_eff = n_eff(self.floor.whiten(self.resB.r, mB), mB)
@@ -107,7 +107,7 @@ def _light_floor(spec: ModelSpec, data: DiagData, f_o: float, seed: int, fs: flo
     """Noise floor of ``spec`` from one simulated recording."""
     sim = sim_data(spec, data, seed)
     r = Observer(sim, bandwidth=f_o, smooth_hz=fs).run(spec).r
-    return NoiseFloor(data.rate, [r], [sim.fit | sim.held], f_max=f_o)
+    return NoiseFloor(data.rate, [r], [sim.fit | sim.held], f_max=f_o, rms_min=force_resolution(spec, f_o))
 
 
 def _fit_candidate(e, current: ModelSpec, selected: list, J_fit_cur: float, ev: Evaluator, ctx: dict,
@@ -281,9 +281,23 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
         if r0 is None:
             return None
         bad = np.full(len(r0), 1e3)
+        c_obs = float(r0 @ r0)
+        if len(theta0) == 1:
+            # one parameter: the replay's error is rough in it (a stick-slip event or an encoder step
+            # moves with it) and may be flat at the observer's value (a stage held by friction):
+            # start from the best of a coarse grid around it
+            z1 = z0
+            c1 = float(r0 @ r0)
+            for d in GRID_1D:
+                z = np.clip(z0 + d * max(1.0, abs(float(z0[0])) if not ps[0].log else 1.0), lo + eps, hi - eps)
+                r = res(z)
+                if r is not bad and float(r @ r) < c1:
+                    z1, c1 = z, float(r @ r)
+            if z1 is not z0:
+                z0, r0 = z1, res(z1)
         out = least_squares(res, z0, bounds=(lo, hi), max_nfev=max_nfev, x_scale="jac",
                             diff_step=diff_step)
-        if not out.success and out.status < 0 or out.cost >= 0.5 * float(r0 @ r0):
+        if not out.success and out.status < 0 or out.cost >= 0.5 * c_obs:
             return None
         tol = 1e-3 * (hi - lo)
         at = [p.name for p, z, a, b, t in zip(ps, out.x, lo, hi, tol)
@@ -317,6 +331,9 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
     except Exception:   # noqa: BLE001 - the refinement is an improvement, never a failure of the diagnosis
         return None
 
+
+GRID_1D = (-0.6, -0.3, -0.15, -0.05, 0.05, 0.15, 0.3, 0.6)
+"""Start grid of a one-parameter replay refinement, in the optimiser's variable (log, or scaled)."""
 
 REFINE_MODE_PASSES = 3
 """Passes of the located-mode refinement, each weighted by the floor of the previous pass' model."""
@@ -368,6 +385,53 @@ def _at_nominal(f: FitResult) -> bool:
     if any(v is None for v in nom) or not np.all(np.isfinite(sig)) or len(sig) != len(nom):
         return False
     return bool(np.all(np.abs(np.asarray(f.theta, float) - np.asarray(nom, float)) <= NOMINAL_Z * sig))
+
+
+def roughness(D, v: float, sigma: float, target: float = 0.3, points: int = 7) -> float | None:
+    """Spread of a parameter from the roughness of the replay around its value ``v``.
+
+    A closed-loop replay with friction is not a smooth function of a parameter: a small change
+    moves a stick-slip event or an encoder step, and the replay error ``D`` jumps (by about 1 %
+    of ``D`` between values 0.5 % apart on a fractional delay), so the optimiser stops anywhere
+    in a valley the local Jacobian does not see. ``D`` (a function of the parameter) is profiled
+    over a step ``h`` at which it rises by about ``target`` x its value, on ``points`` values in
+    ``[v - h, v + h]``; with the parabola fitted to them (curvature ``c``, residual SD ``s``,
+    minimum at ``v + d``) the spread is ``sqrt(s / c + d^2)``: the values whose smooth part is
+    within one roughness SD of the minimum, and the distance of ``v`` from that minimum. None if
+    the profile has no positive curvature.
+
+    >>> import numpy as np
+    >>> rough = lambda x: 2.0 + 1e4 * (x - 0.4) ** 2 + 0.01 * np.sin(3e3 * x)
+    >>> r = roughness(rough, 0.4, 1e-4)
+    >>> 0.0002 < r < 0.003
+    True
+    >>> roughness(lambda x: 2.0 + 1e4 * (x - 0.4) ** 2, 0.4, 1e-4) < 1e-4
+    True
+    """
+    D0 = D(v)
+    if not np.isfinite(D0) or D0 <= 0:
+        return None
+    h = max(abs(v), 10.0 * sigma, 1e-12) * 0.01
+    for _ in range(8):
+        up = max(D(v + h), D(v - h))
+        if not np.isfinite(up) or up - D0 > 3.0 * target * D0:
+            h /= 3.0
+        elif up - D0 < target * D0 / 3.0:
+            h *= 3.0
+        else:
+            break
+    x = np.linspace(-h, h, points)
+    y = np.array([D0 if abs(d) < 1e-300 else D(v + d) for d in x])
+    if not np.all(np.isfinite(y)):
+        return None
+    A = np.stack([np.ones_like(x), x, x * x], axis=1)
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    c = coef[2]
+    if c <= 0:
+        return None
+    s = float(np.sqrt(np.sum((y - A @ coef) ** 2) / (points - 3)))
+    d = -coef[1] / (2 * c)
+    return float(math.sqrt(s / c + d * d))
 
 
 def _log(opt, *a):
@@ -466,7 +530,7 @@ class _Run:
     def run(self) -> dict:
         """Every stage in order; returns the report (with ``_improved_spec``)."""
         for stage in (self.read, self.quantization, self.predict, self.locate, self.prepare, self.select,
-                      self.refit_jointly, self.drive_noise, self.validate):
+                      self.refit_jointly, self.drive_noise, self.uncertainty, self.validate):
             stage()
         return self.report()
 
@@ -694,9 +758,23 @@ class _Run:
             s0 = current.preset.stage.drive.noise_current_rms
             if est.get("ok"):
                 sig = est["sigma"]
+                consistent = est.get("spread", 1.0) < 0.35
+                if not consistent and data.open_loop and s0 > 0 and self.fit_judge is not None:
+                    # the bands disagree (few of them above the open-loop records' known-force band):
+                    # the level at which the fit samples' prewhitened windows are at the model's own
+                    # floor, adopted in their place only if it lies inside the bands' range
+                    sig_w, unc_w = self.level_at_floor(current, s0)
+                    lo, hi = (s0 * math.sqrt(max(min(est["group_ratios"]), 0.0)),
+                              s0 * math.sqrt(max(est["group_ratios"])))
+                    ninfo["windows_sigma"] = sig_w
+                    if sig_w is not None and lo <= sig_w <= hi:
+                        sig, consistent = sig_w, True
+                        ninfo.update(sigma=sig, sigma_unc=unc_w)
+                        est["sigma_unc"] = unc_w
+                        ninfo["how"] = ("open-loop windows at their floor (the residual spectrum's bands "
+                                        f"disagree: {lo:.3g}-{hi:.3g} A)")
                 ratio = sig / s0 if s0 > 0 else float("inf")
                 ninfo["ratio"] = ratio if s0 > 0 else None
-                consistent = est.get("spread", 1.0) < 0.35
                 ninfo["consistent"] = consistent
                 if not (0.8 <= ratio <= 1.25) and consistent:
                     # proposed by the force residual's spectrum; decided by the replay: the data's replay
@@ -729,6 +807,86 @@ class _Run:
         stochastic["noise_level"] = ninfo
         timing["noise_s"] = time.perf_counter() - t
         self.t, self.current, self.J_cur, self.floor_cur, self.jfl = t, current, J_cur, floor_cur, jfl
+
+    def uncertainty(self):
+        """Standard errors widened by the replay's roughness at the final values (:func:`roughness`):
+        every parameter of the adopted deterministic effects, profiled on the fit samples against the
+        final model's floor, the others held; ``sigma`` becomes ``sqrt(sigma_fit^2 + sigma_rough^2)``
+        (``sigma_fit``: the fit's own, kept in the report)."""
+        fj, found, selected, base = self.fit_judge, self.found, self.selected, self.base
+        t = time.perf_counter()
+        det = [f for f in selected if LIBRARY[f.key].kind == "deterministic"]
+        if fj is None or not det:
+            return
+        rows = {fe["effect"]: fe for fe in found if fe.get("kind") == "deterministic"}
+        if any(f.key not in rows for f in det):
+            return
+        theta = {f.key: np.array([p["value"] for p in rows[f.key]["params"]], float) for f in det}
+        prev = base
+        for f in selected:
+            if LIBRARY[f.key].kind != "deterministic":
+                prev = f.effect.apply(prev, f.theta)
+
+        def spec_of(th):
+            spec = prev
+            for f in det:
+                spec = f.effect.apply(spec, th[f.key])
+            return spec
+
+        try:
+            fl = fj.floor(self.current)
+            rp0 = fj.replay(spec_of(theta))
+            # the rebuilt model must be the final one (else the profile would not be about it)
+            if not rp0.ok or abs(fj.D(rp0, fl) - fj.D(fj.replay(self.current), fl)) > 1e-9 * max(fj.D(rp0, fl), 1.0):
+                return
+
+            def D_at(key, i, v):
+                th = {k: a.copy() for k, a in theta.items()}
+                th[key][i] = v
+                try:
+                    rp = fj.replay(spec_of(th))
+                except Exception:     # noqa: BLE001 - not a valid model there (a damping below 0)
+                    return float("inf")
+                return fj.D(rp, fl) if rp.ok else float("inf")
+
+            for f in det:
+                for i, p in enumerate(rows[f.key]["params"]):
+                    r = roughness(lambda v: D_at(f.key, i, v), p["value"], p.get("sigma") or 0.0)
+                    if r is None:
+                        continue
+                    s_fit = p.get("sigma") or 0.0
+                    p["sigma_fit"] = s_fit
+                    p["sigma_rough"] = r
+                    p["sigma"] = float(math.hypot(s_fit, r))
+        except Exception as err:   # noqa: BLE001 - the fit's standard errors stand
+            _log(self.opt, f"roughness profile failed: {err!r}")
+        self.timing["uncertainty_s"] = time.perf_counter() - t
+
+    def level_at_floor(self, current, s0: float):
+        """Open-loop records: the drive-noise level at which the fit samples' prewhitened window errors
+        are at the model's own run-to-run floor (floor ratio 1; Brent's method on the log level,
+        1 % tolerance) and its standard error (the data's D is one draw: its relative spread over the
+        floor's simulated recordings, halved, D falling as the level squared); (None, None) when 1/10
+        to 1000x the current level ``s0`` does not bracket it."""
+        from scipy.optimize import brentq
+        fj = self.fit_judge
+        e = get_effect("noise_level")
+
+        def g(log_s):
+            fl = fj.floor(e.apply(current, [math.exp(log_s)]))
+            return math.log(fj.floor_ratio(fl.replay, fl))
+
+        a, b = math.log(0.1 * s0), math.log(1000.0 * s0)
+        try:
+            ga, gb = g(a), g(b)
+            if not (ga > 0 > gb):
+                return None, None
+            sig = math.exp(brentq(g, a, b, xtol=0.01))
+            fl = fj.floor(e.apply(current, [sig]))
+            Dk = fj.sim_blocks(fl.replay, fl).sum(axis=1)
+            return sig, sig * 0.5 * float(np.std(Dk, ddof=1) / np.mean(Dk))
+        except Exception:     # noqa: BLE001 - no estimate: the spectrum's stands
+            return None, None
 
     def validate(self):
         """The improved model against the nominal on the held-out data (replay, force residual, open-loop windows)."""
@@ -1112,8 +1270,9 @@ class _Run:
             out.append(j)
         return out
 
-    def adopt(self, jf):
-        """Keep the re-fitted values of the selected deterministic effects (joint fit ``jf``)."""
+    def adopt(self, jf, new=None):
+        """Keep the re-fitted values of the selected deterministic effects (joint fit ``jf``), and of
+        ``new``, the effect being adopted, when ``jf`` was fitted with it (after the selected ones)."""
         path = self.path
         selected = path["selected"]
         base = self.base
@@ -1126,6 +1285,10 @@ class _Run:
             fe["params"] = f.params()
             fe["derived"] = f.effect.derived(base, f.theta)
             k += n
+        if new is not None and LIBRARY[new.key].kind == "deterministic" and len(jf.theta) >= k + len(new.theta):
+            n = len(new.theta)
+            new.theta, new.sigma = jf.theta[k:k + n], jf.sigma[k:k + n]
+            new.derived = new.effect.derived(base, new.theta)
 
     def replay_D(self, spec):
         path = self.path
@@ -1390,7 +1553,7 @@ class _Run:
             # replay is not worse
             refit = joint_fit(selected + [bf], base, ev, ctx_for(ctx, selected + [bf]), min_effects=1)
             if refit is not None and not refit.on_bound and self.replay_D(refit.spec) <= best["cmp"].D_after:
-                self.adopt(refit)
+                self.adopt(refit, new=bf)
                 new_spec = refit.spec
         if refine and LIBRARY[bf.key].kind == "deterministic":
             # the adopted effects refined together by the replay of the fit samples (output error),

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 from scipy import signal
 
@@ -194,15 +196,34 @@ def _taper(r: np.ndarray, mask: np.ndarray, n_taper: int = 16) -> np.ndarray:
     return out
 
 
+def force_resolution(spec, f_o: float) -> float:
+    """The least force [N] a recording resolves through the force observer of bandwidth ``f_o``:
+    the rigid mass (table and bearings) times the acceleration of the encoder's uniform
+    quantization error (``q / sqrt(12)``) at ``f_o``.
+
+    >>> from stage_sim.config import load_preset
+    >>> from experiment_runner.diagnosis.model import ModelSpec
+    >>> f = force_resolution(ModelSpec(load_preset("fi_stage_nofi")), 40.0)
+    >>> 1e-7 < f < 1e-3
+    True
+    """
+    st = spec.preset.stage
+    m = st.table.mass + sum(b.mass for b in st.bearings)
+    return float(m * (2 * math.pi * f_o) ** 2 * max(st.encoder.resolution, 1e-12) / math.sqrt(12.0))
+
+
 class NoiseFloor:
     """Spectrum of the force residual a perfect model leaves, and the whitening filter.
 
     Built from the force residual of simulated recordings (``residuals``: list of (T, B)
     arrays with their masks). ``W(f) = 1/sqrt(S(f))`` up to ``f_max``, rolled off above;
-    :meth:`whiten` applies it (zero phase, FFT) so the floor has unit mean square.
+    :meth:`whiten` applies it (zero phase, FFT) so the floor has unit mean square. ``rms_min``
+    [N]: the least residual a recording resolves (:func:`force_resolution`), a white floor under
+    ``S(f)``: a model whose simulated recordings leave no residual at all (a stage held by
+    Coulomb friction that never slips: its measurement never changes) still has a floor.
     """
 
-    def __init__(self, rate: float, residuals, masks, f_max: float, nperseg: int = 1024):
+    def __init__(self, rate: float, residuals, masks, f_max: float, nperseg: int = 1024, rms_min: float = 0.0):
         self.rate = rate
         self.f_max = f_max
         segs = []
@@ -218,7 +239,7 @@ class NoiseFloor:
         if not segs:
             raise ValueError("noise floor: no usable simulated residual")
         self.f = np.linspace(0, rate / 2, nperseg // 2 + 1)
-        s = np.mean(segs, axis=0)
+        s = np.maximum(np.mean(segs, axis=0), rms_min ** 2 / (rate / 2))
         # smooth in log-frequency, floor it
         s = signal.savgol_filter(np.log(np.maximum(s, 1e-300)), 9, 2, mode="interp") if len(s) > 9 else np.log(s)
         s = np.exp(s)
@@ -230,7 +251,12 @@ class NoiseFloor:
         for r, m in zip(residuals, masks):
             w = self.whiten(r, m)
             ms.append(np.sum(w[m] ** 2) / max(1, m.sum()))
-        self.scale = 1.0 / np.sqrt(np.mean(ms))
+        m_ = float(np.mean(ms))
+        if not (m_ > 0 and math.isfinite(m_)):
+            # no residual at all: the floor is the white bound; its whitened mean square (Parseval)
+            roll2 = 1.0 / (1.0 + (self.f / f_max) ** 8)
+            m_ = float(np.trapezoid(rms_min ** 2 / (rate / 2) / self.psd * roll2, self.f)) if rms_min > 0 else 1.0
+        self.scale = 1.0 / math.sqrt(m_)
         self.sim_ms = [float(x * self.scale ** 2) for x in ms]
 
     def gain(self, n: int) -> np.ndarray:

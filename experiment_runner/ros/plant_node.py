@@ -11,8 +11,9 @@ Safety: the drive saturates at its peak force and thermal (I²t) limit inside th
 (inputs arriving later for that trial are not applied; the next trajectory re-arms it)
 when
 
-* no input arrives for a sample within ``input_timeout`` (wall clock): the watchdog,
-  naming the silent node -- never a hang;
+* no input arrives for a sample within ``input_timeout`` (wall clock; for the first sample
+  of a trial ``first_input_timeout``: the other nodes may still be loading their compiled
+  kernels, seconds on a loaded machine): the watchdog, naming the silent node -- never a hang;
 * an input is NaN or infinite, naming the node that sent it;
 * the simulated state diverges (non-finite or runaway) or the table leaves its travel.
 """
@@ -77,6 +78,9 @@ class PlantNode(StageNode):
         super().__init__("plant_sim", **kwargs)
         self.timeout = self.param("input_timeout", 5.0, "wall-clock time to wait for a sample's "
                                   "inputs before the trial is aborted [s]", 0.01, 3600.0, attr="timeout")
+        self.first_timeout = self.param("first_input_timeout", 30.0, "the same for the first sample of a "
+                                        "trial, when the other nodes may still be loading their compiled "
+                                        "kernels [s]", 0.01, 3600.0, attr="first_timeout")
         self.preset_name = self.param("preset", "", "preset name or YAML path; empty = the preset of "
                                       "/experiment/config", check=check_preset)
         self.pub_measured = JointStateOut(self, "/stage/measured")
@@ -200,12 +204,13 @@ class PlantNode(StageNode):
         if self.sim is None or self.waiting_since is None or self.k >= self.n:
             return
         waited = time.monotonic() - self.waiting_since
-        if waited <= self.timeout and waited > (self.resends + 1) * RESEND_S:
+        limit = self.first_timeout if self.k == 0 else self.timeout
+        if waited <= limit and waited > (self.resends + 1) * RESEND_S:
             self.resends += 1
             self.pub_measured.republish()
-        if waited > self.timeout:
+        if waited > limit:
             silent = sorted({publisher_of(INPUT_TOPIC[m]) for m in self.lock.missing(self.k)})
-            self._stop("watchdog", f"no input for sample {self.k} within {self.timeout} s from: "
+            self._stop("watchdog", f"no input for sample {self.k} within {limit:g} s from: "
                                    f"{', '.join(silent)}", silent, self.k, silent=silent)
 
     def _stop(self, cause, reason, responsible, k, **fields):
