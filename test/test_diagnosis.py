@@ -274,3 +274,14 @@ def test_noise_floor_of_a_model_that_leaves_no_residual():
     r = np.random.default_rng(0).normal(0, 1.0, (T, 1))
     assert fl.ms(r, mask) > 1e6
     assert 0.1 < fl.ms(r * f_min, mask) < 10
+
+
+def test_noise_floor_refuses_a_diverged_recording():
+    """A candidate whose simulated recording diverged has no floor (the candidate gets no credit from
+    it): a clear ValueError, not overflow warnings from the spectrum and a NaN floor."""
+    T = 2000
+    mask = np.ones((T, 1), bool)
+    r = np.zeros((T, 1))
+    r[1500:] = 1e200
+    with pytest.raises(ValueError, match="diverged"):
+        NoiseFloor(1000.0, [r], [mask], f_max=40.0)

@@ -126,7 +126,10 @@ def _fit_candidate(e, current: ModelSpec, selected: list, J_fit_cur: float, ev: 
         # of the two counts. One that does fit better is not held back by a quieter own
         # floor (e.g. viscous damping over a quantization-only floor): the smaller counts
         f.J_held_base = f.J_held
-        J_own = ev.J(f.spec, "held", floor=_light_floor(f.spec, ev.data, ev.obs.f_o, floor_seed, ev.data.smooth_hz))
+        try:
+            J_own = ev.J(f.spec, "held", floor=_light_floor(f.spec, ev.data, ev.obs.f_o, floor_seed, ev.data.smooth_hz))
+        except ValueError:        # its simulated recording diverged: no floor of its own, no credit
+            J_own = math.inf
         f.J_held = min(J_own, f.J_held_base) if f.J_fit < J_fit_cur else max(J_own, f.J_held_base)
     return f
 

@@ -228,6 +228,8 @@ class NoiseFloor:
         self.f_max = f_max
         segs = []
         for r, m in zip(residuals, masks):
+            if not np.all(np.isfinite(r[m])) or np.max(np.abs(r[m]), initial=0.0) > 1e100:
+                raise ValueError("noise floor: the simulated residual is not finite (the model diverged)")
             rt = _taper(r, m)
             for b in range(r.shape[1]):
                 n = int(m[:, b].sum())
