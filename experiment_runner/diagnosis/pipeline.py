@@ -628,10 +628,9 @@ class _Run:
         else:
             judge = ReplayJudge(data, x_ref=x_eq)
             fit_judge = ReplayJudge(dataclasses.replace(data, held=data.fit), x_ref=x_eq) if data.fit.any() else None
-        # output-error refinement by the replay of the fit samples (closed-loop records): an open-loop
-        # record's windows are re-initialised from each candidate's own observer state, so their error is
-        # not an output error of the candidate alone (a refined isolator then "explained" a located mode's
-        # remainder below the floor): open-loop records keep the force observer's values
+        # output-error refinement by the replay of the fit samples; on an open-loop record by its
+        # prewhitened windows (before they were whitened, a refined isolator "explained" a located
+        # mode's remainder below the floor there, and open-loop records kept the observer's values)
         refine = fit_judge is not None
         jfl0 = judge.floor(base)
         timing["floor_s"] = time.perf_counter() - t
