@@ -29,7 +29,7 @@ AR(:data:`AR_ORDER`) prediction-error filter of the floor's own window errors (l
 the ``K`` simulated recordings, lags inside a window; a window's first ``AR_ORDER`` samples are
 left out), scaled to unit RMS on them -- the noise model of a generalised-least-squares test, the
 floor's simulated recordings being whitened by the same filter, so the test keeps its calibration
-(the truth model at 1.00x its floor on the mode, damper, regularised-Coulomb and delay records at
+(the truth model at 0.98-1.01x its floor on the mode, damper and regularised-Coulomb records at
 1 and 10 kHz), and an output-error fit on it (:func:`.pipeline._refine_by_replay`, through
 :meth:`OpenLoopJudge.residual`) is weighted least squares with that noise model. The reported RMS
 errors stay in metres.

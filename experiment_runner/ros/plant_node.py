@@ -209,7 +209,13 @@ class PlantNode(StageNode):
             self.resends += 1
             self.pub_measured.republish()
         if waited > limit:
-            silent = sorted({publisher_of(INPUT_TOPIC[m]) for m in self.lock.missing(self.k)})
+            silent = {publisher_of(INPUT_TOPIC[m]) for m in self.lock.missing(self.k)}
+            # the SAI manager runs one sample ahead: while the plant waits at sample k it has sent
+            # k + 1 already unless it is gone -- then a silent servo may be waiting for its correction
+            # (a manager killed between the two deliveries of its last message reached the plant only)
+            if "sai" in self.lock.needed and self.k + 1 < self.n and "sai" in self.lock.missing(self.k + 1):
+                silent.add(publisher_of(INPUT_TOPIC["sai"]))
+            silent = sorted(silent)
             self._stop("watchdog", f"no input for sample {self.k} within {limit:g} s from: "
                                    f"{', '.join(silent)}", silent, self.k, silent=silent)
 
