@@ -233,15 +233,19 @@ class ReplayJudge:
         """Per-block sums of ``e2`` (T, B) over the held-out samples."""
         return np.bincount(self.block[self.mask], weights=e2[self.mask], minlength=self.n_blocks)
 
+    def _errors(self, u, y, rp: Replay, fl: Floor) -> list:
+        """The channels' errors of ``(u, y)`` against ``rp`` in ``fl``'s floor units, (T, B) each:
+        command and position. Every statistic below is built on them."""
+        return [(u - rp.u) / fl.sigma_u, (y - rp.y) / fl.sigma_y]
+
     def _e2(self, u, y, rp: Replay, fl: Floor) -> np.ndarray:
-        return ((u - rp.u) / fl.sigma_u) ** 2 + ((y - rp.y) / fl.sigma_y) ** 2
+        return sum(e ** 2 for e in self._errors(u, y, rp, fl))
 
     def residual(self, rp: Replay, fl: Floor) -> np.ndarray:
         """The data's replay error against ``rp`` on the judged samples in ``fl``'s floor units, as one
-        vector (command, then position): its sum of squares is ``n D``. What an output-error fit
+        vector (channel after channel): its sum of squares is ``n D``. What an output-error fit
         minimises."""
-        m = self.mask
-        return np.concatenate([((self.u - rp.u) / fl.sigma_u)[m], ((self.y - rp.y) / fl.sigma_y)[m]])
+        return np.concatenate([e[self.mask] for e in self._errors(self.u, self.y, rp, fl)])
 
     def data_blocks(self, rp: Replay, fl: Floor) -> np.ndarray:
         """Per-block sums of the data's normalised squared replay error against ``rp``."""
@@ -281,11 +285,9 @@ class ReplayJudge:
         for another (large ``e`` where it acts) does not."""
         if not self.n:
             return 0.0
-        du = (rp1.u - rp0.u) / fl.sigma_u
-        dy = (rp1.y - rp0.y) / fl.sigma_y
-        eu = (self.u - rp1.u) / fl.sigma_u
-        ey = (self.y - rp1.y) / fl.sigma_y
-        sb = self._blocks(eu * du + ey * dy)
+        d = self._errors(rp1.u, rp1.y, rp0, fl)
+        e = self._errors(self.u, self.y, rp1, fl)
+        sb = self._blocks(sum(ei * di for ei, di in zip(e, d)))
         return float(2.0 * np.sqrt(np.sum(sb ** 2)) / self.n)
 
     # ------------------------------------------------------------------ tests

@@ -235,23 +235,10 @@ class OpenLoopJudge(ReplayJudge):
             O[:, p:] += a[l] * E[:, p - l:L - l]
         return out
 
-    # ------------------------------------------------------------------ distances (whitened)
-    def _e2(self, u, y, rp: Replay, fl: Floor) -> np.ndarray:
-        """Squared prewhitened position error (the command is the input: no error)."""
-        return self._white(y - rp.y, fl.white) ** 2
-
-    def residual(self, rp: Replay, fl: Floor) -> np.ndarray:
-        """The data's prewhitened position error against ``rp`` on the judged samples (its sum of
-        squares is ``n D``)."""
-        return self._white(self.y - rp.y, fl.white)[self.mask]
-
-    def _score_se(self, rp0: Replay, rp1: Replay, fl: Floor) -> float:
-        """:meth:`.judge.ReplayJudge._score_se` on the prewhitened position errors."""
-        if not self.n:
-            return 0.0
-        d = self._white(rp1.y - rp0.y, fl.white)
-        e = self._white(self.y - rp1.y, fl.white)
-        return float(2.0 * np.sqrt(np.sum(self._blocks(e * d) ** 2)) / self.n)
+    # ------------------------------------------------------------------ errors (whitened)
+    def _errors(self, u, y, rp: Replay, fl: Floor) -> list:
+        """One channel, the prewhitened position error (the command is the input: no error)."""
+        return [self._white(y - rp.y, fl.white)]
 
     def rms(self, rp: Replay) -> tuple[float, float]:
         """RMS errors on the judged samples: command (0: it is the input), position [m]."""

@@ -289,15 +289,13 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
             # one parameter: the replay's error is rough in it (a stick-slip event or an encoder step
             # moves with it) and may be flat at the observer's value (a stage held by friction):
             # start from the best of a coarse grid around it
-            z1 = z0
-            c1 = float(r0 @ r0)
+            z1, c1 = z0, c_obs
             for d in GRID_1D:
                 z = np.clip(z0 + d * max(1.0, abs(float(z0[0])) if not ps[0].log else 1.0), lo + eps, hi - eps)
                 r = res(z)
                 if r is not bad and float(r @ r) < c1:
                     z1, c1 = z, float(r @ r)
-            if z1 is not z0:
-                z0, r0 = z1, res(z1)
+            z0 = z1
         out = least_squares(res, z0, bounds=(lo, hi), max_nfev=max_nfev, x_scale="jac",
                             diff_step=diff_step)
         if not out.success and out.status < 0 or out.cost >= 0.5 * c_obs:
@@ -824,16 +822,10 @@ class _Run:
         if any(f.key not in rows for f in det):
             return
         theta = {f.key: np.array([p["value"] for p in rows[f.key]["params"]], float) for f in det}
-        prev = base
-        for f in selected:
-            if LIBRARY[f.key].kind != "deterministic":
-                prev = f.effect.apply(prev, f.theta)
 
         def spec_of(th):
-            spec = prev
-            for f in det:
-                spec = f.effect.apply(spec, th[f.key])
-            return spec
+            return _spec_without([dataclasses.replace(f, theta=th[f.key]) if f.key in th else f for f in selected],
+                                 base)
 
         try:
             fl = fj.floor(self.current)
@@ -1292,6 +1284,18 @@ class _Run:
             new.theta, new.sigma = jf.theta[k:k + n], jf.sigma[k:k + n]
             new.derived = new.effect.derived(base, new.theta)
 
+    def keep_refined(self, f, ref) -> None:
+        """Keep a replay refinement ``ref`` (:func:`_refine_by_replay`) of the adopted effect ``f``: the
+        joint values of every adopted effect, or ``f``'s own."""
+        if ref["joint"] is not None:
+            self.adopt(ref["joint"])
+            return
+        path = self.path
+        k = next(i for i, s in enumerate(path["selected"]) if s is f)
+        f.theta, f.sigma = ref["theta"], ref["sigma"]
+        path["found"][k]["params"] = f.params()
+        path["found"][k]["derived"] = f.effect.derived(self.base, f.theta)
+
     def replay_D(self, spec):
         path = self.path
         judge = self.judge
@@ -1356,14 +1360,8 @@ class _Run:
             selected.pop(i)
             gone = path["found"].pop(i)
             path["banned"].add(e.key)
-            ref = best_wo[2]
-            if ref is not None:
-                if ref["joint"] is not None:
-                    self.adopt(ref["joint"])
-                else:
-                    last.theta, last.sigma = ref["theta"], ref["sigma"]
-                    path["found"][-1]["params"] = last.params()
-                    path["found"][-1]["derived"] = last.effect.derived(base, last.theta)
+            if best_wo[2] is not None:
+                self.keep_refined(last, best_wo[2])
             path["current"] = best_wo[1]
             path["found"][-1].setdefault("withdraws", []).append(
                 {"effect": gone["effect"], "step": gone["step"], "params": gone["params"],
@@ -1472,13 +1470,7 @@ class _Run:
         if not self.fit_D(ref["spec"]) < self.fit_D(path["current"]) \
                 or self.replay_D(ref["spec"]) > self.replay_D(path["current"]):
             return
-        if ref["joint"] is not None:
-            self.adopt(ref["joint"])
-        else:
-            k = next(i for i, s in enumerate(selected) if s is last)
-            last.theta, last.sigma = ref["theta"], ref["sigma"]
-            path["found"][k]["params"] = last.params()
-            path["found"][k]["derived"] = last.effect.derived(self.base, last.theta)
+        self.keep_refined(last, ref)
         path["current"] = ref["spec"]
         self.renew_floor(ref["spec"])
 
