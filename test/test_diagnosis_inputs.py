@@ -174,6 +174,22 @@ def test_plant_fractional_delay_is_the_exact_delayed_zoh(rate, delay):
     assert np.max(np.abs(y[:-1] - ref)) < 1e-9 * np.max(np.abs(ref))
 
 
+@pytest.mark.parametrize("delay, lo", [(0.0, 0.0), (0.25, -0.25), (2.4, -0.999)])
+def test_fractional_delay_shift_ends_at_no_delay(delay, lo):
+    """The fractional delay's shift cannot take the model's total delay below zero: there the
+    model is flat in it (a shift of -0.31 on a model without delay was the same model as no
+    shift, and the observer's fit wandered there); the end at zero delay is a physical one."""
+    from experiment_runner.diagnosis.hypotheses import LIBRARY
+    from experiment_runner.diagnosis.model import ModelSpec
+    from stage_sim.config import preset_from_dict
+    d = _nominal(m=2.0, c=30.0, q=1e-9, noise=0.002)
+    d["stage"]["drive"].update(delay_samples=int(delay), delay_fraction=delay - int(delay))
+    spec = ModelSpec(preset_from_dict(d))
+    (p,) = LIBRARY["fractional_delay"].params(spec, {})
+    assert p.lo == pytest.approx(lo) and p.hi == pytest.approx(0.999)
+    assert p.physical_lo == (lo > -0.999)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("rate", [1000.0, 10000.0])
 def test_fractional_delay_diagnosed(tmp_path, rate):

@@ -1,12 +1,14 @@
 """The power study, reduced (issue 11, item 5): ``nanostage diagnose --selftest --power
 --cases 4 --json``: the JSON keys, the report and plot, no case failing to run, no effect
 named on the negative control, rates computed from the cases. Named-first is not asserted
-per case in the reduced study: the study's goal (>= 95 %) is not met (85.4 % in the full
+per case in the reduced study: the study's goal (>= 95 %) is not met (88.2 % in the full
 study, see the diagnosis README).
 
-One case of the full study that the replay refinement of the candidates fixed (case 54: the
-Coulomb level named, not position-dependent friction), and the estimator facade (fit /
-predict / score) on one concealed force-gain case.
+Cases of the full study that changes to the diagnosis fixed, each at its cause (54: the Coulomb
+level named, not position-dependent friction; 50: an FI joint not taken for an asymmetry 28x
+above the floor; 101: a friction slope the force observer cannot see), the construction of a
+pair's truth and the pair rate's count, and the estimator facade (fit / predict / score) on one
+concealed force-gain case.
 """
 from __future__ import annotations
 
@@ -89,3 +91,81 @@ def test_estimator_fit_predict_score():
     rp = est.predict(data)
     assert rp.ok and rp.u.shape[0] == data.shape[0] and np.all(np.isfinite(rp.y))
     assert est.score(data) > 0.9
+
+
+def test_pair_truth_keeps_the_first_effects_friction_variation():
+    """A pair's second effect may write a new friction law over the bearings (Stribeck: LuGre); the
+    variation the first gave them (an asymmetry) stays in the truth. It was dropped: the
+    asymmetry of case 94 changed the truth's replay by 0.0x its floor, yet counted as a missed
+    effect of 30.7x."""
+    case = PowerCase(index=94, effects=("friction_asymmetry", "stribeck"), stage="rigid", friction="dahl",
+                     rate=10000.0, noise=0.5, record="sine", quantiles=(0.45226191396749166, 0.7486007398833707),
+                     seed=633604648, trials=3,
+                     profile={"kind": "sine_sweep", "frequencies": [8.379879891775918, 25.139639675327754],
+                              "amplitude": 0.00010573973354992971, "periods": 3, "settle_periods": 1})
+    _, truth, expect, _, _ = build_case(case)
+    frs = [b.friction for b in truth.stage.bearings]
+    assert all(fr.model == "lugre" for fr in frs)
+    assert sum(fr.f_c_difference for fr in frs) == pytest.approx(expect["friction_asymmetry"]["dF_C"], rel=1e-12)
+    assert expect["friction_asymmetry"]["dF_C"] != 0.0
+
+
+def test_pair_rate_counts_what_each_effect_adds_given_the_other():
+    """``pair_rate`` is over pairs in which each effect changes the replay by >= 3 floors once the
+    other is in the model; an effect large alone but hidden by the other does not count there
+    (it does in ``pair_rate_alone``)."""
+    from experiment_runner.diagnosis.power import summarize
+
+    def pair(name, alone, given, both):
+        return {"case": name, "kind": "pair", "effects": ["a", "b"], "named": [], "both_named": both,
+                "replay_change": {"truth": 50.0, **alone}, "replay_change_given_other": given,
+                "detected": {}, "params": {}, "truth_stable": True}
+    res = [pair("p1", {"a": 30.0, "b": 40.0}, {"a": 0.5, "b": 40.0}, False),    # a hidden by b
+           pair("p2", {"a": 30.0, "b": 40.0}, {"a": 25.0, "b": 35.0}, True),
+           pair("p3", {"a": 2.0, "b": 40.0}, {"a": 4.0, "b": 35.0}, False)]      # a larger given b
+    p = summarize(res)["power"]
+    assert (p["pair_cases"], p["pair_rate"]) == (2, 0.5)
+    assert (p["pair_cases_alone"], p["pair_rate_alone"]) == (2, 0.5)
+    res[2]["both_named"] = True
+    assert summarize(res)["power"]["pair_rate"] == 1.0
+
+
+def _named_alone(case: PowerCase, param: str, min_change: float) -> dict:
+    """Run single-effect ``case``: its effect changes the replay by >= ``min_change`` floors and is
+    the one effect named; returns the check of its parameter ``param`` (truth, estimate)."""
+    from experiment_runner.diagnosis.power import run_case
+    r = run_case(case)
+    assert "error" not in r, r.get("traceback")
+    assert r["replay_change"]["truth"] >= min_change
+    assert r["named"] == list(case.effects), r["named"]
+    return r["params"][case.effects[0]]["checks"][param]
+
+
+def test_candidate_at_the_floor_is_not_confounded_with_one_far_above_it():
+    """Power-study case 50: an isolator joint of 6e4 N/m concealed in four point-to-point trials of
+    the rigid Dahl stage at 10 kHz (732x the floor). The joint model reaches the floor (D 2.04)
+    while a friction asymmetry stays 28x above it (D 1574); both were judged against recordings
+    of the *nominal*, whose scatter grows with the distance of both replays from it, so the two
+    looked equivalent and the simpler asymmetry was adopted. Judged against recordings of the
+    better model, the joint is named alone, its stiffness within 2 %."""
+    case = PowerCase(index=50, effects=("fi_compliance",), stage="rigid", friction="dahl", rate=10000.0, noise=0.5,
+                     record="p2p", quantiles=(0.8412552697291148,), seed=150244432, trials=4,
+                     profile={"kind": "point_to_point", "distance": -8.575679166411267e-06, "dwell": 0.06})
+    chk = _named_alone(case, "k_fi", min_change=3)
+    assert chk["estimate"] == pytest.approx(chk["truth"], rel=0.02)
+
+
+def test_effect_the_observer_cannot_see_is_found_by_the_replay_alone():
+    """A friction slope along the travel (g_1 -57.5 N/m) concealed in three 0.25 s circle trials
+    of the rigid Dahl stage at 1 kHz: 153x the floor in the replay, while the 40 Hz force
+    observer is at its own noise (J 1.2) and fits it as noise (g_1 +1669 N/m, worse than no
+    change). Such a candidate is refined by the replay from its own start (a coarse grid per
+    coordinate), and a later candidate is credited only with what it adds to the re-fit of the
+    adopted slope (at 6e-8 N, a "ripple" had been adopted for what that re-fit did). Named
+    alone, the slope within 5 % (the issue asks 20 %)."""
+    case = PowerCase(index=101, effects=("position_friction",), stage="rigid", friction="dahl", rate=1000.0,
+                     noise=1.0, record="circle", quantiles=(0.4900249910266407,), seed=1382235942, trials=3,
+                     profile={"kind": "circle", "radius": 0.000734506268586675, "speed": 0.018460155979260397,
+                              "cycles": 1.0})
+    chk = _named_alone(case, "g_1", min_change=100)
+    assert chk["estimate"] == pytest.approx(chk["truth"], rel=0.05)

@@ -477,6 +477,9 @@ def noise_components(spec: ModelSpec, data: DiagData, obs_factory, seeds=(7001,)
                     continue
                 f, p = signal.welch(r[m, b], data.rate, nperseg=min(1024, int(m.sum())))
                 psd.append(np.interp(np.linspace(0, data.rate / 2, 513), f, p))
+        if not psd:
+            raise ValueError("every trial is shorter than 256 samples: no residual spectrum to read a "
+                             "drive-noise level from")
         out.append(np.mean(psd, axis=0))
     f = np.linspace(0, data.rate / 2, 513)
     return f, out[0], np.maximum(out[1] - out[0], 0.0), sigma_ref

@@ -487,7 +487,11 @@ class FractionalDelay(Effect):
         return d.delay_samples + d.delay_fraction
 
     def params(self, spec, ctx):
-        return [Param("shift", "samples", -0.999, 0.999, 0.3, doc="delay added to the model's, in control periods")]
+        # a total delay below zero is no delay: the shift ends there (flat beyond, where the
+        # observer's fit would wander)
+        lo = -min(0.999, self.total(spec))
+        return [Param("shift", "samples", lo, 0.999, 0.3, doc="delay added to the model's, in control periods",
+                      physical_lo=lo > -0.999)]
 
     def starts(self, spec, ctx):
         return [[0.3], [-0.3]] if self.total(spec) > 0 else [[0.3], [0.7]]

@@ -291,17 +291,19 @@ class ReplayJudge:
         return float(2.0 * np.sqrt(np.sum(sb ** 2)) / self.n)
 
     # ------------------------------------------------------------------ tests
-    def compare(self, fl: Floor, rp_new: Replay, fl_blocks=None, rp_base: Replay | None = None) -> Comparison:
+    def compare(self, fl: Floor, rp_new: Replay, fl_blocks=None, rp_base: Replay | None = None,
+                of_base: Floor | None = None) -> Comparison:
         """Is ``rp_new`` (current model + an effect) a real improvement over ``fl``'s model (or over
-        the replay ``rp_base``, e.g. a simpler alternative, with ``fl``'s noise)?"""
+        the replay ``rp_base``, e.g. a simpler alternative, whose model's simulated recordings
+        ``of_base`` (its floor) give the run-to-run threshold; in ``fl``'s floor units)?"""
         rp0 = fl.replay if rp_base is None else rp_base
         b0 = self.data_blocks(rp0, fl)
         b1 = self.data_blocks(rp_new, fl)
         n = max(self.n, 1)
         D0, D1 = float(b0.sum() / n), float(b1.sum() / n)
         T = D0 - D1
-        s0 = fl_blocks if (fl_blocks is not None and rp_base is None) else self.sim_blocks(rp0, fl)
-        s1 = self.sim_blocks(rp_new, fl)
+        s0 = fl_blocks if (fl_blocks is not None and rp_base is None) else self.sim_blocks(rp0, fl, of=of_base)
+        s1 = self.sim_blocks(rp_new, fl, of=of_base)
         Tk = (s0.sum(axis=1) - s1.sum(axis=1)) / n
         thr = float(np.mean(Tk) + self.t_q * np.std(Tk, ddof=1))
         se = self._score_se(rp0, rp_new, fl)
@@ -317,20 +319,25 @@ class ReplayJudge:
             why = ""
         return Comparison(D0, D1, T, thr, se, True, not why, why or "beyond the floor")
 
-    def equivalent(self, fl: Floor, rp_a: Replay, rp_b: Replay, margin: float = 0.05) -> tuple[bool, float]:
-        """Can the held-out data tell ``rp_a`` from the better ``rp_b``? With ``d = D(a) - D(b)``:
-        equivalent when ``d`` is within 2 standard errors of the same difference over the
-        simulated recordings, or ``D(a)`` is within ``margin`` of ``D(b)`` (replay errors a few
-        per cent apart in RMS), or ``d`` is within 2 block-bootstrap standard errors (the data's
-        own scatter) while ``D(a)`` is within 25 % of ``D(b)`` (the block bootstrap alone would
-        call a large difference concentrated in a few blocks, e.g. at the reversals,
-        "equivalent"). Returns (equivalent, d)."""
+    def equivalent(self, fl: Floor, rp_a: Replay, rp_b: Replay, margin: float = 0.05,
+                   of_b: Floor | None = None) -> tuple[bool, float]:
+        """Can the held-out data tell ``rp_a`` from the better ``rp_b``? With ``d = D(a) - D(b)``
+        (in ``fl``'s floor units): equivalent when ``d`` is within 2 standard errors of the same
+        difference over simulated recordings of ``b``'s model (``of_b``, its floor; default
+        ``fl``'s), or ``D(a)`` is within ``margin`` of ``D(b)`` (replay errors a few per cent apart
+        in RMS), or ``d`` is within 2 block-bootstrap standard errors (the data's own scatter)
+        while ``D(a)`` is within 25 % of ``D(b)`` (the block bootstrap alone would call a large
+        difference concentrated in a few blocks, e.g. at the reversals, "equivalent").
+        Recordings of ``fl``'s model are the wrong reference when both replays are far from it:
+        their difference then scatters with that distance, and a candidate at the floor looked
+        equivalent to one 28x above it. Returns (equivalent, d)."""
         ba = self.data_blocks(rp_a, fl)
         bb = self.data_blocks(rp_b, fl)
         n = max(self.n, 1)
         Da, Db = float(ba.sum() / n), float(bb.sum() / n)
         d = Da - Db
-        dk = (self.sim_blocks(rp_a, fl).sum(axis=1) - self.sim_blocks(rp_b, fl).sum(axis=1)) / n
+        of_b = of_b or fl
+        dk = (self.sim_blocks(rp_a, fl, of=of_b).sum(axis=1) - self.sim_blocks(rp_b, fl, of=of_b).sum(axis=1)) / n
         se_sim = float(np.std(dk, ddof=1))
         se_blk = self._block_se(ba - bb, d)
         eq = d <= 2.0 * se_sim or Da <= (1 + margin) * Db or (d <= 2.0 * se_blk and Da <= 1.25 * Db)

@@ -25,8 +25,13 @@ nominal's held-out closed-loop replay is from recordings of the truth than from 
 
 ``power.named_first_rate``  single-effect cases with ``replay_change >= 3``: the true effect
                             (or a confounded set holding it) named first
-``power.pair_rate``         pairs whose two effects each have ``replay_change >= 3``: both named,
-                            the first named one of them
+``power.pair_rate``         pairs in which each effect changes the replay by >= 3 floors once the
+                            other is in the model (``replay_change_given_other``: the nominal
+                            plus the other effect against recordings of the truth, in that
+                            model's floor): both named, the first named one of them.
+                            ``pair_rate_alone`` counts pairs by each effect's change from the
+                            nominal alone instead (an effect can be large alone and small beside
+                            the other: a viscous term beside a GMS, 6.7x alone, 0.2x given it)
 ``power.params_rate``       of the correctly named effects above: every parameter within
                             +-20 % of the truth
 ``false_positive_rate``     negative controls with any effect named
@@ -136,9 +141,24 @@ def _bearings(d, fn):
         fn(b["friction"], b)
 
 
+_VARIATION = ("f_c_difference", "viscous_difference", "f_c_gradient", "f_c_curvature", "position_center")
+"""Friction variation fields of a bearing's friction mapping: kept when a pair's second effect
+writes a new friction law over the first's (asymmetric or position-dependent friction)."""
+
+
 def _truth_effect(e: str, q: float, rng, d: dict, case: PowerCase, info: dict) -> dict:
     """Apply effect ``e`` of size quantile ``q`` to the preset mapping ``d`` (in place);
-    returns the truth values of the effect's parameters (the library's parametrization)."""
+    returns the truth values of the effect's parameters (the library's parametrization).
+    A friction law written over the bearings keeps the variation an earlier effect gave them."""
+    kept = [{k: b["friction"][k] for k in _VARIATION if k in b["friction"]} for b in d["stage"]["bearings"]]
+    out = _write_effect(e, q, rng, d, case, info)
+    for b, var in zip(d["stage"]["bearings"], kept):
+        for k, v in var.items():
+            b["friction"].setdefault(k, v)
+    return out
+
+
+def _write_effect(e: str, q: float, rng, d: dict, case: PowerCase, info: dict) -> dict:
     sign = 1.0 if rng.random() < 0.5 else -1.0
     nb = len(d["stage"]["bearings"])
     fc = _fc_total(d)
@@ -432,7 +452,9 @@ def replay_change(nominal, variants: dict, data) -> dict:
         u, y, _, _ = j._simulate(ModelSpec(p), j.seeds[:4])
         e2 = [((u[i] - fl.replay.u) / fl.sigma_u) ** 2 + ((y[i] - fl.replay.y) / fl.sigma_y) ** 2 for i in range(4)]
         Dv = float(np.mean([np.sum(x[j.mask]) / n for x in e2]))
-        out[k] = float(math.sqrt(abs(Dv - base) / max(base, 1e-300)))
+        # a floor without noise (a stage that never slips at its encoder step) counts as 2 per
+        # sample, as :meth:`.judge.ReplayJudge.floor_ratio` counts it
+        out[k] = float(math.sqrt(abs(Dv - base) / max(base, 2.0)))
     return out
 
 
@@ -489,19 +511,29 @@ def run_case(case: PowerCase, keep=None) -> dict:
     try:
         nominal, truth, expect, data, tr = build_case(case)
         variants = {"truth": truth}
+        alldata = data.subset(np.arange(data.shape[1]))
         if len(case.effects) == 2:
             from stage_sim.config import preset_from_dict
             for i, (e, q) in enumerate(zip(case.effects, case.quantiles)):
                 doc = nominal.model_dump(mode="json")
                 _truth_effect(e, q, np.random.default_rng([case.seed, 7, i]), doc, case, _info(tr))
                 variants[e] = preset_from_dict(doc, e)
-        change = replay_change(nominal, variants, data.subset(np.arange(data.shape[1])))
+        change = replay_change(nominal, variants, alldata)
+        given = {}
+        if len(case.effects) == 2:
+            # what each effect adds to the truth once the other is in the model: the nominal plus
+            # the other effect's replay against recordings of the truth, in that model's floor
+            a, b = case.effects
+            given = {a: replay_change(variants[b], {"truth": truth}, alldata)["truth"],
+                     b: replay_change(variants[a], {"truth": truth}, alldata)["truth"]}
         from .judge import ReplayJudge
         truth_stable = ReplayJudge(data.subset(np.arange(data.shape[1]))).replay(ModelSpec(truth)).ok
         out_dir = None if keep is None else Path(keep) / case.name
         rep = diagnose(None, ModelSpec(nominal), out=out_dir, data=data, options=Options(plots=keep is not None,
                                                                                           n_jobs=1))
         res = judge_case(case, rep, expect, change)
+        if given:
+            res["replay_change_given_other"] = given
         res["expect"] = expect
         res["truth_stable"] = bool(truth_stable)
         res["diagnose_s"] = round(rep["timing_s"]["total_s"], 2)
@@ -557,6 +589,12 @@ def _task(case: PowerCase, keep):
     return run_case(case, keep)
 
 
+def _pair_change(r: dict, e: str) -> float:
+    """What effect ``e`` of pair case ``r`` adds to the replay once the other is in the model
+    (floor units); its change from the nominal alone when that was not measured."""
+    return (r.get("replay_change_given_other") or r["replay_change"]).get(e, 0.0)
+
+
 def summarize(results: list[dict], threshold: float = 3.0) -> dict:
     """The study's rates from the case results."""
     singles = [r for r in results if r["kind"] == "single" and "error" not in r]
@@ -568,7 +606,8 @@ def summarize(results: list[dict], threshold: float = 3.0) -> dict:
     singles = [r for r in singles if r.get("truth_stable", True)]
     pairs = [r for r in pairs if r.get("truth_stable", True)]
     big = [r for r in singles if r["replay_change"].get("truth", 0) >= threshold]
-    pbig = [r for r in pairs if all(r["replay_change"].get(e, 0) >= threshold for e in r["effects"])]
+    pbig = [r for r in pairs if all(_pair_change(r, e) >= threshold for e in r["effects"])]
+    palone = [r for r in pairs if all(r["replay_change"].get(e, 0) >= threshold for e in r["effects"])]
     named = [r for r in big if r["named_first"]]
     pok = [r for r in pbig if r["both_named"]]
     par = [r["params"][r["effects"][0]]["ok"] for r in named if r["params"][r["effects"][0]]["ok"] is not None]
@@ -592,6 +631,8 @@ def summarize(results: list[dict], threshold: float = 3.0) -> dict:
     return {
         "power": {"named_first_rate": len(named) / len(big) if big else None, "named_first_cases": len(big),
                   "pair_rate": len(pok) / len(pbig) if pbig else None, "pair_cases": len(pbig),
+                  "pair_rate_alone": (sum(r["both_named"] for r in palone) / len(palone)) if palone else None,
+                  "pair_cases_alone": len(palone),
                   "params_rate": sum(par) / len(par) if par else None, "params_cases": len(par),
                   "threshold_floor_units": threshold, "by_effect": by},
         "false_positive_rate": len(fp) / len(negs) if negs else None,
@@ -628,7 +669,9 @@ def run_power(n_cases: int = DEFAULT_CASES, workers: int | None = 2, cluster=Non
 
 
 def _fmt_change(r) -> str:
-    return ", ".join(f"{k} {v:.3g}x" for k, v in (r.get("replay_change") or {}).items())
+    given = r.get("replay_change_given_other") or {}
+    return ", ".join(f"{k} {v:.3g}x" + (f" ({given[k]:.3g}x given the other)" if k in given else "")
+                     for k, v in (r.get("replay_change") or {}).items())
 
 
 # --------------------------------------------------------------------------- report
@@ -658,7 +701,8 @@ def to_markdown(s: dict, plots=()) -> str:
          f"units of the run-to-run floor (>= {p['threshold_floor_units']:g}x: should be found).", "",
          "| rate | value | over | goal |", "|---|---|---|---|",
          f"| named first (single effects >= 3x) | {_pct(p['named_first_rate'])} | {p['named_first_cases']} | >= 95 % |",
-         f"| both named (pairs, each >= 3x) | {_pct(p['pair_rate'])} | {p['pair_cases']} | >= 90 % |",
+         f"| both named (pairs, each >= 3x given the other) | {_pct(p['pair_rate'])} | {p['pair_cases']} | >= 90 % |",
+         f"| both named (pairs, each >= 3x alone) | {_pct(p.get('pair_rate_alone'))} | {p.get('pair_cases_alone', 0)} | |",
          f"| parameters within ±20 % (named, >= 3x) | {_pct(p['params_rate'])} | {p['params_cases']} | |",
          f"| false positives (negative controls) | {_pct(s['false_positive_rate'])} | {s['negatives']} | <= 5 % |",
          f"| cases that failed to run | {s['errors']} | {s['cases']} | 0 |",
@@ -674,7 +718,8 @@ def to_markdown(s: dict, plots=()) -> str:
     res = s["results"]
     L += ["", "## Rejected but true (>= 3x the floor, not named)", ""]
     rows = [r for r in res if r["kind"] != "negative" and "error" not in r
-            and any(r["replay_change"].get(e if r["kind"] == "pair" else "truth", 0) >= 3 and not r["detected"].get(e)
+            and any((_pair_change(r, e) if r["kind"] == "pair" else r["replay_change"].get("truth", 0)) >= 3
+                    and not r["detected"].get(e)
                     for e in r["effects"])]
     L += [f"- `{r['case']}` (change {_fmt_change(r)}): named {r['named'] or 'nothing'}; "
           + "; ".join(f"{e}: {w}" for e, w in (r.get("reasons") or {}).items()) for r in rows] or ["none"]

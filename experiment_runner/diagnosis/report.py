@@ -206,6 +206,8 @@ def to_markdown(rep: dict) -> str:
                  f"({1 if rep.get('recording', {}).get('open_loop') else 2} = at the run-to-run floor), "
                  f"J_held before {_fmt(st['J_held_before'])}; accepted: **{st['accepted'] or 'none'}**"
                  + (f" (confounded with {', '.join(st['confounded_with'])}: not adopted)" if st["confounded_with"] else "")
+                 + ("; the adopted effects' re-fit the candidates' refinements reached is kept"
+                    if st.get("refit_kept") else "")
                  + "\n")
         L.append("| effect | replay D after | improvement | floor threshold | block SE | decision | J_held | parameters |")
         L.append("|---|---|---|---|---|---|---|---|")
