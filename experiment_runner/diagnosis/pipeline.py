@@ -1291,10 +1291,10 @@ class _Run:
             if any(j is x for x in stable):
                 sel = [s for s in selected if s.key != f.replaces]
                 n_sel = sum(len(s.theta) for s in sel if LIBRARY[s.key].kind == "deterministic")
-                gone = any(j is x for x in lost)
+                blind = any(j is x for x in lost)
                 ref = _refine_by_replay(f, sel, base, ctx_for(ctx, sel), fit_judge, jfl,
-                                        start=self.replay_start(f, sel, jfl) if f.on_bound or gone else None,
-                                        grid=gone,
+                                        start=self.replay_start(f, sel, jfl) if f.on_bound or blind else None,
+                                        grid=blind,
                                         max_nfev=8 if len(f.theta) <= REFINE_MAX_PARAMS else 3,
                                         with_selected=0 < n_sel and n_sel + len(f.theta) <= REFINE_JOINT_MAX)
                 if ref is not None:
@@ -1312,9 +1312,6 @@ class _Run:
                     continue
             out.append(j)
         self.own_share(refits, jfl)
-        for j, _, _ in refits:
-            if not j["why"].endswith(" (refined by the replay)"):
-                j["why"] += " (refined by the replay)"
         return out
 
     def own_share(self, refits, jfl) -> None:
@@ -1348,7 +1345,7 @@ class _Run:
             if not c.accepted:
                 j["ok"] = False
                 j["why"] = (f"adds nothing beyond a re-fit of the adopted effects (replay D {c.D_before:.4g} "
-                            f"without it, {c.D_after:.4g} with it: {c.why})")
+                            f"without it, {c.D_after:.4g} with it: {c.why}) (refined by the replay)")
 
     def keep_refit(self) -> bool:
         """When no candidate is adopted: the adopted effects' best re-fit their candidates' joint

@@ -141,16 +141,13 @@ def _bearings(d, fn):
         fn(b["friction"], b)
 
 
-_VARIATION = ("f_c_difference", "viscous_difference", "f_c_gradient", "f_c_curvature", "position_center")
-"""Friction variation fields of a bearing's friction mapping: kept when a pair's second effect
-writes a new friction law over the first's (asymmetric or position-dependent friction)."""
-
-
 def _truth_effect(e: str, q: float, rng, d: dict, case: PowerCase, info: dict) -> dict:
     """Apply effect ``e`` of size quantile ``q`` to the preset mapping ``d`` (in place);
     returns the truth values of the effect's parameters (the library's parametrization).
     A friction law written over the bearings keeps the variation an earlier effect gave them."""
-    kept = [{k: b["friction"][k] for k in _VARIATION if k in b["friction"]} for b in d["stage"]["bearings"]]
+    from stage_sim.friction.base import FrictionVariation
+    kept = [{k: b["friction"][k] for k in FrictionVariation.model_fields if k in b["friction"]}
+            for b in d["stage"]["bearings"]]
     out = _write_effect(e, q, rng, d, case, info)
     for b, var in zip(d["stage"]["bearings"], kept):
         for k, v in var.items():
@@ -512,20 +509,19 @@ def run_case(case: PowerCase, keep=None) -> dict:
         nominal, truth, expect, data, tr = build_case(case)
         variants = {"truth": truth}
         alldata = data.subset(np.arange(data.shape[1]))
+        given = {}
         if len(case.effects) == 2:
             from stage_sim.config import preset_from_dict
             for i, (e, q) in enumerate(zip(case.effects, case.quantiles)):
                 doc = nominal.model_dump(mode="json")
                 _truth_effect(e, q, np.random.default_rng([case.seed, 7, i]), doc, case, _info(tr))
                 variants[e] = preset_from_dict(doc, e)
-        change = replay_change(nominal, variants, alldata)
-        given = {}
-        if len(case.effects) == 2:
             # what each effect adds to the truth once the other is in the model: the nominal plus
             # the other effect's replay against recordings of the truth, in that model's floor
             a, b = case.effects
             given = {a: replay_change(variants[b], {"truth": truth}, alldata)["truth"],
                      b: replay_change(variants[a], {"truth": truth}, alldata)["truth"]}
+        change = replay_change(nominal, variants, alldata)
         from .judge import ReplayJudge
         truth_stable = ReplayJudge(data.subset(np.arange(data.shape[1]))).replay(ModelSpec(truth)).ok
         out_dir = None if keep is None else Path(keep) / case.name
