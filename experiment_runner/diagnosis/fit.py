@@ -5,7 +5,9 @@ Cost
     when the model leaves only what a perfect model leaves (noise and quantization seen
     through the observer). Parameters are fitted by a bounded Gauss-Newton /
     Levenberg-Marquardt (:func:`gauss_newton`, forward-difference Jacobians) on the
-    whitened residual of the *fit* samples; every residual evaluation is one run of the
+    whitened residual of the *fit* samples (when every damped step is rejected although the
+    linear model predicts a large gain -- many correlated parameters -- the trust-region solver
+    :func:`scipy.optimize.least_squares` continues); every residual evaluation is one run of the
     compiled force observer (a few ms per second of data), so fits are fast, and the
     problem is nearly linear in most parameters (the observer follows the measurement,
     so friction and joint states are those of the measured trajectory): linear ones
@@ -86,13 +88,14 @@ class Evaluator:
             self.seconds += time.perf_counter() - t
         return res
 
-    def fit_vector(self, spec: ModelSpec) -> np.ndarray:
-        """Whitened residual on the fit samples (the least-squares vector)."""
+    def fit_vector(self, spec: ModelSpec, bad: float = 1e3) -> np.ndarray:
+        """Whitened residual on the fit samples (the least-squares vector); ``bad`` in every
+        sample where the observer diverged."""
         res = self._run(spec, self.fit_cols)
         m = self.data.fit[:, self.fit_cols]
         w = self.floor.whiten(res.r, m)
         if res.bad:
-            return np.full(int(m.sum()), 1e3)
+            return np.full(int(m.sum()), bad)
         return w[m]
 
     def J(self, spec: ModelSpec, which: str = "held", floor: NoiseFloor | None = None) -> float:
@@ -228,10 +231,17 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
             try:
                 spec = effect.apply(base, th)
             except Exception:          # noqa: BLE001 - an invalid parameter set is a bad fit
-                return np.full(n_res, 1e3)
-            return ev.fit_vector(spec)
+                return np.full(n_res, bad)
+            try:
+                return ev.fit_vector(spec, bad)
+            except ValueError:         # a model the simulator refuses (a joint too stiff for its sub-steps)
+                return np.full(n_res, bad)
 
         n_res = int(ev.data.fit[:, ev.fit_cols].sum())
+        # a bad point (no model, or one the observer or the simulator cannot run) costs a million
+        # times the model it is added to: worse than any model that runs, however bad that one is
+        J_base = ev.J(base, "fit")
+        bad = 1e3 * math.sqrt(J_base) if math.isfinite(J_base) and J_base > 1.0 else 1e3
         cand = starts or effect.starts(base, ctx)
         iters = max_nfev or 8
         # rank the starts by their cost, run Gauss-Newton from the best two
@@ -327,6 +337,18 @@ def gauss_newton(fun, z0, lo, hi, r0=None, max_iter: int = 8, h: float = 1e-3, r
                 break
             lam *= 10.0
         if not improved:
+            # every damped step rejected: at a minimum the linear model predicts no gain either; a
+            # large predicted gain means the Marquardt damping, stepped tenfold, did not reach a
+            # step the curvature allows (many correlated parameters: a Maxwell-slip fit) -- the
+            # trust-region solver (scaled by the Jacobian's columns) takes over from here
+            dz0 = np.linalg.lstsq(R, -g, rcond=None)[0]
+            pred = c - float(np.sum((r + J @ dz0) ** 2))
+            if pred > 1e-2 * c:
+                sol = optimize.least_squares(fun, z, bounds=(lo, hi), method="trf", x_scale="jac", diff_step=h,
+                                             ftol=rtol, max_nfev=max_iter * (p + 1) * 2)
+                nfev += sol.nfev
+                if 2 * sol.cost < c:
+                    z, r, c, J = sol.x, sol.fun, float(sol.fun @ sol.fun), sol.jac
             break
         gain = (c - cn) / max(c, 1e-300)
         z, r, c = zn, rn, cn

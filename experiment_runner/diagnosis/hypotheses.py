@@ -260,24 +260,56 @@ class Dahl(Effect):
 
 
 class Gms(Effect):
-    """Maxwell-slip / Prandtl-Ishlinskii: fixed log-spaced slip displacements, fitted capacities."""
+    """Maxwell-slip / Prandtl-Ishlinskii: parallel elasto-slip blocks with fitted capacities.
+
+    The slip displacements: a model whose friction is already Maxwell-slip keeps its own (scaled by
+    one common factor ``x_scale``, i.e. all its stiffnesses by ``1/x_scale``: a pre-motion length
+    that differs, the GMS form of the Dahl ``k_sigma``), so the nominal is one point of the family
+    and a small change of it a small step; any other model gets :attr:`N` log-spaced ones."""
     N = 12
 
     def applicable(self, spec):
         return None if friction_elements(spec.preset) else "the model has no friction element"
+
+    @staticmethod
+    def own_slips(spec) -> np.ndarray | None:
+        """The slip displacements ``alpha F_C / k`` the model's Maxwell-slip elements share (None
+        when any friction element is of another law or the elements' blocks differ)."""
+        els = friction_elements(spec.preset)
+        if not els or any(fr.model != "gms" for _, fr in els):
+            return None
+        ds = [np.asarray(fr.alpha) * fr.f_c / np.maximum(np.asarray(fr.k), 1e-300) for _, fr in els]
+        if any(len(d) != len(ds[0]) or not np.allclose(d, ds[0], rtol=1e-6) for d in ds):
+            return None
+        return ds[0]
 
     def deltas(self, ctx):
         lo = ctx.get("delta_lo", 1e-7)
         hi = ctx.get("delta_hi", 5e-5)
         return np.logspace(np.log10(lo), np.log10(hi), self.N)
 
+    def _caps(self, spec):
+        """The model's own block capacities (totals over the elements), when it has its own slips."""
+        els = friction_elements(spec.preset)
+        return np.sum([np.asarray(fr.alpha) * fr.f_c for _, fr in els], axis=0)
+
     def params(self, spec, ctx):
         fc = max(coulomb_total(spec.preset), 1e-3)
+        own = self.own_slips(spec)
+        if own is not None:
+            caps = self._caps(spec)
+            return [Param("x_scale", "-", 0.1, 10.0, 1.0, log=True,
+                          doc="the model's slip displacements scaled (its block stiffnesses by 1/x_scale)")] + [
+                Param(f"F_{i + 1}", "N", 1e-4 * fc, 3 * fc, max(float(c), 1e-4 * fc), physical_lo=True,
+                      doc=f"capacity of the block slipping after {d * 1e6:.3g} um (times x_scale)")
+                for i, (d, c) in enumerate(zip(own, caps))]
         d = self.deltas(ctx)
         return [Param(f"F_{i + 1}", "N", 1e-4 * fc, 3 * fc, fc / self.N, physical_lo=True,
                       doc=f"capacity of the block slipping after {d[i] * 1e6:.3g} um") for i in range(self.N)]
 
     def starts(self, spec, ctx):
+        if self.own_slips(spec) is not None:
+            return [[p.x0 for p in self.params(spec, ctx)]]
         fc = max(coulomb_total(spec.preset), 1e-3)
         d = self.deltas(ctx)
         out = [[fc / self.N] * self.N]
@@ -290,17 +322,28 @@ class Gms(Effect):
         return out
 
     def nominal(self, spec):
+        if self.own_slips(spec) is not None:
+            return {"x_scale": 1.0, **{f"F_{i + 1}": float(c) for i, c in enumerate(self._caps(spec))}}
         return {f"F_{i + 1}": None for i in range(self.N)}
+
+    def _split(self, spec, theta):
+        """(slip displacements, capacities) of the parameter vector ``theta`` on ``spec``."""
+        own = self.own_slips(spec)
+        theta = np.asarray(theta, float)
+        if own is not None:
+            return own * float(theta[0]), theta[1:]
+        d = self._d if getattr(self, "_d", None) is not None else self.deltas({})
+        return d, theta
 
     def derived(self, spec, theta):
         sp = self.apply(spec, theta)
         els = [fr.model_dump() for _, fr in friction_elements(sp.preset)]
-        return {"F_C": float(np.sum(theta)), "x_50": virgin_x50(els),
+        return {"F_C": float(np.sum(self._split(spec, theta)[1])), "x_50": virgin_x50(els),
                 "k_0": float(sum(sum(fr["k"]) for fr in els if fr["model"] == "gms"))}
 
     def apply(self, spec, theta, ctx=None):
-        F = np.maximum(np.asarray(theta, float), 1e-9)
-        d = self._d if getattr(self, "_d", None) is not None else self.deltas({})
+        d, F = self._split(spec, theta)
+        F = np.maximum(F, 1e-9)
         fc = F.sum()
         els, w = _fric_weights(spec)
 
@@ -923,12 +966,15 @@ def _lib():
              "since the last reversal it rises or falls over ~F_C/k_sigma and then vanishes",
              param_doc=[("k_sigma", "N/m", "total pre-motion stiffness")]),
         Gms("gms", "pre-motion friction (GMS / Maxwell-slip)", "deterministic",
-            "Generalized Maxwell-slip (Eq. 4.4): parallel elasto-slip blocks, here 12 blocks with log-spaced slip "
-            "displacements and fitted capacities (a Prandtl-Ishlinskii operator, linear in the capacities); replaces "
-            "the friction elements.",
+            "Generalized Maxwell-slip (Eq. 4.4): parallel elasto-slip blocks with fitted capacities (a "
+            "Prandtl-Ishlinskii operator, linear in the capacities); replaces the friction elements. A Maxwell-slip "
+            "model keeps its own blocks, their slip displacements scaled by one factor x_scale; any other gets 12 "
+            "blocks with log-spaced slip displacements.",
             "like Dahl, but the pre-motion transition has a different shape (long tail: blocks slipping after "
             "tens of um); vs displacement since reversal it is piecewise linear",
-            param_doc=[("F_1..F_12", "N", "block capacities (sum = F_C), slip displacements log-spaced 3e-8 (or 3 encoder steps) ... 1e-4 m")]),
+            param_doc=[("x_scale", "-", "a Maxwell-slip model's own slip displacements scaled (its stiffnesses by 1/x_scale)"),
+                       ("F_1..F_N", "N", "block capacities (sum = F_C); without a Maxwell-slip model 12 blocks, "
+                        "slip displacements log-spaced 3e-8 (or 3 encoder steps) ... 1e-4 m")]),
         Coulomb("coulomb", "Coulomb friction level", "deterministic",
                 "The sliding friction force F_C differs (all friction elements scaled; added at the table if the "
                 "model has none).",

@@ -1083,8 +1083,10 @@ class _Run:
         return todo
 
     def fit_all(self, todo, current, selected, J_fit_cur):
-        """Fit every candidate (with the selected effects re-fitted, from step 2 on)."""
+        """Fit every candidate (with the selected effects re-fitted, from step 2 on); the ones whose
+        fit failed in :attr:`failed` (effect key -> error), for the step's report."""
         opt, ex, base, ctx, ev, token = self.opt, self.ex, self.base, self.ctx, self.ev, self.token
+        self.failed = {}
         blob = self.blob
         # slow (multi-parameter, stiff) candidates first for a better balance; the fits are
         # collected in this order on every path (ties of the score below keep it)
@@ -1106,6 +1108,7 @@ class _Run:
                 ev.seconds += sec
                 if err is not None:
                     _log(opt, f"fit {todo[i][0].key} failed: {err}")
+                    self.failed[todo[i][0].key] = err
                 out[i] = f
                 if f is not None:
                     f.replaces = todo[i][1]
@@ -1117,6 +1120,7 @@ class _Run:
                     f = _fit_candidate(e, *on(rep), J_fit_cur, ev, ctx, base, opt.own_floor, opt.floor_seeds[0])
                 except Exception as err:     # noqa: BLE001 - one bad candidate must not stop the diagnosis
                     _log(opt, f"fit {e.key} failed: {err!r}")
+                    self.failed[e.key] = repr(err)
                     return None
                 if f is not None:
                     f.replaces = rep
@@ -1518,7 +1522,7 @@ class _Run:
                               "threshold": min((r["threshold"] for r in rows), default=None),
                               "accepted": best["fit"].key if best else None,
                               "confounded_with": [j["fit"].key for j in conf or []], "candidates": rows,
-                              "refit_kept": kept})
+                              "refit_kept": kept, "failed": dict(self.failed)})
         _log(opt, f"step {step}: replay D {D_cur:.4g} -> " + ", ".join(
             f"{r['effect']} {r['replay']['D_after']:.4g} ({r['why']})" for r in rows[:5])
              + f"; accepted {best['fit'].key if best else None}")

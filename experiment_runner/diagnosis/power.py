@@ -495,6 +495,8 @@ def _reason(rep: dict, effect: str) -> str:
             if c.get("effect") == effect:
                 r = c.get("why") or ("significant" if c.get("significant") else "not significant")
                 why.append(f"step {st['step']}: {r}")
+        if effect in (st.get("failed") or {}):
+            why.append(f"step {st['step']}: the fit failed ({st['failed'][effect]})")
     if not why:
         return "never proposed (no candidate row)"
     return "; ".join(why[:3])

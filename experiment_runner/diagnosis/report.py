@@ -216,6 +216,8 @@ def to_markdown(rep: dict) -> str:
             L.append(f"| {c['effect']} | {_fmt(c['replay']['D_after'])} | {_fmt(c['improvement'])} | "
                      f"{_fmt(c['threshold'])} | {_fmt(c['block_se'])} | {'✓ ' if c['significant'] else ''}{c['why']} | "
                      f"{_fmt(c['J_held'])} | {ps} |")
+        if st.get("failed"):
+            L.append("\nNot judged (the fit failed): " + "; ".join(f"{k}: {v}" for k, v in st["failed"].items()))
         L.append("")
     jf = rep.get("joint_fit")
     if jf:
