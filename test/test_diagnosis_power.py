@@ -169,3 +169,23 @@ def test_effect_the_observer_cannot_see_is_found_by_the_replay_alone():
                               "cycles": 1.0})
     chk = _named_alone(case, "g_1", min_change=100)
     assert chk["estimate"] == pytest.approx(chk["truth"], rel=0.05)
+
+
+def test_a_parameter_standing_in_for_a_narrow_valley_goes_back_to_no_change():
+    """Power-study case 12: a friction asymmetry (F+ - F- = -0.431 N) in four point-to-point
+    trials that all move the same way. The replay pins the asymmetry to 1 %, inside the
+    refinement's finite-difference step: the solver stopped 1.3 % off with a viscous asymmetry of
+    20.6 N s/m standing in (replay D 4.9, Coulomb 2.7), and the simpler Coulomb level was named
+    alone. From the solution with the viscous part back at zero the refinement reaches the
+    truth; on a record that only slides one way the asymmetry, a Coulomb level and an offset are
+    the same physics, reported as one confounded set."""
+    from experiment_runner.diagnosis.power import run_case
+    case = PowerCase(index=12, effects=("friction_asymmetry",), stage="rigid", friction="coulomb", rate=10000.0,
+                     noise=0.5, record="p2p", quantiles=(0.4546660325742645,), seed=2016181085, trials=4,
+                     profile={"kind": "point_to_point", "distance": -3.327984788133078e-06, "dwell": 0.06})
+    r = run_case(case)
+    assert "error" not in r, r.get("traceback")
+    assert r["named_first"], r["named"]
+    chk = r["params"]["friction_asymmetry"]["checks"]
+    assert chk["dF_C"]["estimate"] == pytest.approx(chk["dF_C"]["truth"], rel=0.02)
+    assert abs(chk["dc"]["estimate"]) < 1.0

@@ -46,6 +46,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -503,10 +504,24 @@ def _reason(rep: dict, effect: str) -> str:
 
 
 def run_case(case: PowerCase, keep=None) -> dict:
-    """Build, diagnose and judge one case (an executor task)."""
+    """Build, diagnose and judge one case (an executor task); the warnings it raised listed
+    in the result (``warnings``), not printed."""
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:     # a worker process: per case, not per thread
+        warnings.simplefilter("default")
+        res = _run_case(case, keep)
+    if caught:
+        res["warnings"] = sorted({f"{w.category.__name__}: {w.message} ({Path(w.filename).name}:{w.lineno})"
+                                  for w in caught})
+    res["setting"] = {"stage": case.stage, "friction": case.friction, "rate_hz": case.rate, "noise": case.noise,
+                      "record": case.record, "trials": case.trials}
+    res["seconds"] = round(time.perf_counter() - t0, 2)
+    return res
+
+
+def _run_case(case: PowerCase, keep) -> dict:
     from .model import ModelSpec
     from .pipeline import Options, diagnose
-    t0 = time.perf_counter()
     try:
         nominal, truth, expect, data, tr = build_case(case)
         variants = {"truth": truth}
@@ -543,9 +558,6 @@ def run_case(case: PowerCase, keep=None) -> dict:
         import traceback
         res = {"case": case.name, "kind": case.kind, "effects": list(case.effects), "error": repr(err),
                "traceback": traceback.format_exc(limit=4), "named": [], "replay_change": {}}
-    res["setting"] = {"stage": case.stage, "friction": case.friction, "rate_hz": case.rate, "noise": case.noise,
-                      "record": case.record, "trials": case.trials}
-    res["seconds"] = round(time.perf_counter() - t0, 2)
     return res
 
 
@@ -638,6 +650,7 @@ def summarize(results: list[dict], threshold: float = 3.0) -> dict:
         "pairs": len([r for r in results if r["kind"] == "pair"]),
         "errors": len(errors),
         "truth_unstable": [r["case"] for r in unstable],
+        "warnings": {r["case"]: r["warnings"] for r in results if r.get("warnings")},
         "harmful_or_wrong": len(harmful),
     }
 
@@ -705,6 +718,8 @@ def to_markdown(s: dict, plots=()) -> str:
          f"| false positives (negative controls) | {_pct(s['false_positive_rate'])} | {s['negatives']} | <= 5 % |",
          f"| cases that failed to run | {s['errors']} | {s['cases']} | 0 |",
          f"| cases left out: the truth's own replay unstable | {len(s.get('truth_unstable') or [])} | {s['cases']} | |",
+         f"| cases that raised warnings (listed in power.json, `warnings`) | {len(s.get('warnings') or {})} | "
+         f"{s['cases']} | 0 |",
          "",
          "| effect | cases | >= 3x | named first (>= 3x) | named first (all) | params ok (>= 3x) |",
          "|---|---|---|---|---|---|"]
