@@ -189,3 +189,19 @@ def test_a_parameter_standing_in_for_a_narrow_valley_goes_back_to_no_change():
     chk = r["params"]["friction_asymmetry"]["checks"]
     assert chk["dF_C"]["estimate"] == pytest.approx(chk["dF_C"]["truth"], rel=0.02)
     assert abs(chk["dc"]["estimate"]) < 1.0
+
+
+def test_a_stage_held_by_friction_gets_its_plots_and_no_warnings(tmp_path):
+    """Power-study case 123, a negative control: a 2.5 um move of the 1 kHz Coulomb stage, which
+    friction holds (every residual exactly zero). Its residual spectrum cannot be drawn on log
+    axes: the plot says so instead of a Matplotlib warning, and nothing else warns."""
+    from experiment_runner.diagnosis.power import run_case
+    case = PowerCase(index=123, effects=(), stage="rigid", friction="coulomb", rate=1000.0, noise=0.5,
+                     record="p2p1", quantiles=(), seed=678996794, trials=1,
+                     profile={"kind": "point_to_point", "distance": -2.4751129462579884e-06, "dwell": 0.25})
+    r = run_case(case, tmp_path)
+    assert "error" not in r, r.get("traceback")
+    assert not r.get("warnings"), r["warnings"]
+    assert r["named"] == []
+    assert (tmp_path / case.name / "residual_spectrum.png").stat().st_size > 1000
+    assert "plots failed" not in (tmp_path / case.name / "report.md").read_text()
