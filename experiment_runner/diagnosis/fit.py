@@ -93,10 +93,9 @@ class Evaluator:
         sample where the observer diverged."""
         res = self._run(spec, self.fit_cols)
         m = self.data.fit[:, self.fit_cols]
-        w = self.floor.whiten(res.r, m)
-        if res.bad:
+        if res.bad:           # not whitened: a diverged residual is no spectrum
             return np.full(int(m.sum()), bad)
-        return w[m]
+        return self.floor.whiten(res.r, m)[m]
 
     def J(self, spec: ModelSpec, which: str = "held", floor: NoiseFloor | None = None) -> float:
         cols = self.held_cols if which == "held" else self.fit_cols

@@ -126,7 +126,7 @@ def spectrum(r, r_floor, mask, mask_floor, rate, f_obs, nperseg: int = 1024):
     def psd(x, m):
         out = []
         for b in range(x.shape[1]):
-            mm = m[:, b] & np.isfinite(x[:, b])      # a diverged run's samples are no spectrum
+            mm = m[:, b]
             if mm.sum() < 64:
                 continue
             f, p = signal.welch(x[mm, b], rate, nperseg=min(nperseg, int(mm.sum())))
