@@ -205,3 +205,17 @@ def test_a_stage_held_by_friction_gets_its_plots_and_no_warnings(tmp_path):
     assert r["named"] == []
     assert (tmp_path / case.name / "residual_spectrum.png").stat().st_size > 1000
     assert "plots failed" not in (tmp_path / case.name / "report.md").read_text()
+
+
+def test_a_diverged_candidate_costs_its_bad_point_without_a_numpy_warning():
+    """Power-study case 10 (a ripple on the isolated 1 kHz Dahl stage): some parameter sets of a
+    candidate fitted beside it make the force observer diverge. Their cost is the bad-point
+    value; the NaN residual is not whitened first (NumPy warned about NaN in its FFT)."""
+    from experiment_runner.diagnosis.power import run_case
+    case = PowerCase(index=10, effects=("ripple",), stage="isolated", friction="dahl", rate=1000.0, noise=2.0,
+                     record="p2p", quantiles=(0.5169795335958682,), seed=1345403502, trials=4,
+                     profile={"kind": "point_to_point", "distance": 2.106864430632203e-06, "dwell": 0.25})
+    r = run_case(case)
+    assert "error" not in r, r.get("traceback")
+    assert not r.get("warnings"), r["warnings"]
+    assert r["named"] == ["ripple"]
