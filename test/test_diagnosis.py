@@ -18,7 +18,7 @@ from experiment_runner.diagnosis.fit import (Evaluator, estimate_lattice, fit_ef
 from experiment_runner.diagnosis.hypotheses import LIBRARY, describe, get_effect, virgin_x50
 from experiment_runner.diagnosis.locate import REGIMES, regimes
 from experiment_runner.diagnosis.model import ModelSpec, load_model
-from experiment_runner.diagnosis.predict import NoiseFloor, Observer, closed_loop, sim_batch, sim_data
+from experiment_runner.diagnosis.predict import NoiseFloor, Observer, closed_loop, force_resolution, sim_batch, sim_data
 from stage_sim.config import ConfigError, load_preset, preset_from_dict, with_overrides
 
 NOM = load_preset("fi_stage_nofi")
@@ -143,7 +143,8 @@ def _fit_on(d, nominal, key, ctx=None, starts=None):
     ob = Observer(d)
     spec = ModelSpec(nominal)
     sim = sim_data(spec, d, 999)
-    fl = NoiseFloor(d.rate, [Observer(sim, bandwidth=ob.f_o).run(spec).r], [sim.fit | sim.held], f_max=ob.f_o)
+    fl = NoiseFloor(d.rate, [Observer(sim, bandwidth=ob.f_o).run(spec).r], [sim.fit | sim.held], f_max=ob.f_o,
+                    rms_min=force_resolution(spec, ob.f_o))     # as the diagnosis bounds it
     ev = Evaluator(ob, fl)
     ctx = {"u_max": float(np.abs(d.u).max()), "v_max": 0.02, "delta_lo": 3e-8, "delta_hi": 1e-4, **(ctx or {})}
     return fit_effect(LIBRARY[key], spec, ev, ctx, starts=starts), ev.J(spec)

@@ -240,7 +240,7 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
         # a bad point (no model, or one the observer or the simulator cannot run) costs a million
         # times the model it is added to: worse than any model that runs, however bad that one is
         J_base = ev.J(base, "fit")
-        bad = 1e3 * math.sqrt(J_base) if math.isfinite(J_base) and J_base > 1.0 else 1e3
+        bad = min(1e3 * math.sqrt(J_base), 1e100) if math.isfinite(J_base) and J_base > 1.0 else 1e3
         cand = starts or effect.starts(base, ctx)
         iters = max_nfev or 8
         # rank the starts by their cost, run Gauss-Newton from the best two
