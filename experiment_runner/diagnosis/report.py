@@ -293,18 +293,14 @@ def _plots(out: Path, rep: dict, data, arr: dict) -> list[str]:
                       rate, 1e9, nperseg=spn.get("nperseg", 1024))
     fig, ax = plt.subplots(figsize=(8, 4.5))
     f = spn["f_hz"]
-    shown = 0
     for psd, style, label in ((spn["psd"], "C3", "nominal model residual"),
                               (spn["psd_floor"], "k", "floor (nominal, simulated)"),
                               (sp_new["psd"], "C0", "improved model residual")):
         pos = psd[1:] > 0
         if pos.any():
             ax.loglog(f[1:][pos], psd[1:][pos], style, lw=0.8, label=label)
-            shown += 1
         else:        # a residual that is exactly zero (a stage held by friction, the encoder never moving)
             ax.plot([], [], style, lw=0.8, label=label + ": zero, not shown")
-    if shown:
-        ax.set_xscale("log")
     ax.axvline(rep["observer"]["bandwidth_hz"], color="gray", ls=":", label="observer bandwidth")
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel("force residual PSD [N²/Hz]")
