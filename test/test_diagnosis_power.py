@@ -219,3 +219,32 @@ def test_a_diverged_candidate_costs_its_bad_point_without_a_numpy_warning():
     assert "error" not in r, r.get("traceback")
     assert not r.get("warnings"), r["warnings"]
     assert r["named"] == ["ripple"]
+
+
+def test_second_start_finds_the_pair_a_stand_in_had_absorbed(tmp_path):
+    """Power-study pair 93: an FI joint (k_fi 1.24e5 N/m) behind the Coulomb bearings of the
+    1 kHz rigid stage, and a Stribeck curve. Twelve Maxwell-slip blocks (a spring and a slider
+    each) replay the joint and the curve together better than the joint alone, so forward
+    selection took the GMS first and a mass change next, and ended 3.7x above its floor
+    (replay D 27.8). The path from step 1's runner-up, the joint, adds the Stribeck curve and
+    reaches the floor (D 2.03): it is kept, and the report says why."""
+    from experiment_runner.diagnosis.model import ModelSpec
+    from experiment_runner.diagnosis.pipeline import Options, diagnose
+    from experiment_runner.diagnosis.power import judge_case
+    case = PowerCase(index=93, effects=("fi_compliance", "stribeck"), stage="rigid", friction="coulomb",
+                     rate=1000.0, noise=2.0, record="sine", quantiles=(0.7361101347540763, 0.6788227103221747),
+                     seed=444203855, trials=3,
+                     profile={"kind": "sine_sweep", "frequencies": [3.6392302889418167, 10.917690866825449],
+                              "amplitude": 0.00017801475431217456, "periods": 3, "settle_periods": 1})
+    nominal, _, expect, data, _ = build_case(case)
+    diagnose(None, ModelSpec(nominal), out=tmp_path, data=data, options=Options(plots=False, n_jobs=1))
+    rep = json.loads((tmp_path / "report.json").read_text())
+    r = judge_case(case, rep, expect, {})
+    assert r["named"] == ["fi_compliance", "stribeck"] and r["both_named"]
+    chk = r["params"]["fi_compliance"]["checks"]
+    assert chk["k_fi"]["estimate"] == pytest.approx(chk["k_fi"]["truth"], rel=0.05)
+    ss = rep["selection"]["second_start"]
+    assert ss["chosen"] and ss["first"] == "fi_compliance" and ss["greedy_effects"] == ["gms", "mass"]
+    assert ss["replay_D"] < 0.2 * ss["replay_D_greedy"]
+    assert rep["selection"]["steps"][0]["accepted"] == "fi_compliance"
+    assert "Second start" in (tmp_path / "report.md").read_text()

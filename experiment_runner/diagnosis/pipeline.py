@@ -275,7 +275,10 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
             th = tr.to_theta(z)
             if not np.all(np.isfinite(th)):
                 return bad
-            rp = fj.replay(model.apply(prev, th))
+            try:
+                rp = fj.replay(model.apply(prev, th))
+            except ValueError:     # a model the simulator refuses (a joint too stiff for its sub-steps)
+                return bad
             if not rp.ok:
                 return bad
             r = fj.residual(rp, jfl)
@@ -289,7 +292,9 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
                 z0, r0 = z, r
         if r0 is None:
             return None
-        bad = np.full(len(r0), 1e3)
+        # a bad point (a model that diverges or the simulator refuses) costs a million times the
+        # start (a thousand times its RMS per sample, at least 1e3): worse than any model that runs
+        bad = np.full(len(r0), min(max(1e3, 1e3 * float(np.sqrt(np.mean(r0 ** 2)))), 1e100))
         c_obs = float(r0 @ r0)
         if len(own0) == 1 or grid:
             # one parameter (or a start the observer did not give): the replay's error is rough in it
@@ -1065,7 +1070,8 @@ class _Run:
                     "rms_force_N": float(np.sqrt(np.mean(olw_nom["force_N"] ** 2)))},
             },
             "locate": loc,
-            "selection": {"steps": steps, "J_held_start": Jhb, "J_held_final": J_cur, "adequate_final": adequate_final},
+            "selection": {"steps": steps, "J_held_start": Jhb, "J_held_final": J_cur, "adequate_final": adequate_final,
+                          "second_start": self.path.get("second_start")},
             "joint_fit": joint,
             "stochastic": stochastic,
             "sparse_regression": sparse,
@@ -1511,17 +1517,77 @@ class _Run:
         decides (:class:`.judge.ReplayJudge`): the best candidate whose replay is stable and
         beyond the run-to-run floor of the current model is adopted, its statistically
         equivalent alternatives are reported, never adopted too. Returns :attr:`path`."""
+        ctx0 = dict(self.ctx)
+        self.first = None
+        a = self.walk()
+        second = self.second_start(a)
+        if second is None:
+            return a
+        ctx_a = dict(self.ctx)
+        self.ctx.clear()
+        self.ctx.update(ctx0)
+        _log(self.opt, f"second start: {second['fit'].key} first (the path from {a['steps'][0]['accepted']} "
+                       "left a residual beyond its floor)")
+        b = self.walk(first=second)
+        judge = self.judge
+        c = judge.compare(a["jfl"], b["jfl"].replay) if b["jfl"].replay.ok else None
+        chosen = b if c is not None and c.accepted else a
+        chosen["second_start"] = {
+            "first": second["fit"].key, "chosen": chosen is b,
+            "effects": [fe["effect"] for fe in b["found"]], "greedy_effects": [fe["effect"] for fe in a["found"]],
+            "replay_D": judge.D(b["jfl"].replay, a["jfl"]) if b["jfl"].replay.ok else None,
+            "replay_D_greedy": judge.D(a["jfl"].replay, a["jfl"]),
+            "why": c.why if c is not None else "unstable"}
+        if chosen is a:
+            self.ctx.clear()
+            self.ctx.update(ctx_a)
+        self.path = chosen
+        self.ev.floor = chosen["floor"].floor
+        _log(self.opt, f"second start: {[fe['effect'] for fe in chosen['found']]} kept "
+                       f"({chosen['second_start']['why']})")
+        return chosen
+
+    def walk(self, first=None) -> dict:
+        """One forward path from ``base`` (:attr:`path`): steps until none is adopted; ``first``,
+        a judged candidate of the first step, is adopted there in place of the step's choice."""
         self.path = {"current": self.base, "J_cur": self.Jhb, "J_fit": self.Jfb, "floor": self.fl, "steps": [],
                      "selected": [], "found": [], "jfl": self.jfl0, "banned": set()}
+        self.ev.floor = self.fl.floor
         for step in range(1, self.opt.max_steps + 1):
-            if not self.step(step):
+            if not self.step(step, first if step == 1 else None):
                 break
         return self.path
 
-    def step(self, step: int) -> bool:
+    def second_start(self, a: dict):
+        """The first step's runner-up, when the greedy path ``a`` ends with a replay beyond its own
+        run-to-run floor: the best adoptable candidate of step 1 other than the adopted one and the
+        ones confounded with it (by the selection's complexity-penalised replay). Forward selection
+        commits to its first choice; where that choice is a stand-in that absorbs what two other
+        effects do (12 Maxwell-slip blocks for a compliant joint plus a Stribeck curve), the path
+        from the runner-up is the only way back. None when the path ends at its floor or step 1 had
+        no other adoptable candidate."""
+        if self.first is None or not a["found"] or a["steps"][0].get("accepted") is None:
+            return None
+        judge = self.judge
+        if judge.consistency(a["jfl"].replay, a["jfl"]) <= judge.t_q or not a["jfl"].replay.ok:
+            return None
+        st = a["steps"][0]
+        skip = {st["accepted"], *st["confounded_with"]}
+        pen = lambda j: j["cmp"].D_after * (1 + self.opt.complexity * len(j["fit"].theta))  # noqa: E731
+        ok = sorted([j for j in self.first["judged"] if j["ok"] and j["fit"].key not in skip], key=pen)
+        return ok[0] if ok else None
+
+    def step(self, step: int, first=None) -> bool:
         """Forward step ``step``: propose, fit, judge and refine every candidate, choose one
         (:meth:`choose`), record the step and adopt the choice (:meth:`adopt_best`). Returns
-        whether the selection goes on."""
+        whether the selection goes on. ``first``: a judged candidate of an earlier walk's first
+        step, adopted at step 1 from that step's record (:meth:`second_start`)."""
+        if first is not None:
+            rec = dict(self.first["record"], accepted=first["fit"].key, confounded_with=[],
+                       second_start=True)
+            self.path["steps"].append(rec)
+            self.adopt_best(step, first, [], [])
+            return True
         opt, judge = self.opt, self.judge
         path = self.path
         selected = path["selected"]
@@ -1555,6 +1621,8 @@ class _Run:
                               "accepted": best["fit"].key if best else None,
                               "confounded_with": [j["fit"].key for j in conf or []], "candidates": rows,
                               "refit_kept": kept, "failed": dict(self.failed)})
+        if step == 1:
+            self.first = {"judged": judged, "record": path["steps"][-1]}
         _log(opt, f"step {step}: replay D {D_cur:.4g} -> " + ", ".join(
             f"{r['effect']} {r['replay']['D_after']:.4g} ({r['why']})" for r in rows[:5])
              + f"; accepted {best['fit'].key if best else None}")

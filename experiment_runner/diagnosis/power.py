@@ -34,6 +34,8 @@ nominal's held-out closed-loop replay is from recordings of the truth than from 
                             the other: a viscous term beside a GMS, 6.7x alone, 0.2x given it)
 ``power.params_rate``       of the correctly named effects above: every parameter within
                             +-20 % of the truth
+``power.params_within_2sigma`` of their parameters with a reported 1-sigma: the share whose
+                            error is within 2 sigma (honest uncertainties give ~95 %)
 ``false_positive_rate``     negative controls with any effect named
 
 ``report.md`` (with ``--out``) plots the detection rate against the replay change per
@@ -621,6 +623,8 @@ def summarize(results: list[dict], threshold: float = 3.0) -> dict:
     named = [r for r in big if r["named_first"]]
     pok = [r for r in pbig if r["both_named"]]
     par = [r["params"][r["effects"][0]]["ok"] for r in named if r["params"][r["effects"][0]]["ok"] is not None]
+    # are the reported uncertainties honest? each named effect's parameter error against its 1-sigma
+    zs = [c["z"] for r in named for c in r["params"][r["effects"][0]]["checks"].values() if c.get("z") is not None]
     by = {}
     for r in [r for r in results if r["kind"] == "single"]:
         e = r["effects"][0]
@@ -644,6 +648,8 @@ def summarize(results: list[dict], threshold: float = 3.0) -> dict:
                   "pair_rate_alone": (sum(r["both_named"] for r in palone) / len(palone)) if palone else None,
                   "pair_cases_alone": len(palone),
                   "params_rate": sum(par) / len(par) if par else None, "params_cases": len(par),
+                  "params_within_2sigma": (sum(abs(z) <= 2 for z in zs) / len(zs)) if zs else None,
+                  "params_with_sigma": len(zs),
                   "threshold_floor_units": threshold, "by_effect": by},
         "false_positive_rate": len(fp) / len(negs) if negs else None,
         "cases": len(results), "negatives": len(negs), "singles": len(singles) + sum(r["kind"] == "single" and "error" in r for r in results),
@@ -715,6 +721,8 @@ def to_markdown(s: dict, plots=()) -> str:
          f"| both named (pairs, each >= 3x given the other) | {_pct(p['pair_rate'])} | {p['pair_cases']} | >= 90 % |",
          f"| both named (pairs, each >= 3x alone) | {_pct(p.get('pair_rate_alone'))} | {p.get('pair_cases_alone', 0)} | |",
          f"| parameters within ±20 % (named, >= 3x) | {_pct(p['params_rate'])} | {p['params_cases']} | |",
+         f"| parameter errors within 2σ of the reported σ (named, >= 3x) | {_pct(p.get('params_within_2sigma'))} | "
+         f"{p.get('params_with_sigma', 0)} parameters | ~95 % |",
          f"| false positives (negative controls) | {_pct(s['false_positive_rate'])} | {s['negatives']} | <= 5 % |",
          f"| cases that failed to run | {s['errors']} | {s['cases']} | 0 |",
          f"| cases left out: the truth's own replay unstable | {len(s.get('truth_unstable') or [])} | {s['cases']} | |",
@@ -750,7 +758,9 @@ def to_markdown(s: dict, plots=()) -> str:
             pr = r["params"][r["effects"][0]]
             if pr["ok"] is False:
                 L.append(f"- `{r['case']}`: " + ", ".join(
-                    f"{k} {v['estimate']:.4g} vs {v['truth']:.4g}" if v.get("estimate") is not None else f"{k} missing"
+                    (f"{k} {v['estimate']:.4g} vs {v['truth']:.4g}"
+                     + (f" (± {v['sigma']:.3g}, z {v['z']:+.2g})" if v.get("z") is not None else ""))
+                    if v.get("estimate") is not None else f"{k} missing"
                     for k, v in pr["checks"].items()))
     errs = [r for r in res if "error" in r]
     if errs:

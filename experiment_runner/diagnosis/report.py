@@ -52,7 +52,9 @@ Files written to the output folder ``DIR``
                         improvement, threshold, block_se, stable, beyond_floor, why}, improvement,
                         threshold, significant (adoptable), why, J_fit, J_held, J_improvement,
                         params, derived, on_bound, evals, seconds}]}], J_held_start, J_held_final,
-                        adequate_final
+                        adequate_final, second_start (when the greedy path left a residual beyond its
+                        floor: the path from step 1's runner-up {first, effects, greedy_effects,
+                        replay_D, replay_D_greedy, chosen, why})
 ``joint_fit``           effects, J_fit, J_held, params, correlation, confounded_parameters, used
 ``stochastic``          quantization {nominal_m, estimate_m, found, ...}, noise_level {nominal_A,
                         sigma, ratio, found, ...}
@@ -205,6 +207,7 @@ def to_markdown(rep: dict) -> str:
         L.append(f"Step {st['step']}: replay D before {_fmt(st.get('replay_D_before'))} "
                  f"({1 if rep.get('recording', {}).get('open_loop') else 2} = at the run-to-run floor), "
                  f"J_held before {_fmt(st['J_held_before'])}; accepted: **{st['accepted'] or 'none'}**"
+                 + (" (second start: the greedy path's runner-up)" if st.get("second_start") else "")
                  + (f" (confounded with {', '.join(st['confounded_with'])}: not adopted)" if st["confounded_with"] else "")
                  + ("; the adopted effects' re-fit the candidates' refinements reached is kept"
                     if st.get("refit_kept") else "")
@@ -219,6 +222,12 @@ def to_markdown(rep: dict) -> str:
         if st.get("failed"):
             L.append("\nNot judged (the fit failed): " + "; ".join(f"{k}: {v}" for k, v in st["failed"].items()))
         L.append("")
+    ss = rep["selection"].get("second_start")
+    if ss:
+        L.append(f"Second start (the greedy path, {', '.join(ss['greedy_effects'])}, left a residual beyond its "
+                 f"floor): from **{ss['first']}** the selection found {', '.join(ss['effects'])}, replay D "
+                 f"{_fmt(ss['replay_D'])} against the greedy path's {_fmt(ss['replay_D_greedy'])} (in its floor "
+                 "units): " + (f"kept ({ss['why']})" if ss["chosen"] else f"not kept ({ss['why']})") + ".\n")
     jf = rep.get("joint_fit")
     if jf:
         L.append(f"Joint fit of {jf['effects']}: J_held {_fmt(jf['J_held'])} (used: {jf['used']}).")

@@ -329,7 +329,8 @@ def _check_params(entry: dict | None, expect: dict) -> tuple[bool, dict]:
         else:
             rel = None
             ok = abs(est) <= 0.2 * max(nz or [1.0]) or (sig is not None and abs(est) <= 2 * sig)
-        checks[k] = {"truth": truth, "estimate": est, "rel_error": rel, "ok": bool(ok)}
+        checks[k] = {"truth": truth, "estimate": est, "rel_error": rel, "ok": bool(ok), "sigma": sig,
+                     "z": (est - truth) / sig if sig else None}
         ok_all &= ok
     return bool(ok_all), checks
 
