@@ -247,6 +247,12 @@ class ReplayJudge:
         minimises."""
         return np.concatenate([e[self.mask] for e in self._errors(self.u, self.y, rp, fl)])
 
+    def sim_residuals(self, rp: Replay, fl: Floor) -> np.ndarray:
+        """(K, n): :meth:`residual` of each of ``fl``'s simulated recordings against ``rp`` (what
+        the data's residual would be, run to run, were ``fl``'s model the truth)."""
+        return np.stack([np.concatenate([e[self.mask] for e in self._errors(fl.u[k], fl.y[k], rp, fl)])
+                         for k in range(self.K)])
+
     def data_blocks(self, rp: Replay, fl: Floor) -> np.ndarray:
         """Per-block sums of the data's normalised squared replay error against ``rp``."""
         return self._blocks(self._e2(self.u, self.y, rp, fl))
