@@ -607,7 +607,8 @@ class _Run:
     the replay judge), :meth:`locate` (where and what the residual holds), :meth:`prepare` (the
     evaluator and the candidate effects), :meth:`select` (forward selection: :meth:`candidates`
     proposes, :meth:`fit_all` fits, :meth:`judge_rows` / :meth:`refine_rows` judge by the
-    replay, :meth:`backward` withdraws what later effects made redundant), :meth:`refit_jointly`,
+    replay, :meth:`backward` withdraws what later effects made redundant, :meth:`second_start`
+    walks again from step 1's runner-up when the path ends beyond its floor), :meth:`refit_jointly`,
     :meth:`drive_noise`, :meth:`validate` (held-out data) and :meth:`report`. The forward
     selection's state is :attr:`path` (current model, floors, selected effects, steps).
     """
@@ -1575,9 +1576,12 @@ class _Run:
         the selected ones with it); the force observer proposes and ranks, the closed-loop replay
         decides (:class:`.judge.ReplayJudge`): the best candidate whose replay is stable and
         beyond the run-to-run floor of the current model is adopted, its statistically
-        equivalent alternatives are reported, never adopted too. Returns :attr:`path`."""
+        equivalent alternatives are reported, never adopted too. When that path ends beyond its
+        own floor, a second walk starts from step 1's runner-up (:meth:`second_start`) and is kept
+        only if its held-out replay is better beyond the first path's floor (the adoption test);
+        the path's ``second_start`` says what both found. Returns :attr:`path`."""
         ctx0 = dict(self.ctx)
-        self.first = None
+        self.first_step = None
         a = self.walk()
         second = self.second_start(a)
         if second is None:
@@ -1625,15 +1629,14 @@ class _Run:
         effects do (12 Maxwell-slip blocks for a compliant joint plus a Stribeck curve), the path
         from the runner-up is the only way back. None when the path ends at its floor or step 1 had
         no other adoptable candidate."""
-        if self.first is None or not a["found"] or a["steps"][0].get("accepted") is None:
+        if self.first_step is None or not a["found"] or a["steps"][0].get("accepted") is None:
             return None
         judge = self.judge
         if judge.consistency(a["jfl"].replay, a["jfl"]) <= judge.t_q or not a["jfl"].replay.ok:
             return None
         st = a["steps"][0]
         skip = {st["accepted"], *st["confounded_with"]}
-        pen = lambda j: j["cmp"].D_after * (1 + self.opt.complexity * len(j["fit"].theta))  # noqa: E731
-        ok = sorted([j for j in self.first["judged"] if j["ok"] and j["fit"].key not in skip], key=pen)
+        ok = sorted([j for j in self.first_step["judged"] if j["ok"] and j["fit"].key not in skip], key=self.rank)
         return ok[0] if ok else None
 
     def step(self, step: int, first=None) -> bool:
@@ -1642,7 +1645,7 @@ class _Run:
         whether the selection goes on. ``first``: a judged candidate of an earlier walk's first
         step, adopted at step 1 from that step's record (:meth:`second_start`)."""
         if first is not None:
-            rec = dict(self.first["record"], accepted=first["fit"].key, confounded_with=[],
+            rec = dict(self.first_step["record"], accepted=first["fit"].key, confounded_with=[],
                        second_start=True)
             self.path["steps"].append(rec)
             self.adopt_best(step, first, [], [])
@@ -1681,7 +1684,7 @@ class _Run:
                               "confounded_with": [j["fit"].key for j in conf or []], "candidates": rows,
                               "refit_kept": kept, "failed": dict(self.failed)})
         if step == 1:
-            self.first = {"judged": judged, "record": path["steps"][-1]}
+            self.first_step = {"judged": judged, "record": path["steps"][-1]}
         _log(opt, f"step {step}: replay D {D_cur:.4g} -> " + ", ".join(
             f"{r['effect']} {r['replay']['D_after']:.4g} ({r['why']})" for r in rows[:5])
              + f"; accepted {best['fit'].key if best else None}")
@@ -1741,14 +1744,16 @@ class _Run:
         path["current"] = ref["spec"]
         self.renew_floor(ref["spec"])
 
+    def rank(self, j: dict) -> float:
+        """A judged candidate's rank: its replay with the selection's complexity penalty per
+        parameter (a 12-block GMS must do clearly better than the one Coulomb level it contains)."""
+        return j["cmp"].D_after * (1 + self.opt.complexity * len(j["fit"].theta))
+
     def choose(self, judged: list, jfl) -> tuple:
         """``(best, confounded, alternatives)`` among the judged candidates of a step (best None:
         none adoptable)."""
-        opt, judge = self.opt, self.judge
-        pen = lambda j: j["cmp"].D_after * (1 + opt.complexity * len(j["fit"].theta))  # noqa: E731
-        # ranked by the replay with the selection's complexity penalty per parameter (a 12-block GMS
-        # must do clearly better than the one Coulomb level it contains)
-        ok = sorted([j for j in judged if j["ok"]], key=pen)
+        judge = self.judge
+        ok = sorted([j for j in judged if j["ok"]], key=self.rank)
         best = conf = None
         alts = []
         if ok:
