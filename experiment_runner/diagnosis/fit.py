@@ -194,6 +194,18 @@ class _Transform:
         return np.array([t if p.log else s for t, p, s in zip(theta, self.p, self.scale)])
 
 
+def bad_point(ms: float) -> float:
+    """The residual per sample of a bad point (no model, or one the observer or the simulator
+    cannot run) of a least-squares fit whose start has mean square ``ms``: a million times the
+    start's cost, never below 1e3 (nor above 1e100) -- worse than any model that runs, however bad
+    that one is (a flat 1e3 was better than a nominal at J 4e8).
+
+    >>> bad_point(4e8), bad_point(0.5), bad_point(float("inf"))
+    (20000000.0, 1000.0, 1000.0)
+    """
+    return min(max(1e3, 1e3 * math.sqrt(ms)), 1e100) if math.isfinite(ms) else 1e3
+
+
 def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nfev: int | None = None,
                starts: list | None = None) -> FitResult | None:
     """Fit ``effect`` added to ``base`` on the fit samples; judge it on the held-out ones."""
@@ -237,10 +249,7 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
                 return np.full(n_res, bad)
 
         n_res = int(ev.data.fit[:, ev.fit_cols].sum())
-        # a bad point (no model, or one the observer or the simulator cannot run) costs a million
-        # times the model it is added to: worse than any model that runs, however bad that one is
-        J_base = ev.J(base, "fit")
-        bad = min(1e3 * math.sqrt(J_base), 1e100) if math.isfinite(J_base) and J_base > 1.0 else 1e3
+        bad = bad_point(ev.J(base, "fit"))
         cand = starts or effect.starts(base, ctx)
         iters = max_nfev or 8
         # rank the starts by their cost, run Gauss-Newton from the best two

@@ -29,8 +29,8 @@ import numpy as np
 
 from .data import DiagData, load_data
 from .frf import locate_modes
-from .fit import (Evaluator, FitResult, estimate_lattice, fit_effect, fit_noise_level, fit_with, joint_fit, n_eff,
-                  noise_components, sparse_regression)
+from .fit import (Evaluator, FitResult, bad_point, estimate_lattice, fit_effect, fit_noise_level, fit_with,
+                  joint_fit, n_eff, noise_components, sparse_regression)
 from .hypotheses import LIBRARY, get_effect, library
 from .judge import ReplayJudge, controller_check, equivalent_reference
 from .locate import locate, lowpass
@@ -239,6 +239,13 @@ def spread_over_recordings(J: np.ndarray, R: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean(step ** 2, axis=0))
 
 
+def _moved(theta: dict, key: str, i: int, v: float) -> dict:
+    """A copy of the effects' parameter vectors ``theta`` with parameter ``i`` of ``key`` at ``v``."""
+    th = {k: a.copy() for k, a in theta.items()}
+    th[key][i] = v
+    return th
+
+
 def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict, fj: ReplayJudge, jfl,
                       max_nfev: int = 8, with_selected: bool = False, start=None,
                       diff_step: float = 2e-2, grid: bool = False) -> dict | None:
@@ -314,9 +321,7 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
                 z0, r0 = z, r
         if r0 is None:
             return None
-        # a bad point (a model that diverges or the simulator refuses) costs a million times the
-        # start (a thousand times its RMS per sample, at least 1e3): worse than any model that runs
-        bad = np.full(len(r0), min(max(1e3, 1e3 * float(np.sqrt(np.mean(r0 ** 2)))), 1e100))
+        bad = np.full(len(r0), bad_point(float(np.mean(r0 ** 2))))     # a model that diverges or is refused
         c_obs = float(r0 @ r0)
         if len(own0) == 1 or grid:
             # one parameter (or a start the observer did not give): the replay's error is rough in it
@@ -927,10 +932,8 @@ class _Run:
                 return
 
             def D_at(key, i, v):
-                th = {k: a.copy() for k, a in theta.items()}
-                th[key][i] = v
                 try:
-                    rp = fj.replay(spec_of(th))
+                    rp = fj.replay(spec_of(_moved(theta, key, i, v)))
                 except Exception:     # noqa: BLE001 - not a valid model there (a damping below 0)
                     return float("inf")
                 return fj.D(rp, fl) if rp.ok else float("inf")
@@ -967,10 +970,8 @@ class _Run:
             h = max(rows[k]["params"][i].get("sigma") or 0.0, 1e-4 * abs(v), 1e-12)
             side = []
             for d in (h, -h):
-                th = {kk: a.copy() for kk, a in theta.items()}
-                th[k][i] = v + d
                 try:
-                    rp = fj.replay(spec_of(th))
+                    rp = fj.replay(spec_of(_moved(theta, k, i, v + d)))
                 except ValueError:     # not a valid model there
                     return {}
                 if not rp.ok:
