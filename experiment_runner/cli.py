@@ -3,7 +3,9 @@
 Bad input has one path: a command raises :data:`USER_ERRORS` (a configuration, recording,
 design or missing-data error naming the file, field, value and what is allowed) or exits with
 a message (``SystemExit("...")``); :func:`main` prints ``nanostage COMMAND: message`` and
-returns 2, never a traceback. Bad arguments are argparse's one-line error (exit 2).
+returns 2, never a traceback. Bad arguments are argparse's one-line error (exit 2). SIGINT and
+SIGTERM end a command like an error (:func:`experiment_runner.outputs.interrupts_as_errors`):
+one line, exit 128 + the signal number.
 """
 from __future__ import annotations
 
@@ -12,9 +14,11 @@ import contextlib
 import importlib
 import io
 import os
+import signal
 import sys
 
 from experiment_runner.design import DesignError
+from experiment_runner.outputs import add_overwrite_argument, interrupts_as_errors
 from experiment_runner.diagnosis.realdata import DataMissing
 from experiment_runner.recording import RecordingError
 from stage_sim.config import ConfigError
@@ -25,7 +29,7 @@ USER_ERRORS = (ConfigError, RecordingError, DesignError, DataMissing)
 
 def _paper(args):
     from experiment_runner.paper import run_paper
-    return run_paper(out=args.out, as_json=args.json, only=args.only)
+    return run_paper(out=args.out, as_json=args.json, only=args.only, overwrite=args.overwrite)
 
 
 def _bench(args):
@@ -45,7 +49,7 @@ def _graph(args):
 
     from experiment_runner.graph import run_graph
     return run_graph(args.experiment, Path(args.out), processes=args.processes, domain_id=args.domain_id,
-                     timeout=args.timeout)
+                     timeout=args.timeout, overwrite=args.overwrite)
 
 
 def _presets(args):
@@ -87,6 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/paper", help="folder for plots and the Markdown table")
     p.add_argument("--only", nargs="*", default=None, help="run only the claim groups whose name starts with these "
                    "(e.g. appendix_a fi_design; a name no group has is refused, listing them)")
+    add_overwrite_argument(p)
     p.set_defaults(func=_paper)
 
     p = sub.add_parser("bench", help="benchmark the simulation core (simulated s per wall s, memory)")
@@ -103,6 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("experiment", nargs="?", help="experiment name (see --list) or YAML path")
     p.add_argument("--out", default="out/graph", help="output folder (run.mcap is written there)")
     p.add_argument("--processes", action="store_true", help="one process per node (default: one process)")
+    add_overwrite_argument(p)
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: env or 42)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
     p.add_argument("--list", action="store_true", help="list the shipped experiments")
@@ -158,8 +164,12 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     prefix = f"nanostage {args.command}: "
     try:
-        with python_only_stdout(bool(getattr(args, "json", False))):
+        with interrupts_as_errors(), python_only_stdout(bool(getattr(args, "json", False))):
             return int(args.func(args) or 0)
+    except KeyboardInterrupt as err:              # SIGINT / SIGTERM: temporaries are gone, as on an error
+        signum = getattr(err, "signum", signal.SIGINT)
+        print(f"{prefix}interrupted ({signal.Signals(signum).name}); temporary files removed", file=sys.stderr)
+        return 128 + signum
     except USER_ERRORS as err:
         print(f"{prefix}{err}", file=sys.stderr)
         return 2

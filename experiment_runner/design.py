@@ -49,7 +49,7 @@ from typing import Optional
 
 import numpy as np
 
-from experiment_runner import profiles
+from experiment_runner import outputs, profiles
 from experiment_runner.batch import Models, simulate
 from experiment_runner.executor import make_executor
 from experiment_runner.metrics import rms_in_position, settling_time
@@ -692,7 +692,7 @@ def _save_maps(fig, axes, path: Path) -> Path:
     import matplotlib.pyplot as plt
     axes[1].legend(fontsize=7, loc="lower left")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -750,8 +750,7 @@ def write_plots(a: Advice, out: Path) -> list[Path]:
     ax.set_title(f"FF accuracy, Dahl vs GMS ({lp.gms_source}), k_f = {lp.k_f:.3g} N/m", fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    files.append(out / "design_gamma.png")
-    fig.savefig(files[-1], dpi=110)
+    files.append(outputs.savefig(fig, out / "design_gamma.png", dpi=110))
     plt.close(fig)
     return files
 
@@ -760,8 +759,7 @@ def write_report(out, advice: Optional[Advice] = None, van: Optional[VanCheck] =
                  plots: bool = True, overrides=()) -> dict:
     """Write ``design.md``, ``design.json`` and (FI) the PNG plots to ``out``; returns the paths.
     ``overrides``: the ``PATH=VALUE`` preset overrides used, recorded in both files."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.prepare_folder(out)
     doc, md, files = {"overrides": list(overrides)}, ["# Design advisor (`nanostage design`)", ""], {}
     if overrides:
         md += ["Preset overrides: " + ", ".join(f"`{o}`" for o in overrides), ""]
@@ -791,8 +789,8 @@ def write_report(out, advice: Optional[Advice] = None, van: Optional[VanCheck] =
                "uses the unrounded Marin factors (Table 3.2's 195.4 MPa uses p_a = 0.86, p_b = 1.08).", ""]
     files["markdown"] = str(out / "design.md")
     files["json"] = str(out / "design.json")
-    Path(files["markdown"]).write_text("\n".join(md))
-    Path(files["json"]).write_text(json.dumps(doc, indent=1, allow_nan=False))
+    outputs.write_text(out / "design.md", "\n".join(md))
+    outputs.write_text(out / "design.json", json.dumps(doc, indent=1, allow_nan=False))
     return files
 
 
@@ -814,6 +812,7 @@ def add_design_arguments(parser):
     parser.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                         help="preset override, e.g. stage.drive.noise_current_rms=7e-4 (YAML value; repeatable)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    outputs.add_overwrite_argument(parser)
     from experiment_runner.executor import add_executor_arguments
     add_executor_arguments(parser, "sweep", workers_help="default: this process, all cores")
     return parser
@@ -848,7 +847,8 @@ def main_design(args) -> int:
         if args.trials < 1 or args.dwell <= 0 or args.step_um == 0:
             raise DesignError("--trials must be >= 1, --dwell > 0 and --step-um nonzero")
         lumped_stage(p)
-    out = Path(args.out or f"out/design/{p.name}")
+    out = outputs.prepare_folder(args.out or f"out/design/{p.name}", args.overwrite,
+                                 files=("design.md", "design.json"), option="--out")          # refused before the sweep
     progress = None if args.json else (lambda s: print(s, file=sys.stderr))
     advice = van = None
     if van_mode:

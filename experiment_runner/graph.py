@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+from experiment_runner import outputs
 from experiment_runner.experiment import load_experiment
 from experiment_runner.ros.launch import EXIT_ABORTED, EXIT_RECORDING_CUT, EXIT_TIMEOUT, run_one_process, run_processes
 from experiment_runner.ros.run import check_domain_id
@@ -22,16 +23,18 @@ __all__ = ["run_graph", "check_run", "run_one_process", "run_processes", "EXIT_A
 
 
 def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id=None,
-              timeout: float = 3600.0, params: dict | None = None) -> int:
+              timeout: float = 3600.0, params: dict | None = None, overwrite: bool = False) -> int:
     """``nanostage graph``: run, record ``out_dir/run.mcap``, print the trial results.
 
-    A previous run's recording in ``out_dir`` is removed first. ``params``:
-    ``{node: {parameter: value}}``. Returns 0 (every trial complete, recording intact),
-    :data:`EXIT_ABORTED`, :data:`EXIT_TIMEOUT` or :data:`EXIT_RECORDING_CUT`.
+    The recording of a previous run in ``out_dir`` is removed first (nanostage's files only,
+    :mod:`experiment_runner.outputs`; ``overwrite``: ``out_dir`` may be a non-empty folder
+    nanostage did not write). ``params``: ``{node: {parameter: value}}``. Returns 0 (every
+    trial complete, recording intact), :data:`EXIT_ABORTED`, :data:`EXIT_TIMEOUT` or
+    :data:`EXIT_RECORDING_CUT`.
     """
     import json
 
-    check_run(experiment, out_dir, domain_id, timeout)     # bad input: a ConfigError before any node starts
+    check_run(experiment, out_dir, domain_id, timeout, overwrite)   # bad input: a ConfigError before any node starts
     bag = out_dir / "run"
     _clear_previous_run(out_dir)
     t0 = time.monotonic()
@@ -49,10 +52,11 @@ def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id
     bag_dir, mcap = bag_layout(bag)
     final = out_dir / "run.mcap"
     if mcap.exists():                      # make out_dir itself the rosbag2 bag: run.mcap + metadata.yaml
-        for f in bag_dir.iterdir():
-            f.replace(out_dir / f.name)
-        bag_dir.rmdir()
-    extra = sorted(p for p in out_dir.glob("run_*") if p.is_dir())
+        for name in sorted(outputs.listed(bag_dir) or ()):
+            if (bag_dir / name).is_file():
+                outputs.move_into(bag_dir / name, out_dir / name)
+        outputs.remove(bag_dir)
+    extra = sorted(p for p in out_dir.glob("run_*") if outputs.is_output_folder(p))
     if extra:
         print(f"the recorder restarted: later parts in {', '.join(str(p) for p in extra)}", file=sys.stderr)
     if not final.exists():
@@ -71,10 +75,12 @@ def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id
     return EXIT_RECORDING_CUT if code == 0 and (rec.salvaged or extra or incomplete) else code
 
 
-def check_run(experiment: str, out_dir: Path, domain_id=None, timeout: float = 3600.0) -> None:
+def check_run(experiment: str, out_dir: Path, domain_id=None, timeout: float = 3600.0,
+              overwrite: bool = False) -> None:
     """Refuse a run that cannot work, before any node starts: a :class:`ConfigError` naming the
     experiment file's problem, a ROS domain ID out of range (argument or ``ROS_DOMAIN_ID``), a
-    timeout that is not positive, an output folder that cannot be made. ``out_dir`` exists after."""
+    timeout that is not positive, an output folder that cannot be made or is not nanostage's
+    (:func:`experiment_runner.outputs.prepare_folder`). ``out_dir`` exists after."""
     load_experiment(experiment)
     try:
         check_domain_id(domain_id)
@@ -82,20 +88,18 @@ def check_run(experiment: str, out_dir: Path, domain_id=None, timeout: float = 3
         raise ConfigError(str(err)) from None
     if not (isinstance(timeout, (int, float)) and timeout > 0):
         raise ConfigError(f"--timeout: got {timeout!r}; expected a positive number of seconds")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ConfigError(f"--out {out_dir}: a file is there; expected a folder (made if missing)")
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ConfigError(f"--out {out_dir}: cannot make the output folder ({err.strerror or err})") from None
+    outputs.prepare_folder(out_dir, overwrite, option="--out")
 
 
 def _clear_previous_run(out_dir: Path):
-    """Remove the recording a previous run left in ``out_dir`` (``run.mcap``,
-    ``metadata.yaml``, ``run/``, ``run_<i>/``), so nothing of it is read as this run's."""
-    import shutil
-    for name in ("run.mcap", "metadata.yaml"):
-        (out_dir / name).unlink(missing_ok=True)
-    for d in [out_dir / "run", *out_dir.glob("run_*")]:
-        if d.is_dir():
-            shutil.rmtree(d)
+    """Remove the recording a previous run left in ``out_dir`` (``run.mcap``, ``metadata.yaml``,
+    ``run/``, ``run_<i>/``), so nothing of it is read as this run's -- nanostage's files only: one of
+    those names that nanostage did not write is an :class:`~experiment_runner.outputs.OutputError`
+    (before any node starts)."""
+    paths = [out_dir / "run.mcap", out_dir / "metadata.yaml", out_dir / "run",
+             *sorted(p for p in out_dir.glob("run_*") if outputs.is_output_folder(p))]
+    for p in paths:
+        kept = outputs.remove(p)
+        if kept:
+            raise ConfigError(f"{p}: holds files nanostage did not write ({', '.join(k.name for k in kept)}); "
+                              "move them away or choose another --out")

@@ -34,7 +34,6 @@ Reading
 from __future__ import annotations
 
 import io
-import shutil
 import struct
 import zlib
 from collections import Counter
@@ -45,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiment_runner import outputs
 from msg_defs import cdr, convert
 from msg_defs.topics import (BEARING, CLOCK, COMMAND, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS, EXTERNAL_FORCE,
                              ISOLATOR, ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS,
@@ -163,7 +163,14 @@ class McapRecorder:
     chunk_bytes : int
         ... or once it holds this many bytes (rosbags closes at 1 MiB anyway).
     overwrite : bool
-        Remove an existing bag directory first (otherwise ``FileExistsError``).
+        Replace an existing recording at ``path`` (only nanostage's files in it:
+        :mod:`experiment_runner.outputs`); otherwise an existing one is refused
+        (:class:`~experiment_runner.outputs.OutputError`).
+    atomic : bool
+        Write the bag in a temporary folder beside ``path`` and move it into place on
+        :meth:`close` (a run that fails or is interrupted leaves nothing at ``path``: files
+        written whole, such as a campaign's or ``synth``'s). Default: written in place, so a
+        killed process leaves a file readable up to its last chunk (the ``recorder`` node).
 
     ``write(topic, stamp_ns, msg)`` takes rclpy messages, rosbags messages or raw CDR
     bytes. Topics of :data:`msg_defs.topics.TOPICS` get their contract type and QoS;
@@ -173,18 +180,27 @@ class McapRecorder:
     """
 
     def __init__(self, path, config_yaml: str | None = None, *, start_ns: int = 0,
-                 chunk_ns: int = 100_000_000, chunk_bytes: int = 1 << 20, overwrite: bool = False):
+                 chunk_ns: int = 100_000_000, chunk_bytes: int = 1 << 20, overwrite: bool = False,
+                 atomic: bool = False):
         self.bag_dir, self.path = bag_layout(path)
-        if self.bag_dir.exists():
-            if not overwrite:
-                raise FileExistsError(f"{self.bag_dir} exists; pass overwrite=True to replace it")
-            shutil.rmtree(self.bag_dir) if self.bag_dir.is_dir() else self.bag_dir.unlink()
-        self.bag_dir.parent.mkdir(parents=True, exist_ok=True)
+        self._install = outputs.replacing_folder(self.bag_dir, overwrite) if atomic else None
+        if atomic:
+            where = self._install.__enter__()
+        else:
+            outputs.prepare_recording(self.bag_dir, overwrite)
+            where = self.bag_dir
         writer_cls, plugin = _writer_classes()
         self._store = _typestore()
-        self._writer = writer_cls(self.bag_dir, version=9, storage_plugin=plugin.MCAP)
-        self._writer.set_custom_data("nanostage_recording_contract", "1")
-        self._writer.open()
+        try:
+            self._writer = writer_cls(where, version=9, storage_plugin=plugin.MCAP)
+            self._writer.set_custom_data("nanostage_recording_contract", "1")
+            self._writer.open()
+            if not atomic:
+                outputs.record(where, [self.path.name, "metadata.yaml"])
+        except BaseException as err:
+            if self._install is not None:
+                self._install.__exit__(type(err), err, err.__traceback__)
+            raise
         self._writer.storage.chunk_ns = int(chunk_ns)
         self._writer.storage.chunk_bytes = int(chunk_bytes)
         self._conns: dict = {}
@@ -254,16 +270,30 @@ class McapRecorder:
         return sum(self.counts.values())
 
     def close(self) -> None:
-        """Write the last chunk, the index and summary, and ``metadata.yaml`` (idempotent)."""
-        if not self._closed:
-            self._closed = True
+        """Write the last chunk, the index and summary, and ``metadata.yaml`` (idempotent); an
+        ``atomic`` recording is then moved into place."""
+        self._finish(None)
+
+    def _finish(self, err) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        install, self._install = self._install, None
+        try:
             self._writer.close()
+        except BaseException as e:
+            err = err or e
+            raise
+        finally:
+            if install is not None:
+                install.__exit__(*((type(err), err, err.__traceback__) if err else (None, None, None)))
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
-        self.close()          # even after an error: what was written stays readable
+    def __exit__(self, typ, err, tb):
+        # after an error: in place, what was written stays readable; atomic, nothing is left
+        self._finish(err)
         return False
 
 
@@ -974,7 +1004,8 @@ def _sample_stamps(start_ns: int, first: int, n: int, rate: float) -> np.ndarray
 
 def write_run(path, result, preset, *, trials=None, reference=None, window: float | None = None,
               case: str = "", config_yaml: str | None = None, truth: bool = True, clock: bool = False,
-              results: bool = True, start_ns: int = 0, node: str = "batch", overwrite: bool = False) -> Path:
+              results: bool = True, start_ns: int = 0, node: str = "batch", overwrite: bool = False,
+              atomic: bool = True) -> Path:
     """Write batch-engine trials as a contract recording; return the MCAP file.
 
     Trials follow each other in stage time: sample ``k`` of the ``j``-th written trial is
@@ -1002,6 +1033,8 @@ def write_run(path, result, preset, *, trials=None, reference=None, window: floa
         The shared reference, for the settle segment (target and its start).
     window : float, optional
         Half-width of the settling band [m].
+    overwrite, atomic : bool
+        As :class:`McapRecorder`'s (default: written whole, then moved into place).
     """
     from experiment_runner.metrics import trial_metrics
     from stage_sim.plant import OK, STATUS_TEXT
@@ -1023,7 +1056,7 @@ def write_run(path, result, preset, *, trials=None, reference=None, window: floa
         config_yaml = run_config_yaml(preset, source=node, case=case, trials=trials, rate=rate,
                                       window_m=window, samples_per_trial=T)
     J = convert.joint_state
-    with McapRecorder(path, config_yaml, start_ns=start_ns, overwrite=overwrite) as rec:
+    with McapRecorder(path, config_yaml, start_ns=start_ns, overwrite=overwrite, atomic=atomic) as rec:
         w = rec.write
         first = True
         for j, i in enumerate(trials):

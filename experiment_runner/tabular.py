@@ -64,10 +64,6 @@ import csv
 import hashlib
 import io
 import math
-import os
-import shutil
-import tempfile
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -689,35 +685,13 @@ def sha256(path) -> str:
 
 
 # =========================================================================== writing
-@contextmanager
-def _atomic_bag(out, overwrite: bool):
-    """Yield a temporary bag path beside ``out``; on success move it to ``out``'s bag
-    directory (replacing an existing one only with ``overwrite``); on failure remove it."""
-    from experiment_runner.recording import bag_layout
-    bag, mcap = bag_layout(out)
-    if bag.exists() and not overwrite:
-        raise ConfigError(f"{bag}: exists; pass --overwrite to replace it (nothing was written)")
-    parent = bag.parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{bag.name}.partial-", dir=parent))
-    except OSError as err:
-        raise ConfigError(f"{bag}: cannot write there ({err.strerror or err})") from None
-    try:
-        yield tmp / bag.name
-        old = None
-        if bag.exists():
-            old = parent / f"{tmp.name}.old"
-            os.replace(bag, old)
-        os.replace(tmp / bag.name, bag)
-        if old is not None:
-            shutil.rmtree(old) if old.is_dir() else old.unlink()
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
 def write_signals(sig: Signals, out, overwrite: bool = False, node: str = "convert") -> Path:
-    """Write :class:`Signals` as a contract recording (atomically); returns the MCAP file."""
+    """Write :class:`Signals` as a contract recording; returns the MCAP file.
+
+    Written whole in a temporary folder beside ``out`` and moved into place
+    (:mod:`experiment_runner.outputs`); an existing recording at ``out`` is replaced only with
+    ``overwrite`` (an :class:`~experiment_runner.outputs.OutputError` otherwise, nothing written).
+    """
     import yaml
 
     from experiment_runner.recording import McapRecorder, _typestore, bag_layout
@@ -746,18 +720,17 @@ def write_signals(sig: Signals, out, overwrite: bool = False, node: str = "conve
                            {"position": np.column_stack([sig.extra[k] for k in names])}))
     per_sample = [(topic, names, cdr.JointStateWriter(), {f: v.tolist() for f, v in fields.items()})
                   for topic, names, fields in per_sample]
-    with _atomic_bag(out, overwrite) as tmp:
-        with McapRecorder(tmp, yaml.safe_dump(sig.config, sort_keys=False, allow_unicode=True),
-                          start_ns=int(st[0])) as rec:
-            w = rec.write
-            s0, s1 = int(st[0]), int(st[-1])
-            w(EVENTS.name, s0, convert.event_msg(ts, "run_start", stamp_ns=s0, case=case, node=node))
-            w(EVENTS.name, s0, convert.event_msg(ts, "trial_start", stamp_ns=s0, trial=0, case=case, node=node))
-            for i, s in enumerate(st.tolist()):
-                for topic, names, writer, fields in per_sample:
-                    w(topic, s, writer.pack(s, names, **{f: v[i] for f, v in fields.items()}))
-            w(EVENTS.name, s1, convert.event_msg(ts, "trial_end", stamp_ns=s1, trial=0, case=case, node=node))
-            w(EVENTS.name, s1, convert.event_msg(ts, "run_end", stamp_ns=s1, case=case, node=node))
+    with McapRecorder(out, yaml.safe_dump(sig.config, sort_keys=False, allow_unicode=True),
+                      start_ns=int(st[0]), overwrite=overwrite, atomic=True) as rec:
+        w = rec.write
+        s0, s1 = int(st[0]), int(st[-1])
+        w(EVENTS.name, s0, convert.event_msg(ts, "run_start", stamp_ns=s0, case=case, node=node))
+        w(EVENTS.name, s0, convert.event_msg(ts, "trial_start", stamp_ns=s0, trial=0, case=case, node=node))
+        for i, s in enumerate(st.tolist()):
+            for topic, names, writer, fields in per_sample:
+                w(topic, s, writer.pack(s, names, **{f: v[i] for f, v in fields.items()}))
+        w(EVENTS.name, s1, convert.event_msg(ts, "trial_end", stamp_ns=s1, trial=0, case=case, node=node))
+        w(EVENTS.name, s1, convert.event_msg(ts, "run_end", stamp_ns=s1, case=case, node=node))
     return bag_layout(out)[1]
 
 
@@ -768,7 +741,10 @@ def convert_table(path, mapping: Mapping | dict, out, overwrite: bool = False, s
     Raises :class:`~stage_sim.validation.ConfigError` (one line) on any bad input; nothing is
     written then.
     """
+    from experiment_runner.outputs import check_recording
+    from experiment_runner.recording import bag_layout
     m = mapping if isinstance(mapping, Mapping) else mapping_from_dict(mapping)
+    check_recording(bag_layout(out)[0], overwrite)          # refused before any work
     tab = read_table(path)
     sig = prepare(tab, m)
     if source:
@@ -790,6 +766,7 @@ _HELP = {"time": "column of the sample times [s after --scale]",
 
 
 def add_convert_arguments(parser):
+    from experiment_runner.outputs import add_overwrite_argument
     sub = parser.add_subparsers(dest="kind", required=True, metavar="KIND")
     p = sub.add_parser(
         "table", help="a CSV/TSV/whitespace text, MATLAB .mat (v5, v7.3), HDF5, .npz/.npy table",
@@ -816,11 +793,11 @@ def add_convert_arguments(parser):
     p.add_argument("--case", help="case name of the trial (default: the file's name)")
     p.add_argument("--list", action="store_true", help="list the file's columns and scalars, and exit")
     p.add_argument("--out", metavar="REC.mcap", help="recording to write (bag directory; NAME.mcap -> NAME/NAME.mcap)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing recording at --out")
+    add_overwrite_argument(p)
     p = sub.add_parser("emps", help="DATA_EMPS.mat of the EMPS benchmark (the table importer with mappings/emps.yaml)")
     p.add_argument("source", metavar="FILE", help="DATA_EMPS.mat")
     p.add_argument("--out", required=True, metavar="REC.mcap", help="recording to write")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing recording at --out")
+    add_overwrite_argument(p)
     return parser
 
 

@@ -22,6 +22,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from experiment_runner.batch import BatchResult
+from experiment_runner.outputs import OutputError
 from experiment_runner.recording import (McapRecorder, RecordingError, bag_layout, mcap_file, read_recording,
                                          write_run)
 from experiment_runner.metrics import trial_metrics
@@ -81,7 +82,8 @@ def _same_bits(a, b):
 def test_layout_is_a_rosbag2_bag_with_one_mcap_file(synthetic):
     rec, _ = synthetic
     assert rec.path == rec.bag_dir / "run.mcap" and bag_layout("x/run") == bag_layout("x/run.mcap")
-    assert sorted(p.name for p in rec.bag_dir.iterdir()) == ["metadata.yaml", "run.mcap"]
+    # + nanostage's manifest of what it wrote there (experiment_runner.outputs)
+    assert sorted(p.name for p in rec.bag_dir.iterdir()) == [".nanostage-output.json", "metadata.yaml", "run.mcap"]
     meta = yaml.safe_load((rec.bag_dir / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert meta["version"] == 9 and meta["storage_identifier"] == "mcap" and meta["relative_file_paths"] == ["run.mcap"]
     # readers accept the file, the directory, or the name the recorder was given
@@ -393,7 +395,7 @@ def test_errors_name_the_problem(tmp_path):
 
 def test_recorder_enforces_the_contract(tmp_path):
     rec = McapRecorder(tmp_path / "r")
-    with pytest.raises(FileExistsError):
+    with pytest.raises(OutputError, match="exists; pass --overwrite"):
         McapRecorder(tmp_path / "r")
     rec.write("/stage/command", 0, convert.joint_state(TS, 0, ["motor"], effort=[1.0]))
     with pytest.raises(ValueError, match="once, first"):

@@ -17,7 +17,7 @@ from typing import Any, Optional, Protocol
 
 import numpy as np
 
-from experiment_runner import profiles
+from experiment_runner import outputs, profiles
 from experiment_runner.campaigns.spec import Campaign, Condition
 from stage_sim.config import Preset
 
@@ -55,6 +55,9 @@ class RunSettings:
     resume : bool
         Keep the trials already in ``out_dir/trials.jsonl`` from an interrupted run of the same
         campaign and settings (:mod:`experiment_runner.campaigns.stream`); False discards them.
+    overwrite : bool
+        ``out_dir`` may be a non-empty folder nanostage did not write (its other files are kept:
+        :func:`experiment_runner.outputs.prepare_folder`).
     """
     trials: Optional[int] = None
     dwell: Optional[float] = None
@@ -72,6 +75,7 @@ class RunSettings:
     cluster: Any = None
     executor: Any = None
     resume: bool = True
+    overwrite: bool = False
 
 
 @dataclass
@@ -185,14 +189,18 @@ def clean(o):
     return o
 
 
+OUTPUT_FILES = ("results.csv", "results.json", "report.md")
+"""Files every campaign writes in its output folder (checked before it runs: :func:`experiment_runner.outputs.prepare_folder`)."""
+
+
 def write_json(path: Path, doc) -> None:
-    """``doc`` as strict JSON (:func:`clean`), one space of indentation."""
-    Path(path).write_text(json.dumps(clean(doc), indent=1, allow_nan=False))
+    """``doc`` as strict JSON (:func:`clean`), one space of indentation (atomically: :mod:`experiment_runner.outputs`)."""
+    outputs.write_text(path, json.dumps(clean(doc), indent=1, allow_nan=False))
 
 
 def write_rows_csv(path: Path, rows: list[dict]) -> None:
-    """``rows`` (dicts with the same keys) as CSV, None as an empty cell."""
-    with open(path, "w", newline="") as f:
+    """``rows`` (dicts with the same keys) as CSV, None as an empty cell (atomically)."""
+    with outputs.replacing(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         for r in rows:

@@ -12,6 +12,7 @@ from experiment_runner.campaigns.runner import MAIN_JOB, main_job, run_campaign
 from experiment_runner.campaigns.spec import list_campaigns, load_campaign
 from experiment_runner.cliargs import positive_float, positive_int
 from experiment_runner.executor import add_executor_arguments, cpu_count
+from experiment_runner.outputs import add_overwrite_argument
 from stage_sim.config import ConfigError
 
 __all__ = ["add_campaign_arguments", "main_campaign"]
@@ -40,6 +41,7 @@ def add_campaign_arguments(parser):
     add_executor_arguments(parser, "trials", cpu_count(), "default: one per core; 1 = this process")
     parser.add_argument("--restart", action="store_true",
                         help="discard the trials of an interrupted run in --out (default: resume them)")
+    add_overwrite_argument(parser)
     return parser
 
 
@@ -72,7 +74,7 @@ def main_campaign(args) -> int:
             # the main job always starts anew: its trials are regenerated in ~2 min, and a stream
             # left by other settings or code must not stop the README's first command
             path = main_job(args.out or "out/campaigns", progress=not args.quiet, workers=args.workers,
-                            cluster=args.cluster, resume=False)
+                            cluster=args.cluster, resume=False, overwrite=args.overwrite)
             print(f"report: {path}")
             return 0
         if not args.campaign:
@@ -83,12 +85,12 @@ def main_campaign(args) -> int:
             calibration=read_calibration(args.calibration) if args.calibration else None,
             calibration_trials=args.calibration_trials, graph=args.graph, plots=not args.no_plots,
             mcap=not args.no_mcap, progress=not args.quiet, workers=args.workers, cluster=args.cluster,
-            resume=not args.restart)
+            resume=not args.restart, overwrite=args.overwrite)
         cr = run_campaign(camp, Path(args.out or f"out/campaigns/{camp.name}"), settings)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:               # SIGINT, or SIGTERM (experiment_runner.outputs.Interrupted)
         print("nanostage campaign: interrupted; the same command resumes from the trials done "
               "(trials.jsonl in the output folder)", file=sys.stderr)
-        return 130
+        return 128 + getattr(err, "signum", 2)
     if args.json:
         print(json.dumps(clean({"findings": cr.findings, "calibration": {
             k: v for k, v in (cr.calibration or {}).items() if k != "history"}})))

@@ -23,8 +23,10 @@ from typing import Optional
 import numpy as np
 from tqdm import tqdm
 
+from experiment_runner import outputs
 from experiment_runner.batch import Models
-from experiment_runner.campaigns.base import CampaignRun, RunSettings, Stat, write_json, write_rows_csv
+from experiment_runner.campaigns.base import (OUTPUT_FILES, CampaignRun, RunSettings, Stat, write_json,
+                                              write_rows_csv)
 from experiment_runner.campaigns.calibration import source_calibration
 from experiment_runner.campaigns.findings import evaluate_frf_findings, seed_bound_check
 from experiment_runner.campaigns.frf import closed_loop_frf, loop_frfs, plant_frf
@@ -81,8 +83,7 @@ def run_frf_campaign(kind, camp: Campaign, out_dir: Path, settings: RunSettings)
         raise ConfigError(f"{camp.name}: --graph does not apply to a frequency_response campaign "
                           "(open-loop FRFs on the compiled plant)")
     t_start = time.monotonic()
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = outputs.prepare_folder(out_dir, settings.overwrite, files=OUTPUT_FILES, option="--out")
     conds = conditions(camp)
     test = camp.test
     # calibration: {from: NAME} reuses a point-to-point campaign's fitted stage (e.g. its bearing stiffness)
@@ -157,7 +158,7 @@ def write_frf_results(cr) -> None:
                              "metric": m, "value": finite_or_none(r.values[m]), "seed": seed,
                              "baseline": case.name == camp.baseline})
     write_rows_csv(cr.out_dir / "results.csv", rows)
-    with open(cr.out_dir / "frf.csv", "w", newline="") as f:
+    with outputs.replacing(cr.out_dir / "frf.csv") as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["case", "amplitude_n", "frequency_hz", "status", "G_re_m_per_n", "G_im_m_per_n",
                     "G_aug_re_m_per_n", "G_aug_im_m_per_n", "L_re", "L_im", "T_re", "T_im",
@@ -235,8 +236,7 @@ def write_frf_plots(cr, plt, out: Path) -> list:
         axes[0, 0].legend(fontsize=7, title="force amplitude", title_fontsize=7)
         fig.suptitle(f"{camp.title}: {case.label}")
         fig.tight_layout()
-        path = out / f"bode_{case.name}.png"
-        fig.savefig(path, dpi=110)
+        path = outputs.savefig(fig, out / f"bode_{case.name}.png", dpi=110)
         plt.close(fig)
         files.append(path)
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
@@ -255,8 +255,7 @@ def write_frf_plots(cr, plt, out: Path) -> list:
     axes[0].legend(fontsize=8)
     fig.suptitle(f"{camp.title}: bandwidth and margins vs amplitude")
     fig.tight_layout()
-    path = out / "bandwidth_margins.png"
-    fig.savefig(path, dpi=110)
+    path = outputs.savefig(fig, out / "bandwidth_margins.png", dpi=110)
     plt.close(fig)
     files.append(path)
     return files

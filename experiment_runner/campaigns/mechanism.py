@@ -39,6 +39,7 @@ from typing import Optional
 
 import numpy as np
 
+from experiment_runner import outputs
 from experiment_runner.campaigns.trials import simulate_trials
 from experiment_runner.experiment import trial_metrics
 from stage_sim.config import with_overrides
@@ -268,8 +269,7 @@ def plot(cr, plt, out) -> list:
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7, loc="upper right")
         fig.tight_layout()
-        path = out / f"mechanism_{cond.key}.png"
-        fig.savefig(path, dpi=110)
+        path = outputs.savefig(fig, out / f"mechanism_{cond.key}.png", dpi=110)
         plt.close(fig)
         files.append(path)
     return files

@@ -23,6 +23,7 @@ import matplotlib
 import numpy as np
 from matplotlib.ticker import NullFormatter
 
+from experiment_runner import outputs
 from experiment_runner.campaigns import mechanism
 from experiment_runner.campaigns.base import CampaignRun
 from experiment_runner.campaigns.registry import METRICS, fmt_change, fmt_metric
@@ -62,8 +63,7 @@ def write_outputs(cr: CampaignRun, *, report: bool, plots: bool, t_start: float)
 def write_plots(cr: CampaignRun) -> list:
     """Write the PNG plots of a campaign run into ``out_dir/plots``; returns their paths."""
     plt = _plt()
-    out = cr.out_dir / "plots"
-    out.mkdir(exist_ok=True)
+    out = outputs.prepare_folder(cr.out_dir / "plots")
     files = cr.kind.plots(cr, plt, out)
     plt.close("all")
     return [f for f in files if f is not None]
@@ -86,7 +86,7 @@ def trial_plots(cr: CampaignRun, plt, out: Path) -> list:
 def save_figure(plt, fig, path: Path) -> Path:
     """Lay out, write ``path`` (PNG, 110 dpi), close the figure; returns ``path``."""
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -364,9 +364,7 @@ def write_report(cr: CampaignRun) -> Path:
     L += cr.kind.report_section(cr)
     L += plots_md(cr)
     L += cr.kind.report_settings(cr)
-    path = cr.out_dir / "report.md"
-    path.write_text("\n".join(L))
-    return path
+    return outputs.write_text(cr.out_dir / "report.md", "\n".join(L))
 
 
 def trial_how(cr: CampaignRun) -> str:
@@ -498,9 +496,7 @@ def write_index(runs, out_dir, runtime_s: float, extras: dict | None = None) -> 
             dmax = max((x.get("max_abs_diff_m") or 0.0) for x in g)
             L += [f"ROS graph: {ok} of {len(g)} representative trials completed; largest difference of the measured "
                   f"position from the batch engine's trial: {dmax * 1e9:.3g} nm.", ""]
-    path = out_dir / "report.md"
-    path.write_text("\n".join(L))
-    return path
+    return outputs.write_text(out_dir / "report.md", "\n".join(L))
 
 
 def plots_md(cr) -> list[str]:

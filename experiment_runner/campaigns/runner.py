@@ -12,6 +12,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from experiment_runner import outputs
 from experiment_runner.campaigns.base import CampaignRun, RunSettings
 from experiment_runner.campaigns.frequency_response import frf_lines
 from experiment_runner.campaigns.kinds import kind_of
@@ -46,7 +47,8 @@ def as_run(camp: Campaign, settings: RunSettings) -> Campaign:
 
 
 def run_campaign(campaign, out_dir, settings: RunSettings | None = None, **changes) -> CampaignRun:
-    """Run a campaign into ``out_dir`` (created; files in it are overwritten).
+    """Run a campaign into ``out_dir`` (created; nanostage's files in it are replaced, a folder
+    nanostage did not write needs ``overwrite=True``: :mod:`experiment_runner.outputs`).
 
     Parameters
     ----------
@@ -74,8 +76,8 @@ def main_job(out_dir="out/campaigns", settings: RunSettings | None = None, **cha
     changed), and the frequency responses of the same stages; writes ``out_dir/<campaign>/...``
     and the summary ``out_dir/report.md``; returns its path."""
     t0 = time.monotonic()
-    out_dir = Path(out_dir)
     settings = replace(settings or RunSettings(graph=True), **changes)
+    out_dir = outputs.prepare_folder(out_dir, settings.overwrite, option="--out")
     with make_executor(settings.workers, settings.cluster) as ex:      # one pool, warmed once, for all
         runs = [run_campaign(name, out_dir / name, settings, executor=ex) for name in MAIN_JOB]
     extras = {}

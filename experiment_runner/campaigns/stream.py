@@ -39,6 +39,7 @@ from typing import Optional
 
 import numpy as np
 
+from experiment_runner import outputs
 from experiment_runner.batch import Models
 from experiment_runner.campaigns.spec import Campaign, conditions
 from experiment_runner.campaigns.trials import metric_record, plain, reference, simulate_trials
@@ -128,19 +129,19 @@ class TrialStream:
         self.path = Path(path)
         self.header = {"format": FORMAT, "version": VERSION, "campaign": campaign, "key": key, "code": code}
         self._done: dict[tuple, set] = {}
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if resume and self.path.exists() and self._load():
-            self._file = open(self.path, "a", encoding="utf-8")
-        else:
-            self._file = open(self.path, "w", encoding="utf-8")
-            self._write([self.header])
+        outputs.check_file(self.path)         # nanostage's own stream, never a link (made with its folder)
+        good = self._load() if resume and self.path.exists() else None
+        self._file = outputs.open_stream(self.path, append=good is not None, header=json.dumps(self.header) + "\n")
+        if good is not None and good < os.fstat(self._file.fileno()).st_size:
+            self._file.truncate(good)          # drop the line cut by an interruption
 
-    def _load(self) -> bool:
-        """Index the trials of the existing file; False if it has no complete header."""
+    def _load(self) -> int | None:
+        """Index the trials of the existing file; returns the size of its complete records, None if
+        it has no complete header."""
         with open(self.path, "rb") as f:
             first = f.readline()
             if not first.endswith(b"\n"):
-                return False                 # interrupted before the header was complete
+                return None                  # interrupted before the header was complete
             try:
                 head = json.loads(first)
             except ValueError:
@@ -165,9 +166,7 @@ class TrialStream:
                     break
                 self._done.setdefault(key, set()).add(trial)
                 good = f.tell()
-        if good < self.path.stat().st_size:           # drop the line cut by an interruption
-            os.truncate(self.path, good)
-        return True
+        return good
 
     def _check_header(self, head: dict) -> None:
         mine = self.header

@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 import math
-import shutil
 import sys
 import time
 from contextlib import nullcontext
@@ -30,7 +29,8 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from experiment_runner.campaigns.base import (CampaignKind, CampaignRun, RunResult, RunSettings, Stat,
+from experiment_runner import outputs
+from experiment_runner.campaigns.base import (OUTPUT_FILES, CampaignKind, CampaignRun, RunResult, RunSettings, Stat,
                                               write_json, write_rows_csv)
 from experiment_runner.campaigns.calibration import calibrate, source_calibration
 from experiment_runner.campaigns.findings import evaluate_findings
@@ -54,8 +54,7 @@ def _bar(settings: RunSettings, desc: str, **kw) -> tqdm:
 def run_trial_campaign(kind: CampaignKind, camp: Campaign, out_dir: Path, settings: RunSettings) -> CampaignRun:
     """Calibrate (baseline only), run every case and condition, write the outputs (see the module docstring)."""
     t_start = time.monotonic()
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = outputs.prepare_folder(out_dir, settings.overwrite, files=OUTPUT_FILES, option="--out")
     conds = conditions(camp)
     timing = {}
     with _executor(settings) as ex:
@@ -188,17 +187,15 @@ def run_graph(camp: Campaign, conds: list, runs: dict, step_ii: dict, cal_values
               settings: RunSettings) -> None:
     """The representative trial of every case and condition through the ROS graph; sets ``runs[...].graph``."""
     exp_dir = out_dir / "graph_experiments"
-    exp_dir.mkdir(exist_ok=True)
     jobs = []
     for case in camp.cases:
         for cond in conds:
             rr = runs[(case.name, cond.key)]
             exp = graph_experiment(camp, case, cond, rr.rep, cal_values)
             path = exp_dir / f"{case.name}_{cond.key}.yaml"
-            path.write_text(yaml.safe_dump(exp, sort_keys=False, allow_unicode=True))
+            outputs.write_text(path, yaml.safe_dump(exp, sort_keys=False, allow_unicode=True))
             bag = out_dir / "recordings" / f"{case.name}_{cond.key}_graph"
-            if bag.exists():
-                shutil.rmtree(bag)
+            outputs.prepare_recording(bag, overwrite=True)       # the recorder writes it anew
             corr = step_ii[case.name]["correction"].tolist() if case.name in step_ii else None
             jobs.append({"key": (case.name, cond.key), "experiment": str(path), "bag": str(bag),
                          "timeout": settings.graph_timeout, "correction": corr, "samples": len(rr.trace.t)})

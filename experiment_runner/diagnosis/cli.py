@@ -34,6 +34,8 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
     parser.add_argument("--max-fit-seconds", type=float, default=3.0, help="cap of the fit set [s of data]")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--verbose", action="store_true", help="progress on stdout")
+    from experiment_runner.outputs import add_overwrite_argument
+    add_overwrite_argument(parser)
     from experiment_runner.executor import add_executor_arguments
     add_executor_arguments(parser, "candidate fits", workers_help="default: threads of this process")
     return parser
@@ -69,7 +71,7 @@ def main_diagnose(args) -> int:
     if args.selftest:
         from .selftest import run_selftest
         s = run_selftest(only=args.only, as_json=args.json, keep=args.keep, verbose=args.verbose,
-                         workers=args.workers, cluster=args.cluster)
+                         workers=args.workers, cluster=args.cluster, overwrite=args.overwrite)
         if args.json:
             print(json.dumps(_clean(s), indent=1))
         else:
@@ -82,9 +84,13 @@ def main_diagnose(args) -> int:
         raise SystemExit("nanostage diagnose: give RECORDING [NOMINAL], or --list-effects, or --selftest")
     from pathlib import Path
 
+    from experiment_runner.outputs import prepare_folder
+
     from .data import load_data
     from .pipeline import diagnose
-    from .report import jsonable
+    from .report import REPORT_FILES, jsonable
+    out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
+    prepare_folder(out, args.overwrite, files=REPORT_FILES, option="--out")     # refused before the diagnosis, not after
     nominal = args.nominal
     data = None
     if nominal is None:
@@ -93,7 +99,6 @@ def main_diagnose(args) -> int:
             raise SystemExit("nanostage diagnose: the recording carries no preset in /experiment/config; "
                              "give the NOMINAL model")
         data = load_data(rec)
-    out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
     rep = diagnose(args.recording, nominal, out=out, options=diagnose_options(args), data=data)
     if args.json:
         print(json.dumps(jsonable(rep), indent=1))
@@ -120,8 +125,13 @@ def main_diagnose(args) -> int:
 def _main_power(args) -> int:
     from pathlib import Path
 
+    from experiment_runner.outputs import prepare_folder
+
     from .power import DEFAULT_CASES, run_power
-    out = Path(args.out) if args.out else Path("out/diagnose/power")
+    out = prepare_folder(Path(args.out) if args.out else Path("out/diagnose/power"), args.overwrite,
+                         files=("power.json", "report.md"), option="--out")
+    if args.keep:
+        prepare_folder(args.keep, args.overwrite, option="--keep")
     s = run_power(args.cases or DEFAULT_CASES, workers=args.workers if args.workers is not None else 2,
                   cluster=args.cluster, out=out, keep=args.keep, verbose=args.verbose and not args.json,
                   only=args.only)

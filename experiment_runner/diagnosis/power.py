@@ -54,6 +54,8 @@ from pathlib import Path
 
 import numpy as np
 
+from experiment_runner import outputs
+
 from .pipeline import EXCLUSIVE
 
 __all__ = ["PowerCase", "make_cases", "run_power", "DEFAULT_CASES", "EFFECTS"]
@@ -693,16 +695,15 @@ def _fmt_change(r) -> str:
 
 # --------------------------------------------------------------------------- report
 def write_report(out, s: dict) -> Path:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.prepare_folder(out)
     from .report import jsonable
-    (out / "power.json").write_text(json.dumps(jsonable(s), indent=1))
+    outputs.write_text(out / "power.json", json.dumps(jsonable(s), indent=1))
     plots = []
     try:
         plots = _plot(out, s)
     except Exception as err:       # noqa: BLE001 - the plot must not lose the report
         s.setdefault("notes", []).append(f"plot failed: {err!r}")
-    (out / "report.md").write_text(to_markdown(s, plots))
+    outputs.write_text(out / "report.md", to_markdown(s, plots))
     return out
 
 
@@ -799,6 +800,6 @@ def _plot(out: Path, s: dict) -> list[str]:
     fig.supxlabel("replay change of the effect [run-to-run floors] (dotted: 3x)", fontsize=8)
     fig.supylabel("named first (dots: cases, bars: rate)", fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "power_detection.png", dpi=90)
+    outputs.savefig(fig, out / "power_detection.png", dpi=90)
     plt.close(fig)
     return ["power_detection.png"]

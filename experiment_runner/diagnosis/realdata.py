@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiment_runner import outputs
 from experiment_runner.tabular import sha256
 
 __all__ = ["DataMissing", "data_root", "EmpsData", "load_emps", "convert_emps", "EMPS_PUBLISHED",
@@ -428,7 +429,6 @@ def _emps_plots(out: Path, d: EmpsData, replay: dict, held: np.ndarray) -> list[
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    out.mkdir(parents=True, exist_ok=True)
     t = d.t - d.t[0]
     fig, ax = plt.subplots(2, 1, figsize=(11, 7), sharex=True)
     ax[0].plot(t, d.force, "k", lw=0.8, label="measured gtau*vir")
@@ -453,8 +453,7 @@ def _emps_plots(out: Path, d: EmpsData, replay: dict, held: np.ndarray) -> list[
     ax[1].legend(fontsize=8)
     fig.suptitle("EMPS: closed-loop replay of the recorded reference (benchmark cascaded P/P loop)")
     fig.tight_layout()
-    p = out / "emps_closed_loop.png"
-    fig.savefig(p, dpi=90)
+    p = outputs.savefig(fig, out / "emps_closed_loop.png", dpi=90)
     plt.close(fig)
     return [p.name]
 
@@ -481,7 +480,6 @@ def _trib_plots(out: Path, d, r: dict) -> list[str]:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    out.mkdir(parents=True, exist_ok=True)
     j = r["held_out_strokes"][len(r["held_out_strokes"]) // 2]
     a, b = d.strokes[j]
     a0 = d.strokes[j - 1][0]
@@ -505,8 +503,7 @@ def _trib_plots(out: Path, d, r: dict) -> list[str]:
     ax[1].set_title("transition after a reversal")
     ax[1].legend(fontsize=7)
     fig.tight_layout()
-    p = out / "tribometer_models.png"
-    fig.savefig(p, dpi=90)
+    p = outputs.savefig(fig, out / "tribometer_models.png", dpi=90)
     plt.close(fig)
     return [p.name]
 
@@ -528,7 +525,7 @@ def _strip(o):
 
 
 def run_realdata(out, data=None, only=None, structure_check: bool = True, plots: bool = True,
-                 verbose: bool = False) -> dict:
+                 verbose: bool = False, overwrite: bool = False) -> dict:
     """Run the diagnosis on every real data set; write ``out/report.{md,json}`` and plots.
 
     Parameters
@@ -542,8 +539,8 @@ def run_realdata(out, data=None, only=None, structure_check: bool = True, plots:
     structure_check : bool
         Also fit the published model structures through the diagnosis (EMPS; ~1 min).
     """
-    out = Path(out)
     root = data_root(data)
+    out = outputs.prepare_folder(out, overwrite, files=("report.json", "report.md"), option="--out")
     T0 = time.perf_counter()
     rep = {"nanostage_realdata": 1, "data_root": str(root), "datasets": {}}
     if not only or "emps" in only:
@@ -553,9 +550,8 @@ def run_realdata(out, data=None, only=None, structure_check: bool = True, plots:
         rep["datasets"]["tribometer"] = run_tribometer(root, out / "tribometer", plots=plots)
     rep["seconds"] = time.perf_counter() - T0
     clean = _strip(rep)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "report.json").write_text(json.dumps(clean, indent=1))
-    (out / "report.md").write_text(to_markdown(clean))
+    outputs.write_text(out / "report.json", json.dumps(clean, indent=1))
+    outputs.write_text(out / "report.md", to_markdown(clean))
     rep["json"] = clean
     return rep
 
@@ -678,13 +674,14 @@ def add_realdata_arguments(parser):
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--json", action="store_true", help="print report.json")
     parser.add_argument("--verbose", action="store_true", help="progress of the diagnosis on stdout")
+    outputs.add_overwrite_argument(parser)
     return parser
 
 
 def main_realdata(args) -> int:
     try:
         rep = run_realdata(args.out, data=args.data, only=args.only, structure_check=not args.no_structure_check,
-                           plots=not args.no_plots, verbose=args.verbose)
+                           plots=not args.no_plots, verbose=args.verbose, overwrite=args.overwrite)
     except DataMissing as err:                     # a user error: the message and exit 2, as every command
         print(f"nanostage realdata: {err}", file=sys.stderr)
         return 2

@@ -76,6 +76,8 @@ from pathlib import Path
 
 import numpy as np
 
+from experiment_runner import outputs
+
 from .locate import REGIMES
 from .units import axis_units
 
@@ -292,7 +294,7 @@ def _plots(out: Path, rep: dict, data, arr: dict) -> list[str]:
     axes[0, 0].legend(loc="upper right", fontsize=7, ncol=3)
     axes[-1, 0].set_xlabel("time [s]  (shading: " + ", ".join(f"{k}" for k in colors) + ")")
     fig.tight_layout()
-    fig.savefig(out / "residual_time.png", dpi=90)
+    outputs.savefig(fig, out / "residual_time.png", dpi=90)
     plt.close(fig)
     files.append("residual_time.png")
 
@@ -315,7 +317,7 @@ def _plots(out: Path, rep: dict, data, arr: dict) -> list[str]:
     ax.set_ylabel("force residual PSD [N²/Hz]")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "residual_spectrum.png", dpi=90)
+    outputs.savefig(fig, out / "residual_spectrum.png", dpi=90)
     plt.close(fig)
     files.append("residual_spectrum.png")
 
@@ -329,7 +331,7 @@ def _plots(out: Path, rep: dict, data, arr: dict) -> list[str]:
             ax.tick_params(labelsize=7)
         axes[0, 0].set_ylabel("mean residual [N]")
         fig.tight_layout()
-        fig.savefig(out / "residual_state.png", dpi=90)
+        outputs.savefig(fig, out / "residual_state.png", dpi=90)
         plt.close(fig)
         files.append("residual_state.png")
 
@@ -352,23 +354,30 @@ def _plots(out: Path, rep: dict, data, arr: dict) -> list[str]:
         axes[1].legend(fontsize=8)
         fig.suptitle(f"held-out trial {data.trial_ids[b]}: closed-loop replay of the recorded reference", fontsize=9)
         fig.tight_layout()
-        fig.savefig(out / "heldout_replay.png", dpi=90)
+        outputs.savefig(fig, out / "heldout_replay.png", dpi=90)
         plt.close(fig)
         files.append("heldout_replay.png")
     return files
 
 
+REPORT_FILES = ("report.md", "report.json", "improved_preset.yaml")
+"""The files :func:`write_report` writes besides the plots (checked before a diagnosis starts)."""
+
+
 def write_report(out, rep: dict, improved, nominal, data, arrays: dict, plots: bool = True) -> Path:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "improved_preset.yaml").write_text(improved.preset_yaml())
+    """``report.json``, ``report.md``, ``improved_preset.yaml`` and the plots, each written atomically
+    to the output folder ``out`` (:mod:`experiment_runner.outputs`); returns ``out``."""
+    out = outputs.prepare_folder(out)
+    outputs.write_text(out / "improved_preset.yaml", improved.preset_yaml())
     rep["improved_model"]["preset_yaml"] = "improved_preset.yaml"
     rep["plots"] = []
     if plots:
         try:
             rep["plots"] = _plots(out, rep, data, arrays)
+        except outputs.OutputError:
+            raise
         except Exception as err:     # noqa: BLE001 - plots must not lose the report
             rep.setdefault("recording", {}).setdefault("notes", []).append(f"plots failed: {err!r}")
-    (out / "report.json").write_text(json.dumps(jsonable(rep), indent=1))
-    (out / "report.md").write_text(to_markdown(jsonable(rep)))
+    outputs.write_text(out / "report.json", json.dumps(jsonable(rep), indent=1))
+    outputs.write_text(out / "report.md", to_markdown(jsonable(rep)))
     return out

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import yaml
 
+from experiment_runner import outputs
 from stage_sim.config import load_preset, with_overrides
 
 from .hypotheses import split_mode, virgin_x50
@@ -378,26 +379,23 @@ def judge(case: Case, rep: dict) -> dict:
 
 
 def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verbose: bool = False,
-                 workers: int | None = None, cluster=None) -> dict:
+                 workers: int | None = None, cluster=None, overwrite: bool = False) -> dict:
     """Run the cases (``only``: names or prefixes); returns the summary dict. ``workers`` /
-    ``cluster``: where each diagnosis runs its candidate fits (:class:`.pipeline.Options`)."""
+    ``cluster``: where each diagnosis runs its candidate fits (:class:`.pipeline.Options`).
+    ``keep``: an output folder for the recordings and reports (``overwrite``: as
+    :func:`experiment_runner.outputs.prepare_folder`'s); else a temporary folder, removed."""
     cases = [c for c in CASES if not only or any(c.name.startswith(o) for o in only)]
-    tmp = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="nanostage_selftest_"))
-    tmp.mkdir(parents=True, exist_ok=True)
+    tmp = outputs.prepare_folder(keep, overwrite, option="--keep") if keep else Path(tempfile.mkdtemp(prefix="nanostage_selftest_"))
     results = []
     try:
         for case in cases:
             t0 = time.perf_counter()
             d = tmp / case.name
-            d.mkdir(parents=True, exist_ok=True)
-            truth = d / "truth.yaml"
-            truth.write_text(yaml.safe_dump(_truth_doc(case), sort_keys=False))
+            truth = outputs.write_text(d / "truth.yaml", yaml.safe_dump(_truth_doc(case), sort_keys=False))
             exp = dict(EXPERIMENTS[case.experiment])
             exp["preset"] = case.nominal
-            exp_path = d / "experiment.yaml"
-            exp_path.write_text(yaml.safe_dump(exp, sort_keys=False))
-            nominal = d / "nominal.yaml"
-            nominal.write_text(yaml.safe_dump(_nominal_doc(case), sort_keys=False))
+            exp_path = outputs.write_text(d / "experiment.yaml", yaml.safe_dump(exp, sort_keys=False))
+            nominal = outputs.write_text(d / "nominal.yaml", yaml.safe_dump(_nominal_doc(case), sort_keys=False))
             try:
                 rec = synth(truth, exp_path, d / "rec.mcap")
                 t1 = time.perf_counter()
@@ -407,6 +405,8 @@ def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verb
                 res["profile"] = case.experiment
                 res["synth_s"] = round(t1 - t0, 2)
                 res["diagnose_s"] = round(rep["timing_s"]["total_s"], 2)
+            except outputs.OutputError:
+                raise
             except Exception as err:   # noqa: BLE001 - a crashing case is a failed case
                 res = {"case": case.name, "truth_effect": case.effect, "passed": False, "false_positive": False,
                        "error": repr(err)}
@@ -439,11 +439,10 @@ def diagnose_seconds(duration: float = 10.0, keep: str | None = None) -> float:
     cycles = 0.5 / (2 * 3.141592653589793 * 1.0e-3 / 0.02)          # 0.5 s of circle per trial
     exp = dict(EXPERIMENTS["circle"], name="diag_bench", trials=max(2, int(round(duration / 0.5))))
     exp["profile"] = dict(exp["profile"], cycles=cycles)
-    tmp = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="nanostage_diagbench_"))
+    tmp = outputs.prepare_folder(keep) if keep else Path(tempfile.mkdtemp(prefix="nanostage_diagbench_"))
     try:
-        tmp.mkdir(parents=True, exist_ok=True)
-        (tmp / "truth.yaml").write_text(yaml.safe_dump(_truth_doc(case), sort_keys=False))
-        (tmp / "experiment.yaml").write_text(yaml.safe_dump(exp, sort_keys=False))
+        outputs.write_text(tmp / "truth.yaml", yaml.safe_dump(_truth_doc(case), sort_keys=False))
+        outputs.write_text(tmp / "experiment.yaml", yaml.safe_dump(exp, sort_keys=False))
         rec = synth(tmp / "truth.yaml", tmp / "experiment.yaml", tmp / "rec.mcap")
         t0 = time.perf_counter()
         diagnose(rec, NOMINAL, options=Options(plots=False))

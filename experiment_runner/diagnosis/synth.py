@@ -24,7 +24,8 @@ import yaml
 
 from experiment_runner.batch import simulate
 from experiment_runner.experiment import build_trials, load_experiment, reference
-from experiment_runner.recording import write_run
+from experiment_runner.outputs import add_overwrite_argument, check_recording
+from experiment_runner.recording import bag_layout, write_run
 from stage_sim.config import with_overrides
 
 from .model import load_model
@@ -34,7 +35,11 @@ __all__ = ["synth", "add_synth_arguments", "main_synth"]
 
 def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None = None, conceal: bool = True,
           overwrite: bool = True) -> Path:
-    """Simulate ``experiment`` on ``truth`` and write the recording; returns the MCAP path."""
+    """Simulate ``experiment`` on ``truth`` and write the recording; returns the MCAP path.
+
+    The recording is written whole and moved into place (:mod:`experiment_runner.outputs`); an
+    existing one at ``out`` is replaced only with ``overwrite`` (refused before the simulation)."""
+    check_recording(bag_layout(out)[0], overwrite)
     spec = load_model(truth)
     exp = load_experiment(experiment)
     if trials is not None:
@@ -63,6 +68,7 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
     parser.add_argument("truth", help="truth preset (name or YAML) or model file {preset}")
     parser.add_argument("experiment", help="experiment (name or YAML): profile, trials, starts")
     parser.add_argument("--out", required=True, help="recording to write (bag directory; NAME.mcap -> NAME/NAME.mcap)")
+    add_overwrite_argument(parser)
     parser.add_argument("--seed", type=int, default=None, help="simulation.seed of the truth (noise realisation)")
     parser.add_argument("--trials", type=int, default=None, help="override the experiment's number of trials")
     parser.add_argument("--reveal", action="store_true", help="also record /stage/truth and the preset in "
@@ -71,6 +77,7 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
 
 
 def main_synth(args) -> int:
-    path = synth(args.truth, args.experiment, args.out, seed=args.seed, trials=args.trials, conceal=not args.reveal)
+    path = synth(args.truth, args.experiment, args.out, seed=args.seed, trials=args.trials, conceal=not args.reveal,
+                 overwrite=args.overwrite)
     print(path)
     return 0

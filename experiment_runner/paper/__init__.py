@@ -95,16 +95,17 @@ def collect(out: Path, only=None, progress=print) -> list[Claim]:
     return claims
 
 
-def run_paper(out="out/paper", as_json: bool = False, only=None) -> int:
-    """Run every claim group; print the table (or JSON); write claims.md/json and plots."""
+def run_paper(out="out/paper", as_json: bool = False, only=None, overwrite: bool = False) -> int:
+    """Run every claim group; print the table (or JSON); write claims.md/json and plots
+    (:mod:`experiment_runner.outputs`: ``overwrite`` lets ``out`` be a folder nanostage did not write)."""
+    from experiment_runner import outputs
     selected_groups(only)                  # a bad --only is refused before anything is written
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.prepare_folder(out, overwrite, files=("claims.json", "claims.md"), option="--out")
     import sys
     claims = collect(out, only, progress=lambda m: print(m, file=sys.stderr, flush=True))
     data = [asdict(c) for c in claims]
-    (out / "claims.json").write_text(json.dumps(data, indent=2, default=float))
-    (out / "claims.md").write_text("# Seed simulation claims reproduced by nanostage\n\n" + _markdown(claims))
+    outputs.write_text(out / "claims.json", json.dumps(data, indent=2, default=float))
+    outputs.write_text(out / "claims.md", "# Seed simulation claims reproduced by nanostage\n\n" + _markdown(claims))
     if as_json:
         print(json.dumps(data, indent=2, default=float))
     else:

@@ -36,6 +36,7 @@ import numpy as np
 
 from experiment_runner.batch import simulate
 from experiment_runner.metrics import settling_time
+from experiment_runner import outputs
 from experiment_runner.paper import Claim
 from experiment_runner.profiles import point_to_point
 from stage_sim.config import load_preset, with_overrides
@@ -132,7 +133,7 @@ def _plot(out: Path, t, t_step, curves, title, fname, t_max=0.05):
         ax.legend(fontsize=7, loc="lower right")
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(out / fname, dpi=110)
+    outputs.savefig(fig, out / fname, dpi=110)
     plt.close(fig)
 
 
@@ -160,14 +161,13 @@ def _plot_sweep(out: Path, sweep, bench):
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "appendix_a_fig_a2_sweep.png", dpi=110)
+    outputs.savefig(fig, out / "appendix_a_fig_a2_sweep.png", dpi=110)
     plt.close(fig)
 
 
 # --------------------------------------------------------------------------- claims
 def claims(out: Path) -> list[Claim]:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.prepare_folder(out)
     x_ref, v_ref, t_step = _references()
     pid = load_preset("als130h")
 

@@ -39,6 +39,7 @@ import numpy as np
 from scipy import signal
 
 from experiment_runner.metrics import settling_time
+from experiment_runner import outputs
 from experiment_runner.paper import Claim
 from stage_sim.config import load_preset, with_overrides
 from stage_sim.plant import OK, SimulationError, build_plant, init_plant_state, plant_inputs, plant_step
@@ -129,8 +130,7 @@ def _settle(t, x, target, window, hold=0.02):
 
 
 def claims(out: Path) -> list[Claim]:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.prepare_folder(out)
     t0 = time.perf_counter()
     preset = load_preset("als130h")
     m = preset.stage.table.mass
@@ -206,7 +206,7 @@ def claims(out: Path) -> list[Claim]:
         ax.set_ylabel("position [nm]")
     axes[0].legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    fig.savefig(out / "fig_B1_averaged_vs_full.png", dpi=110)
+    outputs.savefig(fig, out / "fig_B1_averaged_vs_full.png", dpi=110)
     plt.close(fig)
 
     p50, p500 = per["50nm"], per["500nm"]

@@ -64,6 +64,7 @@ from numba import njit
 
 import control as ct
 
+from experiment_runner import outputs
 from experiment_runner.paper import Claim
 from stage_control.tuning import pid_tf
 from stage_sim.config import load_preset
@@ -442,7 +443,7 @@ def _plots(out, m_t, m_b, pid, k_f, c_f, fis, E, D, e0, d0, ge, etas, gam, bias,
         axes[1].set_ylabel("c_fi [N·s/m]")
         axes[1].set_title(f"(b) 2-norm of |{name}| over 1-{band:.0f} Hz")
         fig.tight_layout()
-        fig.savefig(out / fn, dpi=110)
+        outputs.savefig(fig, out / fn, dpi=110)
         plt.close(fig)
 
     # Fig. 6.7
@@ -457,7 +458,7 @@ def _plots(out, m_t, m_b, pid, k_f, c_f, fis, E, D, e0, d0, ge, etas, gam, bias,
     axes[0].set_ylabel("friction force [N]")
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "fig_6_7_forces.png", dpi=110)
+    outputs.savefig(fig, out / "fig_6_7_forces.png", dpi=110)
     plt.close(fig)
 
     # Fig. 6.8
@@ -472,7 +473,7 @@ def _plots(out, m_t, m_b, pid, k_f, c_f, fis, E, D, e0, d0, ge, etas, gam, bias,
     ax.set_title("Fig. 6.8: RMS force difference, 5 mm circle")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "fig_6_8_gamma.png", dpi=110)
+    outputs.savefig(fig, out / "fig_6_8_gamma.png", dpi=110)
     plt.close(fig)
 
     # Fig. 6.9
@@ -486,14 +487,13 @@ def _plots(out, m_t, m_b, pid, k_f, c_f, fis, E, D, e0, d0, ge, etas, gam, bias,
     ax.set_title("Fig. 6.9: sensitivity of k_c to k_f")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(out / "fig_6_9_kappa.png", dpi=110)
+    outputs.savefig(fig, out / "fig_6_9_kappa.png", dpi=110)
     plt.close(fig)
 
 
 # ============================================================================= claims
 def claims(out: Path) -> list[Claim]:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.prepare_folder(out)
     t0 = time.perf_counter()
     m_t, m_b, pid, fis = stage_parameters()
     c_f = c_f_estimate(m_t, m_b)

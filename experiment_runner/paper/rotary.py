@@ -36,6 +36,7 @@ import numpy as np
 from scipy import signal
 
 from experiment_runner.batch import simulate
+from experiment_runner import outputs
 from experiment_runner.paper import Claim
 from stage_sim.config import load_preset, with_overrides
 
@@ -151,8 +152,7 @@ def _rms(e):
 
 # ============================================================================= claims
 def claims(out: Path) -> list[Claim]:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.prepare_folder(out)
     t0 = time.perf_counter()
     import matplotlib
     matplotlib.use("Agg")
@@ -200,7 +200,7 @@ def claims(out: Path) -> list[Claim]:
     ax.set_ylim(1e-14, 1e-3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "fig_D5_Gd.png", dpi=110)
+    outputs.savefig(fig, out / "fig_D5_Gd.png", dpi=110)
     plt.close(fig)
 
     # ---------------------------------------------------------------- Sec. D.4
@@ -246,7 +246,7 @@ def claims(out: Path) -> list[Claim]:
     axes[-1].set_xlabel("time [s]")
     fig.suptitle("Fig. D.12: tracking error at 10 rpm, 0.15 N·m random bearing torque", fontsize=10)
     fig.tight_layout()
-    fig.savefig(out / "fig_D12_tracking_error.png", dpi=110)
+    outputs.savefig(fig, out / "fig_D12_tracking_error.png", dpi=110)
     plt.close(fig)
     runtime = time.perf_counter() - t0
 

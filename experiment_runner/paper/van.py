@@ -36,6 +36,7 @@ import numpy as np
 
 from experiment_runner.batch import Models, simulate
 from experiment_runner.metrics import settling_time
+from experiment_runner import outputs
 from experiment_runner.paper import Claim
 from stage_sim.config import Dither, load_preset, with_overrides
 
@@ -196,7 +197,7 @@ def _plot_maps(out, maps, ts_nod):
                 ax.set_ylabel("dither amplitude A [N]")
     fig.colorbar(im, ax=axes, label="settling time [s] (±20 % window)")
     fig.suptitle("Fig. 3.4: VAN settling time over A × f (red: A = 3 N, f = 500 Hz; ×: optimum)")
-    fig.savefig(out / "fig_3_4_van_settling_maps.png", dpi=100)
+    outputs.savefig(fig, out / "fig_3_4_van_settling_maps.png", dpi=100)
     plt.close(fig)
 
 
@@ -218,7 +219,7 @@ def _plot_responses(out, resp, bench, nod):
         ax.set_title(f"Fig. 3.5: {D * 1e9:.0f} nm step, A = {A_OP} N, f = {F_OP:.0f} Hz")
     axes[1].legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    fig.savefig(out / "fig_3_5_van_responses.png", dpi=110)
+    outputs.savefig(fig, out / "fig_3_5_van_responses.png", dpi=110)
     plt.close(fig)
 
 
@@ -248,7 +249,7 @@ def _plot_hc(out, hc_runs, multi, D, dwell):
     ax.set_title("Fig. 3.8(b): three successive 50 nm steps, K_HC = 4e3 N/µm")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "fig_3_8_van_hc.png", dpi=110)
+    outputs.savefig(fig, out / "fig_3_8_van_hc.png", dpi=110)
     plt.close(fig)
 
 
@@ -259,8 +260,7 @@ def _overshoot(y, target, D):
 
 
 def claims(out: Path) -> list[Claim]:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = outputs.prepare_folder(out)
     t_start = time.perf_counter()
     base = load_preset("van_sim")
     rate = base.controller.rate
