@@ -84,6 +84,6 @@ def main_job(out_dir="out/campaigns", settings: RunSettings | None = None, **cha
     for cr in runs:
         if cr.campaign.name in MAIN_JOB_FRF:
             name = MAIN_JOB_FRF[cr.campaign.name]
-            frf = run_campaign(name, out_dir / name, progress=settings.progress)
+            frf = run_campaign(name, out_dir / name, progress=settings.progress, overwrite=settings.overwrite)
             extras[cr.campaign.name] = frf_lines(frf, cr, images=f"{name}/plots")
     return write_index(runs, out_dir, time.monotonic() - t0, extras)
