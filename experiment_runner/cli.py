@@ -18,8 +18,8 @@ import signal
 import sys
 
 from experiment_runner.design import DesignError
-from experiment_runner.outputs import add_overwrite_argument, interrupts_as_errors
 from experiment_runner.diagnosis.realdata import DataMissing
+from experiment_runner.outputs import add_overwrite_argument, interrupts_as_errors
 from experiment_runner.recording import RecordingError
 from stage_sim.config import ConfigError
 

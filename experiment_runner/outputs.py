@@ -111,18 +111,21 @@ def _refuse_link(path: Path, st) -> None:
 def listed(folder) -> set[str] | None:
     """Names of the files nanostage wrote in ``folder`` (its :data:`MANIFEST`); None if it has none.
 
-    A manifest that is not a regular file or not nanostage's JSON counts as none.
+    A manifest that is not a regular file (of at most 16 MiB) or not nanostage's JSON counts as
+    none; a listed name that is not a plain name in ``folder`` (``a/b``, ``..``) is ignored.
     """
     path = Path(folder) / MANIFEST
     st = _lstat(path)
-    if st is None or not stat.S_ISREG(st.st_mode):
+    if st is None or not stat.S_ISREG(st.st_mode) or st.st_size > 1 << 24:
         return None
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
         files = doc["files"] if doc.get("nanostage_output") == 1 else None
     except (OSError, ValueError, TypeError, KeyError, AttributeError):
         return None
-    return {f for f in files if isinstance(f, str)} if isinstance(files, list) else None
+    if not isinstance(files, list):
+        return None
+    return {f for f in files if isinstance(f, str) and f not in ("", ".", "..") and "/" not in f and "\0" not in f}
 
 
 def is_output_folder(path) -> bool:
@@ -131,20 +134,11 @@ def is_output_folder(path) -> bool:
     return st is not None and stat.S_ISDIR(st.st_mode) and listed(path) is not None
 
 
-def _is_ours(folder: Path, name: str, names: set[str]) -> bool:
-    """Entry ``name`` of ``folder`` is nanostage's: a listed regular file, an output folder, the manifest."""
-    st = _lstat(folder / name)
-    if st is None or name == MANIFEST:
-        return True
-    if stat.S_ISREG(st.st_mode):
-        return name in names
-    return stat.S_ISDIR(st.st_mode) and is_output_folder(folder / name)
-
-
-def _foreign(folder: Path, names: set[str]) -> list[str]:
-    """Entries of ``folder`` that are not nanostage's (partials aside: :func:`_clean_partials`)."""
+def _foreign(folder: Path) -> list[str]:
+    """Entries of a folder without a manifest that are not nanostage's: all but its output folders
+    (and partials, which :func:`_clean_partials` handles)."""
     return sorted(e for e in os.listdir(folder)
-                  if not (_PARTIAL.match(e) or _LEGACY.match(e) or _is_ours(folder, e, names)))
+                  if not (_PARTIAL.match(e) or _LEGACY.match(e) or is_output_folder(folder / e)))
 
 
 @contextmanager
@@ -260,7 +254,7 @@ def prepare_folder(path, overwrite: bool = False, files=(), option: str = "") ->
         if not stat.S_ISDIR(st.st_mode):
             raise OutputError("a file is there; expected a folder (made if missing)")
         if listed(path) is None:
-            foreign = _foreign(path, set())
+            foreign = _foreign(path)
             if foreign and not overwrite:
                 more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
                 raise OutputError(f"a folder nanostage did not write (holding {', '.join(foreign[:3])}{more}); give "
@@ -274,8 +268,8 @@ def prepare_folder(path, overwrite: bool = False, files=(), option: str = "") ->
         msg = msg[len(str(path)) + 2:] if msg.startswith(f"{path}: ") else msg
         raise OutputError(f"{name}: {msg}") from None
     _clean_partials(path)
-    for name in files:
-        _check_file(path / name)
+    for file in files:
+        _check_file(path / file)
     return path
 
 
@@ -483,7 +477,8 @@ def remove(path) -> list[Path]:
 
     A file goes if its folder's manifest lists it. A folder with a manifest loses its listed
     files, its own sub-folders (recursively) and the partials of processes gone, and is
-    removed if nothing else is left in it. Nothing at ``path``: nothing done.
+    removed if nothing else is left in it (else it keeps its manifest, listing what is left of
+    nanostage's: nothing). Nothing at ``path``: nothing done.
 
     Raises
     ------
@@ -550,7 +545,8 @@ def interrupts_as_errors():
     def handler(signum, frame):
         raise Interrupted(signum)
 
-    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)
+           if signal.getsignal(s) is not signal.SIG_IGN}           # a signal the parent ignores stays ignored
     try:
         yield
     finally:
