@@ -191,23 +191,23 @@ class McapRecorder:
             where = self.bag_dir
         writer_cls, plugin = _writer_classes()
         self._store = _typestore()
+        self._conns: dict = {}
+        self.counts: Counter = Counter()
+        self._closed = False
+        self._writer = None
         try:
             self._writer = writer_cls(where, version=9, storage_plugin=plugin.MCAP)
             self._writer.set_custom_data("nanostage_recording_contract", "1")
             self._writer.open()
             if not atomic:
                 outputs.record(where, [self.path.name, "metadata.yaml"])
+            self._writer.storage.chunk_ns = int(chunk_ns)
+            self._writer.storage.chunk_bytes = int(chunk_bytes)
+            if config_yaml is not None:
+                self.write(CONFIG.name, start_ns, convert.string_msg(self._store, config_yaml))
         except BaseException as err:
-            if self._install is not None:
-                self._install.__exit__(type(err), err, err.__traceback__)
+            self._finish(err)
             raise
-        self._writer.storage.chunk_ns = int(chunk_ns)
-        self._writer.storage.chunk_bytes = int(chunk_bytes)
-        self._conns: dict = {}
-        self.counts: Counter = Counter()
-        self._closed = False
-        if config_yaml is not None:
-            self.write(CONFIG.name, start_ns, convert.string_msg(self._store, config_yaml))
 
     # ------------------------------------------------------------------ topics
     def add_topic(self, name: str, msg_type: str | None = None, qos: Qos | None = None):
@@ -280,7 +280,8 @@ class McapRecorder:
         self._closed = True
         install, self._install = self._install, None
         try:
-            self._writer.close()
+            if self._writer is not None and self._writer.storage is not None:
+                self._writer.close()
         except BaseException as e:
             err = err or e
             raise
