@@ -85,10 +85,12 @@ def main_diagnose(args) -> int:
     from pathlib import Path
 
     from experiment_runner.outputs import prepare_folder
+    from experiment_runner.recording import mcap_file
 
     from .data import load_data
     from .pipeline import diagnose
     from .report import REPORT_FILES, jsonable
+    mcap_file(args.recording)                         # a recording that is not there: no output folder made
     out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
     prepare_folder(out, args.overwrite, files=REPORT_FILES, option="--out")     # refused before the diagnosis, not after
     nominal = args.nominal
