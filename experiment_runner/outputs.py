@@ -71,7 +71,8 @@ from stage_sim.validation import ConfigError
 
 __all__ = ["MANIFEST", "OutputError", "Interrupted", "prepare_folder", "check_recording", "prepare_recording",
            "replacing", "write_text", "savefig", "open_stream", "replacing_folder", "record", "move_into",
-           "remove", "listed", "is_output_folder", "check_file", "interrupts_as_errors", "add_overwrite_argument"]
+           "remove", "listed", "is_output_folder", "check_file", "interrupts_as_errors", "interrupts_deferred",
+           "add_overwrite_argument"]
 
 MANIFEST = ".nanostage-output.json"
 """File in every folder nanostage writes into: the names of the files it wrote there."""
@@ -543,6 +544,10 @@ def interrupts_as_errors():
         return
 
     def handler(signum, frame):
+        if frame is not None and frame.f_code.co_name == "__del__":
+            # an exception raised in a finalizer is printed and dropped: deliver the signal again
+            threading.Timer(0.01, os.kill, (os.getpid(), signum)).start()
+            return
         raise Interrupted(signum)
 
     old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)
@@ -552,3 +557,28 @@ def interrupts_as_errors():
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+@contextmanager
+def interrupts_deferred():
+    """Inside, SIGTERM and SIGINT are only noted; the yielded ``check()`` raises :class:`Interrupted`
+    once one has arrived, and leaving the block raises it too. For loops around code that must not
+    be interrupted mid-call -- ROS callbacks, which rclpy's executor would log as a fatal error --
+    that call ``check()`` between calls. Elsewhere than in the main thread: signals unchanged."""
+    got: list[int] = []
+
+    def check() -> None:
+        if got:
+            raise Interrupted(got[0])
+
+    if threading.current_thread() is not threading.main_thread():
+        yield check
+        return
+    old = {s: signal.signal(s, lambda signum, frame: got.append(signum))
+           for s in (signal.SIGTERM, signal.SIGINT) if signal.getsignal(s) is not signal.SIG_IGN}
+    try:
+        yield check
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    check()

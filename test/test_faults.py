@@ -21,6 +21,7 @@ import yaml
 from test_graph import RUN_TIMEOUT, Listener, _domain, _ros_env
 
 from experiment_runner.experiment import EXPERIMENT_DIR, experiment_preset, load_experiment, run_batch
+from experiment_runner import outputs
 from experiment_runner.graph import EXIT_ABORTED, run_graph
 from experiment_runner.ros.launch import NodeProcesses
 from experiment_runner.ros.nodes import nodes_for
@@ -316,22 +317,21 @@ def test_a_servo_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_r
 @pytest.mark.slow
 def test_a_rerun_in_the_same_out_dir_starts_clean(tmp_path):
     """A previous run's recording is not read as the next one's, even if the next records nothing."""
-    out = tmp_path / "out"
-    out.mkdir()
+    out = outputs.prepare_folder(tmp_path / "out")
     old_exp = load_experiment(_experiment(tmp_path, trials=2))
     _, res = run_batch(old_exp)
     bag = write_run(tmp_path / "old", res, experiment_preset(old_exp))    # "the last run"
-    bag.replace(out / "run.mcap")                                         # as run_graph leaves it
-    (bag.parent / "metadata.yaml").replace(out / "metadata.yaml")
-    (out / "run_2").mkdir()                                               # + a restarted recorder's part
-    assert sorted(p.name for p in out.iterdir()) == ["metadata.yaml", "run.mcap", "run_2"]
+    outputs.move_into(bag, out / "run.mcap")                              # as run_graph leaves it
+    outputs.move_into(bag.parent / "metadata.yaml", out / "metadata.yaml")
+    outputs.prepare_folder(out / "run_2")                                 # + a restarted recorder's part
+    assert sorted(p.name for p in out.iterdir()) == [outputs.MANIFEST, "metadata.yaml", "run.mcap", "run_2"]
     domain = _domain()
     never = {"experiment_sequencer": {"wait_for_nodes": 99, "start_timeout": 2.0}}  # aborts before it starts
     with _ros_env(domain):
         code = run_graph(str(_experiment(tmp_path)), out, processes=True, domain_id=domain,
                          timeout=RUN_TIMEOUT, params=never)
     assert code == EXIT_ABORTED
-    assert sorted(p.name for p in out.iterdir()) == []                # nothing of the last run is left
+    assert sorted(p.name for p in out.iterdir()) == [outputs.MANIFEST]  # nothing of the last run is left
 
 
 # =========================================================================== messages

@@ -228,6 +228,21 @@ def test_ctrl_c_in_selftest_gives_no_traceback(tmp_path):
     assert not list(tmp_path.glob("nanostage_selftest_*"))
 
 
+@pytest.mark.slow
+def test_ctrl_c_in_a_graph_run_gives_no_traceback(tmp_path):
+    """SIGINT while ``graph`` runs its nodes in one process: one line, exit 130 -- raised between
+    the executor's spins, never inside a node's callback (which rclpy logs as a fatal error)."""
+    d = tmp_path / "g"
+    proc = subprocess.Popen([*CLI, "graph", "fi_p2p_5um", "--out", str(d)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    _wait_for(lambda: (d / "run" / "run.mcap").exists(), 120, proc)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    _one_line(err, "nanostage graph: interrupted (SIGINT)")
+
+
 _WRITE_RUN = """
 import sys
 import numpy as np

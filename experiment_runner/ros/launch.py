@@ -181,15 +181,27 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
     An existing recording at ``out`` is replaced. Returns the sequencer's ``results``,
     ``aborted`` (None or a dict), ``done``, ``wall_s`` and the ``recording`` path."""
     _isolate(domain_id)
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    args = run_args(experiment, out, params)
+    args["recorder"]["overwrite"] = True
+    from experiment_runner.outputs import interrupts_deferred
+    # SIGINT / SIGTERM: noted and raised between spins (an error for the CLI: one line), never inside
+    # a callback, nor rclpy's own shutdown
+    with interrupts_deferred() as interrupted:
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        return _run_nodes(args, timeout, interrupted)
+
+
+def _run_nodes(args: dict, timeout: float, interrupted) -> dict:
+    """:func:`run_one_process` in an initialised rclpy; ``interrupted()`` raises once a signal came."""
     import importlib
 
     import rclpy
     from rclpy.parameter import Parameter
 
     from experiment_runner.ros.run import make_executor, spin_for, teardown
-    args = run_args(experiment, out, params)
-    args["recorder"]["overwrite"] = True
-    rclpy.init()
     try:
         made = {}
         for spec in NODES:
@@ -203,6 +215,7 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
         t0 = time.monotonic()
         while not seq.done and time.monotonic() - t0 < timeout:
             spin_for(ex, 0.05)
+            interrupted()
         spin_for(ex, 0.5)                        # deliver the last events to the recorder
         recorder.close()
         summary = {"results": seq.results, "aborted": seq.aborted, "done": seq.done,
