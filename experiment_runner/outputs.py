@@ -26,7 +26,8 @@ A partial left by a killed run (``.NAME.partial-PID-XXXXXX``) is removed the nex
 folder is prepared if its process is gone and it belongs to this user; any other partial
 (a running process's, or one of an older nanostage) is reported on stderr and left.
 SIGTERM and SIGINT raise :class:`Interrupted` inside :func:`interrupts_as_errors` (the CLI's
-``main``), so a command cleans up its temporaries as on any error.
+``main``), so a command cleans up its temporaries as on any error; a loop around calls that must
+not be interrupted midway (the ROS executor's spins) defers them (:func:`interrupts_deferred`).
 
 Every refusal is an :class:`OutputError`, a :class:`~stage_sim.validation.ConfigError`: the
 CLI prints its one line and exits 2.
