@@ -4,7 +4,7 @@ Every node runs as its own process (the console scripts ``plant_sim``,
 ``servo_controller``, ``dither_generator``, ``sai_manager``, ``recorder``,
 ``experiment_sequencer``) on an isolated ROS domain: a ROS_DOMAIN_ID in 1..100 that is
 unique per graph in this session (derived from the pid and a counter, never the
-default domain) and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. What a test checks is
+default domain), localhost-only on 127.0.0.1 (``domain_env``). What a test checks is
 what went over the topics: the MCAP recording read back with ``read_recording``, the
 ``/experiment/events`` heard by a listener in this process, parameter services.
 Every wait is bounded; no timing is asserted (speed is ``nanostage bench``'s job).

@@ -1,8 +1,9 @@
 """Running nodes: the graph's environment, the executor, and ``main`` of a node executable.
 
 * :func:`domain_env` / :func:`apply_graph_defaults`: an explicit ROS domain and
-  localhost-only discovery unless the environment says otherwise
-  (``docs/security.md`` tells how to open the graph);
+  localhost-only discovery, every socket on 127.0.0.1 (:func:`loopback_env`), unless the
+  environment says otherwise (``docs/security.md`` tells how to open the graph);
+* :func:`check_params_files`: a node's ``--params-file`` read with the project's YAML loader;
 * :func:`make_executor`: rclpy's C++ ``EventsExecutor`` (default) or the
   ``SingleThreadedExecutor``;
 * :func:`run_node`: init, spin, clean up -- every node module's ``main`` is one call of it.
