@@ -37,7 +37,7 @@ from experiment_runner.ros.nodes import NODE_NAMES
 from experiment_runner.recording import read_recording
 from msg_defs import convert
 from experiment_runner.ros.qos import qos_profile
-from experiment_runner.ros.run import domain_env
+from experiment_runner.ros.run import domain_env, isolate
 from msg_defs.topics import COMMAND, EVENTS, TRAJECTORY
 
 BIN = Path(sys.executable).parent
@@ -55,7 +55,7 @@ def _domain() -> int:
 def _ros_env(domain: int):
     """This process's environment set to the isolated domain (restored afterwards)."""
     saved = dict(os.environ)
-    os.environ.update(domain_env(domain))
+    isolate(domain)
     try:
         yield
     finally:
