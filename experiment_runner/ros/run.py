@@ -109,7 +109,8 @@ def loopback_env(environ=os.environ) -> dict:
     transport whose sockets listen on every interface. Instead the discovery range becomes
     ``SYSTEM_DEFAULT`` (the middleware's settings) and the middleware's settings are
     :data:`LOOPBACK_PROFILE`; ``SKIP_DEFAULT_XML_FILE`` keeps Fast DDS from also loading a
-    ``DEFAULT_FASTRTPS_PROFILES.xml`` of the working directory over it.
+    ``DEFAULT_FASTRTPS_PROFILES.xml`` of the working directory over it. Fast DDS reads its
+    profiles once per process, when the first participant is made: set these before it.
 
     >>> sorted(loopback_env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}))
     ['FASTRTPS_DEFAULT_PROFILES_FILE', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'SKIP_DEFAULT_XML_FILE']
