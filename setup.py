@@ -15,7 +15,8 @@ setup(
     version="0.1.0",
     packages=find_packages(include=[p for m in MODULES for p in (m, f"{m}.*")]),
     package_data={"stage_sim": ["presets/*.yaml"],
-                  "experiment_runner": ["experiments/*.yaml", "diagnosis/nominal/*.yaml", "mappings/*.yaml"],
+                  "experiment_runner": ["experiments/*.yaml", "diagnosis/nominal/*.yaml", "mappings/*.yaml",
+                                        "ros/fastdds_loopback.xml"],
                   "experiment_runner.campaigns": ["*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),

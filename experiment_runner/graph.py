@@ -47,7 +47,8 @@ def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id
         if summary["aborted"]:
             print(f"run aborted: {summary['aborted']}", file=sys.stderr)
         elif code:
-            print(f"run timed out after {timeout} s", file=sys.stderr)
+            print(f"run timed out after {timeout:g} s (--timeout): {len(summary['results'])} of "
+                  f"{summary['trials']} trials done; every node is stopped", file=sys.stderr)
     from experiment_runner.recording import bag_layout, read_recording
     bag_dir, mcap = bag_layout(bag)
     final = out_dir / "run.mcap"

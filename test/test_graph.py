@@ -4,7 +4,7 @@ Every node runs as its own process (the console scripts ``plant_sim``,
 ``servo_controller``, ``dither_generator``, ``sai_manager``, ``recorder``,
 ``experiment_sequencer``) on an isolated ROS domain: a ROS_DOMAIN_ID in 1..100 that is
 unique per graph in this session (derived from the pid and a counter, never the
-default domain) and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. What a test checks is
+default domain), localhost-only on 127.0.0.1 (``domain_env``). What a test checks is
 what went over the topics: the MCAP recording read back with ``read_recording``, the
 ``/experiment/events`` heard by a listener in this process, parameter services.
 Every wait is bounded; no timing is asserted (speed is ``nanostage bench``'s job).
@@ -37,7 +37,7 @@ from experiment_runner.ros.nodes import NODE_NAMES
 from experiment_runner.recording import read_recording
 from msg_defs import convert
 from experiment_runner.ros.qos import qos_profile
-from experiment_runner.ros.run import domain_env
+from experiment_runner.ros.run import domain_env, isolate
 from msg_defs.topics import COMMAND, EVENTS, TRAJECTORY
 
 BIN = Path(sys.executable).parent
@@ -55,7 +55,7 @@ def _domain() -> int:
 def _ros_env(domain: int):
     """This process's environment set to the isolated domain (restored afterwards)."""
     saved = dict(os.environ)
-    os.environ.update(domain_env(domain))
+    isolate(domain)
     try:
         yield
     finally:
@@ -525,3 +525,57 @@ def test_bad_parameter_in_a_params_file_is_refused_naming_it(tmp_path, node, val
     assert code != 0
     assert name in err and str(values[name]) in err, err
     assert "Traceback" not in err, err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("text,says", [
+    ("plant_sim:\n  ros__parameters:\n    input_timeout: [1.0\n",            # not YAML
+     "not valid YAML at line 4, column 1: expected ',' or ']'"),
+    ("plant_sim:\n  ros__parameters:\n    input_timeout: 1.0\n    input_timeout: 2.0\n",
+     "not valid YAML at line 4, column 5: found duplicate key 'input_timeout' (first at line 3)"),
+    ("- plant_sim\n", "top level must be a mapping of node names, got list"),
+])
+def test_a_params_file_that_is_not_valid_yaml_is_refused_in_one_line_naming_file_and_line(tmp_path, text, says):
+    pfile = tmp_path / "plant.yaml"
+    pfile.write_text(text)
+    code, err = _run_refused([str(BIN / "plant_sim"), "--ros-args", "--params-file", str(pfile)], _domain())
+    assert code == 2 and "Traceback" not in err, err
+    assert err == f"error: plant_sim (params file {pfile}): {err.split('): ', 1)[1]}" and says in err, err
+    assert err.count("\n") == 1, err                                  # one line
+
+
+@pytest.mark.slow
+def test_ros_arguments_rcl_refuses_are_one_error_line_and_exit_2(tmp_path):
+    """What YAML accepts but ROS does not (a value outside ``ros__parameters``, a list of mixed
+    types, a ``-p`` value that is not YAML): rcl's reason with the file's line, no traceback."""
+    pfile = tmp_path / "plant.yaml"
+    pfile.write_text("plant_sim:\n  input_timeout: 1.0\n")
+    code, err = _run_refused([str(BIN / "plant_sim"), "--ros-args", "--params-file", str(pfile)], _domain())
+    assert code == 2 and "Traceback" not in err, err
+    assert (f"error: plant_sim: Couldn't parse params file: '--params-file {pfile}'. Error: Cannot have a value "
+            "before ros__parameters at line 2\n") in err and "/project/" not in err
+    code, err = _run_refused([str(BIN / "plant_sim"), "--ros-args", "-p", "input_timeout:=[1.0"], _domain())
+    assert code == 2 and "Traceback" not in err, err
+    assert "error: plant_sim: Couldn't parse parameter override rule: '-p input_timeout:=[1.0'" in err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["--processes", "one process"])
+def test_a_graph_that_times_out_says_what_did_not_finish_in_one_line(tmp_path, mode):
+    """``nanostage graph --timeout`` shorter than the nodes' start-up: exit 124, one line naming
+    what did not finish, no traceback from a node stopped in the middle of its imports."""
+    args = [str(BIN / "nanostage"), "graph", "fi_p2p_5um", "--out", str(tmp_path), "--timeout", "0.5",
+            "--domain-id", str(_domain())] + ([mode] if mode == "--processes" else [])
+    run = subprocess.run(args, capture_output=True, text=True, timeout=RUN_TIMEOUT)
+    assert run.returncode == 124 and "Traceback" not in run.stderr, run.stderr
+    lines = run.stderr.splitlines()
+    if mode == "--processes":
+        assert lines[0].startswith("run timed out after 0.5 s (--timeout): the experiment did not finish; ")
+        assert lines[0].endswith("; every node is stopped"), lines
+        if "still starting: " in lines[0]:                       # (they are, 0.5 s after they were started)
+            assert set(lines[0].split("still starting: ")[1].split("; ")[0].split(", ")) <= set(NODE_NAMES)
+    else:
+        assert lines[0] == "run timed out after 0.5 s (--timeout): 0 of 3 trials done; every node is stopped"
+    # what a run leaves is handled as before: here nothing was recorded, and it says so
+    assert lines[1:] == [f"no recording: the run ended before the recorder heard /experiment/config "
+                         f"({tmp_path / 'run.mcap'})"], lines

@@ -481,9 +481,9 @@ def test_node_parameter_files_are_checked_like_every_other_file(tmp_path):
 
 
 def test_a_node_started_by_hand_defaults_to_a_local_graph_on_an_explicit_domain():
-    from experiment_runner.ros.run import GRAPH_DEFAULTS, apply_graph_defaults
+    from experiment_runner.ros.run import GRAPH_DEFAULTS, apply_graph_defaults, loopback_env
     env = {}
-    assert apply_graph_defaults(env) == GRAPH_DEFAULTS and env == GRAPH_DEFAULTS
+    assert apply_graph_defaults(env) == env == {**GRAPH_DEFAULTS, **loopback_env(GRAPH_DEFAULTS)}  # test_network.py
     env = {"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}      # opened on purpose
     assert apply_graph_defaults(env) == {} and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
     env = {"ROS_LOCALHOST_ONLY": "0"}

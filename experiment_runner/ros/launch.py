@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from experiment_runner.ros.nodes import NODE_NAMES, NODES, node
-from experiment_runner.ros.run import domain_env
+from experiment_runner.ros.run import isolate
 
 EXIT_ABORTED, EXIT_TIMEOUT, EXIT_RECORDING_CUT = 1, 124, 3
 """Exit codes of a graph run besides 0 (every trial complete, recording intact): a trial
@@ -27,7 +27,11 @@ completed but the recording was cut short (its recorder died; salvaged) or misse
 (a ``recording_incomplete`` fault of the recorder)."""
 
 STOP_GRACE_S = 10.0
-"""Wall-clock time a node process gets to exit after SIGINT before it is killed [s]."""
+"""Wall-clock time a node process gets to exit after SIGTERM before it is killed [s]."""
+
+STARTING = -signal.SIGTERM
+"""Exit code of a node process stopped before it could act on SIGTERM: it was still starting
+(importing; :func:`~experiment_runner.ros.run.run_node` makes SIGTERM a clean stop)."""
 
 
 class NodeProcesses:
@@ -117,9 +121,11 @@ class NodeProcesses:
         return self.codes[name]
 
     def stop(self) -> dict:
-        """End every node still running: SIGCONT (a stopped process cannot act on SIGINT),
-        SIGINT, then SIGKILL after :data:`STOP_GRACE_S` (reported as ``"hung"``). The recorder
-        goes first, while the publishers still hold what it has not taken yet.
+        """End every node still running: SIGCONT (a stopped process cannot act on a signal),
+        SIGTERM, then SIGKILL after :data:`STOP_GRACE_S` (reported as ``"hung"``). The recorder
+        goes first, while the publishers still hold what it has not taken yet. A node still
+        starting ends at once, quietly (Python's default for SIGTERM; SIGINT would print a
+        ``KeyboardInterrupt`` traceback from the middle of its imports): :data:`STARTING`.
         Returns every node's exit code."""
         for p in self.procs.values():
             if p.poll() is None:
@@ -129,7 +135,7 @@ class NodeProcesses:
         for group in (first, [n for n in self.procs if n not in first]):
             live = {n: self.procs[n] for n in group if self.procs[n].poll() is None}
             for p in live.values():
-                p.send_signal(signal.SIGINT)
+                p.send_signal(signal.SIGTERM)
             deadline = time.monotonic() + STOP_GRACE_S
             for name in group:
                 p = self.procs[name]
@@ -159,10 +165,6 @@ def _param_text(val) -> str:
     return str(val).lower() if isinstance(val, bool) else str(val)
 
 
-def _isolate(domain_id):
-    os.environ.update(domain_env(domain_id))
-
-
 def run_args(experiment: str, out: Path, params: dict | None = None) -> dict:
     """``{node: {parameter: value}}`` of a run: the sequencer's experiment, the recorder's
     output, then ``params``."""
@@ -178,9 +180,9 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
     """Every node of :data:`~experiment_runner.ros.nodes.NODES` in this process, under one
     executor (:func:`~experiment_runner.ros.run.make_executor`); ``params``:
     ``{node: {parameter: value}}`` (e.g. ``{"sai_manager": {"initial_correction": [...]}}``).
-    An existing recording at ``out`` is replaced. Returns the sequencer's ``results``,
-    ``aborted`` (None or a dict), ``done``, ``wall_s`` and the ``recording`` path."""
-    _isolate(domain_id)
+    An existing recording at ``out`` is replaced. Returns the sequencer's ``results``, the
+    number of ``trials``, ``aborted`` (None or a dict), ``done``, ``wall_s`` and the ``recording`` path."""
+    isolate(domain_id)
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
@@ -218,7 +220,7 @@ def _run_nodes(args: dict, timeout: float, interrupted) -> dict:
             interrupted()
         spin_for(ex, 0.5)                        # deliver the last events to the recorder
         recorder.close()
-        summary = {"results": seq.results, "aborted": seq.aborted, "done": seq.done,
+        summary = {"results": seq.results, "trials": len(seq.trials), "aborted": seq.aborted, "done": seq.done,
                    "wall_s": time.monotonic() - t0, "recording": str(recorder.rec.path if recorder.rec else None)}
         teardown(ex, *made.values())             # executor first, while nodes and context live
     finally:
@@ -231,7 +233,7 @@ def run_processes(experiment: str, out: Path, timeout: float = 600.0, domain_id=
     """One process per node; returns the sequencer's exit code (0 complete, 1 aborted), or
     :data:`EXIT_TIMEOUT` if the run did not end within ``timeout`` [s]. A node process that
     ends before the sequencer is reported on stderr; every process is gone on return."""
-    _isolate(domain_id)
+    isolate(domain_id)
     graph = NodeProcesses(experiment, out, params=params)
     reported = set()
     code = None
@@ -243,17 +245,20 @@ def run_processes(experiment: str, out: Path, timeout: float = 600.0, domain_id=
                 if name != "experiment_sequencer" and name not in reported:
                     reported.add(name)
                     print(f"node {name} ended early ({_exit_text(c)})", file=sys.stderr)
-        if code is None:
-            print(f"run timed out after {timeout} s: every node is stopped", file=sys.stderr)
-            code = EXIT_TIMEOUT
-        elif code < 0:
+        if code is not None and code < 0:
             print(f"node experiment_sequencer ended early ({_exit_text(code)})", file=sys.stderr)
             code = EXIT_ABORTED
     finally:
         codes = graph.stop()
+    if code is None:
+        starting = sorted(n for n, c in codes.items() if c == STARTING)
+        print(f"run timed out after {timeout:g} s (--timeout): the experiment did not finish"
+              + (f"; still starting: {', '.join(starting)}" if starting else "") + "; every node is stopped",
+              file=sys.stderr)
+        code = EXIT_TIMEOUT
     hung = [n for n, c in codes.items() if c == "hung"]
     if hung:
-        print(f"killed after {STOP_GRACE_S} s without exiting on SIGINT: {', '.join(hung)}", file=sys.stderr)
+        print(f"killed after {STOP_GRACE_S} s without exiting on SIGTERM: {', '.join(hung)}", file=sys.stderr)
     return code
 
 

@@ -4,14 +4,16 @@
 what was recorded) with the contract QoS, and ``/clock`` at each new stage time, paced
 at ``rate`` x real time (``rate=0``: as fast as the subscribers acknowledge). It runs an
 rclpy node in its own context; the domain comes from ``ROS_DOMAIN_ID`` (or
-``domain_id``), so a test or a lab can isolate it.
+``domain_id``), so a test or a lab can isolate it, and discovery is a node's
+(:func:`~experiment_runner.ros.run.apply_graph_defaults`: localhost-only, every socket on
+127.0.0.1, unless the environment opens the graph: ``docs/security.md``).
 """
 from __future__ import annotations
 
 import time
 
 from experiment_runner.recording import RecordingError, _load
-from experiment_runner.ros.run import check_domain_id
+from experiment_runner.ros.run import apply_graph_defaults, check_domain_id
 from experiment_runner.ros.qos import qos_profile
 from msg_defs import convert
 from msg_defs.topics import CLOCK, CONTRACT_TOPICS, TOPICS, Qos
@@ -81,6 +83,7 @@ def replay(path, rate: float = 1.0, *, domain_id: int | None = None,
         raise RecordingError(f"{path}: no topic {', '.join(sorted(wanted - present))} in the recording "
                              f"(its topics: {', '.join(sorted(present))})")
     domain_id = check_domain_id(domain_id)
+    apply_graph_defaults()                    # localhost-only, on loopback, unless the environment opens it
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain_id)
     out = {"published": {}, "skipped": {}, "salvaged": raw.salvaged}

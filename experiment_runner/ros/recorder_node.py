@@ -12,7 +12,7 @@ lost on the way, or the recorder fell more than the topics' 0.1 s history behind
 stopped) and, if any, writes a ``fault`` event (cause ``recording_incomplete``) saying how
 many of which topic before it closes the file; ``nanostage graph`` then exits 3.
 
-A recorder stopped (SIGINT) while the run is still open (configuration heard, no
+A recorder stopped (SIGINT / SIGTERM) while the run is still open (configuration heard, no
 ``run_end``: the sequencer is gone) writes an ``abort`` and a ``run_end`` event itself,
 naming the sequencer, before it closes the file. An existing recording is never
 replaced unless ``overwrite`` is set: a recorder restarted mid-run writes the next free

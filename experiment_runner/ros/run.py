@@ -1,8 +1,9 @@
 """Running nodes: the graph's environment, the executor, and ``main`` of a node executable.
 
 * :func:`domain_env` / :func:`apply_graph_defaults`: an explicit ROS domain and
-  localhost-only discovery unless the environment says otherwise
-  (``docs/security.md`` tells how to open the graph);
+  localhost-only discovery, every socket on 127.0.0.1 (:func:`loopback_env`), unless the
+  environment says otherwise (``docs/security.md`` tells how to open the graph);
+* :func:`check_params_files`: a node's ``--params-file`` read with the project's YAML loader;
 * :func:`make_executor`: rclpy's C++ ``EventsExecutor`` (default) or the
   ``SingleThreadedExecutor``;
 * :func:`run_node`: init, spin, clean up -- every node module's ``main`` is one call of it.
@@ -15,15 +16,17 @@ import signal
 import sys
 import threading
 import time
+from pathlib import Path
 
 import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
 
-__all__ = ["domain_env", "GRAPH_DEFAULTS", "apply_graph_defaults", "DOMAIN_IDS", "check_domain_id",
-           "executor_kind", "make_executor", "run_node", "params_source", "EXIT_GRACE_S", "DRAIN_MIN_S",
-           "DRAIN_MAX_S"]
+__all__ = ["domain_env", "isolate", "GRAPH_DEFAULTS", "LOOPBACK_PROFILE", "loopback_env", "apply_graph_defaults",
+           "DOMAIN_IDS", "check_domain_id", "executor_kind", "make_executor", "run_node", "params_source",
+           "check_params_files", "EXIT_GRACE_S", "DRAIN_MIN_S", "DRAIN_MAX_S"]
 
 
 DOMAIN_IDS = range(0, 233)
@@ -56,37 +59,146 @@ def check_domain_id(value=None, environ=os.environ) -> int:
 
 
 def domain_env(domain_id: int | None = None) -> dict:
-    """Environment for an isolated graph: explicit domain, localhost-only discovery."""
+    """Environment for an isolated graph (``nanostage graph``, its tests): explicit domain,
+    localhost-only discovery whatever the environment says (``ROS_LOCALHOST_ONLY``,
+    ``ROS_STATIC_PEERS``, ``ROS_DISCOVERY_SERVER`` and a Fast DDS profile of its own are
+    dropped), every socket on 127.0.0.1 (:func:`loopback_env`).
+
+    >>> env = domain_env(7)
+    >>> env["ROS_DOMAIN_ID"], env["FASTRTPS_DEFAULT_PROFILES_FILE"] == str(LOOPBACK_PROFILE)
+    ('7', True)
+    """
     env = dict(os.environ)
+    for name in ("ROS_LOCALHOST_ONLY", *OPENING_VARIABLES):
+        env.pop(name, None)
     if domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(domain_id)
-    env.setdefault("ROS_DOMAIN_ID", "42")
+    env.setdefault("ROS_DOMAIN_ID", GRAPH_DEFAULTS["ROS_DOMAIN_ID"])
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env.pop("ROS_LOCALHOST_ONLY", None)
+    env.update(loopback_env(env))
     return env
+
+
+def isolate(domain_id: int | None = None, environ=os.environ) -> None:
+    """Make ``environ`` (this process's environment) :func:`domain_env`'s, removals included."""
+    env = domain_env(domain_id)
+    for name in set(environ) - set(env):
+        del environ[name]
+    environ.update(env)
 
 
 GRAPH_DEFAULTS = {"ROS_DOMAIN_ID": "42", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 """What a node started by hand gets unless its environment says otherwise: an explicit
 domain and localhost-only discovery (``docs/security.md`` tells how to open the graph)."""
 
+LOOPBACK_PROFILE = Path(__file__).with_name("fastdds_loopback.xml")
+"""Fast DDS participant profile of a localhost-only graph: shared memory, and UDP only on
+127.0.0.1 (sockets bound there, discovery by unicast to 127.0.0.1, no multicast)."""
+
+OPENING_VARIABLES = ("ROS_STATIC_PEERS", "ROS_DISCOVERY_SERVER", "FASTRTPS_DEFAULT_PROFILES_FILE")
+"""Settings with which a user reaches beyond this machine or configures Fast DDS: where one is
+set, a node's graph is not confined to loopback (:func:`loopback_env`)."""
+
+
+def loopback_env(environ=os.environ) -> dict:
+    """The variables that confine a localhost-only graph to the loopback interface ({} where
+    ``environ`` does not ask for localhost-only discovery, names a peer, a discovery server or a
+    Fast DDS profile of its own, or another middleware than Fast DDS).
+
+    rmw_fastrtps_cpp's own ``LOCALHOST`` mode only discovers on 127.0.0.1: it adds a UDP
+    transport whose sockets listen on every interface. Instead the discovery range becomes
+    ``SYSTEM_DEFAULT`` (the middleware's settings) and the middleware's settings are
+    :data:`LOOPBACK_PROFILE`; ``SKIP_DEFAULT_XML_FILE`` keeps Fast DDS from also loading a
+    ``DEFAULT_FASTRTPS_PROFILES.xml`` of the working directory over it. Fast DDS reads its
+    profiles once per process, when the first participant is made: set these before it.
+
+    >>> sorted(loopback_env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}))
+    ['FASTRTPS_DEFAULT_PROFILES_FILE', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'SKIP_DEFAULT_XML_FILE']
+    >>> loopback_env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})
+    {}
+    >>> loopback_env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_STATIC_PEERS": "192.168.10.20"})
+    {}
+    """
+    scope = environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE")
+    if scope is None and environ.get("ROS_LOCALHOST_ONLY") == "1":
+        scope = "LOCALHOST"
+    if (scope != "LOCALHOST" or any(environ.get(name) for name in OPENING_VARIABLES)
+            or not environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps")):
+        return {}
+    return {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SYSTEM_DEFAULT",
+            "FASTRTPS_DEFAULT_PROFILES_FILE": str(LOOPBACK_PROFILE), "SKIP_DEFAULT_XML_FILE": "1"}
+
 
 def apply_graph_defaults(environ=os.environ) -> dict:
     """Set :data:`GRAPH_DEFAULTS` in ``environ`` where it names neither (``ROS_LOCALHOST_ONLY``
-    counts as a discovery choice); return what was set."""
+    counts as a discovery choice), then confine a localhost-only graph to loopback
+    (:func:`loopback_env`); return what was set.
+
+    >>> env = {}
+    >>> apply_graph_defaults(env)["ROS_AUTOMATIC_DISCOVERY_RANGE"], env["ROS_DOMAIN_ID"]
+    ('SYSTEM_DEFAULT', '42')
+    >>> apply_graph_defaults({"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})
+    {}
+    """
     chosen = {}
     if "ROS_DOMAIN_ID" not in environ:
         chosen["ROS_DOMAIN_ID"] = GRAPH_DEFAULTS["ROS_DOMAIN_ID"]
     if "ROS_AUTOMATIC_DISCOVERY_RANGE" not in environ and "ROS_LOCALHOST_ONLY" not in environ:
         chosen["ROS_AUTOMATIC_DISCOVERY_RANGE"] = GRAPH_DEFAULTS["ROS_AUTOMATIC_DISCOVERY_RANGE"]
     environ.update(chosen)
-    return chosen
+    loopback = loopback_env(environ)
+    if loopback:
+        environ.pop("ROS_LOCALHOST_ONLY", None)
+    environ.update(loopback)
+    return {**chosen, **loopback}
+
+
+def params_files(argv) -> list[str]:
+    """The ``--params-file`` arguments of a node's command line."""
+    return [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
 
 
 def params_source(argv) -> str:
     """Where a node's parameters come from, for error messages."""
-    files = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
+    files = params_files(argv)
     return f"params file {', '.join(files)}" if files else "command line / defaults"
+
+
+def check_params_files(argv, node: str = "node") -> None:
+    r"""Read every ``--params-file`` of ``argv`` with the project's YAML loader
+    (:func:`stage_sim.validation.load_yaml`: safe, duplicate keys refused) before ROS parses
+    it: a :class:`~stage_sim.validation.ConfigError` naming ``node``, the file and the line.
+
+    >>> import tempfile
+    >>> with tempfile.NamedTemporaryFile("w", suffix=".yaml") as f:
+    ...     _ = f.write("plant_sim:\n  ros__parameters:\n    input_timeout: [1.0\n")
+    ...     f.flush()
+    ...     check_params_files(["--ros-args", "--params-file", f.name], "plant_sim")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    stage_sim.validation.ConfigError: plant_sim (params file ...): not valid YAML at line 4, column 1: ...
+    """
+    from stage_sim.validation import ConfigError, load_yaml
+    for name in params_files(argv):
+        path, source = Path(name), f"{node} (params file {name})"
+        if not path.exists():
+            raise ConfigError(f"{source}: no such file")
+        if not path.is_file():
+            raise ConfigError(f"{source}: not a regular file")
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as err:
+            raise ConfigError(f"{source}: cannot read it ({err})") from None
+        data = load_yaml(text, source)
+        if not isinstance(data, dict):
+            raise ConfigError(f"{source}: top level must be a mapping of node names, got {type(data).__name__}")
+
+
+def _rcl_error_text(err) -> str:
+    """An ``RCLError`` of ``rclpy.init`` as one line: without rcl's source locations."""
+    import re
+    text = re.sub(r", at /\S+:\d+", "", str(err))
+    return text.removeprefix("failed to initialize rcl: ")
 
 
 def executor_kind(kind: str | None = None) -> str:
@@ -153,7 +265,15 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
     # a spinning executor): the loop ends within one spin, ROS is torn down from this thread,
     # and a draining node keeps ROS up while it takes what is still on its way
     stop = threading.Event()
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    argv = sys.argv if args is None else args
+    executable = Path(argv[0]).name if argv else "node"
+    try:                                                       # bad ROS arguments: one line, exit 2
+        check_params_files(argv, executable)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except (ValueError, _rclpy.RCLError) as err:
+        print(f"error: {err}" if isinstance(err, ValueError) else f"error: {executable}: {_rcl_error_text(err)}",
+              file=sys.stderr)
+        sys.exit(2)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     status = [0]

@@ -35,13 +35,14 @@ def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: in
     from sensor_msgs.msg import JointState
 
     from experiment_runner.ros.qos import qos_profile
-    from experiment_runner.ros.run import domain_env, make_executor
+    from experiment_runner.ros.run import isolate, make_executor
     from msg_defs import cdr
     from msg_defs.topics import MEASURED
 
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = domain_env()["ROS_AUTOMATIC_DISCOVERY_RANGE"]
+    domain_id = domain_id or _bench_domain()
+    isolate(domain_id)
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain_id or _bench_domain())
+    rclpy.init(context=ctx, domain_id=domain_id)
     try:
         qos = qos_profile(MEASURED)
         ping, pong = Node("bench_ping", context=ctx), Node("bench_pong", context=ctx)
@@ -154,9 +155,9 @@ def graph_loop_hz(processes: bool, trials: int = 6, domain_id: int | None = None
 
     from experiment_runner.experiment import EXPERIMENT_DIR, build_trials, load_experiment
     from experiment_runner.ros.launch import run_one_process, run_processes
-    from experiment_runner.ros.run import domain_env
+    from experiment_runner.ros.run import isolate
     domain_id = domain_id or _bench_domain()
-    os.environ.update(domain_env(domain_id))
+    isolate(domain_id)
     with tempfile.TemporaryDirectory(prefix="nanostage_bench_") as tmp:
         doc = yaml.safe_load((EXPERIMENT_DIR / "fi_p2p_5um.yaml").read_text())
         doc.update(name="bench_fi_p2p", trials=int(trials))
