@@ -185,6 +185,18 @@ def test_a_closed_output_pipe_is_not_a_traceback():
     assert proc.wait(timeout=60) == 141 and "Traceback" not in err, err
 
 
+def test_a_command_imports_only_its_own_module():
+    """``nanostage presets`` (the before-stop hook's alias-bomb probe) does not import the
+    simulator, the diagnosis or the plotting stack: it starts in what reading a preset takes."""
+    import subprocess
+    import sys
+    code = ("import sys\nfrom experiment_runner.cli import main\nrc = main(['presets', 'fi_stage'])\n"
+            "heavy = [m for m in ('experiment_runner.batch', 'experiment_runner.design', 'experiment_runner.diagnosis',"
+            " 'matplotlib', 'control') if m in sys.modules]\nprint(rc, heavy, file=sys.stderr)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.stderr.strip().splitlines()[-1] == "0 []", out.stderr
+
+
 def test_json_stdout_carries_only_what_python_prints():
     """A compiled library writing to descriptor 1 (LAPACK's 'On entry to DLASCL ...' on a NaN)
     must not break the JSON of a --json run: it goes to stderr, the JSON stays parseable."""
