@@ -51,6 +51,7 @@ import numpy as np
 
 from experiment_runner import profiles
 from experiment_runner.batch import Models, simulate
+from experiment_runner.cliargs import nonnegative_float, nonzero_float, positive_float, positive_int
 from experiment_runner.executor import make_executor
 from experiment_runner.metrics import rms_in_position, settling_time
 from experiment_runner.paper import fi_design
@@ -799,7 +800,6 @@ def write_report(out, advice: Optional[Advice] = None, van: Optional[VanCheck] =
 # ============================================================================= CLI
 def add_design_arguments(parser):
     """Arguments of ``nanostage design`` (wire with ``set_defaults(func=main_design)``)."""
-    from experiment_runner.cliargs import nonzero_float, positive_float, positive_int
     parser.add_argument("preset", help="preset name or YAML path (FI: bearings on joints; VAN: with dither)")
     parser.add_argument("--rms", type=positive_float, default=None, metavar="NM",
                         help="required RMS in-position error [nm] (FI sweep)")
@@ -811,7 +811,8 @@ def add_design_arguments(parser):
     parser.add_argument("--step-um", type=nonzero_float, default=STEP * 1e6, help="point-to-point step [µm]")
     parser.add_argument("--trials", type=positive_int, default=N_TRIALS, help="trials per grid point")
     parser.add_argument("--dwell", type=positive_float, default=DWELL, help="settling portion after each move [s]")
-    parser.add_argument("--vpp", type=positive_float, default=None, help="VAN piezo voltage p-p [V] (default: from the dither force)")
+    parser.add_argument("--vpp", type=nonnegative_float, default=None,
+                        help="VAN piezo voltage p-p [V] (default: from the dither force)")
     parser.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                         help="preset override, e.g. stage.drive.noise_current_rms=7e-4 (YAML value; repeatable)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")

@@ -1001,10 +1001,10 @@ def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Count
 
 
 LIMITS = {"position": 1e6, "velocity": 1e6, "effort": 1e9}
-_UNITS = {"position": "m (rad)", "velocity": "m/s (rad/s)", "effort": "N (N·m)"}
 """Largest magnitude of a value in a recording, per JointState field (SI: m or rad, m/s or
 rad/s, N or N·m), far beyond any stage: a larger one is damage (a unit or scale error, a
 corrupt sample), never data -- it would overflow the diagnosis' sums of squares."""
+_UNITS = {"position": "m (rad)", "velocity": "m/s (rad/s)", "effort": "N (N·m)"}
 
 
 def beyond_limits(values: np.ndarray, fld: str) -> np.ndarray:
@@ -1028,12 +1028,11 @@ class Damage:
     (a stamp before the one written before it), ``"stamp"`` (``header.stamp`` != log time).
     ``indices`` are the control samples concerned (into the :class:`Recording` arrays; for a
     missing sample, the one after it; one entry per sample or message), ``index`` the first,
-    ``stamp_ns`` its stage time, ``text`` one line naming the topic, sample and time.
+    ``text`` one line naming the topic, sample and time.
     """
     kind: str
     topic: str
     indices: np.ndarray = field(repr=False, compare=False)
-    stamp_ns: int
     text: str
 
     WHAT: ClassVar[dict] = {"value": "non-finite or absurd value(s)", "gap": "sample(s) missing on every topic",
@@ -1077,8 +1076,8 @@ def _find_damage(rec: Recording, series: dict, items: dict, back: dict) -> list[
     n, stamps = len(rec), rec.stamp_ns
 
     def add(kind, topic, indices, text):
-        indices = np.clip(np.atleast_1d(np.asarray(indices, np.int64)), 0, n - 1)
-        out.append(Damage(kind, topic, indices, int(stamps[indices[0]]), f"{topic}: {text}"))
+        out.append(Damage(kind, topic, np.clip(np.atleast_1d(np.asarray(indices, np.int64)), 0, n - 1),
+                          f"{topic}: {text}"))
 
     # values: non-finite or absurd (a signal that is absent -- all nan -- is not damage)
     signals = [(COMMAND.name, "effort", MOTOR, rec.u), (MEASURED.name, "position", TABLE, rec.y),
@@ -1100,8 +1099,9 @@ def _find_damage(rec: Recording, series: dict, items: dict, back: dict) -> list[
     for topic, ser in series.items():
         if topic in back:
             k, lt, step = back[topic]
-            add("backwards", topic, np.full(k, np.searchsorted(stamps, lt)), f"{k} message(s) stamped before the message "
-                f"written before them, the first {step * 1e-6:.6g} ms earlier, at t = {lt * 1e-9:.6f} s")
+            add("backwards", topic, np.full(k, np.searchsorted(stamps, lt)),
+                f"{k} message(s) stamped before the message written before them, the first "
+                f"{step * 1e-6:.6g} ms earlier, at t = {lt * 1e-9:.6f} s")
         wrong = [lt for lt, m in items[topic] if _stamp_ns(m) not in (None, lt)]
         if wrong:
             add("stamp", topic, np.searchsorted(stamps, wrong),
@@ -1119,8 +1119,9 @@ def _find_damage(rec: Recording, series: dict, items: dict, back: dict) -> list[
             lack = np.setdiff1d(union, ser.stamp_ns, assume_unique=False)
             if len(lack):
                 i = int(np.searchsorted(stamps, lack[0]))
-                add("dropped", topic, np.searchsorted(stamps, lack), f"no message at {len(lack)} control sample(s) the other contract "
-                    f"topics have, so they are dropped; the first at t = {lack[0] * 1e-9:.6f} s (before {_at(rec, i)})")
+                add("dropped", topic, np.searchsorted(stamps, lack),
+                    f"no message at {len(lack)} control sample(s) the other contract topics have, so they are "
+                    f"dropped; the first at t = {lack[0] * 1e-9:.6f} s (before {_at(rec, i)})")
     # gaps: intervals of more than 1.5 sample periods between the stamps of any contract topic (samples
     # missing on all of them), inside a trial (or anywhere, without trials)
     if len(union) > 2:

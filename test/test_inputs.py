@@ -294,8 +294,10 @@ def test_batch_memory_estimate_refuses_what_cannot_fit():
 
 
 @pytest.mark.parametrize("argv, expected", [
-    (["synth", "fi_stage", "fi_p2p_5um", "--trials", "0", "--out", "r"], "argument --trials: got 0; expected an integer >= 1"),
-    (["diagnose", "r.mcap", "fi_stage", "--bandwidth", "-5"], "argument --bandwidth: got -5; expected a finite number > 0"),
+    (["synth", "fi_stage", "fi_p2p_5um", "--trials", "0", "--out", "r"],
+     "argument --trials: got 0; expected an integer >= 1"),
+    (["diagnose", "r.mcap", "fi_stage", "--bandwidth", "-5"],
+     "argument --bandwidth: got -5; expected a finite number > 0"),
     (["diagnose", "r.mcap", "fi_stage", "--max-fit-seconds", "nan"],
      "argument --max-fit-seconds: got nan; expected a finite number > 0"),
     (["diagnose", "r.mcap", "fi_stage", "--cluster", "notanaddr"],
