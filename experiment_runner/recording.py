@@ -403,10 +403,11 @@ class Recording:
                 stop = int(np.searchsorted(self.stamp_ns, end["stamp_ns"], "right"))
             elif nxt is not None:         # no trial_end: up to the next trial
                 stop = int(np.searchsorted(self.stamp_ns, nxt["stamp_ns"], "left"))
-                problems.append("no trial_end before the next trial_start")
+                problems += [] if problems else ["no trial_end before the next trial_start"]
             else:                         # no trial_end: up to the end of the recording
                 stop = len(self.stamp_ns)
-                problems.append("no trial_end: the recording ends first" + (" (cut short)" if self.salvaged else ""))
+                problems += [] if problems else [
+                    "no trial_end: the recording ends first" + (" (cut short)" if self.salvaged else "")]
             problems += [p for p in (d.within(start, stop, self.t) for d in self.damage) if p]
             out.append(Trial(
                 trial=ev["trial"], case=ev.get("case"), step_index=ev.get("step_index"), start=start,

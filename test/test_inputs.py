@@ -161,7 +161,7 @@ def _write(path, *, trials=3, T=300, config=None, edit=None, drop=(), drop_on=No
         for k, v in changes.items():
             sig[name][k] = v
     cfg = config if config is not None else yaml.safe_dump({**CONFIG, **({"preset": preset} if preset else {})})
-    with McapRecorder(path, cfg) as rec:
+    with McapRecorder(path, cfg, chunk_ns=10_000_000) as rec:
         for j in range(trials):
             s0, s1 = j * T * DT_NS, ((j + 1) * T - 1) * DT_NS
             rec.write("/experiment/events", s0, convert.event_msg(TS, "trial_start", trial=j, case="p2p",
@@ -426,7 +426,8 @@ def test_dropped_samples_give_a_reason_and_the_json_is_not_complete(tmp_path, ca
 
 
 def test_aborted_trial_is_not_printed_as_complete(tmp_path, capsys):
-    """Before: printed like the others, exit 0. The abort's reason is the trial's problem."""
+    """Before: printed like the others, exit 0. The abort's reason is the trial's problem; the
+    diagnosis keeps its samples and says it is incomplete."""
     rec = _write(tmp_path / "r", abort=2)
     code, out, err = _check(rec, capsys)
     assert code == 1
@@ -435,6 +436,25 @@ def test_aborted_trial_is_not_printed_as_complete(tmp_path, capsys):
     assert "INCOMPLETE: the recording has incomplete or damaged trials" in out
     code, chk = _check_json(rec, capsys)
     assert chk["complete"] is False and [r["complete"] for r in chk["trials"]] == [True, True, False]
+    # the diagnosis uses its samples (they are data) and says the trial is incomplete
+    data = load_data(read_recording(rec))
+    assert data.trial_ids == [0, 1, 2] and data.excluded == []
+    assert data.incomplete == ["trial 2: abort (sequencer): operator stop"]
+    assert "incomplete trial 2: abort (sequencer): operator stop (its samples are data: used)" in data.notes
+
+
+def test_a_recording_cut_short_is_not_printed_as_complete(tmp_path, capsys):
+    """A killed recorder: the trial it was recording has no end; the check says so (exit 1)."""
+    path = _write(tmp_path / "r")
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:int(len(data) * 0.7)])
+    code, out, err = _check(cut, capsys)
+    assert code == 1
+    last = [ln for ln in out.splitlines() if " | p2p |" in ln][-1]
+    assert "INCOMPLETE: no trial_end: the recording ends first (cut short)" in last and "agrees" not in last
+    code, chk = _check_json(cut, capsys)
+    assert chk["complete"] is False and chk["salvaged"].startswith("file cut short")
 
 
 @pytest.mark.slow

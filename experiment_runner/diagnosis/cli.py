@@ -112,8 +112,8 @@ def main_diagnose(args) -> int:
     from .pipeline import diagnose
     from .report import jsonable
     rec = read_recording(args.recording, require_reference=False)
-    for w in rec.warnings:                               # what the reader found, before the long work
-        print(f"warning: {w}", file=sys.stderr)
+    for w in ([f"recording {rec.salvaged}"] if rec.salvaged else []) + rec.warnings:
+        print(f"warning: {w}", file=sys.stderr)         # what the reader found, before the long work
     nominal = args.nominal
     if nominal is None:
         nominal = _nominal_from_config(rec)
@@ -121,8 +121,10 @@ def main_diagnose(args) -> int:
             raise SystemExit("nanostage diagnose: the recording carries no preset in /experiment/config; "
                              "give the NOMINAL model")
     data = load_data(rec)
+    for e in data.incomplete:
+        print(f"warning: incomplete {e} (its samples are used)", file=sys.stderr)
     for e in data.excluded:
-        print(f"excluded {e}", file=sys.stderr)
+        print(f"warning: excluded {e}", file=sys.stderr)
     out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
     rep = diagnose(args.recording, nominal, out=out, options=diagnose_options(args), data=data)
     if args.json:
@@ -134,6 +136,10 @@ def main_diagnose(args) -> int:
     if data.excluded:
         print(f"excluded as damaged ({len(data.excluded)} trial(s), neither fitted nor judged):")
         for e in data.excluded:
+            print(f"  {e}")
+    if data.incomplete:
+        print(f"incomplete trials used ({len(data.incomplete)}; their samples are data):")
+        for e in data.incomplete:
             print(f"  {e}")
     for i, f in enumerate(rep["found"], 1):
         ps = ", ".join(f"{p['name']} = {p['value']:.4g}" + (f" ± {p['sigma']:.2g}" if p.get("sigma") else "")

@@ -61,6 +61,7 @@ class DiagData:
     open_loop: bool = False       # no reference: the recorded command drove the plant (x_ref = measured position)
     axis: str = "linear"          # linear (m, N) or rotary (rad, N·m): the recording's run.axis / preset stage.kind
     excluded: list = field(default_factory=list)   # trials left out as damaged: "trial N: why" (also in notes)
+    incomplete: list = field(default_factory=list)  # trials kept though incomplete (aborted, cut short): "trial N: why"
 
     def plant_inputs(self) -> tuple:
         """``(d0, d1, mode)`` as (T, B) arrays: zero dither and a compliant (no) isolator where absent."""
@@ -136,12 +137,16 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
     notes += [f"recording: {w}" for w in rec.warnings]
     if np.any(np.abs(dts * 1e-9 - dt) > 0.01 * dt):
         notes.append(f"{int(np.sum(np.abs(dts * 1e-9 - dt) > 0.01 * dt))} irregular sample interval(s)")
-    slices = [(tr.trial, tr.start, tr.stop) for tr in rec.trials() if tr.stop - tr.start >= max(10, min_trial * rate)]
+    trials = [tr for tr in rec.trials() if tr.stop - tr.start >= max(10, min_trial * rate)]
+    slices = [(tr.trial, tr.start, tr.stop) for tr in trials]
     if not slices:
         slices = [(0, 0, n)]
         notes.append("no trial events: the whole record is one trial")
     slices, excluded = _undamaged(rec, slices)
     notes += [f"excluded {e}" for e in excluded]
+    kept = {s[0] for s in slices}
+    incomplete = [f"trial {tr.trial}: " + "; ".join(tr.problems) for tr in trials if tr.problems and tr.trial in kept]
+    notes += [f"incomplete {e} (its samples are data: used)" for e in incomplete]
     # damaged values (in excluded trials only) are bridged before anything filters across trials
     x_ref, v_ref = _bridged(rec.x_ref, "position"), _bridged(rec.v_ref, "velocity")
     u, y = _bridged(rec.u, "effort"), _bridged(rec.y, "position")
@@ -174,7 +179,7 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
                       trial_ids=[s[0] for s in slices], source=str(rec.path), notes=notes, burn_in=burn_in,
                       d0=cut(d0), d1=cut(d1), mode=cut(mode), f_ext=cut(f_ext), open_loop=rec.open_loop)
     out.axis = axis
-    out.excluded = excluded
+    out.excluded, out.incomplete = excluded, incomplete
     return out
 
 
