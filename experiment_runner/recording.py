@@ -568,14 +568,18 @@ def _chunk_records(off: int, chunk) -> list:
 
 
 def _recorded_count(path: Path) -> int | None:
-    """Messages the bag's ``metadata.yaml`` says the file holds (None if unknown)."""
-    import yaml
+    """Messages the bag's ``metadata.yaml`` says the file holds (None if unknown or unreadable;
+    read by the project's bounded loader, :func:`stage_sim.validation.load_yaml_file`)."""
+    from stage_sim.validation import load_yaml_file
+    meta = path.parent / "metadata.yaml"
+    if not meta.exists():
+        return None
     try:
-        info = yaml.safe_load((path.parent / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        info = load_yaml_file(meta, "bag metadata")["rosbag2_bagfile_information"]
         for entry in info.get("files") or []:
             if Path(entry["path"]).name == path.name:
                 return int(entry["message_count"])
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, ValueError, AttributeError):
+    except (KeyError, TypeError, ValueError, AttributeError):   # ConfigError is a ValueError
         return None
     return None
 
