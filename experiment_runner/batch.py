@@ -15,6 +15,7 @@ over the available cores with ``numba.prange``.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -25,7 +26,7 @@ from numba import njit, prange
 from stage_control.dither import build_dither, dither_step, init_dither_state
 from stage_control.sai import build_sai, init_sai_state, sai_step
 from stage_control.servo import build_servo, init_servo_state, servo_step
-from stage_sim.config import Dither, Preset, SaiManager
+from stage_sim.config import ConfigError, Dither, Preset, SaiManager
 from stage_sim.plant import (OK, STATUS_TEXT, PlantInputs, PlantModel, PlantState, SimulationError, build_plant,
                              chunk_state, init_plant_state, plant_step, quantize, state_chunk)
 
@@ -205,6 +206,26 @@ def _unchunked(a, n_trials):
     return a.reshape((-1,) + a.shape[2:])[:n_trials]
 
 
+BYTES_PER_SAMPLE = 13 * 8
+"""Memory a batch run takes per trial and sample [bytes]: its inputs and outputs (seven
+recorded signals, two dither forces, the references and their copies), float64."""
+
+
+def check_memory(n_trials: int, samples: int, rate: float) -> None:
+    """Refuse (:class:`ConfigError`, before anything is allocated) a batch run of ``n_trials``
+    trials of ``samples`` samples whose arrays (:data:`BYTES_PER_SAMPLE` a sample) would not fit
+    in this machine's memory."""
+    need = BYTES_PER_SAMPLE * float(n_trials) * float(samples)
+    try:
+        have = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError):
+        return
+    if need > have:
+        raise ConfigError(f"{n_trials} trial(s) of {samples} samples ({samples / rate:g} s at {rate:g} Hz) need about "
+                          f"{need / 2**30:.3g} GiB; this machine has {have / 2**30:.3g} GiB of memory (fewer trials or "
+                          "a shorter profile)")
+
+
 def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None, seeds=None,
              correction=None, models: Models | None = None, check: bool = True, f_ext=None) -> BatchResult:
     """Run closed-loop trials of ``preset`` following a reference.
@@ -241,6 +262,7 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     v_ref = np.atleast_2d(np.asarray(v_ref, float))
     if n_trials is None:
         n_trials = x_ref.shape[0]
+    check_memory(n_trials, x_ref.shape[1], preset.controller.rate)
     x0 = np.broadcast_to(np.asarray(0.0 if x0 is None else x0, float), (n_trials,))
     if x_ref.shape[0] == 1:
         x_ref = x_ref + x0[:, None]

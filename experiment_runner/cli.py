@@ -1,11 +1,15 @@
 """``nanostage`` command line: one entry point, one subcommand per job.
 
-Bad input has one path: a command raises :data:`USER_ERRORS` (a configuration, recording,
-design or missing-data error naming the file, field, value and what is allowed) or exits with
-a message (``SystemExit("...")``); :func:`main` prints ``nanostage COMMAND: message`` and
-returns 2, never a traceback. Bad arguments are argparse's one-line error (exit 2). SIGINT and
-SIGTERM end a command like an error (:func:`experiment_runner.outputs.interrupts_as_errors`):
+Bad input has one path: a command raises one of :func:`user_errors` (a configuration,
+recording, design or missing-data error naming the file, field, value and what is allowed) or
+exits with a message (``SystemExit("...")``); :func:`main` prints ``nanostage COMMAND: message``
+and returns 2, never a traceback. Bad arguments are argparse's one-line error (exit 2). SIGINT
+and SIGTERM end a command like an error (:func:`experiment_runner.outputs.interrupts_as_errors`):
 one line, exit 128 + the signal number.
+
+Only the module of the command being run is imported (its arguments and entry point): a
+command starts in what its own imports take (``nanostage presets`` in a fraction of a second,
+not the seconds that the simulator, the diagnosis and the plotting stack take to import).
 """
 from __future__ import annotations
 
@@ -17,14 +21,20 @@ import os
 import signal
 import sys
 
-from experiment_runner.design import DesignError
-from experiment_runner.diagnosis.realdata import DataMissing
 from experiment_runner.outputs import add_overwrite_argument, interrupts_as_errors
 from experiment_runner.recording import RecordingError
 from stage_sim.config import ConfigError
 
-USER_ERRORS = (ConfigError, RecordingError, DesignError, DataMissing)
-"""Exceptions that are the user's input, not a fault of nanostage: a message and exit 2."""
+_COMMAND_ERRORS = (("experiment_runner.design", "DesignError"), ("experiment_runner.diagnosis.realdata", "DataMissing"))
+"""Input errors of one command's module: (module, exception class)."""
+
+
+def user_errors() -> tuple:
+    """Exceptions that are the user's input, not a fault of nanostage (a message and exit 2):
+    configuration and recording errors, and those of :data:`_COMMAND_ERRORS` whose module was
+    imported (only then can they be raised)."""
+    extra = tuple(getattr(sys.modules[m], name) for m, name in _COMMAND_ERRORS if m in sys.modules)
+    return (ConfigError, RecordingError) + extra
 
 
 def _paper(args):
@@ -82,7 +92,9 @@ MODULE_COMMANDS = [
 ]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``nanostage`` parser; with ``command`` (the one :func:`main` runs), only that
+    subcommand's module is imported: the others are listed with their help only."""
     parser = argparse.ArgumentParser(prog="nanostage", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -115,10 +127,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_graph)
 
     for name, help_, module, add_arguments, entry in MODULE_COMMANDS:
-        mod = importlib.import_module(module)
         p = sub.add_parser(name, help=help_)
-        getattr(mod, add_arguments)(p)
-        p.set_defaults(func=getattr(mod, entry))
+        if command is None or command == name:          # never parsed otherwise: main passes the command run
+            mod = importlib.import_module(module)
+            getattr(mod, add_arguments)(p)
+            p.set_defaults(func=getattr(mod, entry))
 
     p = sub.add_parser("presets", help="list the stage presets, or show one")
     p.add_argument("name", nargs="?")
@@ -161,7 +174,9 @@ def python_only_stdout(enabled: bool):
 
 def main(argv=None) -> int:
     """Run one ``nanostage`` subcommand; bad input prints its message (exit 2, see the module docstring)."""
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    args = build_parser(command).parse_args(argv)
     prefix = f"nanostage {args.command}: "
     try:
         with interrupts_as_errors(), python_only_stdout(bool(getattr(args, "json", False))):
@@ -170,9 +185,6 @@ def main(argv=None) -> int:
         signum = getattr(err, "signum", signal.SIGINT)
         print(f"{prefix}interrupted ({signal.Signals(signum).name}); temporary files removed", file=sys.stderr)
         return 128 + signum
-    except USER_ERRORS as err:
-        print(f"{prefix}{err}", file=sys.stderr)
-        return 2
     except SystemExit as err:
         if not isinstance(err.code, str):          # an exit status (argparse's is 2): keep it
             raise
@@ -183,6 +195,11 @@ def main(argv=None) -> int:
         # point stdout at devnull so the interpreter's final flush does not fail again
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141                        # 128 + SIGPIPE, as a shell reports it
+    except Exception as err:
+        if not isinstance(err, user_errors()):
+            raise
+        print(f"{prefix}{err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -51,6 +51,7 @@ import numpy as np
 
 from experiment_runner import outputs, profiles
 from experiment_runner.batch import Models, simulate
+from experiment_runner.cliargs import nonnegative_float, nonzero_float, positive_float, positive_int
 from experiment_runner.executor import make_executor
 from experiment_runner.metrics import rms_in_position, settling_time
 from experiment_runner.paper import fi_design
@@ -798,17 +799,18 @@ def write_report(out, advice: Optional[Advice] = None, van: Optional[VanCheck] =
 def add_design_arguments(parser):
     """Arguments of ``nanostage design`` (wire with ``set_defaults(func=main_design)``)."""
     parser.add_argument("preset", help="preset name or YAML path (FI: bearings on joints; VAN: with dither)")
-    parser.add_argument("--rms", type=float, default=None, metavar="NM",
+    parser.add_argument("--rms", type=positive_float, default=None, metavar="NM",
                         help="required RMS in-position error [nm] (FI sweep)")
     parser.add_argument("--van", action="store_true",
                         help="VAN check (piezo power, flexure fatigue); default: automatic when the preset dithers")
     parser.add_argument("--out", default=None, help="output folder (default out/design/PRESET)")
     parser.add_argument("--json", action="store_true", help="print design.json instead of the table")
     parser.add_argument("--grid", choices=sorted(GRIDS), default="default", help="k_fi x c_fi grid")
-    parser.add_argument("--step-um", type=float, default=STEP * 1e6, help="point-to-point step [µm]")
-    parser.add_argument("--trials", type=int, default=N_TRIALS, help="trials per grid point")
-    parser.add_argument("--dwell", type=float, default=DWELL, help="settling portion after each move [s]")
-    parser.add_argument("--vpp", type=float, default=None, help="VAN piezo voltage p-p [V] (default: from the dither force)")
+    parser.add_argument("--step-um", type=nonzero_float, default=STEP * 1e6, help="point-to-point step [µm]")
+    parser.add_argument("--trials", type=positive_int, default=N_TRIALS, help="trials per grid point")
+    parser.add_argument("--dwell", type=positive_float, default=DWELL, help="settling portion after each move [s]")
+    parser.add_argument("--vpp", type=nonnegative_float, default=None,
+                        help="VAN piezo voltage p-p [V] (default: from the dither force)")
     parser.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                         help="preset override, e.g. stage.drive.noise_current_rms=7e-4 (YAML value; repeatable)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -820,16 +822,13 @@ def add_design_arguments(parser):
 
 def _overridden(p: Preset, sets) -> Preset:
     """Apply ``PATH=VALUE`` overrides (VALUE parsed as YAML) to a preset."""
-    import yaml
+    from stage_sim.validation import load_yaml
     over = {}
     for item in sets:
         path, eq, value = item.partition("=")
         if not eq or not path:
             raise DesignError(f"--set {item!r}: expected PATH=VALUE")
-        try:
-            over[path.strip()] = yaml.safe_load(value)
-        except yaml.YAMLError as err:
-            raise DesignError(f"--set {item!r}: value is not valid YAML: {err}") from None
+        over[path.strip()] = load_yaml(value, f"--set {item!r}: value")     # ConfigError if not YAML
     return with_overrides(p, over, "nanostage design --set") if over else p   # ConfigError names a bad path or value
 
 
@@ -842,10 +841,6 @@ def main_design(args) -> int:
     if not van_mode:
         if args.rms is None:
             raise DesignError("give the required RMS in-position error: --rms NM")
-        if not (math.isfinite(args.rms) and args.rms > 0):
-            raise DesignError(f"--rms {args.rms:g}: must be > 0 [nm]")
-        if args.trials < 1 or args.dwell <= 0 or args.step_um == 0:
-            raise DesignError("--trials must be >= 1, --dwell > 0 and --step-um nonzero")
         lumped_stage(p)
     out = outputs.prepare_folder(args.out or f"out/design/{p.name}", args.overwrite,
                                  files=("design.md", "design.json"), option="--out")          # refused before the sweep

@@ -232,10 +232,10 @@ def add_executor_arguments(parser, what: str, workers_default: Optional[int] = N
                            workers_help: str = "default: this process") -> None:
     """``--workers N`` and ``--cluster ADDRESS`` of a command that runs ``what`` through
     :func:`make_executor`."""
-    from experiment_runner.cliargs import positive_int
+    from experiment_runner.cliargs import dask_address, positive_int
     parser.add_argument("--workers", type=positive_int, default=workers_default,
                         help=f"local worker processes for the {what} ({workers_help})")
-    parser.add_argument("--cluster", default=None, metavar="ADDRESS",
+    parser.add_argument("--cluster", type=dask_address, default=None, metavar="ADDRESS",
                         help=f"Dask scheduler address (e.g. tcp://host:8786) to run the {what} on")
 
 

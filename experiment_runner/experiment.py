@@ -137,9 +137,12 @@ def build_trials(exp: Experiment, preset: Preset | None = None) -> list[Trial]:
     if exp.starts is None:
         x0 = np.zeros(exp.trials)
     else:
-        lo = travel.min - min(0.0, ref.x.min())
-        hi = travel.max - max(0.0, ref.x.max())
-        x0 = profiles.random_starts(exp.trials, (lo, hi), exp.starts.margin, exp.starts.seed)
+        try:
+            x0 = profiles.random_starts(exp.trials, (travel.min, travel.max), exp.starts.margin, exp.starts.seed,
+                                        extent=(float(ref.x.min()), float(ref.x.max())))
+        except ConfigError as err:
+            raise ConfigError(f"experiment {exp.name} (profile {exp.profile.kind}, preset {preset.name}): "
+                              f"{err}") from None
     return [Trial(case=exp.name, index=i, x_ref=ref.x + x0[i], v_ref=np.asarray(ref.v), seed=preset.simulation.seed + i,
                   window=exp.window, segments=tuple(ref.segments)) for i in range(exp.trials)]
 

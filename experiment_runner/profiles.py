@@ -7,13 +7,17 @@ plus a list of :class:`Segment` objects (half-open sample-index ranges) that
 metrics use to cut a record into trials, e.g. the "move" and "settle" part of
 each point-to-point step (seed Sec. 3.4.1, Fig. 3.13).
 
-All durations are rounded to a whole number of samples.
+All durations are rounded to a whole number of samples. A reference is at most
+:data:`MAX_SAMPLES` long: a longer one is refused (:class:`~stage_sim.validation.ConfigError`
+naming the duration, its sample count and the limit) before anything is allocated.
 """
 
 from dataclasses import dataclass, field
 import math
 
 import numpy as np
+
+from stage_sim.validation import ConfigError
 
 DT = 1e-4
 """Default sample time [s] (10 kHz control rate)."""
@@ -141,8 +145,26 @@ def default_move_duration(distance: float) -> float:
     return _T_5MM * (abs(distance) / 5e-3) ** _DURATION_EXPONENT
 
 
-def _samples(duration: float, dt: float) -> int:
-    return int(round(duration / dt))
+MAX_SAMPLES = 50_000_000
+"""Longest reference [samples]: 5000 s at 10 kHz, 400 MB per signal; a trial's batch run holds
+about a dozen such signals."""
+
+
+def _samples(duration: float, dt: float, what: str | None = None) -> int:
+    """``duration`` [s] in whole samples of ``dt``; with ``what`` (its name in errors) checked
+    against :data:`MAX_SAMPLES` before anything of that length is allocated."""
+    n = duration / dt
+    if what is not None:
+        _check_length(n, dt, f"{what} {duration:g} s")
+    return int(round(n))
+
+
+def _check_length(n: float, dt: float, what: str) -> None:
+    """Refuse a reference of ``n`` samples beyond :data:`MAX_SAMPLES` (a memory estimate)."""
+    if not n <= MAX_SAMPLES:
+        raise ConfigError(f"{what} at {1 / dt:g} Hz is {n:.3g} samples ({8 * n / 2**30:.3g} GiB per signal); "
+                          f"a reference holds at most {MAX_SAMPLES:.3g} samples ({MAX_SAMPLES * dt:g} s, "
+                          f"{8 * MAX_SAMPLES / 2**30:.2g} GiB per signal)")
 
 
 def _cycloid(distance: float, n: int, dt: float):
@@ -183,19 +205,21 @@ def _steps(distances, start, pre, dwell, dt, duration, shape) -> Reference:
     """Concatenate rest, then per step a move and a dwell at rest."""
     if shape not in SHAPES:
         raise ValueError(f"unknown shape {shape!r}")
-    n_pre, n_dwell = _samples(pre, dt), _samples(dwell, dt)
+    n_pre, n_dwell = _samples(pre, dt, "pre"), _samples(dwell, dt, "dwell")
+    n_moves = [0 if shape == "step" else
+               _samples(default_move_duration(d) if duration is None else duration, dt, "move duration")
+               for d in distances]
+    if shape != "step" and min(n_moves, default=1) < 1:
+        raise ValueError("move duration is shorter than one sample")
+    _check_length(n_pre + sum(n_moves) + len(n_moves) * n_dwell, dt,
+                  f"{len(n_moves)} move(s) with dwell {dwell:g} s")
     xs = [np.full(n_pre, float(start))]
     vs, as_ = [np.zeros(n_pre)], [np.zeros(n_pre)]
     segments, k, pos = [], n_pre, float(start)
-    for i, d in enumerate(distances):
+    for i, (d, n_move) in enumerate(zip(distances, n_moves)):
         if shape == "step":
-            n_move = 0
             x, v, a = (np.empty(0),) * 3
         else:
-            n_move = _samples(default_move_duration(d) if duration is None
-                              else duration, dt)
-            if n_move < 1:
-                raise ValueError("move duration is shorter than one sample")
             x, v, a = _MOVES[shape](d, n_move, dt)
         xs += [pos + x, np.full(n_dwell, pos + d)]
         pos += d
@@ -304,13 +328,15 @@ def step_sequence(distance: float, n_forward: int = 8, n_backward: int = 8,
     >>> [round(s.target * 1e6) for s in ref.select("settle")][6:10]
     [35, 40, 35, 30]
     """
+    _check_length(n_forward + n_backward, dt, f"{n_forward} + {n_backward} steps (one sample each at least)")
     distances = [distance] * n_forward + [-distance] * n_backward
     return _steps(distances, start, pre, dwell, dt, duration, shape)
 
 
 def random_starts(n: int, travel: tuple[float, float], margin: float = 0.0,
-                  rng_seed: int | None = 0) -> np.ndarray:
-    """Random start positions [m], uniform in ``travel`` shrunk by ``margin``.
+                  rng_seed: int | None = 0, extent: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """Random start positions [m], uniform in ``travel`` shrunk by ``margin`` and by the
+    reference's ``extent``, so that the whole reference stays inside the travel.
 
     Used for repeated trials "at random positions of the table" (seed
     Sec. 4.4.1, 50 trials).
@@ -326,21 +352,39 @@ def random_starts(n: int, travel: tuple[float, float], margin: float = 0.0,
     rng_seed : int or None
         Seed of :func:`numpy.random.default_rng`; the same seed gives the
         same positions.
+    extent : (float, float)
+        Lowest and highest position of the reference relative to its start
+        [m] (``(ref.x.min(), ref.x.max())`` of a reference starting at 0).
 
     Returns
     -------
     numpy.ndarray
-        Shape ``(n,)``, values in ``[min + margin, max - margin)``.
+        Shape ``(n,)``, values in ``[min + margin - min(0, extent[0]), max - margin - max(0, extent[1]))``.
+
+    Raises
+    ------
+    stage_sim.validation.ConfigError
+        The reference alone spans more than the travel (naming both), or the
+        margin leaves no room for a start.
 
     Examples
     --------
     >>> x0 = random_starts(50, (-10e-3, 10e-3), margin=5e-3, rng_seed=1)
     >>> bool(x0.min() >= -5e-3 and x0.max() < 5e-3)
     True
+    >>> random_starts(1, (-10e-3, 10e-3), extent=(0.0, 1000.0))
+    Traceback (most recent call last):
+    stage_sim.validation.ConfigError: the reference moves over 1000 m (0 to 1000 m from its start): more than the travel -0.01 to 0.01 m (0.02 m)
     """
-    lo, hi = travel[0] + margin, travel[1] - margin
+    down, up = min(0.0, float(extent[0])), max(0.0, float(extent[1]))
+    width, span = travel[1] - travel[0], up - down
+    if not span < width:
+        raise ConfigError(f"the reference moves over {span:g} m ({down:g} to {up:g} m from its start): more than "
+                          f"the travel {travel[0]:g} to {travel[1]:g} m ({width:g} m)")
+    lo, hi = travel[0] - down + margin, travel[1] - up - margin
     if not lo < hi:
-        raise ValueError("margin leaves no room inside the travel range")
+        raise ConfigError(f"the margin {margin:g} m kept at both travel ends leaves no room for a start: the travel "
+                          f"{travel[0]:g} to {travel[1]:g} m less the reference's {span:g} m leaves {width - span:g} m")
     return np.random.default_rng(rng_seed).uniform(lo, hi, n)
 
 
@@ -382,8 +426,9 @@ def circle_x(radius: float, speed: float, cycles: float = 1.0,
     """
     w = speed / radius
     period = 2.0 * np.pi / w
-    n_pre = _samples(pre, dt)
-    n = _samples(cycles * period, dt)
+    n_pre = _samples(pre, dt, "pre")
+    n = _samples(cycles * period, dt, f"{cycles:g} cycle(s) of {period:g} s")
+    _check_length(n_pre + n + 1, dt, "the circle")
     tau = np.arange(n + 1) * dt
     rest = np.zeros(n_pre)
     x = np.concatenate([rest, radius * (1.0 - np.cos(w * tau))])
@@ -454,8 +499,9 @@ def sine_sweep(frequencies, amplitude: float, periods: int = 10,
         if not 0 < f < 0.5 / dt:
             raise ValueError(f"frequency {f} Hz outside (0, Nyquist)")
         n_periods = max(periods, math.ceil(min_steady * f))
-        n_steady = _samples(n_periods / f, dt)
+        n_steady = _samples(n_periods / f, dt, f"{n_periods} periods at {f:g} Hz")
         f_adj = n_periods / (n_steady * dt)
+        _check_length(k + n_steady + max(settle_periods / f_adj, min_settle) / dt, dt, "the sine sweep")
         n_settle = math.ceil(max(settle_periods / f_adj, min_settle) / dt)
         w = 2.0 * np.pi * f_adj
         phase = phase0 + w * dt * np.arange(n_settle + n_steady)

@@ -41,6 +41,7 @@ from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -50,8 +51,8 @@ from msg_defs.topics import (BEARING, CLOCK, COMMAND, CONFIG, CONTRACT_TOPICS, D
                              ISOLATOR, ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS,
                              SOURCE_CHANNELS, TABLE, TOPICS, TRUTH, Qos, qos_yaml)
 
-__all__ = ["RecordingError", "McapRecorder", "Recording", "JointSeries", "Trial", "read_recording",
-           "write_run", "run_config_yaml", "mcap_file", "bag_layout"]
+__all__ = ["RecordingError", "McapRecorder", "Recording", "JointSeries", "Trial", "Damage", "read_recording",
+           "write_run", "run_config_yaml", "mcap_file", "bag_layout", "LIMITS", "beyond_limits"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"
@@ -336,8 +337,9 @@ class Trial:
     window_m: float | None
     target_m: float | None
     settle_start_ns: int | None
-    complete: bool                # trial_end seen and no abort/fault for it
+    complete: bool                # trial_end seen, no abort/fault for it, no damage in its samples
     events: list[dict] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)   # why it is not complete (one line each)
 
     @property
     def slice(self) -> slice:
@@ -370,24 +372,36 @@ class Recording:
     external_force: np.ndarray | None = None   # known external force on the table [N] (/stage/external_force;
     #                                            None: the recording has none; nan where a sample lacks it)
     source: JointSeries | None = None          # /source/channels: columns an importer kept, as in the file
+    damage: list = field(default_factory=list)  # Damage: what in the control samples is damaged (also in warnings)
 
     def __len__(self):
         return len(self.stamp_ns)
 
+    def config_doc(self) -> dict:
+        """``/experiment/config`` as read by the project's YAML loader
+        (:func:`stage_sim.validation.load_yaml`: safe, bounded, duplicate keys refused): a
+        mapping, ``{}`` when the recording carries none. A damaged configuration (not YAML, a
+        tag, a NUL byte, not a mapping) raises :class:`~stage_sim.validation.ConfigError`
+        naming the recording and the topic."""
+        from stage_sim.validation import ConfigError, load_yaml
+        source = f"{self.path}: {CONFIG.name}"
+        doc = load_yaml(self.config, source) if self.config else None
+        if doc is None:
+            return {}
+        if not isinstance(doc, dict):
+            raise ConfigError(f"{source}: top level must be a mapping, got {type(doc).__name__}")
+        return doc
+
     @property
     def axis(self) -> str:
         """``"linear"`` or ``"rotary"``: ``run.axis`` of ``/experiment/config`` (an imported
-        recording), else the preset's ``stage.kind`` (a simulated one), else linear."""
-        import yaml
-        try:
-            cfg = yaml.safe_load(self.config or "") or {}
-        except yaml.YAMLError:
-            return "linear"
-        if not isinstance(cfg, dict):
-            return "linear"
+        recording), else the preset's ``stage.kind`` (a simulated one), else linear. A
+        damaged configuration raises (see :meth:`config_doc`): the axis sets the units."""
+        cfg = self.config_doc()
         run, preset = cfg.get("run"), cfg.get("preset")
+        stage = preset.get("stage") if isinstance(preset, dict) else None
         kind = (run.get("axis") if isinstance(run, dict) else None) or \
-            ((preset.get("stage") or {}).get("kind") if isinstance(preset, dict) else None)
+            (stage.get("kind") if isinstance(stage, dict) else None)
         return kind if kind in ("linear", "rotary") else "linear"
 
     @property
@@ -414,19 +428,23 @@ class Recording:
                         end = later
                         break
             start = int(np.searchsorted(self.stamp_ns, ev["stamp_ns"], "left"))
+            problems = [f"{e['event']}" + (f" ({e['node']})" if e.get("node") else "")
+                        + f": {e.get('reason') or 'no reason given'}" for e in mine if e["event"] in ("abort", "fault")]
             if end is not None:
                 stop = int(np.searchsorted(self.stamp_ns, end["stamp_ns"], "right"))
             elif nxt is not None:         # no trial_end: up to the next trial
                 stop = int(np.searchsorted(self.stamp_ns, nxt["stamp_ns"], "left"))
+                problems += [] if problems else ["no trial_end before the next trial_start"]
             else:                         # no trial_end: up to the end of the recording
                 stop = len(self.stamp_ns)
+                problems += [] if problems else [
+                    "no trial_end: the recording ends first" + (" (cut short)" if self.salvaged else "")]
+            problems += [p for p in (d.within(start, stop, self.t) for d in self.damage) if p]
             out.append(Trial(
                 trial=ev["trial"], case=ev.get("case"), step_index=ev.get("step_index"), start=start,
                 stop=stop, start_ns=ev["stamp_ns"], end_ns=end["stamp_ns"] if end else None,
                 window_m=ev.get("window_m"), target_m=ev.get("target_m"),
-                settle_start_ns=ev.get("settle_start_ns"),
-                complete=end is not None and not any(e["event"] in ("abort", "fault") for e in mine),
-                events=mine))
+                settle_start_ns=ev.get("settle_start_ns"), complete=not problems, events=mine, problems=problems))
         return out
 
 
@@ -442,10 +460,12 @@ def mcap_file(path) -> Path:
             raise RecordingError(f"{p}: directory holds {len(files)} .mcap files "
                                  f"({', '.join(f.name for f in files)}); a recording is one MCAP file")
         return files[0]
-    if p.is_file():
-        return p
     if p.exists():
-        raise RecordingError(f"{p}: not a regular file (a device, pipe or socket is never read)")
+        from stage_sim.validation import input_file_problem
+        problem = input_file_problem(p)
+        if problem is not None:
+            raise RecordingError(f"{p}: {problem}")
+        return p
     bag, inner = bag_layout(p)
     if p.suffix == ".mcap" and inner.is_file():
         return inner
@@ -536,6 +556,7 @@ class _Raw:
     channels: dict
     messages: list                # mcap.records.Message, in log-time order
     salvaged: str | None
+    backwards: dict = field(default_factory=dict)   # channel id -> (count, log time, step back [ns]): see _backwards
 
 
 def _header(path: Path, f, size: int):
@@ -578,14 +599,18 @@ def _chunk_records(off: int, chunk) -> list:
 
 
 def _recorded_count(path: Path) -> int | None:
-    """Messages the bag's ``metadata.yaml`` says the file holds (None if unknown)."""
-    import yaml
+    """Messages the bag's ``metadata.yaml`` says the file holds (None if unknown or unreadable;
+    read by the project's bounded loader, :func:`stage_sim.validation.load_yaml_file`)."""
+    from stage_sim.validation import load_yaml_file
+    meta = path.parent / "metadata.yaml"
+    if not meta.exists():
+        return None
     try:
-        info = yaml.safe_load((path.parent / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        info = load_yaml_file(meta, "bag metadata")["rosbag2_bagfile_information"]
         for entry in info.get("files") or []:
             if Path(entry["path"]).name == path.name:
                 return int(entry["message_count"])
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, ValueError, AttributeError):
+    except (KeyError, TypeError, ValueError, AttributeError):   # ConfigError is a ValueError
         return None
     return None
 
@@ -618,6 +643,7 @@ def _salvage(path: Path, f, size: int, indexed_error: Exception) -> _Raw:
                     counted = r.message_count
     except _Damage as d:
         damage = d
+    backwards = _backwards(messages)
     messages.sort(key=lambda m: m.log_time)
     recorded = counted if counted is not None else _recorded_count(path)
     span = f"{len(messages)} message{'' if len(messages) == 1 else 's'}" + (
@@ -643,7 +669,7 @@ def _salvage(path: Path, f, size: int, indexed_error: Exception) -> _Raw:
         why = f"{type(indexed_error).__name__}: {indexed_error}" if str(indexed_error) else type(indexed_error).__name__
         note = (f"index unreadable ({why}); read the whole "
                 f"file record by record: {span} in {n_chunks} chunk(s)")
-    return _Raw(path, "", schemas, channels, messages, note)
+    return _Raw(path, "", schemas, channels, messages, note, backwards)
 
 
 def _load(path) -> _Raw:
@@ -675,6 +701,7 @@ def _load(path) -> _Raw:
                     messages.append(message)
             # file order, then a stable sort by log time: the order iter_messages(log_time_order=True)
             # gives (ties by position in the file), without its per-message heap in Python
+            backwards = _backwards(messages)
             messages.sort(key=lambda m: m.log_time)
             if summary is not None:
                 schemas.update(summary.schemas)
@@ -683,12 +710,35 @@ def _load(path) -> _Raw:
                 if stats is not None and stats.message_count != len(messages):
                     raise _IndexMismatch(f"the summary counts {stats.message_count} messages, "
                                          f"the index leads to {len(messages)}")
-            raw = _Raw(path, header.profile, schemas, channels, messages, None)
+            raw = _Raw(path, header.profile, schemas, channels, messages, None, backwards)
         except Exception as err:          # noqa: BLE001 - truncated files fail in many ways
             f.seek(0)
             raw = _salvage(path, f, size, err)
             raw.profile = header.profile
     return raw
+
+
+def _backwards(messages) -> dict:
+    """Log times that go back on a channel, in file order (a writer writes each topic in time
+    order): ``{channel id: (how many, the first such log time [ns], how far back it went [ns])}``.
+
+    >>> from mcap.records import Message
+    >>> msgs = [Message(channel_id=1, sequence=0, log_time=t, publish_time=t, data=b"") for t in (0, 10, 5, 20)]
+    >>> _backwards(msgs)
+    {1: (1, 5, 5)}
+    """
+    if not messages:
+        return {}
+    ch = np.fromiter((m.channel_id for m in messages), np.int64, len(messages))
+    lt = np.fromiter((m.log_time for m in messages), np.int64, len(messages))
+    out = {}
+    for c in np.unique(ch):
+        t = lt[ch == c]
+        back = np.flatnonzero(np.diff(t) < 0)
+        if len(back):
+            i = int(back[0])
+            out[int(c)] = (len(back), int(t[i + 1]), int(t[i] - t[i + 1]))
+    return out
 
 
 _RECORD_HEAD = struct.Struct("<BQ")                 # opcode, record length
@@ -909,24 +959,21 @@ def read_recording(path, require_reference: bool = True) -> Recording:
 
 def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Counter,
               open_loop: bool = False) -> Recording:
-    """Decoded messages -> :class:`Recording` (control samples on all contract topics)."""
+    """Decoded messages -> :class:`Recording` (control samples on all contract topics); what is
+    damaged in them -> ``Recording.damage`` (:func:`_find_damage`)."""
     warnings = []
     series = {t: _joint_series(t, by_topic[t]) for t in (*CONTRACT_TOPICS, TRUTH.name, DITHER.name, ISOLATOR.name,
                                                          EXTERNAL_FORCE.name, SOURCE_CHANNELS.name)
               if by_topic[t]}
     sample_topics = tuple(t for t in CONTRACT_TOPICS if not (open_loop and t == REFERENCE.name))
     for t in series:
-        bad = sum(1 for lt, m in by_topic[t] if _stamp_ns(m) not in (None, lt))
-        if bad:
-            warnings.append(f"{t}: {bad} message(s) with header.stamp != log time (log time used)")
+        if t not in sample_topics:
+            bad = sum(1 for lt, m in by_topic[t] if _stamp_ns(m) not in (None, lt))
+            if bad:
+                warnings.append(f"{t}: {bad} message(s) with header.stamp != log time (log time used)")
 
     # control samples: stamps present on all three contract topics (two in an open-loop record)
-    firsts = {}
-    for t in sample_topics:
-        uniq, idx = np.unique(series[t].stamp_ns, return_index=True)
-        if len(uniq) < len(series[t]):
-            warnings.append(f"{t}: {len(series[t]) - len(uniq)} duplicate stamp(s); first kept")
-        firsts[t] = (uniq, idx)
+    firsts = {t: np.unique(series[t].stamp_ns, return_index=True) for t in sample_topics}
     common = firsts[sample_topics[0]][0]
     for t in sample_topics[1:]:
         common = np.intersect1d(common, firsts[t][0], assume_unique=True)
@@ -935,10 +982,7 @@ def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Count
     cols = {}
     for t in sample_topics:
         uniq, idx = firsts[t]
-        rows = idx[np.searchsorted(uniq, common)]
-        if len(uniq) > len(common):
-            warnings.append(f"{t}: {len(uniq) - len(common)} sample(s) not on every contract topic, dropped")
-        cols[t] = rows
+        cols[t] = idx[np.searchsorted(uniq, common)]
     cmd, meas = series[COMMAND.name], series[MEASURED.name]
     if open_loop:
         x_ref = v_ref = np.full(len(common), np.nan)
@@ -979,12 +1023,161 @@ def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Count
     configs = by_topic[CONFIG.name]
     if len(configs) > 1:
         warnings.append(f"{CONFIG.name}: {len(configs)} messages; the first is used")
-    return Recording(
+    rec = Recording(
         path=raw.path, stamp_ns=common.astype(np.int64), t=common * 1e-9, x_ref=x_ref, v_ref=v_ref, u=u, y=y,
         y_bearing=y_b, events=events, results=results, config=configs[0][1].data if configs else None,
         truth=series.get(TRUTH.name), dither=series.get(DITHER.name), isolator=series.get(ISOLATOR.name),
         topics=topics, counts=dict(counts), profile=raw.profile, salvaged=raw.salvaged, warnings=warnings,
         open_loop=open_loop, external_force=f_ext, source=series.get(SOURCE_CHANNELS.name))
+    back = {raw.channels[c].topic: v for c, v in raw.backwards.items() if raw.channels[c].topic in sample_topics}
+    rec.damage = _find_damage(rec, {t: series[t] for t in sample_topics}, {t: by_topic[t] for t in sample_topics},
+                              back)
+    rec.warnings += [d.text for d in rec.damage]
+    return rec
+
+
+LIMITS = {"position": 1e6, "velocity": 1e6, "effort": 1e9}
+"""Largest magnitude of a value in a recording, per JointState field (SI: m or rad, m/s or
+rad/s, N or N·m), far beyond any stage: a larger one is damage (a unit or scale error, a
+corrupt sample), never data -- it would overflow the diagnosis' sums of squares."""
+_UNITS = {"position": "m (rad)", "velocity": "m/s (rad/s)", "effort": "N (N·m)"}
+
+
+def beyond_limits(values: np.ndarray, fld: str) -> np.ndarray:
+    """Mask of ``values`` (of JointState field ``fld``) that are not finite or beyond
+    :data:`LIMITS` -- the one rule of what value is damage (the reader and ``convert`` use it).
+
+    >>> beyond_limits(np.array([0.0, np.nan, -np.inf, 1e300, -2e-3]), "position").tolist()
+    [False, True, True, True, False]
+    """
+    with np.errstate(invalid="ignore"):
+        return ~(np.abs(values) <= LIMITS[fld])
+
+
+@dataclass(frozen=True)
+class Damage:
+    """One defect of a recording's control samples, found by the reader (:func:`read_recording`).
+
+    ``kind``: ``"value"`` (non-finite or beyond :data:`LIMITS`: the samples cannot be used),
+    ``"gap"`` (samples missing on every contract topic), ``"dropped"`` (samples missing on one
+    topic, so dropped from all), ``"duplicate"`` (two messages with one stamp), ``"backwards"``
+    (a stamp before the one written before it), ``"stamp"`` (``header.stamp`` != log time).
+    ``indices`` are the control samples concerned (into the :class:`Recording` arrays; for a
+    missing sample, the one after it; one entry per sample or message), ``index`` the first,
+    ``text`` one line naming the topic, sample and time.
+    """
+    kind: str
+    topic: str
+    indices: np.ndarray = field(repr=False, compare=False)
+    text: str
+
+    WHAT: ClassVar[dict] = {"value": "non-finite or absurd value(s)", "gap": "sample(s) missing on every topic",
+                            "dropped": "sample(s) dropped (missing on this topic)", "duplicate": "duplicate stamp(s)",
+                            "backwards": "stamp(s) going backwards", "stamp": "header stamp(s) != log time"}
+
+    @property
+    def index(self) -> int:
+        return int(self.indices[0])
+
+    @property
+    def unusable(self) -> bool:
+        """The samples it touches cannot be used as a regular record (all kinds but ``"stamp"``,
+        where the log time is a good stamp)."""
+        return self.kind != "stamp"
+
+    @property
+    def count(self) -> int:
+        return len(self.indices)
+
+    def within(self, start: int, stop: int, t: np.ndarray | None = None) -> str | None:
+        """What of it lies in samples ``[start, stop)`` (one line; with the sample times ``t``,
+        the first one's time), or None."""
+        k = self.indices[(self.indices >= start) & (self.indices < stop)]
+        if not len(k):
+            return None
+        when = f" (t = {t[int(k[0])]:.6f} s)" if t is not None else ""
+        return f"{self.topic}: {len(k)} {self.WHAT[self.kind]}, the first at sample {int(k[0])}{when}"
+
+
+def _at(rec: Recording, i: int) -> str:
+    i = min(max(int(i), 0), len(rec) - 1)
+    return f"sample {i}, t = {rec.t[i]:.6f} s"
+
+
+def _find_damage(rec: Recording, series: dict, items: dict, back: dict) -> list[Damage]:
+    """The damage of ``rec``'s control samples (see :class:`Damage`): ``series`` / ``items`` the
+    contract topics' JointSeries and (log time, message) pairs, ``back`` what went back in file
+    order (:func:`_backwards`, by topic)."""
+    out: list[Damage] = []
+    n, stamps = len(rec), rec.stamp_ns
+
+    def add(kind, topic, indices, text):
+        out.append(Damage(kind, topic, np.clip(np.atleast_1d(np.asarray(indices, np.int64)), 0, n - 1),
+                          f"{topic}: {text}"))
+
+    # values: non-finite or absurd (a signal that is absent -- all nan -- is not damage)
+    signals = [(COMMAND.name, "effort", MOTOR, rec.u), (MEASURED.name, "position", TABLE, rec.y),
+               (MEASURED.name, "position", BEARING, rec.y_bearing)]
+    if not rec.open_loop:
+        signals[:0] = [(REFERENCE.name, "position", TABLE, rec.x_ref), (REFERENCE.name, "velocity", TABLE, rec.v_ref)]
+    if rec.external_force is not None:
+        f = rec.external_force
+        signals.append((EXTERNAL_FORCE.name, "effort", TABLE, np.where(np.isnan(f), 0.0, f)))   # nan: no message
+    for topic, fld, joint, a in signals:
+        if np.all(np.isnan(a)):
+            continue
+        bad = np.flatnonzero(beyond_limits(a, fld))
+        if len(bad):
+            i = int(bad[0])
+            add("value", topic, bad, f"{len(bad)} sample(s) with a non-finite or absurd {joint} {fld} "
+                f"(beyond ±{LIMITS[fld]:g} {_UNITS[fld]}), the first at {_at(rec, i)}: {float(a[i])!r}")
+    # stamps
+    for topic, ser in series.items():
+        if topic in back:
+            k, lt, step = back[topic]
+            add("backwards", topic, np.full(k, np.searchsorted(stamps, lt)),
+                f"{k} message(s) stamped before the message written before them, the first "
+                f"{step * 1e-6:.6g} ms earlier, at t = {lt * 1e-9:.6f} s")
+        wrong = [lt for lt, m in items[topic] if _stamp_ns(m) not in (None, lt)]
+        if wrong:
+            add("stamp", topic, np.searchsorted(stamps, wrong),
+                f"{len(wrong)} message(s) with header.stamp != log time (log time used), the first at "
+                f"t = {wrong[0] * 1e-9:.6f} s")
+        ordered = np.sort(ser.stamp_ns)
+        dup = ordered[1:][np.diff(ordered) == 0]
+        if len(dup):
+            add("duplicate", topic, np.searchsorted(stamps, dup),
+                f"{len(dup)} duplicate stamp(s) (the first message of each kept), the first at "
+                f"t = {dup[0] * 1e-9:.6f} s")
+    union = np.unique(np.concatenate([ser.stamp_ns for ser in series.values()]))
+    if len(union) > n:
+        for topic, ser in series.items():
+            lack = np.setdiff1d(union, ser.stamp_ns, assume_unique=False)
+            if len(lack):
+                i = int(np.searchsorted(stamps, lack[0]))
+                add("dropped", topic, np.searchsorted(stamps, lack),
+                    f"no message at {len(lack)} control sample(s) the other contract topics have, so they are "
+                    f"dropped; the first at t = {lack[0] * 1e-9:.6f} s (before {_at(rec, i)})")
+    # gaps: intervals of more than 1.5 sample periods between the stamps of any contract topic (samples
+    # missing on all of them), inside a trial (or anywhere, without trials)
+    if len(union) > 2:
+        d = np.diff(union)
+        period = float(np.median(d))
+        spans = [(int(stamps[tr.start]), int(stamps[tr.stop - 1])) for tr in rec.trials() if tr.stop > tr.start] \
+            or [(int(union[0]), int(union[-1]))]
+        inside = np.zeros(len(d), bool)
+        for a, b in spans:
+            inside |= (union[:-1] >= a) & (union[1:] <= b)
+        gaps = np.flatnonzero((d > 1.5 * period) & inside)
+        if len(gaps):
+            missing = np.rint(d[gaps] / period).astype(np.int64) - 1
+            j = int(gaps[0])
+            i = int(np.searchsorted(stamps, union[j + 1]))
+            add("gap", "control samples", np.repeat(np.searchsorted(stamps, union[gaps + 1]), missing),
+                f"{int(missing.sum())} sample(s) missing on every contract topic in {len(gaps)} gap(s) inside "
+                f"trials, the first {missing[0]} between t = {union[j] * 1e-9:.6f} s and {union[j + 1] * 1e-9:.6f} s "
+                f"(before {_at(rec, i)}; sample period {period * 1e-9:.6g} s)")
+    return out
 
 
 # =========================================================================== batch -> recording

@@ -16,6 +16,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
+
+import numpy as np
 
 from experiment_runner.metrics import METRICS, trial_metrics
 from experiment_runner.recording import Recording, read_recording
@@ -27,8 +30,13 @@ __all__ = ["check_metrics", "add_replay_arguments", "main_replay"]
 
 
 # =========================================================================== metrics
-def _num(v) -> float:
-    return math.nan if v is None else float(v)
+def _num(v) -> float | None:
+    """A recorded metric as a float (null: nan); None if it is not a number (text, a list)."""
+    if v is None:
+        return math.nan
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return float(v)
+    return None
 
 
 def _close(a: float, b: float, rtol: float, atol: float) -> bool:
@@ -43,43 +51,60 @@ def check_metrics(recording: Recording | str, *, rtol: float = 1e-9, atol: float
     Trials come from the ``trial_start`` / ``trial_end`` events (window, and target and
     settle start where the events give them); a recording without trial events is one
     trial over all its samples. A recorded value and its recomputation agree within
-    ``atol + rtol * |recorded|``; null (not settled) only agrees with nan.
+    ``atol + rtol * |recorded|``; null (not settled) only agrees with nan; a recorded value
+    that is not a number never agrees. A trial the reader found incomplete or damaged
+    (``Trial.problems``: aborted, cut short, samples missing, non-finite or absurd values,
+    stamps going backwards) never agrees: its problems are listed.
 
     Returns
     -------
     dict
-        ``trials``: one dict per trial (``trial``, ``case``, ``complete``, the recomputed
-        metrics, ``recorded`` (the /experiment/results object or None) and ``mismatches``
-        ``{metric: [recomputed, recorded]}``); ``compared`` (trials with recorded
-        results), ``mismatched``, ``ok`` (None when nothing was recorded to compare),
-        ``salvaged``.
+        ``trials``: one dict per trial (``trial``, ``case``, ``complete``, ``problems``, the
+        recomputed metrics, ``recorded`` (the /experiment/results object or None) and
+        ``mismatches`` ``{metric: [recomputed, recorded]}``); ``compared`` (trials with recorded
+        results), ``mismatched``, ``ok`` (None when nothing was recorded to compare; False when a
+        compared trial differs or has problems), ``complete`` (every trial complete, the file
+        intact), ``warnings`` (the reader's, and results that could not be used), ``salvaged``.
     """
     rec = recording if isinstance(recording, Recording) else read_recording(recording)
+    warnings = list(rec.warnings)
     recorded = {}
     for r in rec.results:
-        if r.get("trial") is not None:
-            recorded[int(r["trial"])] = r
+        trial = r.get("trial")
+        if trial is None:
+            continue
+        if isinstance(trial, int) and not isinstance(trial, bool):
+            recorded[trial] = r
+        else:
+            warnings.append(f"/experiment/results: message at {r['log_time_ns']} ns has trial {trial!r}, not an "
+                            "integer; not compared")
     trials = rec.trials()
     rows = []
-    spans = ([(tr.trial, tr.case, tr.complete, tr.slice, tr.window_m, tr.target_m,
+    whole = [d.text for d in rec.damage] + ([f"salvaged: {rec.salvaged}"] if rec.salvaged else [])
+    spans = ([(tr.trial, tr.case, tr.problems, tr.slice, tr.window_m, tr.target_m,
                None if tr.settle_start_ns is None else tr.settle_start_ns * 1e-9) for tr in trials]
-             or [(None, None, rec.salvaged is None, slice(0, len(rec)), None, None, None)])
+             or [(None, None, whole, slice(0, len(rec)), None, None, None)])
     compared = mismatched = 0
-    for trial, case, complete, sl, window, target, start in spans:
-        met = trial_metrics(rec.t[sl], rec.x_ref[sl], rec.v_ref[sl], rec.y[sl], window=window, target=target,
-                            settle_start=start)
+    for trial, case, problems, sl, window, target, start in spans:
+        with np.errstate(over="ignore", invalid="ignore"):     # damaged values: listed in the trial's problems
+            met = trial_metrics(rec.t[sl], rec.x_ref[sl], rec.v_ref[sl], rec.y[sl], window=window, target=target,
+                                settle_start=start)
         got = recorded.get(trial) if trial is not None else None
         diffs = {}
         if got is not None:
             compared += 1
             for key in METRICS:
-                if key in got and not _close(met[key], _num(got[key]), rtol, atol):
-                    diffs[key] = [met[key], _num(got[key])]
-            mismatched += bool(diffs)
-        rows.append({"trial": trial, "case": case, "complete": complete, **met, "recorded": got,
-                     "mismatches": diffs})
+                if key in got:
+                    value = _num(got[key])
+                    if value is None or not _close(met[key], value, rtol, atol):
+                        diffs[key] = [met[key], got[key] if value is None else value]
+            mismatched += bool(diffs or problems)
+        rows.append({"trial": trial, "case": case, "complete": not problems, "problems": list(problems), **met,
+                     "recorded": got, "mismatches": diffs})
     return {"path": str(rec.path), "trials": rows, "compared": compared, "mismatched": mismatched,
-            "ok": (mismatched == 0) if compared else None, "salvaged": rec.salvaged}
+            "ok": (mismatched == 0) if compared else None,
+            "complete": rec.salvaged is None and all(r["complete"] for r in rows),
+            "warnings": warnings, "salvaged": rec.salvaged}
 
 
 # =========================================================================== CLI pieces
@@ -120,7 +145,8 @@ def _fmt(v, unit: str, scale: float) -> str:
 
 
 def main_replay(args) -> int:
-    """Run ``nanostage replay`` from parsed arguments; 1 if the check finds a mismatch."""
+    """Run ``nanostage replay`` from parsed arguments; 1 if the check finds a mismatch or an
+    incomplete or damaged trial (listed, with the reader's warnings on stderr)."""
     out = {}
     if not getattr(args, "no_publish", False):
         from experiment_runner.ros.player import replay
@@ -150,10 +176,26 @@ def main_replay(args) -> int:
                 print(f"note: {chk['salvaged']}")
             print("trial | case | settling | rms in-position | peak tracking | rms tracking | recorded")
             for r in chk["trials"]:
-                state = ("-" if r["recorded"] is None else
-                         "agrees" if not r["mismatches"] else "DIFFERS: " + ", ".join(r["mismatches"]))
                 print(f"{r['trial']} | {r['case'] or '-'} | {_fmt(r['settling_time_s'], 'ms', 1e3)} | "
                       f"{_fmt(r['rms_in_position_m'], 'nm', 1e9)} | {_fmt(r['peak_tracking_error_m'], 'nm', 1e9)} | "
-                      f"{_fmt(r['rms_tracking_error_m'], 'nm', 1e9)} | {state}")
+                      f"{_fmt(r['rms_tracking_error_m'], 'nm', 1e9)} | {_state(r)}")
+            if not chk["complete"]:
+                print("INCOMPLETE: the recording has incomplete or damaged trials (their problems above; "
+                      "the reader's warnings on stderr)")
     chk = out.get("check")
-    return 1 if chk and chk["ok"] is False else 0
+    if chk:
+        for w in chk["warnings"]:
+            print(f"warning: {w}", file=sys.stderr)
+    return 1 if chk and (chk["ok"] is False or not chk["complete"]) else 0
+
+
+def _state(row: dict) -> str:
+    """The ``recorded`` column of a trial: agrees, DIFFERS (which metrics), and its problems."""
+    parts = []
+    if row["mismatches"]:
+        parts.append("DIFFERS: " + ", ".join(row["mismatches"]))
+    elif row["recorded"] is not None and not row["problems"]:
+        parts.append("agrees")
+    if row["problems"]:
+        parts.append("INCOMPLETE: " + "; ".join(row["problems"]))
+    return " ".join(parts) or "-"

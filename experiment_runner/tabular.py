@@ -69,7 +69,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stage_sim.validation import ConfigError
+from stage_sim.validation import ConfigError, input_file_problem
 
 __all__ = ["Table", "read_table", "Mapping", "load_mapping", "mapping_from_dict", "Signals", "prepare",
            "convert_table", "sha256", "EMPS_MAPPING", "add_convert_arguments", "main_convert"]
@@ -171,10 +171,9 @@ def read_table(path) -> Table:
     (['t', 'x'], [1.5, 2.5], 'line 4')
     """
     path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"{path}: no such file")
-    if not path.is_file():
-        raise ConfigError(f"{path}: not a file")
+    problem = input_file_problem(path)
+    if problem is not None:
+        raise ConfigError(f"{path}: {problem}")
     kind = _sniff(path)
     reader = {"hdf5": _read_hdf5, "mat": _read_mat, "npz": _read_npz, "npy": _read_npy, "text": _read_text}[kind]
     try:
@@ -524,6 +523,33 @@ def _finite(tab: Table, name: str, role: str, a: np.ndarray) -> None:
                           f"first at {tab.where(i)} ({float(a[i])}); fill or cut them before converting")
 
 
+_FIELDS = {"reference": "position", "reference_velocity": "velocity", "command": "effort", "measured": "position",
+           "bearing": "position", "input": "effort"}
+"""The JointState field each role's column becomes (for :data:`experiment_runner.recording.LIMITS`)."""
+MAX_TIME = 9e9
+"""Largest sample time [s] a recording can stamp (int64 nanoseconds reach 9.2e9 s)."""
+
+
+def _within_limits(tab: Table, name: str, label: str, role: str, a: np.ndarray, unit: dict, scaled: str) -> None:
+    """Refuse values a recording cannot hold: beyond :data:`~experiment_runner.recording.LIMITS`
+    (the reader's rule of damage: absurd for any stage, a wrong scale or a corrupt value), or a
+    time beyond :data:`MAX_TIME`."""
+    from experiment_runner.recording import LIMITS, beyond_limits
+    if role == "time":
+        bad, limit, u = ~(np.abs(a) <= MAX_TIME), MAX_TIME, "s"
+    elif role in _FIELDS:
+        fld = _FIELDS[role]
+        bad, limit = beyond_limits(a, fld), LIMITS[fld]
+        u = unit["force" if fld == "effort" else fld]
+    else:
+        return
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ConfigError(f"{tab.path}: column {name!r} ({label}) has {int(bad.sum())} value(s) beyond ±{limit:g} {u}"
+                          f"{' after scaling (' + scaled + ')' if scaled else ''}, the first at {tab.where(i)} "
+                          f"({float(a[i]):g} {u}): absurd for a stage; a wrong scale or unit, or a corrupt value?")
+
+
 def _factor(tab: Table, m: Mapping, col: str) -> tuple[float, str]:
     f = m.scale.get(col, 1.0)
     if isinstance(f, str):
@@ -594,6 +620,7 @@ def prepare(tab: Table, m: Mapping) -> Signals:
         f, txt = _factor(tab, m, name)
         cols[role] = raw * f if f != 1.0 else raw
         how[role] = f"{name} * {txt}" if txt else name
+        _within_limits(tab, name, m.label(role), role, cols[role], unit, txt)
     extra = {}
     for name in m.extra:
         raw = tab.column(name, f"{m.label('extra')}")

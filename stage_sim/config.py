@@ -19,6 +19,7 @@ True
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated, Literal, Optional
 
@@ -27,7 +28,7 @@ from pydantic import Field, ValidationError, model_validator
 from stage_sim.friction import FRICTION
 from stage_sim.friction import CoulombFriction, DahlFriction, GmsFriction, LugreFriction  # noqa: F401  (re-exported)
 from stage_sim.schema import Finite, Fraction, NonNeg, Pos, _Number, _Strict  # noqa: F401  (re-exported)
-from stage_sim.validation import ConfigError, check_plausible, format_validation_error, load_yaml, unit
+from stage_sim.validation import ConfigError, check_plausible, format_validation_error, load_yaml_file, unit
 
 PRESET_DIR = Path(__file__).with_name("presets")
 
@@ -311,24 +312,22 @@ def preset_from_dict(data: dict, source: str = "<dict>") -> Preset:
 
 
 def read_yaml_file(name_or_path: str | Path, directory: Path, kind: str) -> tuple[dict, Path]:
-    """Safely read a YAML mapping given by name (``directory/<name>.yaml``) or path.
+    """Safely read a YAML mapping given by name (``directory/<name>.yaml``: a bare name without
+    suffix) or path.
 
     Returns ``(data, path)``; a missing file, invalid YAML or a non-mapping top level
     raise :class:`ConfigError` naming the file (and the shipped names of this ``kind``).
-    No code is ever executed (:func:`stage_sim.validation.load_yaml`: YAML's safe loader, which
-    also refuses duplicate keys).
+    No code is ever executed, and the work is bounded (:func:`stage_sim.validation.load_yaml_file`:
+    YAML's safe loader, which also refuses duplicate keys, size, alias-expansion, nesting and
+    number-length limits, and anything but a regular file).
     """
     path = Path(name_or_path)
-    if not path.suffix:
+    if not path.suffix and len(path.parts) == 1:        # a bare name: a shipped file
         path = directory / f"{name_or_path}.yaml"
-    if not path.is_file():
+    if not os.path.lexists(path):
         known = ", ".join(sorted(p.stem for p in directory.glob("*.yaml")))
         raise ConfigError(f"{name_or_path}: no such {kind} file (shipped {kind}s: {known})")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"{path}: cannot read the {kind} file ({err})") from None
-    data = load_yaml(text, str(path))
+    data = load_yaml_file(path, kind)
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: top level must be a mapping, got {type(data).__name__}")
     return data, path

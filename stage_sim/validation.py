@@ -34,13 +34,33 @@ to presets that code builds on purpose (a fit exploring wide bounds, a test driv
 stage to divergence: :func:`stage_sim.config.preset_from_dict`, ``with_overrides``
 without a source).
 
-Files are read with :func:`load_yaml`: ``yaml.SafeLoader`` (no object construction, no
-code) that also refuses duplicate keys, which plain YAML silently resolves to the last.
+Reading YAML
+------------
+Every YAML input -- presets, experiments, campaigns, mappings, model files, and the
+configuration stored in a recording (``/experiment/config``) -- goes through
+:func:`load_yaml` (text) or :func:`load_yaml_file` (a file): ``yaml.SafeLoader`` (no object
+construction, no code) that also refuses duplicate keys, which plain YAML silently resolves
+to the last, and bounds the work a document can ask for:
+
+* at most :data:`MAX_YAML_BYTES` of text (checked before parsing: a 50 MB string is refused
+  at once);
+* at most :data:`MAX_NODES` values with its aliases expanded (a "billion laughs" file of a few
+  hundred bytes expands to 10**9 values: refused while it is read, before anything is built);
+  an alias to a collection that contains it is refused too;
+* at most :data:`MAX_DEPTH` levels of nesting, and numbers of at most
+  :data:`MAX_NUMBER_CHARS` characters.
+
+:func:`read_text_file` refuses, before opening it, anything that is not a regular file (a
+FIFO or a device would block or never end) and kernel pseudo-files (``/proc``, ``/sys``),
+then reads without blocking, at most its limit. Errors are :class:`ConfigError` naming the
+source (and the line).
 """
 from __future__ import annotations
 
 import io
 import math
+import os
+import stat
 import types
 import typing
 import warnings
@@ -51,7 +71,8 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 __all__ = ["ConfigError", "ConfigWarning", "Problem", "unit", "format_validation_error", "field_line",
-           "plausibility_problems", "check_plausible", "load_yaml", "is_number_type"]
+           "plausibility_problems", "check_plausible", "load_yaml", "load_yaml_file", "read_text_file",
+           "input_file_problem", "is_number_type", "MAX_YAML_BYTES", "MAX_NODES", "MAX_DEPTH", "MAX_NUMBER_CHARS"]
 
 
 @dataclass(frozen=True)
@@ -308,9 +329,153 @@ def format_validation_error(err: ValidationError, source: str, kind: str = "conf
     return ConfigError("\n".join(lines), problems)
 
 
+# =========================================================================== input files
+MAX_YAML_BYTES = 1 << 20
+"""Largest YAML input [bytes] (a preset is a few kB; a recording's configuration tens of kB)."""
+MAX_NODES = 200_000
+"""Most values (scalars and collections) a YAML document may hold with its aliases expanded."""
+MAX_DEPTH = 100
+"""Deepest nesting of collections in a YAML document."""
+MAX_NUMBER_CHARS = 100
+"""Longest number in a YAML document [characters] (a float needs 25)."""
+
+_FILE_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+               (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+               (stat.S_ISSOCK, "a socket"))
+
+
+def _pseudo_filesystems() -> dict:
+    """Device ids of the kernel's pseudo-file systems mounted here (``/proc``, ``/sys``)."""
+    out = {}
+    for root in ("/proc", "/sys"):
+        try:
+            out[os.stat(root).st_dev] = root
+        except OSError:
+            pass
+    return out
+
+
+def input_file_problem(path) -> str | None:
+    """Why ``path`` is not safe to read as an input file, or None if it is.
+
+    Only a regular file is read: a FIFO, a socket or a device could block forever or never
+    end, and a kernel pseudo-file (``/proc/kmsg``, ``/sys/...``) may block, consume what it
+    gives, or have no end. Decided from ``os.stat`` alone, before the file is opened.
+
+    >>> input_file_problem("/dev/zero")
+    'not a regular file (a character device); only a regular file is read'
+    >>> input_file_problem("/no/such/file")
+    'no such file'
+    """
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return "no such file"
+    except OSError as err:
+        return f"cannot read it ({err.strerror or err})"
+    if not stat.S_ISREG(st.st_mode):
+        what = next((name for test, name in _FILE_KINDS if test(st.st_mode)), "not a file")
+        return f"not a regular file ({what}); only a regular file is read"
+    root = _pseudo_filesystems().get(st.st_dev)
+    if root is not None:
+        return f"a kernel pseudo-file (under {root}), not a file of yours; it is not read"
+    return None
+
+
+def read_text_file(path, what: str = "input", max_bytes: int = MAX_YAML_BYTES) -> str:
+    """The UTF-8 text of a small input file, read safely; :class:`ConfigError` naming the file.
+
+    Refuses what :func:`input_file_problem` refuses, and a file over ``max_bytes`` (from its
+    size before reading, and again from what the read returns), without blocking.
+    """
+    problem = input_file_problem(path)
+    if problem is not None:
+        raise ConfigError(f"{path}: {problem if problem != 'no such file' else f'no such {what} file'}")
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read the {what} file ({err.strerror or err})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):                 # replaced since it was checked
+            raise ConfigError(f"{path}: not a regular file; only a regular file is read")
+        if st.st_size > max_bytes:
+            raise ConfigError(f"{path}: {st.st_size} bytes; a {what} file has at most {max_bytes} bytes "
+                              "(is it the right file?)")
+        chunks, size = [], 0
+        while size <= max_bytes:
+            chunk = os.read(fd, max_bytes + 1 - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+    except BlockingIOError:
+        raise ConfigError(f"{path}: reading it would block (not an ordinary file); it is not read") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read the {what} file ({err.strerror or err})") from None
+    finally:
+        os.close(fd)
+    if size > max_bytes:
+        raise ConfigError(f"{path}: more than {max_bytes} bytes; a {what} file has at most {max_bytes} bytes")
+    data = b"".join(chunks)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {err.start}: {data[err.start:err.start + 1]!r}); "
+                          f"a {what} file is YAML text") from None
+
+
 # =========================================================================== YAML
+class _Refused(yaml.MarkedYAMLError):
+    """A document beyond a limit of :func:`load_yaml` (not a syntax error)."""
+
+
 class _UniqueKeyLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` refusing duplicate mapping keys."""
+    """``yaml.SafeLoader`` refusing duplicate mapping keys and documents beyond the limits
+    (:data:`MAX_NODES` values with aliases expanded, :data:`MAX_DEPTH` levels,
+    :data:`MAX_NUMBER_CHARS`-character numbers), while it composes them: nothing is built
+    from a refused document."""
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self._depth = 0
+        self._size: dict[int, int] = {}        # id(node) -> values in it, aliases expanded
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            target = self.anchors.get(event.anchor)
+            if target is not None and id(target) not in self._size:
+                raise _Refused(None, None, f"alias *{event.anchor} refers to a collection that contains it "
+                                           "(a recursive structure)", event.start_mark)
+            return super().compose_node(parent, index)
+        if self._depth >= MAX_DEPTH:
+            raise _Refused(None, None, f"nested deeper than {MAX_DEPTH} levels", self.peek_event().start_mark)
+        self._depth += 1
+        try:
+            node = super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+        if isinstance(node, yaml.MappingNode):
+            size = 1 + sum(self._size[id(k)] + self._size[id(v)] for k, v in node.value)
+        elif isinstance(node, yaml.SequenceNode):
+            size = 1 + sum(self._size[id(v)] for v in node.value)
+        else:
+            size = 1
+        if size > MAX_NODES:
+            raise _Refused(None, None, f"it holds more than {MAX_NODES} values with its aliases expanded "
+                                       "(aliases of aliases: a 'billion laughs' document?)", node.start_mark)
+        self._size[id(node)] = size
+        return node
+
+
+def _number(construct):
+    def bounded(loader, node):
+        if len(node.value) > MAX_NUMBER_CHARS:
+            raise _Refused(None, None, f"a number of {len(node.value)} characters; at most {MAX_NUMBER_CHARS}",
+                           node.start_mark)
+        return construct(loader, node)
+    return bounded
 
 
 def _mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False):
@@ -329,11 +494,26 @@ def _mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = Fals
 
 
 _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)
+for _tag, _construct in (("int", yaml.SafeLoader.construct_yaml_int),
+                         ("float", yaml.SafeLoader.construct_yaml_float)):
+    _UniqueKeyLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _number(_construct))
 
 
 def load_yaml(text: str, source: str):
-    """Parse YAML safely (``SafeLoader``: plain data only, no code) refusing duplicate keys;
-    :class:`ConfigError` naming ``source`` and the line on any error."""
+    """Parse YAML safely (``SafeLoader``: plain data only, no code) refusing duplicate keys
+    and documents beyond the limits (see the module docstring); :class:`ConfigError` naming
+    ``source`` and the line on any error.
+
+    >>> load_yaml("a: [1, 2.5, x]", "demo")
+    {'a': [1, 2.5, 'x']}
+    >>> load_yaml("a: 1\\na: 2", "demo.yaml")
+    Traceback (most recent call last):
+    stage_sim.validation.ConfigError: demo.yaml: not valid YAML at line 2, column 1: found duplicate key 'a' (first at line 1) (while constructing a mapping)
+    >>> load_yaml("a: &a [x, x]\\nb: &b [*a, *a]\\nc: &c [*b, *b]", "bomb.yaml")["c"][1][0]
+    ['x', 'x']
+    """
+    if len(text) > MAX_YAML_BYTES:
+        raise ConfigError(f"{source}: {len(text)} characters of YAML; at most {MAX_YAML_BYTES} are read")
     stream = io.StringIO(text)
     stream.name = str(source)              # named in YAML's error marks
     try:
@@ -342,6 +522,17 @@ def load_yaml(text: str, source: str):
         mark = getattr(err, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         what = getattr(err, "problem", None) or str(err)
+        if isinstance(err, yaml.reader.ReaderError):        # a NUL or other control character
+            where = f" at character {err.position + 1}"
+            code = err.character if isinstance(err.character, int) else ord(err.character)
+            what = f"character #x{code:04x}: {err.reason} (a NUL or control character)"
         context = getattr(err, "context", None)
-        raise ConfigError(f"{source}: not valid YAML{where}: {what}" + (f" ({context})" if context else "")) from None
+        head = "refused" if isinstance(err, _Refused) else "not valid YAML"
+        raise ConfigError(f"{source}: {head}{where}: {what}" + (f" ({context})" if context else "")) from None
+    except (ValueError, OverflowError) as err:     # a scalar that matches a type but does not build (2021-13-01)
+        raise ConfigError(f"{source}: not valid YAML: {err}") from None
 
+
+def load_yaml_file(path, what: str = "input"):
+    """:func:`load_yaml` of a file read by :func:`read_text_file` (a ``what`` file, in errors)."""
+    return load_yaml(read_text_file(path, what), str(path))

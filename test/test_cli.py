@@ -113,7 +113,7 @@ def test_campaign_bad_input_exits_2_before_any_work(tmp_path, capsys):
     _fails(["campaign", "no_such_campaign", "--out", str(out)], capsys,
            "no_such_campaign: no such campaign file", "shipped campaigns: ")
     _fails(["campaign", "table_4_2", "--calibration", str(tmp_path / "none.json"), "--out", str(out)], capsys,
-           "--calibration", "none.json: cannot read it")
+           "--calibration", "none.json: no such calibration file")
     bad = tmp_path / "cal.json"
     bad.write_text("{not json")
     _fails(["campaign", "table_4_2", "--calibration", str(bad), "--out", str(out)], capsys, "invalid JSON")
@@ -140,7 +140,6 @@ def test_paper_unknown_claim_group_exits_2_listing_the_groups(tmp_path, capsys):
     (["convert", "emps", "no_such_dir", "--out", "x.mcap"], "no_such_dir: no such file"),
     (["design", "fi_stage"], "give the required RMS in-position error: --rms NM"),
     (["design", "no_such_preset", "--rms", "2"], "no_such_preset: no such preset file"),
-    (["design", "fi_stage", "--rms", "-2"], "--rms -2"),
     (["synth", "no_such_truth", "fi_p2p_5um", "--out", "x.mcap"], "no_such_truth: no such preset file"),
     (["diagnose", "no_such.mcap", "--out", "d"], "no_such.mcap: no such file or directory"),
     (["realdata", "--data", "no_such_dir", "--out", "r"], "real data folder not found; tried no_such_dir"),
@@ -155,6 +154,7 @@ def test_other_commands_bad_input_exits_2_naming_it(tmp_path, capsys, monkeypatc
     (["paper", "--json=yes"], "argument --json: ignored explicit argument 'yes'"),
     (["synth", "fi_stage"], "the following arguments are required"),
     (["realdata", "--only", "nothing"], "argument --only: invalid choice: 'nothing'"),
+    (["design", "fi_stage", "--rms", "-2"], "argument --rms: got -2; expected a finite number > 0"),
 ])
 def test_bad_arguments_are_argparse_errors(capsys, argv, expected):
     err = _refused_by_argparse(argv, capsys)
@@ -183,6 +183,18 @@ def test_a_closed_output_pipe_is_not_a_traceback():
     proc.stdout.close()
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 141 and "Traceback" not in err, err
+
+
+def test_a_command_imports_only_its_own_module():
+    """``nanostage presets`` (the before-stop hook's alias-bomb probe) does not import the
+    simulator, the diagnosis or the plotting stack: it starts in what reading a preset takes."""
+    import subprocess
+    import sys
+    code = ("import sys\nfrom experiment_runner.cli import main\nrc = main(['presets', 'fi_stage'])\n"
+            "heavy = [m for m in ('experiment_runner.batch', 'experiment_runner.design', 'experiment_runner.diagnosis',"
+            " 'matplotlib', 'control') if m in sys.modules]\nprint(rc, heavy, file=sys.stderr)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.stderr.strip().splitlines()[-1] == "0 []", out.stderr
 
 
 def test_json_stdout_carries_only_what_python_prints():

@@ -141,9 +141,13 @@ def test_van_bad_input():
 
 # ----------------------------------------------------------------------------- CLI
 def _cli(argv):
-    """``nanostage design argv``: bad input is the CLI's message and exit 2."""
+    """``nanostage design argv``: bad input is the CLI's message (or argparse's, for a bad
+    option value) and exit 2."""
     from experiment_runner.cli import main
-    return main(["design", *argv])
+    try:
+        return main(["design", *argv])
+    except SystemExit as exc:
+        return exc.code
 
 
 def test_cli_exit_codes(tmp_path, capsys):

@@ -442,7 +442,7 @@ def test_yaml_is_loaded_safely_and_duplicate_keys_are_refused(tmp_path):
     with pytest.raises(ConfigError, match=rf"^{f}: not valid YAML at line 2, column 1: "):
         load_preset(f)
     f.write_bytes(b"\xff\xfe\x00bad")
-    with pytest.raises(ConfigError, match=rf"{f}: cannot read the preset file"):
+    with pytest.raises(ConfigError, match=rf"{f}: not UTF-8 text \(byte 0: b'\\xff'\)"):
         load_preset(f)
 
 

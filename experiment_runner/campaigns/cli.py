@@ -14,6 +14,7 @@ from experiment_runner.cliargs import positive_float, positive_int
 from experiment_runner.executor import add_executor_arguments, cpu_count
 from experiment_runner.outputs import add_overwrite_argument
 from stage_sim.config import ConfigError
+from stage_sim.validation import read_text_file
 
 __all__ = ["add_campaign_arguments", "main_campaign"]
 
@@ -48,10 +49,10 @@ def add_campaign_arguments(parser):
 def read_calibration(path) -> dict:
     """A ``calibration.json`` written by an earlier campaign (``--calibration``)."""
     try:
-        doc = json.loads(Path(path).read_text())
-    except OSError as err:
-        raise ConfigError(f"--calibration {path}: cannot read it ({err.strerror or err})") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        doc = json.loads(read_text_file(path, "calibration", max_bytes=64 << 20))
+    except ConfigError as err:
+        raise ConfigError(f"--calibration {err}") from None
+    except json.JSONDecodeError as err:
         raise ConfigError(f"--calibration {path}: not a calibration.json (invalid JSON: {err})") from None
     values = doc.get("values") if isinstance(doc, dict) else None
     if not isinstance(values, dict) or not all(

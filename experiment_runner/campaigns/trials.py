@@ -18,7 +18,7 @@ from experiment_runner.campaigns.registry import TRIAL_METRICS
 from experiment_runner.campaigns.spec import Campaign, Case, Condition, case_overrides, case_preset
 from experiment_runner.experiment import Trial, trial_metrics
 from stage_control.sai import ilc_update
-from stage_sim.config import Preset
+from stage_sim.config import ConfigError, Preset
 from stage_sim.plant import STATUS_TEXT
 
 __all__ = ["reference", "start_position", "make_trials", "simulate_trials", "metric_record", "plain",
@@ -34,9 +34,11 @@ def start_position(camp: Campaign, preset: Preset, ref: profiles.Reference, i: i
     """Start of trial ``i``: as :func:`experiment_runner.experiment.build_trials` for a one-trial
     experiment with ``starts.seed = campaign starts.seed + i``."""
     travel = preset.stage.travel
-    lo = travel.min - min(0.0, float(ref.x.min()))
-    hi = travel.max - max(0.0, float(ref.x.max()))
-    return float(profiles.random_starts(1, (lo, hi), camp.starts.margin, camp.starts.seed + i)[0])
+    try:
+        return float(profiles.random_starts(1, (travel.min, travel.max), camp.starts.margin, camp.starts.seed + i,
+                                            extent=(float(ref.x.min()), float(ref.x.max())))[0])
+    except ConfigError as err:
+        raise ConfigError(f"campaign {camp.name} (test {camp.test.kind}, preset {preset.name}): {err}") from None
 
 
 def make_trials(camp: Campaign, case: Case, preset: Preset, ref: profiles.Reference, indices) -> list[Trial]:

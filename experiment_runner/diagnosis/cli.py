@@ -6,8 +6,28 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
-__all__ = ["add_diagnose_arguments", "main_diagnose"]
+from experiment_runner.cliargs import positive_float, positive_int
+
+__all__ = ["add_diagnose_arguments", "main_diagnose", "effect_keys"]
+
+
+def effect_keys(text: str) -> list[str]:
+    """argparse type of ``--effects``: comma-separated keys of the library of hypotheses (those
+    ``--list-effects`` prints), each checked; a usage error naming the unknown ones and the keys.
+
+    >>> effect_keys("viscous, stribeck")
+    ['viscous', 'stribeck']
+    """
+    from .hypotheses import LIBRARY
+    keys = [k.strip() for k in text.split(",") if k.strip()]
+    unknown = [k for k in keys if k not in LIBRARY]
+    if unknown or not keys:
+        raise argparse.ArgumentTypeError(f"got {text!r}; unknown effect key(s) {', '.join(map(repr, unknown))}; "
+                                         f"expected comma-separated keys of: {', '.join(LIBRARY)}"
+                                         if keys else f"got {text!r}; expected comma-separated effect keys")
+    return keys
 
 
 def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -24,14 +44,16 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
     parser.add_argument("--power", action="store_true",
                         help="with --selftest: the power study (randomized concealed-effect cases and negative "
                              "controls; detection rate vs effect size, false-positive rate)")
-    parser.add_argument("--cases", type=int, default=None,
+    parser.add_argument("--cases", type=positive_int, default=None,
                         help="power study: number of cases (default 150: 45 negative controls, 15 pairs, 90 single effects)")
     parser.add_argument("--only", nargs="*", default=None, help="self-test: run only cases whose name starts so "
                                                                 "(power study: whose name contains it)")
     parser.add_argument("--keep", default=None, help="self-test: keep recordings and reports in this folder")
-    parser.add_argument("--effects", default=None, help="comma-separated effect keys to consider (default all)")
-    parser.add_argument("--bandwidth", type=float, default=None, help="force-observer bandwidth [Hz] (default rate/25)")
-    parser.add_argument("--max-fit-seconds", type=float, default=3.0, help="cap of the fit set [s of data]")
+    parser.add_argument("--effects", type=effect_keys, default=None,
+                        help="comma-separated effect keys to consider (those of --list-effects; default all)")
+    parser.add_argument("--bandwidth", type=positive_float, default=None,
+                        help="force-observer bandwidth [Hz] (default rate/25)")
+    parser.add_argument("--max-fit-seconds", type=positive_float, default=3.0, help="cap of the fit set [s of data]")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--verbose", action="store_true", help="progress on stdout")
     from experiment_runner.outputs import add_overwrite_argument
@@ -41,23 +63,25 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
     return parser
 
 
-def _nominal_from_config(path):
-    import yaml
-
-    from experiment_runner.recording import read_recording
-    rec = read_recording(path)
-    if rec.config:
-        doc = yaml.safe_load(rec.config)
-        if isinstance(doc, dict) and isinstance(doc.get("preset"), dict):
-            return doc["preset"], rec
-    return None, rec
+def _nominal_from_config(rec):
+    """The preset stored in the recording's ``/experiment/config`` (read by the project's YAML
+    loader and validated: errors name the recording, the topic and the field), or None."""
+    from msg_defs.topics import CONFIG
+    from stage_sim.config import ConfigError, preset_from_dict
+    preset = rec.config_doc().get("preset")
+    if preset is None:
+        return None
+    source = f"{rec.path}: {CONFIG.name} preset"
+    if not isinstance(preset, dict):
+        raise ConfigError(f"{source}: got {type(preset).__name__}; expected a mapping (a preset)")
+    return preset_from_dict(preset, source)
 
 
 def diagnose_options(args):
     """The :class:`.pipeline.Options` of parsed ``nanostage diagnose`` arguments."""
     from .pipeline import Options
     return Options(bandwidth=args.bandwidth, max_fit_seconds=args.max_fit_seconds,
-                   effects=[e.strip() for e in args.effects.split(",")] if args.effects else None,
+                   effects=args.effects,
                    plots=not args.no_plots, verbose=args.verbose, workers=args.workers, cluster=args.cluster)
 
 
@@ -85,22 +109,27 @@ def main_diagnose(args) -> int:
     from pathlib import Path
 
     from experiment_runner.outputs import prepare_folder
-    from experiment_runner.recording import mcap_file
+    from experiment_runner.recording import read_recording
 
     from .data import load_data
     from .pipeline import diagnose
     from .report import REPORT_FILES, jsonable
-    mcap_file(args.recording)                         # a recording that is not there: no output folder made
+    rec = read_recording(args.recording, require_reference=False)   # not there / unreadable: no output folder made
+    for w in ([f"recording {rec.salvaged}"] if rec.salvaged else []) + rec.warnings:
+        print(f"warning: {w}", file=sys.stderr)         # what the reader found, before the long work
     out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
     prepare_folder(out, args.overwrite, files=REPORT_FILES, option="--out")     # refused before the diagnosis, not after
     nominal = args.nominal
-    data = None
     if nominal is None:
-        nominal, rec = _nominal_from_config(args.recording)
+        nominal = _nominal_from_config(rec)
         if nominal is None:
             raise SystemExit("nanostage diagnose: the recording carries no preset in /experiment/config; "
                              "give the NOMINAL model")
-        data = load_data(rec)
+    data = load_data(rec)
+    for e in data.incomplete:
+        print(f"warning: incomplete {e} (its samples are used)", file=sys.stderr)
+    for e in data.excluded:
+        print(f"warning: excluded {e}", file=sys.stderr)
     rep = diagnose(args.recording, nominal, out=out, options=diagnose_options(args), data=data)
     if args.json:
         print(json.dumps(jsonable(rep), indent=1))
@@ -108,6 +137,14 @@ def main_diagnose(args) -> int:
     for line in replay_lines(rep):
         print(line)
     print(f"verdict: {rep['verdict']}")
+    if data.excluded:
+        print(f"excluded as damaged ({len(data.excluded)} trial(s), neither fitted nor judged):")
+        for e in data.excluded:
+            print(f"  {e}")
+    if data.incomplete:
+        print(f"incomplete trials used ({len(data.incomplete)}; their samples are data):")
+        for e in data.incomplete:
+            print(f"  {e}")
     for i, f in enumerate(rep["found"], 1):
         ps = ", ".join(f"{p['name']} = {p['value']:.4g}" + (f" ± {p['sigma']:.2g}" if p.get("sigma") else "")
                        + f" {p['unit']}" + (f" (nominal {p['nominal']:.4g})" if isinstance(p.get("nominal"), (int, float)) else "")

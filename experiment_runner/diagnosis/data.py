@@ -16,6 +16,12 @@ It splits the samples into a *fit* set and a *held-out* set:
 whole trials when there are two or more (every third trial held out, at least one),
 otherwise contiguous blocks of the single trial (every third of six blocks held out).
 The first ``burn_in`` seconds of each trial are in neither set (the model starts relaxed).
+
+Damage the reader found (:class:`~experiment_runner.recording.Damage`: non-finite or absurd
+values, samples missing, duplicated or stamped backwards) is never fitted nor judged: a trial
+holding any is excluded, and said so (``DiagData.excluded``, the notes of the report); a
+recording whose every trial is damaged is refused (:class:`~experiment_runner.recording.RecordingError`
+naming the topic, sample and time).
 """
 from __future__ import annotations
 
@@ -54,6 +60,8 @@ class DiagData:
     f_ext: np.ndarray = None      # (T, B) known external force on the table [N] (/stage/external_force; None: none)
     open_loop: bool = False       # no reference: the recorded command drove the plant (x_ref = measured position)
     axis: str = "linear"          # linear (m, N) or rotary (rad, N·m): the recording's run.axis / preset stage.kind
+    excluded: list = field(default_factory=list)   # trials left out as damaged: "trial N: why" (also in notes)
+    incomplete: list = field(default_factory=list)  # trials kept though incomplete (aborted, cut short): "trial N: why"
 
     def plant_inputs(self) -> tuple:
         """``(d0, d1, mode)`` as (T, B) arrays: zero dither and a compliant (no) isolator where absent."""
@@ -121,28 +129,38 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
     n = len(rec)
     if n < 10:
         raise RecordingError(f"{rec.path}: only {n} control samples; the diagnosis needs at least 10")
+    axis = rec.axis                                      # a damaged /experiment/config is refused here
     dts = np.diff(rec.stamp_ns)
     dt = float(np.median(dts)) * 1e-9
     rate = 1.0 / dt
     notes = [f"recording {rec.salvaged}"] if rec.salvaged else []
+    notes += [f"recording: {w}" for w in rec.warnings]
     if np.any(np.abs(dts * 1e-9 - dt) > 0.01 * dt):
         notes.append(f"{int(np.sum(np.abs(dts * 1e-9 - dt) > 0.01 * dt))} irregular sample interval(s)")
-    x_ref, v_ref = rec.x_ref, rec.v_ref
-    if rec.open_loop:
-        # no reference: the recorded command drove the plant. The regimes (reversal, constant velocity, ...)
-        # are read from the measurement itself, low-passed (zero phase) at rate/50
-        _, vs = smooth(rec.y[:, None], rate, rate / 50.0)
-        x_ref, v_ref = rec.y.copy(), vs[:, 0]
-        notes.append("open-loop record (no /stage/reference): the recorded command drove the plant; judged by "
-                     "open-loop windows re-initialised from the measurement")
-    elif np.all(np.isnan(v_ref)):
-        v_ref = np.gradient(rec.x_ref) * rate
-        notes.append("reference velocity absent: differentiated from the reference position")
-    v_ref = np.nan_to_num(v_ref)
-    slices = [(tr.trial, tr.start, tr.stop) for tr in rec.trials() if tr.stop - tr.start >= max(10, min_trial * rate)]
+    trials = [tr for tr in rec.trials() if tr.stop - tr.start >= max(10, min_trial * rate)]
+    slices = [(tr.trial, tr.start, tr.stop) for tr in trials]
     if not slices:
         slices = [(0, 0, n)]
         notes.append("no trial events: the whole record is one trial")
+    slices, excluded = _undamaged(rec, slices)
+    notes += [f"excluded {e}" for e in excluded]
+    kept = {s[0] for s in slices}
+    incomplete = [f"trial {tr.trial}: " + "; ".join(tr.problems) for tr in trials if tr.problems and tr.trial in kept]
+    notes += [f"incomplete {e} (its samples are data: used)" for e in incomplete]
+    # damaged values (in excluded trials only) are bridged before anything filters across trials
+    x_ref, v_ref = _bridged(rec.x_ref, "position"), _bridged(rec.v_ref, "velocity")
+    u, y = _bridged(rec.u, "effort"), _bridged(rec.y, "position")
+    if rec.open_loop:
+        # no reference: the recorded command drove the plant. The regimes (reversal, constant velocity, ...)
+        # are read from the measurement itself, low-passed (zero phase) at rate/50
+        _, vs = smooth(y[:, None], rate, rate / 50.0)
+        x_ref, v_ref = y.copy(), vs[:, 0]
+        notes.append("open-loop record (no /stage/reference): the recorded command drove the plant; judged by "
+                     "open-loop windows re-initialised from the measurement")
+    elif np.all(np.isnan(v_ref)):
+        v_ref = np.gradient(x_ref) * rate
+        notes.append("reference velocity absent: differentiated from the reference position")
+    v_ref = np.nan_to_num(v_ref)
     if max_trials is not None:
         slices = slices[:max_trials]
     d0 = d1 = mode = None
@@ -157,11 +175,42 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
         f_ext = np.nan_to_num(np.asarray(rec.external_force, float))
         notes.append("known external force from /stage/external_force (applied to the model's table)")
     cut = lambda a: None if a is None else [a[s0:s1] for _, s0, s1 in slices]  # noqa: E731
-    out = from_trials(rate, [rec.t[s0] for _, s0, _ in slices], cut(x_ref), cut(v_ref), cut(rec.u), cut(rec.y),
+    out = from_trials(rate, [rec.t[s0] for _, s0, _ in slices], cut(x_ref), cut(v_ref), cut(u), cut(y),
                       trial_ids=[s[0] for s in slices], source=str(rec.path), notes=notes, burn_in=burn_in,
                       d0=cut(d0), d1=cut(d1), mode=cut(mode), f_ext=cut(f_ext), open_loop=rec.open_loop)
-    out.axis = rec.axis
+    out.axis = axis
+    out.excluded, out.incomplete = excluded, incomplete
     return out
+
+
+def _bridged(a: np.ndarray, fld: str) -> np.ndarray:
+    """``a`` with its damaged values (:func:`~experiment_runner.recording.beyond_limits`)
+    interpolated from the good ones (an absent, all-nan signal as it is)."""
+    from experiment_runner.recording import beyond_limits
+    bad = beyond_limits(a, fld)
+    if not bad.any() or bad.all():
+        return a
+    i = np.arange(len(a))
+    return np.where(bad, np.interp(i, i[~bad], a[~bad]), a)
+
+
+def _undamaged(rec, slices) -> tuple[list, list[str]]:
+    """``slices`` without the trials that hold damage (:attr:`Damage.unusable`), and why each
+    was left out; :class:`RecordingError` if none is left."""
+    from experiment_runner.recording import RecordingError
+    bad = [d for d in rec.damage if d.unusable]
+    keep, excluded = [], []
+    for tid, s0, s1 in slices:
+        why = [w for w in (d.within(s0, s1, rec.t) for d in bad) if w]
+        if why:
+            excluded.append(f"trial {tid}: " + "; ".join(why))
+        else:
+            keep.append((tid, s0, s1))
+    if not keep:
+        raise RecordingError(f"{rec.path}: damaged: every trial holds samples the diagnosis cannot use (it never "
+                             "fits or judges non-finite, absurd, missing or misordered samples): "
+                             + "; ".join(d.text for d in bad))
+    return keep, excluded
 
 
 def from_trials(rate: float, t0, x_ref, v_ref, u, y, trial_ids=None, source: str = "", notes=None,

@@ -15,6 +15,7 @@ from pathlib import Path
 import yaml
 
 from stage_sim.config import ConfigError, Preset, load_preset, preset_from_dict, set_dotted
+from stage_sim.validation import load_yaml_file
 from stage_sim.plant import build_plant
 
 from .engine import observer_model
@@ -117,13 +118,8 @@ def load_model(source) -> ModelSpec:
         path = Path(source)
         if not path.suffix:
             return ModelSpec(load_preset(source))
-        if not path.is_file():
-            raise ConfigError(f"{source}: no such file")
         where = str(path)
-        try:
-            data = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as err:
-            raise ConfigError(f"{path}: not valid YAML: {err}") from None
+        data = load_yaml_file(path, "model")
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: top level must be a mapping")
     if "additive_forces" in data:

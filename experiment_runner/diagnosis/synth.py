@@ -23,6 +23,7 @@ import numpy as np
 import yaml
 
 from experiment_runner.batch import simulate
+from experiment_runner.cliargs import positive_int
 from experiment_runner.experiment import build_trials, load_experiment, reference
 from experiment_runner.outputs import add_overwrite_argument, check_recording
 from experiment_runner.recording import bag_layout, write_run
@@ -70,7 +71,8 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
     parser.add_argument("--out", required=True, help="recording to write (bag directory; NAME.mcap -> NAME/NAME.mcap)")
     add_overwrite_argument(parser)
     parser.add_argument("--seed", type=int, default=None, help="simulation.seed of the truth (noise realisation)")
-    parser.add_argument("--trials", type=int, default=None, help="override the experiment's number of trials")
+    parser.add_argument("--trials", type=positive_int, default=None,
+                        help="override the experiment's number of trials")
     parser.add_argument("--reveal", action="store_true", help="also record /stage/truth and the preset in "
                                                               "/experiment/config (default: concealed)")
     return parser
