@@ -250,7 +250,7 @@ def prepare_folder(path, overwrite: bool = False, files=(), option: str = "") ->
         st = _lstat(path)
         _refuse_link(path, st)
         if st is None:
-            path.mkdir(parents=True, exist_ok=True)
+            _make_folders(path)
             st = _lstat(path)
             _refuse_link(path, st)
         if not stat.S_ISDIR(st.st_mode):
@@ -273,6 +273,22 @@ def prepare_folder(path, overwrite: bool = False, files=(), option: str = "") ->
     for file in files:
         _check_file(path / file)
     return path
+
+
+def _make_folders(path: Path) -> None:
+    """Make ``path`` and its missing parents, each marked as nanostage's (an empty :data:`MANIFEST`):
+    nanostage made them, so it may remove them again (:func:`remove`). A folder that appears
+    meanwhile (another process) is left unmarked."""
+    missing = []
+    while _lstat(path) is None and path.parent != path:
+        missing.append(path)
+        path = path.parent
+    for folder in reversed(missing):
+        try:
+            folder.mkdir()
+        except FileExistsError:
+            continue
+        _update(folder)
 
 
 def _folder(folder: Path) -> Path:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from experiment_runner import outputs
@@ -407,6 +407,8 @@ def _run(op, out: Path) -> str | None:
 
 
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@example(out_kind="absent", kinds=dict.fromkeys(NAMES, ABSENT), partials=[], overwrite=False,   # folders it made
+         ops=[("remove_out",), ("write", "report.md", True), ("remove_out",)])                  # are its own
 @given(out_kind=st.sampled_from(["absent", "folder", "nanostage's folder", "link"]),
        kinds=st.fixed_dictionaries({n: st.sampled_from([ABSENT, USER_FILE, USER_DIR, USER_DIR_CLASH, LINK_FILE,
                                                          LINK_DIR, NS_FILE, NS_DIR]) for n in NAMES}),

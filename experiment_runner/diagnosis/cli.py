@@ -118,7 +118,6 @@ def main_diagnose(args) -> int:
     for w in ([f"recording {rec.salvaged}"] if rec.salvaged else []) + rec.warnings:
         print(f"warning: {w}", file=sys.stderr)         # what the reader found, before the long work
     out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
-    prepare_folder(out, args.overwrite, files=REPORT_FILES, option="--out")     # refused before the diagnosis, not after
     nominal = args.nominal
     if nominal is None:
         nominal = _nominal_from_config(rec)
@@ -130,6 +129,7 @@ def main_diagnose(args) -> int:
         print(f"warning: incomplete {e} (its samples are used)", file=sys.stderr)
     for e in data.excluded:
         print(f"warning: excluded {e}", file=sys.stderr)
+    prepare_folder(out, args.overwrite, files=REPORT_FILES, option="--out")     # bad input above: no folder made
     rep = diagnose(args.recording, nominal, out=out, options=diagnose_options(args), data=data)
     if args.json:
         print(json.dumps(jsonable(rep), indent=1))
