@@ -13,12 +13,12 @@ import yaml
 
 from experiment_runner.campaigns import headline, mechanism
 from experiment_runner.campaigns.calibration import ParamSpec, fit
-from experiment_runner.campaigns.report import write_index
 from experiment_runner.campaigns.cli import add_campaign_arguments, main_campaign
+from experiment_runner.campaigns.report import write_index
 from experiment_runner.campaigns.runner import MAIN_JOB, run_campaign
-from experiment_runner.campaigns.spec import (CAMPAIGN_DIR, cal_parameters, calibration_source, case_preset,
+from experiment_runner.campaigns.spec import (CAMPAIGN_DIR, Campaign, cal_parameters, calibration_source, case_preset,
                                               conditions, list_campaigns, load_campaign, resolve)
-from experiment_runner.campaigns.trials import graph_experiment, make_trials, reference
+from experiment_runner.campaigns.trials import graph_experiment, learn_step_ii, make_trials, reference
 from experiment_runner.experiment import Experiment, build_trials, experiment_preset
 from stage_sim.config import ConfigError, load_preset
 
@@ -298,6 +298,34 @@ def test_main_report_leads_with_the_headline(t42, t52):
         assert r["holds"] == headline.holds(r["sim"], r["seed"], spec.similar)
         assert r["mechanism"]
     assert doc[0]["seed"] == pytest.approx(16 / 44) and doc[5]["seed"] == pytest.approx(33 / 77)
+
+
+def test_step_ii_learned_on_the_move_sees_the_locked_creep():
+    """``step_ii: {learn: on_move}`` (not the seed's procedure, the counterfactual of docs/headline.md)
+    learns from the error after the switch that ends the condition's own move: it contains the table's
+    remaining end-of-move gap (tens of nm and more), which the seed's at-rest learning (a switch of a
+    stage at rest) does not see (a few nm)."""
+    camp = load_campaign("table_5_2")
+    d = camp.model_dump(by_alias=True)
+    d["test"].update(steps=[5e-6], dwell=0.1)
+    d["seed"]["values"] = [v for v in d["seed"]["values"] if v["step"] == 5e-6]
+    d["seed"]["findings"] = [f for f in d["seed"]["findings"] if f["step"] == 5e-6]
+    d["calibration"] = None
+    for c in d["cases"]:
+        if c["name"] == "sai":
+            c["step_ii"].update(iterations=1, trials=1)
+    camp = Campaign.model_validate(d)
+    case, cond = camp.case("sai"), conditions(camp)[0]
+    preset = case_preset(camp, case, CAL_5_2, cond)
+    rest = learn_step_ii(camp, case, preset)
+    d["cases"][[c["name"] for c in d["cases"]].index("sai")]["step_ii"]["learn"] = "on_move"
+    camp_m = Campaign.model_validate(d)
+    move = learn_step_ii(camp_m, camp_m.case("sai"), preset, cond=cond)
+    assert move["learn"] == "on_move" and rest["learn"] == "at_rest"
+    assert rest["rms_history_m"][0] < 10e-9 and move["rms_history_m"][0] > 25e-9
+    assert np.max(np.abs(move["correction"])) > 5 * np.max(np.abs(rest["correction"]))
+    with pytest.raises(ValueError, match="on_move needs the condition"):
+        learn_step_ii(camp_m, camp_m.case("sai"), preset)
 
 
 def test_table_3_3_findings(tmp_path):

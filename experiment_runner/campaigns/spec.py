@@ -291,7 +291,9 @@ class StepII(_Strict):
     positions, updates the correction (:func:`stage_control.sai.ilc_update`) for the
     preset's ``sai_manager.ilc.iterations`` iterations (seed: u_10).
     """
-    learn: Literal["at_rest"] = "at_rest"
+    learn: Literal["at_rest", "on_move"] = Field(
+        "at_rest", description="at_rest: the seed's procedure; on_move: NOT the seed's -- the error after the switch "
+                               "of each condition's own move (the counterfactual of docs/headline.md)")
     compliant_time: Pos = Field(0.03, description="compliant period before the switch [s]")
     settle_before: Pos = Field(0.02, description="rest before the compliant period [s]")
     trials: int = Field(4, ge=1, le=64, description="start positions averaged per iteration")
