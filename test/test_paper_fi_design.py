@@ -106,10 +106,10 @@ def test_fi_design_plots(fi_out):
 
 @pytest.mark.slow
 def test_ge_claim_honest_property(fi_out):
-    """Fig. 6.3(b) is only partly reproduced: does NOT agree (optimum in k_fi, not a plateau)."""
+    """Fig. 6.3(b) in the seed's model: ||G_e|| has an optimum in k_fi, not a plateau (whether that
+    agrees with the seed's "thresholds" is the claim's verdict in claims.md, not this test's)."""
     c = fi_out[1]["6.3.2/Ge-threshold"]
     n = c.numbers
-    assert c.agrees is False
     # reproduced parts
     for lab in ("LS-LD", "LS-HD", "HS-HD"):
         assert n[f"Ge_ratio_{lab}"] <= 0.5
@@ -120,7 +120,7 @@ def test_ge_claim_honest_property(fi_out):
     assert n["Ge_rise_below_kopt_max_c_le_1000"] > 0.5
     assert 2e4 < n["Ge_k_opt_vs_c"]["1"] < 8e4
     for v in list(n["sensitivity_c_f"].values()) + list(n["variants"].values()):
-        assert v["ge_agrees"] is False and v["ge_table_ok"] and v["ge_mono_c"]
+        assert v["ge_table_ok"] and v["ge_mono_c"]
     assert n["max_closed_loop_pole_real"] < 0
     # first-order explanation: |G_e| ~ |k_fi - m_t w^2| / |C| gives the optimum and the rise
     k_opt = n["Ge_k_opt_vs_c"]["1"]

@@ -29,7 +29,7 @@ from experiment_runner.campaigns.base import (OUTPUT_FILES, CampaignRun, RunSett
                                               write_rows_csv)
 from experiment_runner.campaigns.calibration import source_calibration
 from experiment_runner.campaigns.findings import evaluate_frf_findings, seed_bound_check
-from experiment_runner.campaigns.frf import closed_loop_frf, loop_frfs, plant_frf
+from experiment_runner.campaigns.frf import closed_loop_frf, loop_frfs, nominal_fit, plant_frf
 from experiment_runner.campaigns.registry import METRICS
 from experiment_runner.campaigns.report import cases_md, findings_table, write_outputs
 from experiment_runner.campaigns.spec import (CalibrationFrom, Campaign, Condition, FrequencyResponseTest,
@@ -111,8 +111,10 @@ def run_frf_campaign(kind, camp: Campaign, out_dir: Path, settings: RunSettings)
                 bw = closed_loop_bandwidth(f, lf["T"]) if f.size > 1 else math.nan
                 mg = loop_margins(f, lf["L"]) if f.size > 2 else LoopMargins(math.nan, math.nan, math.nan,
                                                                              math.nan, 0)
+                P, Z = nominal_fit(f, G)
                 vals = {"bandwidth_hz": bw, "gain_margin_db": mg.gain_margin_db,
-                        "phase_margin_deg": mg.phase_margin_deg}
+                        "phase_margin_deg": mg.phase_margin_deg, "nominal_pole_per_s": P,
+                        "nominal_gain": Z * preset.stage.drive.force_constant}
 
                 def full(x):
                     a = np.full(pf.freqs_hz.shape, np.nan + 0j)

@@ -53,7 +53,10 @@ from stage_control.servo import build_servo
 from stage_sim.plant import OK, PlantInputs, chunk_state, init_plant_state, quantize, run_open_loop, state_chunk
 
 __all__ = ["frequency_grid", "plant_frf", "PlantFrf", "closed_loop_frf", "controller_frf", "loop_frfs",
-           "coulomb_force", "moving_mass"]
+           "coulomb_force", "moving_mass", "nominal_fit", "NOMINAL_FIT_MAX_HZ"]
+
+NOMINAL_FIT_MAX_HZ = 100.0
+"""Upper end of the band of Table C.1's nominal-model fit ("frequencies below 100 Hz", App. C.2.1)."""
 
 
 # =========================================================================== open-loop kernel
@@ -305,6 +308,55 @@ def closed_loop_frf(preset, test: FrequencyResponseTest, plant: PlantFrf, models
             T_sim[i, j] = sine_phasor(t, res.y[b, w], f) / R
             u_amp[i, j] = abs(sine_phasor(t, res.u[b, w], f))
     return T_sim, u_amp, samples
+
+
+# =========================================================================== nominal model (Table C.1)
+def nominal_fit(freqs_hz, G, f_max: float = NOMINAL_FIT_MAX_HZ) -> tuple[float, float]:
+    """Table C.1's nominal plant ``G_n(s) = Z / (s (s + P))`` (Eq. C.1) fitted to a plant FRF.
+
+    App. C.2.1: "P and Z ... are obtained through least-squares-fitting of the low frequency
+    portion of the measured plant dynamics in the gross motion regime", the 1.5 A FRF below
+    100 Hz. The fit here is the linear (equation-error) least squares of
+    ``s^2 G + P s G = Z`` over the measured points below ``f_max``: for a rigid mass ``m`` with
+    viscous damping ``c`` it returns ``P = c / m`` and ``Z = 1 / m`` exactly. ``P`` is the
+    damping per unit mass the FRF shows in that band: with Coulomb sliding alone it comes only
+    from the friction's describing function (``~4 F_C w / (pi A)``, growing with frequency).
+
+    Parameters
+    ----------
+    freqs_hz : array_like
+        Frequencies [Hz] (points with a non-finite ``G`` are skipped).
+    G : array_like of complex
+        Plant FRF, force command [N] -> position [m].
+    f_max : float
+        Upper end of the fitted band [Hz].
+
+    Returns
+    -------
+    P : float
+        Pole [1/s].
+    Z : float
+        Gain [1/kg] per newton (Table C.1's ``Z`` [N/(A kg)] is this times the force constant);
+        nan, nan with fewer than 2 points in the band.
+
+    Examples
+    --------
+    >>> f = np.linspace(10.0, 100.0, 10)
+    >>> s = 2j * np.pi * f
+    >>> P, Z = nominal_fit(f, 0.5 / (s * (s + 120.0)))       # 2 kg, c = 240 N s/m
+    >>> round(P, 6), round(Z, 6)
+    (120.0, 0.5)
+    """
+    f = np.asarray(freqs_hz, float)
+    G = np.asarray(G, complex)
+    ok = np.isfinite(G) & (f <= f_max) & (f > 0)
+    if ok.sum() < 2:
+        return math.nan, math.nan
+    s, g = 2j * np.pi * f[ok], G[ok]
+    A = np.column_stack([s * g, -np.ones_like(g)])
+    b = -s ** 2 * g
+    P, Z = np.linalg.lstsq(np.vstack([A.real, A.imag]), np.concatenate([b.real, b.imag]), rcond=None)[0]
+    return float(P), float(Z)
 
 
 # =========================================================================== controller and loop

@@ -24,6 +24,21 @@ isolator the table only feels k_fi << k_p and the same PID closes them quickly.
   attached, no friction, no isolator, no dither: the "equivalent frictionless stage" of
   Sec. 1.3). ``friction_limited`` is true when the trial takes at least 1.5 times as long
   and 5 ms more than its twin.
+* ``rms_noise_free_m``: the trial's RMS in-position error without the drive noise: the floor
+  that the encoder's quantisation, the integrator's hunting around the target count and its
+  tail inside the window leave (the seed attributes the in-position error to the drive noise,
+  Sec. 4.4.1 / Fig. 5.1-5.2). ``rms_after_tail_m`` / ``rms_after_tail_noise_free_m``: the same
+  from :data:`TAIL_S` after the settling instant, without the integrator's tail inside the window.
+* ``switch`` (SAI trials only, :func:`switch_state`): the state of the stage when the
+  isolator locks after the move (Sec. 5.3: it is switched to stiff "once the reference
+  command reaches the target position"): the lock instant, the table's error, the flexure's
+  deflection, the table's and the bearing's velocities, and the slow closed-loop time
+  constants with the bearing locked and on the flexure (:func:`creep_time_constant`).
+
+The time constant of the creep: in the pre-motion regime the bearing is a spring ``k_f`` to
+ground, and the PID's slow pole is ``ki / (kp + k)`` for whatever stiffness ``k`` the table
+feels (``m s^3 + kd s^2 + (kp + k) s + ki = 0`` with the fast poles far above it): ``k_f``
+(locked, the seed's k_c -> k_f of Sec. 5.1) against ``k_fi`` (compliant).
 
 Examples
 --------
@@ -44,7 +59,8 @@ from experiment_runner.campaigns.trials import simulate_trials
 from experiment_runner.experiment import trial_metrics
 from stage_sim.config import with_overrides
 
-__all__ = ["turning_points", "frictionless_twin", "premotion_range", "analyse", "summary"]
+__all__ = ["turning_points", "frictionless_twin", "premotion_range", "initial_stiffness", "creep_time_constant",
+           "lock_delay", "switch_state", "analyse", "summary"]
 
 FRICTION_LIMITED_RATIO = 1.5     # settling / twin settling at least this ...
 FRICTION_LIMITED_MARGIN = 5e-3   # ... and at least this much longer [s]
@@ -119,6 +135,143 @@ def premotion_range(preset) -> float:
     return max(out) if out else math.nan
 
 
+def initial_stiffness(preset) -> float:
+    """The bearings' pre-motion stiffness right after a reversal [N/m] (in parallel): ``sum k_i`` of
+    a GMS model (and its rate-and-state variant), ``k_sigma`` of Dahl; nan for other models."""
+    tot, seen = 0.0, False
+    for b in preset.stage.bearings:
+        f = b.friction
+        if f is None:
+            continue
+        if f.model in ("gms", "gms_rate_state"):
+            tot, seen = tot + float(sum(f.k)), True
+        elif f.model == "dahl":
+            tot, seen = tot + float(f.k_sigma), True
+    return tot if seen else math.nan
+
+
+def creep_time_constant(preset, stiffness: float) -> float:
+    """Slow closed-loop time constant ``(kp + k) / ki`` [s] of the preset's PID on a table held by a
+    spring ``stiffness`` [N/m] to ground (the creep of the last micrometres in the pre-motion regime).
+
+    >>> from stage_sim.config import load_preset
+    >>> p = load_preset("sai_stage")
+    >>> round(creep_time_constant(p, 2.19e6) * 1e3, 1), round(creep_time_constant(p, 5e4) * 1e3, 1)
+    (50.1, 7.9)
+    """
+    pid = preset.controller.pid
+    return (pid.kp + stiffness) / pid.ki if pid.ki > 0 else math.inf
+
+
+def lock_delay(preset) -> float:
+    """Time from the stiff command to the lock [s]: the solenoid voltage's RC filter falling to half
+    (``ln 2 / (2 pi f_RC)``) plus the armature's travel (``switch_delay``), as the plant models it."""
+    sai = preset.stage.sai
+    if sai is None:
+        return 0.0
+    rc = 0.0 if sai.rc_cutoff is None else math.log(2.0) / (2 * math.pi * sai.rc_cutoff)
+    return rc + sai.switch_delay
+
+
+def switch_state(preset, res, row: int, k0: int, target: float, sign: float, window: float) -> Optional[dict]:
+    """The stage's state when the SAI locks after the move (None without a compliant -> stiff switch).
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+    res : experiment_runner.batch.BatchResult
+    row : int
+        Trial row of ``res``.
+    k0 : int
+        Sample at which the reference reaches the target.
+    target : float
+        Target position [m].
+    sign : float
+        Direction of the move (+1 / -1): errors and deflections are signed along it.
+    window : float
+        Settling window half-width [m].
+
+    Returns
+    -------
+    dict or None
+        ``t_command_s`` and ``t_lock_s`` (after the reference stopped), ``error_m`` (table minus
+        target), ``deflection_m`` (table minus bearing), ``v_table_m_s``, ``v_bearing_m_s``,
+        ``tau_locked_s`` / ``tau_compliant_s`` (:func:`creep_time_constant` with the bearings'
+        initial stiffness in series with the lock, and with the flexure), ``k_locked`` [N/m], and
+        ``creep_estimate_s``: ``tau_locked ln(|e| k / ((kp + k) w))``, the time the locked stage's
+        slow pole needs to bring the part of the error the proportional action leaves down to the
+        window ``w`` (0 when already inside).
+    """
+    mode = res.mode[row]
+    edges = np.flatnonzero((mode[:-1] == 1.0) & (mode[1:] == 0.0)) + 1
+    edges = edges[edges >= k0 - 1]
+    if edges.size == 0 or preset.stage.sai is None:
+        return None
+    rate = preset.controller.rate
+    kc = int(edges[0])
+    T = res.x_table.shape[1]
+    kl = min(T - 2, kc + int(math.ceil(lock_delay(preset) * rate)))
+    xt, xb = res.x_table[row], res.x_bearing[row]
+    e = float((xt[kl] - target) * sign)
+    kf = initial_stiffness(preset)
+    k_lock = preset.stage.sai.lock_stiffness
+    k = kf * k_lock / (kf + k_lock) if math.isfinite(kf) else math.nan
+    joints = [b.joint.stiffness for b in preset.stage.bearings if b.joint is not None]
+    tau_l = creep_time_constant(preset, k)
+    kp = preset.controller.pid.kp
+    slow = abs(e) * k / (kp + k) if math.isfinite(k) else math.nan
+    return {"t_command_s": (kc - k0) / rate, "t_lock_s": (kl - k0) / rate, "error_m": e,
+            "deflection_m": float((xt[kl] - xb[kl]) * sign),
+            "v_table_m_s": float((xt[kl + 1] - xt[kl - 1]) * rate / 2 * sign),
+            "v_bearing_m_s": float((xb[kl + 1] - xb[kl - 1]) * rate / 2 * sign),
+            "k_locked": k, "tau_locked_s": tau_l,
+            "tau_compliant_s": creep_time_constant(preset, sum(joints)) if joints else math.nan,
+            "creep_estimate_s": (tau_l * math.log(slow / window) if slow > window else 0.0)
+            if math.isfinite(slow) else math.nan}
+
+
+def creep_fit(e, k_from: int, k_to: int, rate: float, window: float) -> dict:
+    """Decay of ``|e|`` from sample ``k_from`` (plus 2 ms) to ``k_to`` (the settling instant): the time
+    constant of a log-linear fit over the samples outside the window, and its amplitude at ``k_from``.
+
+    Returns
+    -------
+    dict
+        ``tau_effective_s`` and ``creep_amplitude_m`` (nan without 5 ms of samples outside the window).
+
+    Examples
+    --------
+    >>> t = np.arange(0, 0.1, 1e-4)
+    >>> d = creep_fit(2e-6 * np.exp(-t / 0.02), 0, 800, 1e4, 25e-9)
+    >>> round(d["tau_effective_s"], 4), round(d["creep_amplitude_m"] * 1e6, 3)
+    (0.02, 2.0)
+    """
+    k = np.arange(k_from + int(round(2e-3 * rate)), min(k_to, len(e)))
+    a = np.abs(np.asarray(e, float)[k]) if k.size else np.zeros(0)
+    k, a = k[a > window], a[a > window]
+    if k.size < 5e-3 * rate:
+        return {"tau_effective_s": math.nan, "creep_amplitude_m": math.nan}
+    slope, icpt = np.polyfit((k - k_from) / rate, np.log(a), 1)
+    if slope >= 0:
+        return {"tau_effective_s": math.inf, "creep_amplitude_m": float(np.exp(icpt))}
+    return {"tau_effective_s": float(-1.0 / slope), "creep_amplitude_m": float(np.exp(icpt))}
+
+
+TAIL_S = 0.1
+"""The integrator's tail inside the window: the in-position RMS is also given from this long after the
+settling instant (two slow-pole time constants of the stiff stage, ~50 ms, Fig. 4.6a's < 10 Hz)."""
+
+
+def _rms_after(y, target, k0, ts, rate) -> Optional[float]:
+    """RMS of the measured error from ``TAIL_S`` after the settling instant to the end (None if unsettled)."""
+    if ts is None:
+        return None
+    k = k0 + int(round((ts + TAIL_S) * rate))
+    if k >= len(y) - 1:
+        return None
+    return float(np.sqrt(np.mean(np.square(np.asarray(y[k:], float) - target))))
+
+
 def _settling(camp, trial, res, row, rate) -> Optional[float]:
     m = trial_metrics(trial, res.y[row], res.x_ref[row], rate)
     v = m.get("settling_time_s")
@@ -136,6 +289,10 @@ def analyse(camp, case, cond, preset, trial: int, correction=None, hysteresis: f
     ref, (tr,), res = simulate_trials(camp, case, cond, preset, [trial], correction)
     twin = frictionless_twin(preset)
     _, (trt,), rest = simulate_trials(camp, case, cond, twin, [trial], None)
+    quiet = with_overrides(preset, {"stage.drive.noise_current_rms": 0.0})
+    _, (trq,), resq = simulate_trials(camp, case, cond, quiet, [trial], correction)
+    rms_quiet = trial_metrics(trq, resq.y[0], resq.x_ref[0], rate).get("rms_in_position_m")
+    ts_q = _settling(camp, trq, resq, 0, rate)
     move, settle = ref.select("move")[0], ref.select("settle")[0]
     k0 = settle.start
     target = float(tr.x_ref[settle.stop - 1])
@@ -155,6 +312,9 @@ def analyse(camp, case, cond, preset, trial: int, correction=None, hysteresis: f
                and ts - ts_twin >= FRICTION_LIMITED_MARGIN)
     k_plot = min(res.x_table.shape[1], k0 + int(round(max(0.15, 2.0 * (ts or 0.1)) * rate)))
     k_start = max(0, k0 - int(round(0.3 * (move.stop - move.start))))
+    sw = switch_state(preset, res, 0, k0, target, sign, camp.test.window)
+    if sw is not None:
+        sw.update(creep_fit(e, k0 + int(round(sw["t_lock_s"] * rate)), k_end, rate, camp.test.window))
     return {
         "case": case.name, "condition": cond.key, "trial": int(trial),
         "settling_time_s": ts, "twin_settling_time_s": ts_twin, "friction_limited": bool(limited),
@@ -162,9 +322,14 @@ def analyse(camp, case, cond, preset, trial: int, correction=None, hysteresis: f
         "excursion_m": float(e[k0 + int(np.argmax(np.abs(e[k0:k_end + 1])))]) if k_end >= k0 else float(e[k0]),
         "reversals": revs, "travel_after_last_reversal_m": after, "premotion_range_m": pm,
         "settled_in_premotion": (after is not None and math.isfinite(pm) and after < pm),
+        "switch": sw,
+        "rms_noise_free_m": None if rms_quiet is None or not math.isfinite(rms_quiet) else float(rms_quiet),
+        "rms_after_tail_m": _rms_after(res.y[0], target, k0, ts, rate),
+        "rms_after_tail_noise_free_m": _rms_after(resq.y[0], target, k0, ts_q, rate),
         "trace": {"t": (np.arange(k_start, k_plot) - k0) / rate, "e": e[k_start:k_plot],
                   "e_twin": e_twin[k_start:k_plot], "reversal_t": [r["t_s"] for r in revs],
-                  "reversal_e": [r["error_m"] for r in revs], "window": camp.test.window},
+                  "reversal_e": [r["error_m"] for r in revs], "window": camp.test.window,
+                  "deflection": (res.x_table[0, k_start:k_plot] - res.x_bearing[0, k_start:k_plot]) * sign},
     }
 
 
@@ -173,6 +338,21 @@ def _nm(x):
     if a >= 1e-6:
         return f"{x * 1e6:.2f} µm"
     return f"{x * 1e9:.0f} nm"
+
+
+def switch_summary(sw: dict) -> str:
+    """One clause: where the table is when the SAI locks, and what the locked stage then has to do."""
+    e = sw["error_m"]
+    return (f"locks {sw['t_lock_s'] * 1e3:+.1f} ms after the reference stops with the table {_nm(abs(e))} "
+            f"{'past' if e > 0 else 'short of'} the target (flexure deflection {_nm(sw['deflection_m'])}, table "
+            f"{sw['v_table_m_s'] * 1e3:+.2f} mm/s, bearing {sw['v_bearing_m_s'] * 1e3:+.2f} mm/s); locked, it creeps "
+            f"in with a time constant of {_tau(sw.get('tau_effective_s'))} (slow pole (kp + k_f)/ki with the "
+            f"bearing's initial stiffness {sw['tau_locked_s'] * 1e3:.0f} ms, on the flexure "
+            f"{sw['tau_compliant_s'] * 1e3:.1f} ms)")
+
+
+def _tau(v) -> str:
+    return "–" if v is None or not math.isfinite(v) else f"{v * 1e3:.0f} ms"
 
 
 def summary(m: dict) -> str:
@@ -196,6 +376,9 @@ def summary(m: dict) -> str:
                  + ("(inside the bearings' pre-motion range "
                     f"{_nm(m['premotion_range_m'])}: pre-motion regime)" if m["settled_in_premotion"] else
                     "(beyond the pre-motion range: gross sliding)"))
+    sw = m.get("switch")
+    if sw:
+        s.insert(0, switch_summary(sw))
     ts, tw = m["settling_time_s"], m["twin_settling_time_s"]
     fmt = (lambda v: "not settled" if v is None else f"{v * 1e3:.1f} ms")
     s.append(f"settles in {fmt(ts)}, friction-free twin {fmt(tw)}: "
@@ -229,6 +412,29 @@ def report_lines(cr, images: str = "") -> list[str]:
     L.append("")
     if images:
         L += [f"![mechanism {c.label}]({images}/mechanism_{c.key}.png)" for c in cr.conditions] + [""]
+    return L + switch_lines(cr, images)
+
+
+def switch_lines(cr, images: str = "") -> list[str]:
+    """Markdown: each switched (SAI) case at its switch, beside the seed's account of it
+    (``seed_mechanism`` of the case); with ``images`` the switch plots are embedded."""
+    L = []
+    for case in cr.campaign.cases:
+        ms = [(cond, cr.runs[(case.name, cond.key)].mechanism) for cond in cr.conditions
+              if (case.name, cond.key) in cr.runs]
+        ms = [(cond, m) for cond, m in ms if m and m.get("switch")]
+        if not ms:
+            continue
+        L += [f"### {case.label} at the switch", ""]
+        if case.seed_mechanism:
+            L += [f"Seed: {case.seed_mechanism.strip()}", ""]
+        for cond, m in ms:
+            L.append(f"* {cond.label}: {switch_summary(m['switch'])}; settles in "
+                     + ("–" if m["settling_time_s"] is None else f"{m['settling_time_s'] * 1e3:.1f} ms") + ".")
+        L.append("")
+        if images:
+            L += [f"![{case.label} switch {cond.label}]({images}/switch_{case.name}_{cond.key}.png)"
+                  for cond, _ in ms] + [""]
     return L
 
 
@@ -272,4 +478,75 @@ def plot(cr, plt, out) -> list:
         path = outputs.savefig(fig, out / f"mechanism_{cond.key}.png", dpi=110)
         plt.close(fig)
         files.append(path)
+    return files + plot_switch(cr, plt, out)
+
+
+def plot_switch(cr, plt, out) -> list:
+    """``out/switch_<case>_<condition>.png`` for every switched (SAI) case: (a) table position minus
+    target through the end of the move and the settling portion, with the other cases' representative
+    trials, the stiff command, the lock and the reversals (▼); (b) the flexure's deflection; (c) |error|
+    on a log scale with the window and the locked stage's slow-pole creep from the lock."""
+    files = []
+    for case in cr.campaign.cases:
+        for cond in cr.conditions:
+            rr = cr.runs.get((case.name, cond.key))
+            m = rr.mechanism if rr else None
+            if not m or not m.get("switch"):
+                continue
+            sw, tr = m["switch"], m["trace"]
+            others = [(cr.campaign.case(c.name).label, cr.runs[(c.name, cond.key)].mechanism)
+                      for c in cr.campaign.cases if c.name != case.name and (c.name, cond.key) in cr.runs]
+            others = [(lab, o) for lab, o in others if o]
+            fig, ax = plt.subplots(3, 1, figsize=(9, 9), sharex=True)
+            t_max = max(0.06, 1.3 * max([m["settling_time_s"] or 0.1] + [o["settling_time_s"] or 0.0
+                                                                          for _, o in others]))
+            scale = 1e6 if abs(cond.step) >= 1e-4 else 1e9
+            unit = "µm" if scale == 1e6 else "nm"
+            for (lab, o), ls in zip(others, ("--", ":", "-.")):
+                ax[0].plot(o["trace"]["t"] * 1e3, o["trace"]["e"] * scale, ls, color="0.45", lw=1, label=lab)
+                ax[1].plot(o["trace"]["t"] * 1e3, o["trace"]["deflection"] * 1e6, ls, color="0.45", lw=1, label=lab)
+                ax[2].semilogy(o["trace"]["t"] * 1e3, np.maximum(np.abs(o["trace"]["e"]), 1e-10) * 1e9, ls,
+                               color="0.45", lw=1, label=f"{lab}: " + ("–" if o["settling_time_s"] is None else
+                                                                      f"{o['settling_time_s'] * 1e3:.1f} ms"))
+            ax[0].plot(tr["t"] * 1e3, tr["e"] * scale, color="C3", lw=1.2, label=case.label)
+            ax[1].plot(tr["t"] * 1e3, tr["deflection"] * 1e6, color="C3", lw=1.2, label=case.label)
+            ax[2].semilogy(tr["t"] * 1e3, np.maximum(np.abs(tr["e"]), 1e-10) * 1e9, color="C3", lw=1.2,
+                           label=f"{case.label}: " + ("–" if m["settling_time_s"] is None else
+                                                      f"{m['settling_time_s'] * 1e3:.1f} ms"))
+            rt, re_ = np.array(tr["reversal_t"]), np.array(tr["reversal_e"])
+            if rt.size:
+                ax[0].plot(rt * 1e3, re_ * scale, "v", color="C3", ms=6, label="reversal")
+            te, amp = sw.get("tau_effective_s", math.nan), sw.get("creep_amplitude_m", math.nan)
+            if math.isfinite(te) and math.isfinite(amp):
+                tc = np.linspace(sw["t_lock_s"], t_max, 200)
+                ax[2].semilogy(tc * 1e3, amp * np.exp(-(tc - sw["t_lock_s"]) / te) * 1e9, color="C0", lw=0.9,
+                               ls="--", label=f"locked creep fit, τ = {te * 1e3:.0f} ms (slow pole with the initial "
+                                              f"k_f: {sw['tau_locked_s'] * 1e3:.0f} ms)")
+            near = np.abs(tr["e"][tr["t"] >= -0.05 * t_max])
+            lim = 1.3 * float(np.max(near)) * scale if near.size else None
+            if lim:
+                ax[0].set_ylim(-lim, lim)
+            ax[2].axhline(tr["window"] * 1e9, color="g", lw=0.8, label=f"±{tr['window'] * 1e9:g} nm window")
+            for a in ax:
+                a.axvline(sw["t_command_s"] * 1e3, color="k", lw=0.7, ls=":")
+                a.axvline(sw["t_lock_s"] * 1e3, color="C0", lw=0.8)
+                a.grid(alpha=0.3, which="both")
+            ax[0].axhline(0.0, color="k", lw=0.5)
+            ax[0].set_ylabel(f"table − target [{unit}]")
+            ax[1].set_ylabel("flexure deflection\ntable − bearing [µm]")
+            ax[2].set_ylabel("|table − target| [nm]")
+            ax[2].set_ylim(0.5, None)
+            ax[2].set_xlim(-0.25 * t_max * 1e3, t_max * 1e3)
+            ax[2].set_xlabel("time after the reference reaches the target [ms] (dotted: stiff command, blue: lock)")
+            e = sw["error_m"]
+            ax[0].set_title(f"{cr.campaign.title}\n{case.label}, {cond.label}: locks {sw['t_lock_s'] * 1e3:.1f} ms "
+                            f"after the reference stops, table {_nm(abs(e))} {'past' if e > 0 else 'short of'} "
+                            "the target", fontsize=9)
+            for a in ax:
+                a.legend(fontsize=7, loc="upper right")
+            fig.tight_layout()
+            path = out / f"switch_{case.name}_{cond.key}.png"
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            files.append(path)
     return files

@@ -43,10 +43,13 @@ METRICS: dict[str, MetricInfo] = {
     "bandwidth_hz": MetricInfo("-3 dB closed-loop bandwidth", "Hz", 1.0, "{:.3g} Hz"),
     "gain_margin_db": MetricInfo("gain margin", "dB", 1.0, "{:.1f} dB"),
     "phase_margin_deg": MetricInfo("phase margin", "°", 1.0, "{:.1f}°"),
+    # Table C.1: Z / (s (s + P)) fitted to the plant FRF below 100 Hz (campaigns.frf.nominal_fit)
+    "nominal_pole_per_s": MetricInfo("nominal-model pole P (Table C.1)", "1/s", 1.0, "{:.0f} 1/s"),
+    "nominal_gain": MetricInfo("nominal-model gain Z (Table C.1)", "N/(A·kg)", 1.0, "{:.2f} N/(A·kg)"),
 }
 
 Metric = Literal["settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m",
-                 "bandwidth_hz", "gain_margin_db", "phase_margin_deg"]
+                 "bandwidth_hz", "gain_margin_db", "phase_margin_deg", "nominal_pole_per_s", "nominal_gain"]
 """A metric name (the schema's type; the keys of :data:`METRICS`)."""
 
 TRIAL_METRICS = ("settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m")

@@ -24,8 +24,8 @@ import numpy as np
 from matplotlib.ticker import NullFormatter
 
 from experiment_runner import outputs
-from experiment_runner.campaigns import mechanism
-from experiment_runner.campaigns.base import CampaignRun
+from experiment_runner.campaigns import headline, mechanism
+from experiment_runner.campaigns.base import CampaignRun, write_json
 from experiment_runner.campaigns.registry import METRICS, fmt_change, fmt_metric
 from experiment_runner.campaigns.spec import fmt_length
 
@@ -463,14 +463,17 @@ def trial_settings(cr: CampaignRun) -> list[str]:
 
 
 def write_index(runs, out_dir, runtime_s: float, extras: dict | None = None) -> Path:
-    """The main job's summary ``out_dir/report.md`` over several campaign runs; ``extras`` maps a
-    campaign name to Markdown lines added to its section."""
+    """The main job's summary ``out_dir/report.md`` over several campaign runs, led by the seed's
+    headline ratios (:mod:`~experiment_runner.campaigns.headline`, also ``out_dir/headline.json``);
+    ``extras`` maps a campaign name to Markdown lines added to its section."""
     out_dir = Path(out_dir)
     L = ["# Campaigns: seed vs simulation", "",
          f"Main job: {', '.join(cr.campaign.name for cr in runs)}; total wall time {runtime_s:.0f} s. "
          "Each campaign is calibrated on its baseline case only; everything else is a prediction. "
          "All trials on the batch engine, one representative trial per case and step size also through the "
          "ROS 2 graph.", ""]
+    L += headline.report_lines(runs)
+    write_json(out_dir / "headline.json", {"ratios": headline.evaluate(runs)})
     for cr in runs:
         rel = Path(cr.files["report"]).relative_to(out_dir)
         L += [f"## {cr.campaign.title}", "", f"Full report: [{rel.as_posix()}]({rel.as_posix()}); seed: "

@@ -242,7 +242,8 @@ class FrequencyResponseTest(_Strict):
         2e-3, description="skip frequencies at which an amplitude above the stage's total Coulomb force would "
                           "slide the rigid stage by more than this [m] (A / (m w^2)); the travel limits the seed too")
 
-    METRICS: ClassVar[tuple] = ("bandwidth_hz", "gain_margin_db", "phase_margin_deg")
+    METRICS: ClassVar[tuple] = ("bandwidth_hz", "gain_margin_db", "phase_margin_deg", "nominal_pole_per_s",
+                                "nominal_gain")
 
     @model_validator(mode="after")
     def _check(self):
@@ -290,7 +291,9 @@ class StepII(_Strict):
     positions, updates the correction (:func:`stage_control.sai.ilc_update`) for the
     preset's ``sai_manager.ilc.iterations`` iterations (seed: u_10).
     """
-    learn: Literal["at_rest"] = "at_rest"
+    learn: Literal["at_rest", "on_move"] = Field(
+        "at_rest", description="at_rest: the seed's procedure; on_move: NOT the seed's -- the error after the switch "
+                               "of each condition's own move (the counterfactual of docs/headline.md)")
     compliant_time: Pos = Field(0.03, description="compliant period before the switch [s]")
     settle_before: Pos = Field(0.02, description="rest before the compliant period [s]")
     trials: int = Field(4, ge=1, le=64, description="start positions averaged per iteration")
@@ -307,6 +310,8 @@ class Case(_Strict):
         default_factory=dict, description="circle tests: dotted path -> factor; the path is set to factor x the "
         "condition's speed [m/s] (e.g. the SAI reversal window as a fraction of the tangential speed)")
     step_ii: Optional[StepII] = None
+    seed_mechanism: str = Field("", description="the seed's own account of how this case settles (quoted in the "
+                                                "report beside the simulated mechanism)")
 
 
 SweepMode = Literal["value", "scale", "series_scale"]

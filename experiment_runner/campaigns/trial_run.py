@@ -112,7 +112,8 @@ def simulate_all(kind: CampaignKind, camp: Campaign, conds: list, cal_values: Op
     step_ii, runs, first = {}, {}, {}
     n_units = len(camp.cases) * len(conds) + sum(
         ((c.step_ii.iterations if c.step_ii.iterations is not None else
-          case_preset(camp, c).sai_manager.ilc.iterations) + 1) for c in camp.cases if c.step_ii)
+          case_preset(camp, c).sai_manager.ilc.iterations) + 1) * (len(conds) if c.step_ii.learn == "on_move" else 1)
+        for c in camp.cases if c.step_ii)
     stream_key = campaign_key(camp, {(c.name, cond.key): case_preset(camp, c, cal_values, cond)
                                      for c in camp.cases for cond in conds})
     with _bar(settings, f"{camp.name}: simulate", total=n_units, unit="run") as bar, \
@@ -124,9 +125,9 @@ def simulate_all(kind: CampaignKind, camp: Campaign, conds: list, cal_values: Op
                 preset = case_preset(camp, case, cal_values, cond)
                 corr = None
                 if case.step_ii is not None:
-                    key = preset.model_dump_json()
+                    key = (preset.model_dump_json(), cond.key if case.step_ii.learn == "on_move" else None)
                     if key not in corr_cache:
-                        corr_cache[key] = learn_step_ii(camp, case, preset, progress=lambda: bar.update(1))
+                        corr_cache[key] = learn_step_ii(camp, case, preset, progress=lambda: bar.update(1), cond=cond)
                         step_ii.setdefault(case.name, corr_cache[key])
                     corr = corr_cache[key]["correction"]
                 # a case the sweep leaves unchanged is run once per test condition and reused

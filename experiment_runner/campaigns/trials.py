@@ -107,21 +107,33 @@ def graph_experiment(camp: Campaign, case: Case, cond: Condition, trial: int, ca
             "starts": {"margin": camp.starts.margin, "seed": camp.starts.seed + trial}, "window": t.window}
 
 
-def learn_step_ii(camp: Campaign, case: Case, preset: Preset, progress=None) -> dict:
-    """Step II of Sec. 5.3 at rest: ILC (Eq. 5.2) of the reference correction after a switch."""
+def learn_step_ii(camp: Campaign, case: Case, preset: Preset, progress=None, cond: Condition | None = None) -> dict:
+    """Step II of Sec. 5.3: ILC (Eq. 5.2) of the reference correction after a switch.
+
+    ``learn: at_rest`` (the seed's): the stage holds position, goes compliant for ``compliant_time``
+    and back to stiff. ``learn: on_move`` (not the seed's; needs ``cond``): the error after the switch
+    at the end of the condition's own move, i.e. the correction also learns whatever the locked stage
+    repeatably does after the move."""
     spec = case.step_ii
     ilc = preset.sai_manager.ilc
     rate = preset.controller.rate
     q = int(round(ilc.length * rate))
-    n_pre = int(round(spec.settle_before * rate))
-    n_comp = int(round(spec.compliant_time * rate))
-    n_post = q + int(round(0.01 * rate))
-    x = np.zeros(n_pre + n_comp + n_post)
-    v = np.zeros_like(x)
-    v[n_pre:n_pre + n_comp] = 1e-12       # p2p rule: compliant while v_ref != 0 (no feedforward uses it)
     travel = preset.stage.travel
-    x0 = profiles.random_starts(spec.trials, (travel.min, travel.max), camp.starts.margin,
-                                camp.starts.seed + 100_000)
+    if spec.learn == "on_move":
+        if cond is None:
+            raise ValueError("learn_step_ii: learn on_move needs the condition")
+        ref = reference(camp, cond, rate)
+        x, v = np.asarray(ref.x, float), np.asarray(ref.v, float)
+        lo, hi = travel.min - min(0.0, float(x.min())), travel.max - max(0.0, float(x.max()))
+    else:
+        n_pre = int(round(spec.settle_before * rate))
+        n_comp = int(round(spec.compliant_time * rate))
+        n_post = q + int(round(0.01 * rate))
+        x = np.zeros(n_pre + n_comp + n_post)
+        v = np.zeros_like(x)
+        v[n_pre:n_pre + n_comp] = 1e-12       # p2p rule: compliant while v_ref != 0 (no feedforward uses it)
+        lo, hi = travel.min, travel.max
+    x0 = profiles.random_starts(spec.trials, (lo, hi), camp.starts.margin, camp.starts.seed + 100_000)
     seeds = preset.simulation.seed + 100_000 + np.arange(spec.trials)
     models = Models.from_preset(preset)
     iterations = ilc.iterations if spec.iterations is None else spec.iterations
@@ -132,7 +144,7 @@ def learn_step_ii(camp: Campaign, case: Case, preset: Preset, progress=None) -> 
         errs = []
         for b in range(spec.trials):
             edges = np.flatnonzero((r.mode[b, :-1] == 1.0) & (r.mode[b, 1:] == 0.0))
-            k0 = int(edges[0]) + 1
+            k0 = int(edges[-1]) + 1
             e = (x0[b] + x - r.y[b])[k0:k0 + q]
             errs.append(np.pad(e, (0, q - e.size)))
         e_mean = np.mean(errs, axis=0)
@@ -143,5 +155,6 @@ def learn_step_ii(camp: Campaign, case: Case, preset: Preset, progress=None) -> 
         if it < iterations:
             u = ilc_update(u, e_mean, ilc, rate)
     return {"correction": u, "rms_history_m": hist, "peak_history_m": peak, "iterations": iterations,
-            "length_s": ilc.length, "trials": spec.trials, "compliant_time_s": spec.compliant_time}
+            "length_s": ilc.length, "trials": spec.trials, "compliant_time_s": spec.compliant_time,
+            "learn": spec.learn}
 

@@ -181,9 +181,13 @@ def standalone_single(step, a, dwell=DWELL, v_r=V_R, preset=PRESET, b=0.0, theta
 
 def rate_state_overrides(a=None):
     """Preset overrides that give both bearings the simulator's ``gms_rate_state`` law, as the
-    campaign ``table_4_2_aging`` (its home, with the value's derivation); ``a`` replaces its ``a``."""
+    campaign ``table_4_2_aging`` (its home, with the value's derivation); ``a`` replaces its ``a``.
+    Only the law's own fields: the campaign's other overrides (the main job's gross-motion viscous
+    friction) are not part of the law."""
     from experiment_runner.campaigns.spec import load_campaign
-    ov = dict(load_campaign("table_4_2_aging", check_presets=False).overrides)
+    law = ("friction.model", "friction.a", "friction.b", "friction.v_r", "friction.theta0")
+    ov = {k: v for k, v in load_campaign("table_4_2_aging", check_presets=False).overrides.items()
+          if k.endswith(law)}
     if a is not None:
         ov.update({k: a for k in ov if k.endswith("friction.a")})
     return ov
