@@ -546,7 +546,7 @@ def plot_switch(cr, plt, out) -> list:
                 a.legend(fontsize=7, loc="upper right")
             fig.tight_layout()
             path = out / f"switch_{case.name}_{cond.key}.png"
-            fig.savefig(path, dpi=110)
+            outputs.savefig(fig, path, dpi=110)
             plt.close(fig)
             files.append(path)
     return files
