@@ -194,7 +194,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     t0 = time.monotonic()
     try:
-        warm_up(args.steps or None, force=args.force)
+        warm_up(args.steps or None, out=sys.stderr, force=args.force)
     except ValueError as err:
         parser.error(str(err))
     print(f"nanostage: kernels ready ({time.monotonic() - t0:.0f} s)", file=sys.stderr)
