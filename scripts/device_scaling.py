@@ -15,8 +15,9 @@ Measures, with the bench's own functions (:func:`experiment_runner.bench.campaig
   and against ``N`` processes each running ``size`` trials at once (no shared memory). The
   batch size's own effect cancels (both sides run chunks of ``size``); what is left is what
   threads share: false sharing of neighbouring chunks' state, page faults in one address
-  space, the threading layer's start and join -- or, where processes fall short as much, the
-  machine itself (memory bandwidth, SMT siblings, clocks).
+  space, the threading layer's start and join (OpenMP also with ``OMP_WAIT_POLICY=passive``:
+  no spinning at its barriers) -- or, where processes fall short as much, the machine itself
+  (memory bandwidth, SMT siblings, clocks).
 
 Writes ``$OUT/scaling.json`` after every measurement (a run cut short keeps what it has) and
 ``$OUT/scaling.md`` at the end. ``--tiny``: a few trials of each, for a check on a small machine.
@@ -249,12 +250,14 @@ def kernel_child(sizes: list, reps: int, cores: int) -> dict:
 
 def kernel_part(rep: Report, cores: int, sizes: list, reps: int, deadline: float) -> None:
     import numba
-    layers = ["omp", "workqueue", "tbb"]
-    for layer in layers:
+    variants = {"omp": {"NUMBA_THREADING_LAYER": "omp"},
+                "omp_passive": {"NUMBA_THREADING_LAYER": "omp", "OMP_WAIT_POLICY": "passive"},
+                "workqueue": {"NUMBA_THREADING_LAYER": "workqueue"}, "tbb": {"NUMBA_THREADING_LAYER": "tbb"}}
+    for layer, extra in variants.items():
         if time.monotonic() > deadline:
             rep.data["notes"].append(f"kernel: stopped before layer {layer} (deadline)")
             return
-        env = {**os.environ, "NUMBA_THREADING_LAYER": layer, "NUMBA_NUM_THREADS": str(max(cores, 1))}
+        env = {**os.environ, **extra, "NUMBA_NUM_THREADS": str(max(cores, 1))}
         code = (f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import device_scaling as d; "
                 f"print('RESULT ' + json.dumps(d.kernel_child({sizes!r}, {reps}, {cores})))")
         try:
@@ -324,7 +327,7 @@ def markdown(data: dict) -> str:
                 if "sizes" in e:
                     cells = [f"{e['sizes'][str(s)]['efficiency']} ({e['sizes'][str(s)]['ms_per_trial_1']} ms/trial)"
                              for s in data["meta"]["sizes"] if str(s) in e["sizes"]]
-                    lines.append(f"| {e['layer']} | " + " | ".join(cells) + " |")
+                    lines.append(f"| {k[8:]} ({e['layer']}) | " + " | ".join(cells) + " |")
                 else:
                     lines.append(f"| {k[8:]} | {e.get('error', '')[:120]} |")
         if "processes" in kern and "threads_omp" in kern and "sizes" in kern["threads_omp"]:
