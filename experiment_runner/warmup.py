@@ -80,7 +80,8 @@ def graph_steps() -> None:
 
 
 def diagnosis() -> None:
-    """``nanostage diagnose`` on a 1 s synthetic recording (:func:`experiment_runner.diagnosis.selftest.diagnose_seconds`)."""
+    """``nanostage diagnose`` on a 1 s synthetic recording
+    (:func:`experiment_runner.diagnosis.selftest.diagnose_seconds`)."""
     from experiment_runner.diagnosis.selftest import diagnose_seconds
     diagnose_seconds(1.0)
 

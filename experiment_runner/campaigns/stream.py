@@ -315,8 +315,10 @@ def chunk_size(n: int, samples: int, workers: int, total: Optional[int] = None, 
 
     >>> chunk_size(40, 15_000, 2, total=160), chunk_size(40, 15_000, 1, total=160), chunk_size(50, 15_000, 2)
     (40, 40, 13)
-    >>> chunk_size(500, 11_300, 16, total=2000), chunk_size(500, 11_300, 16, total=200), chunk_size(500, 11_300, 1, threads=16)
-    (50, 8, 250)
+    >>> chunk_size(500, 11_300, 16, total=2000), chunk_size(500, 11_300, 16, total=200)
+    (50, 8)
+    >>> chunk_size(500, 11_300, 1), chunk_size(500, 11_300, 1, threads=16)      # one worker of 1 / 16 threads
+    (50, 250)
     """
     cap = max(1, int(CHUNK_BYTES * max(1, threads) // (samples * _BYTES_PER_SAMPLE)))
     want = max(1, min(cap, n, max(MIN_CHUNK, math.ceil((total or n) / (2 * workers)))))
