@@ -264,7 +264,9 @@ def kernel_part(rep: Report, cores: int, sizes: list, reps: int, deadline: float
             run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                                  timeout=max(10.0, deadline - time.monotonic()))
             lines = [ln for ln in run.stdout.splitlines() if ln.startswith("RESULT ")]
-            val = json.loads(lines[-1][7:]) if lines else {"error": (run.stderr or run.stdout)[-400:]}
+            err = (run.stderr or run.stdout).strip().splitlines() or ["no output"]
+            val = json.loads(lines[-1][7:]) if lines else {
+                "error": next((ln for ln in reversed(err) if "Error" in ln), err[-1])[:300]}
         except subprocess.TimeoutExpired:
             val = {"error": "timed out"}
         rep.put("kernel", f"threads_{layer}", val)
