@@ -226,6 +226,20 @@ def check_memory(n_trials: int, samples: int, rate: float) -> None:
                           "a shorter profile)")
 
 
+def _arg(a, dtype=float) -> np.ndarray:
+    """``a`` as the kernel takes it: C-contiguous, aligned, writable, of ``dtype`` (copied only when
+    it is not). numba compiles one specialization per argument type, read-only included: a
+    reference shared by one trial is a read-only broadcast view, by two a copy, and without this
+    the first chunk of one trial and the next of forty each compiled (and cached) ``_run``, about a
+    minute each on a fresh machine.
+
+    >>> v = np.broadcast_to(np.zeros(3), (1, 3))
+    >>> v.flags.writeable, _arg(v).flags.writeable, _arg(v).flags.c_contiguous
+    (False, True, True)
+    """
+    return np.require(a, dtype, "CAW")
+
+
 def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None, seeds=None,
              correction=None, models: Models | None = None, check: bool = True, f_ext=None) -> BatchResult:
     """Run closed-loop trials of ``preset`` following a reference.
@@ -269,14 +283,13 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
         v_ref = np.broadcast_to(v_ref, x_ref.shape)
     if x_ref.shape != (n_trials, x_ref.shape[1]) or v_ref.shape != x_ref.shape:
         raise ValueError(f"reference shape {x_ref.shape} does not match n_trials={n_trials}")
-    seeds = (np.arange(n_trials) + preset.simulation.seed if seeds is None
-             else np.asarray(seeds)).astype(np.int64)
-    corr = np.zeros(0) if correction is None else np.asarray(correction, float)
+    seeds = _arg(np.arange(n_trials) + preset.simulation.seed if seeds is None else seeds, np.int64)
+    corr = _arg(np.zeros(0) if correction is None else correction)
     if f_ext is not None:
         f_ext = np.broadcast_to(np.asarray(f_ext, float), x_ref.shape)
 
-    n_chunks = max(1, min(numba.get_num_threads(), n_trials))
-    size = -(-n_trials // n_chunks)
+    size = -(-n_trials // max(1, min(numba.get_num_threads(), n_trials)))     # trials per thread
+    n_chunks = -(-n_trials // size)           # 40 trials on 16 threads: 14 chunks of 3, not 16 (8 padded trials)
     pm = models.plant
     # padded trials repeat the last one (as _run_chunk reads their inputs)
     init = models.initial_state(x_ref[np.minimum(np.arange(n_chunks * size), n_trials - 1), 0])
@@ -288,9 +301,9 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     o_dither = np.empty((n_chunks * size, T, 2))
     status = np.zeros((n_chunks, size), np.int64)
     fail = -np.ones((n_chunks, size), np.int64)
-    fe = np.zeros((0, 0)) if f_ext is None else np.ascontiguousarray(f_ext)
-    _run(pm, models.servo, models.dither, models.sai, models.lead, np.ascontiguousarray(x_ref),
-         np.ascontiguousarray(v_ref), fe, seeds, corr, plant, *states, out, o_dither, status, fail)
+    fe = _arg(np.zeros((0, 0)) if f_ext is None else f_ext)
+    _run(pm, models.servo, models.dither, models.sai, models.lead, _arg(x_ref), _arg(v_ref), fe, seeds, corr,
+         plant, *states, out, o_dither, status, fail)
     xr, y, yb, u, xt, xb, mode = (o[:n_trials] for o in out)
     res = BatchResult(t=np.arange(T) / preset.controller.rate, x_ref=xr, x_correction=xr - x_ref,
                       v_ref=np.asarray(v_ref),

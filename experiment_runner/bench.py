@@ -10,16 +10,16 @@ wall time per sub-step and trial), plus the process's peak resident memory.
 ``main_job_seconds`` (only with ``main_job=True``, ``nanostage bench --main-job``): wall
 time of ``nanostage campaign --main`` in a temporary folder, with the CLI's default workers.
 
-``campaign_trials_per_s_1`` / ``_2``: Table 4.2 campaign trials (both cases, both step
-sizes, 1 s dwell, no calibration; 500 trials of each, 2000 in all -- about 3 s of work on one
-worker, so the figure is the throughput of a large campaign: at the main job's size, 40 of each,
-the ~0.05 s a run costs besides its trials is 10-20 % of it, and at 200 of each, with the
-kernels of 2026-11-26, the two workers' last chunks and the pool's start are 5-10 % of it) per wall-clock second on one worker (this process) and on
-two local worker processes, each worker with half the cores (:func:`campaign_trials_per_s`),
-so that ``campaign_scale_out_2`` = ``_2 / _1`` is the scale-out from one worker to two;
-``campaign_trials_per_s_dask_2``: the same two workers as a Dask ``LocalCluster``;
-``campaign_trials_per_s_all_cores_1``: this process with every core (numba threads), as
-``nanostage campaign --workers 1`` runs.
+``campaign_trials_per_s_1`` / ``_N`` (``N`` = :func:`~experiment_runner.executor.default_workers`,
+the cores this process may use): Table 4.2 campaign trials (both cases, both step sizes, 1 s
+dwell, no calibration; 500 trials of each on one worker, 2000 in all, several seconds of work, and
+``250 N`` of each on ``N``, so that a large campaign's throughput is timed, not a run's start and
+end) per wall-clock second on one worker of one thread (this process) and on ``N`` local worker
+processes of one thread each (:func:`campaign_trials_per_s`); ``campaign_scale_out_N`` = ``_N /
+_1`` (the goal: >= 0.85 N); ``campaign_trials_per_s_dask_N``: the same ``N`` workers as a Dask
+``LocalCluster``; ``campaign_trials_per_s_all_cores_1``: this process with ``N`` numba threads, as
+``nanostage campaign --workers 1`` runs, and ``threads_scale_all_cores`` its ratio to one thread
+(in-process thread scaling; ``docs/results.md`` says why it stays below the processes').
 
 ``diagnose_seconds_10s``: wall time of ``nanostage diagnose`` (reading the MCAP file
 included) on a 10 s, 10 kHz synthetic recording with one concealed effect
@@ -53,10 +53,9 @@ import numba
 import numpy as np
 
 from experiment_runner.batch import Models, simulate
-from experiment_runner.campaigns.runner import main_job
 from experiment_runner.campaigns.spec import Campaign, case_preset, conditions, load_campaign
-from experiment_runner.campaigns.stream import TrialStream, code_fingerprint, run_trial_jobs
-from experiment_runner.executor import cpu_count, local_cluster, make_executor
+from experiment_runner.campaigns.stream import TrialStream, chunk_task, code_fingerprint, run_trial_jobs
+from experiment_runner.executor import default_workers, local_cluster, make_executor
 from experiment_runner.profiles import point_to_point
 from stage_sim.config import load_preset
 
@@ -155,8 +154,9 @@ def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table
     """Campaign trials per wall-clock second on ``workers`` workers, as ``nanostage campaign`` runs
     them: chunks of all cases and conditions on one executor, metrics streamed to disk
     (:func:`experiment_runner.campaigns.stream.run_trial_jobs`); ``trials`` trials of every case and
-    condition of ``campaign``, no calibration. The workers are started and warm (numba kernels
-    loaded, models built) before the clock starts.
+    condition of ``campaign``, no calibration. Every worker is started and warm (numba kernels
+    loaded, each case's models built: :meth:`~experiment_runner.executor.Executor.warm_all`) before
+    the clock starts.
 
     Parameters
     ----------
@@ -167,11 +167,10 @@ def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table
         Numba threads per worker in this process or on Dask (default, and always on a process pool: the
         cores shared out, ``cores // workers``).
     """
-    threads = threads or max(1, cpu_count() // workers)
+    threads = threads or max(1, default_workers() // workers)
     camp = load_campaign(campaign)
     jobs = [(c, cond, case_preset(camp, c, None, cond), None) for c in camp.cases for cond in conditions(camp)]
     timed = Campaign.model_validate({**camp.model_dump(), "trials": trials})
-    warm = Campaign.model_validate({**camp.model_dump(), "trials": 2 * workers})
     with ExitStack() as stack:
         if dask:
             ex = stack.enter_context(make_executor(cluster=stack.enter_context(local_cluster(workers, threads))))
@@ -183,8 +182,9 @@ def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table
         else:
             ex = stack.enter_context(make_executor(workers))
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory()))
-        with TrialStream(tmp / "warm.jsonl", camp.name, "warm-up", code_fingerprint(), resume=False) as stream:
-            run_trial_jobs(warm, jobs, ex, stream, chunk=1)
+        for case, cond, preset, _ in jobs:       # a chunk of several trials: the kernels the timed chunks run
+            ex.warm_all(chunk_task, (timed.model_dump_json(), case.name, cond.key, preset.model_dump_json(), None,
+                                     [0, 1, 2], code_fingerprint()))
         with TrialStream(tmp / "timed.jsonl", camp.name, "timed", code_fingerprint(), resume=False) as stream:
             t0 = time.perf_counter()
             run_trial_jobs(timed, jobs, ex, stream)
@@ -195,23 +195,30 @@ def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table
 def main_job_seconds() -> float:
     """Wall time [s] of the README's main job (``nanostage campaign --main``: calibration,
     every trial, the graph runs, report and plots) in a temporary folder."""
+    from experiment_runner.campaigns.runner import main_job
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        main_job(tmp, progress=False, resume=False, workers=cpu_count())     # as the CLI runs it
+        main_job(tmp, progress=False, resume=False, workers=default_workers())     # as the CLI runs it
         return time.perf_counter() - t0
 
 
 def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, main_job: bool = False) -> int:
     result = core_figures(quick)
     result["peak_memory_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
-    threads = result["cores"]
+    cores = default_workers()
     n_camp = 12 if quick else 500
-    half = max(1, threads // 2)                # one worker of the two gets half the cores
-    for w in (1, 2):
-        result[f"campaign_trials_per_s_{w}"] = round(campaign_trials_per_s(w, n_camp, threads=half), 1)
-    result["campaign_scale_out_2"] = round(result["campaign_trials_per_s_2"] / result["campaign_trials_per_s_1"], 2)
-    result["campaign_trials_per_s_dask_2"] = round(campaign_trials_per_s(2, n_camp, dask=True, threads=half), 1)
-    result["campaign_trials_per_s_all_cores_1"] = round(campaign_trials_per_s(1, n_camp, threads=threads), 1)
+    one = campaign_trials_per_s(1, n_camp, threads=1)
+    result["campaign_trials_per_s_1"] = round(one, 1)
+    if cores > 1:             # one worker of one thread per core; on 2 cores the same trials as on one worker
+        n_pool = n_camp * cores // 2
+        pool = campaign_trials_per_s(cores, n_pool, threads=1)
+        result[f"campaign_trials_per_s_{cores}"] = round(pool, 1)
+        result[f"campaign_scale_out_{cores}"] = round(pool / one, 2)
+        result[f"campaign_trials_per_s_dask_{cores}"] = round(campaign_trials_per_s(cores, n_pool, dask=True,
+                                                                                    threads=1), 1)
+    all_threads = campaign_trials_per_s(1, n_camp, threads=cores)
+    result["campaign_trials_per_s_all_cores_1"] = round(all_threads, 1)
+    result["threads_scale_all_cores"] = round(all_threads / one, 2)
     from experiment_runner.diagnosis.selftest import diagnose_seconds
     diagnose_seconds(1.0)         # warm-up: numba's compile / cache load is not timed (as for the core figures)
     result["diagnose_seconds_10s"] = round(diagnose_seconds(10.0), 1)

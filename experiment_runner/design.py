@@ -253,8 +253,9 @@ def sweep_isolator(preset, k_grid=None, c_grid=None, step=STEP, window=WINDOW, d
     progress : callable, optional
         Called with a one-line status per k_fi row.
     workers, cluster : optional
-        Where the k_fi rows run (:func:`experiment_runner.executor.make_executor`): in this
+        Where the grid runs (:func:`experiment_runner.executor.make_executor`): in this
         process (default), on ``workers`` local processes, or on a Dask cluster; same results.
+        A task is a k_fi row, or a part of one where the rows are fewer than twice the workers.
 
     Returns
     -------
@@ -271,11 +272,16 @@ def sweep_isolator(preset, k_grid=None, c_grid=None, step=STEP, window=WINDOW, d
     moves = Moves.make(p, step, window, dwell, n_trials)
     ts = np.empty((k_grid.size, c_grid.size, n_trials))
     rms = np.empty_like(ts)
-    tasks = ((i, (p, moves, float(k), c_grid)) for i, k in enumerate(k_grid))
     with make_executor(workers, cluster) as ex:
-        for i, (ts_row, rms_row) in ex.map(_grid_row, tasks):
-            ts[i], rms[i] = ts_row, rms_row
-            if progress:
+        parts = min(c_grid.size, math.ceil(2 * ex.workers / k_grid.size)) if ex.workers > 1 else 1
+        cuts = np.linspace(0, c_grid.size, parts + 1).round().astype(int)
+        tasks = (((i, a, b), (p, moves, float(k), c_grid[a:b])) for i, k in enumerate(k_grid)
+                 for a, b in zip(cuts[:-1], cuts[1:]))
+        left = np.full(k_grid.size, parts)
+        for (i, a, b), (ts_part, rms_part) in ex.map(_grid_row, tasks):
+            ts[i, a:b], rms[i, a:b] = ts_part, rms_part
+            left[i] -= 1
+            if progress and not left[i]:
                 progress(f"k_fi = {k_grid[i]:.3g} N/m: {np.isfinite(ts[i]).all(-1).sum()}/{c_grid.size} "
                          "points settled")
     ge, gd, ge0, gd0 = fi_design.norm_maps(lump.m_t, lump.m_b, lump.pid, lump.k_f, lump.c_f, k_grid, c_grid)
@@ -815,8 +821,8 @@ def add_design_arguments(parser):
                         help="preset override, e.g. stage.drive.noise_current_rms=7e-4 (YAML value; repeatable)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     outputs.add_overwrite_argument(parser)
-    from experiment_runner.executor import add_executor_arguments
-    add_executor_arguments(parser, "sweep", workers_help="default: this process, all cores")
+    from experiment_runner.executor import add_executor_arguments, default_workers
+    add_executor_arguments(parser, "sweep", default_workers(), "default: one per core; 1 = this process")
     return parser
 
 

@@ -6,8 +6,8 @@ called with small arguments (preset JSON, trial indices, seeds, parameter values
 :func:`make_executor` returns one object with one method, :meth:`Executor.map`, that runs
 them
 
-* in this process, one after the other (``workers=1``, the default: the batch engine's
-  ``numba.prange`` already spreads a chunk of trials over every core);
+* in this process, one after the other (``workers=1``, the default of the Python API: the batch
+  engine's ``numba.prange`` spreads a chunk of trials over the process's threads);
 * on a local pool of ``workers`` spawned processes, each with ``cores // workers`` numba
   threads;
 * on a Dask distributed cluster (``cluster`` = scheduler address such as
@@ -15,7 +15,12 @@ them
   every worker needs this package installed (same version). Tasks sharing one worker
   process run one at a time there (the numba kernels use the worker's threads).
 
-and yields ``(task id, result)`` pairs as the tasks complete. A cluster of several machines,
+and yields ``(task id, result)`` pairs as the tasks complete. :func:`default_workers` is the one
+place that decides how many cores "every core" is (the CPUs this process may run on, capped by
+its cgroup's CPU quota): the commands' default ``--workers`` (campaigns, design sweeps) and the
+diagnosis' candidate-fit threads. Worker processes, not threads, are the default where a command
+runs many similar tasks: on 16 cores, 16 processes ran Table 4.2 trials 10.8x as fast as one,
+one process with 16 numba threads 2.7x (``docs/results.md``, "Speed"). A cluster of several machines,
 each with this package installed in the same version (``scripts/bootstrap.sh``)::
 
     dask scheduler                                   # on one machine: tcp://HOST:8786
@@ -36,28 +41,85 @@ Examples
 from __future__ import annotations
 
 import concurrent.futures as cf
+import math
 import os
 import threading
 import time
+from pathlib import Path
 from typing import Callable, Hashable, Iterable, Iterator, Optional
 
 import numba
 
 from stage_sim.config import ConfigError
 
-__all__ = ["Executor", "make_executor", "local_cluster", "cpu_count"]
+__all__ = ["Executor", "make_executor", "local_cluster", "default_workers", "cgroup_cpu_limit"]
 
 Task = tuple[Hashable, tuple]
 """A task: its id (any hashable, e.g. ``(case, condition, first_trial)``) and the positional
 arguments of the function."""
 
 
-def cpu_count() -> int:
-    """Cores this process may run on."""
+def cgroup_cpu_limit(root: str = "/sys/fs/cgroup", self_cgroup: str = "/proc/self/cgroup") -> Optional[float]:
+    """CPUs this process's cgroup may use (CPU quota / period), the tightest along its path; None: no quota.
+
+    Reads cgroup v2 ``cpu.max`` (``"200000 100000"``, or ``"max 100000"``: none) and v1
+    ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us`` (quota -1: none), in the process's own cgroup
+    (``/proc/self/cgroup``) and its parents, and at ``root`` itself (a container's namespace).
+
+    Examples
+    --------
+    >>> import pathlib, tempfile
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (d / "cpu.max").write_text("250000 100000\\n")
+    >>> cgroup_cpu_limit(str(d), str(d / "none"))
+    2.5
+    """
+    dirs = {Path(root), Path(root) / "cpu", Path(root) / "cpu,cpuacct"}
     try:
-        return len(os.sched_getaffinity(0))
+        lines = Path(self_cgroup).read_text().splitlines()
+    except OSError:
+        lines = []
+    for line in lines:
+        _, controllers, path = (line.split(":", 2) + ["", ""])[:3]
+        if controllers == "" or "cpu" in controllers.split(","):
+            base = Path(root) / ("" if controllers == "" else controllers)
+            d = base / path.lstrip("/")
+            while True:
+                dirs.add(d)
+                if d == base or d.parent == d:
+                    break
+                d = d.parent
+    limits = []
+    for d in dirs:
+        try:
+            quota, _, period = (d / "cpu.max").read_text().partition(" ")
+            if quota != "max":
+                limits.append(float(quota) / float(period))
+            continue
+        except (OSError, ValueError):
+            pass
+        try:
+            quota = float((d / "cpu.cfs_quota_us").read_text())
+            if quota > 0:
+                limits.append(quota / float((d / "cpu.cfs_period_us").read_text()))
+        except (OSError, ValueError):
+            pass
+    limits = [x for x in limits if x > 0]
+    return min(limits) if limits else None
+
+
+def default_workers() -> int:
+    """Cores this process may use: the CPUs it may run on (``os.sched_getaffinity``), capped by its
+    cgroup's CPU quota (:func:`cgroup_cpu_limit`, rounded up); at least 1. The default number of
+    worker processes or threads of every command that spreads work over the machine."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
     except AttributeError:      # not Linux
-        return os.cpu_count() or 1
+        cpus = os.cpu_count() or 1
+    quota = cgroup_cpu_limit()
+    if quota is not None:
+        cpus = min(cpus, math.ceil(quota))
+    return max(1, cpus)
 
 
 _THREADS: Optional[int] = None
@@ -110,17 +172,25 @@ class Executor:
         ``"inline"``, ``"processes"`` or ``"dask"``.
     workers : int
         Worker processes (Dask: at the time of connecting), i.e. tasks that run at once.
+    threads : int
+        Numba threads of each worker (inline: this process's, at the time of asking).
     address : str or None
         Dask scheduler address.
     """
 
-    def __init__(self, kind: str, workers: int, pool=None, client=None, own_client: bool = False):
+    def __init__(self, kind: str, workers: int, pool=None, client=None, own_client: bool = False,
+                 threads: Optional[int] = None):
         self.kind = kind
         self.workers = workers
+        self._threads = threads
         self._pool = pool
         self._client = client
         self._own_client = own_client
         self.address = client.scheduler_info()["address"] if client is not None else None
+
+    @property
+    def threads(self) -> int:
+        return numba.get_num_threads() if self._threads is None else self._threads
 
     # ----------------------------------------------------------------- public
     def map(self, fn: Callable, tasks: Iterable[Task], window: Optional[int] = None) -> Iterator[tuple]:
@@ -179,6 +249,27 @@ class Executor:
             for _ in range(self.workers):
                 self._pool.submit(fn, *args)
 
+    def warm_all(self, fn: Callable, args: tuple, hold: float = 0.3, rounds: int = 10) -> int:
+        """Run ``fn(*args)`` on every worker and return when each has (a benchmark's warm-up: every worker
+        spawned, its modules imported, its kernels loaded before a clock starts); returns the workers
+        seen. Rounds of one task per worker, each held ``hold`` seconds so that no worker takes two
+        while another is still starting, until every worker process has run one.
+
+        >>> with make_executor() as ex:
+        ...     ex.warm_all(pow, (2, 3))
+        1
+        """
+        if self.kind == "inline":
+            fn(*args)
+            return 1
+        seen: set = set()
+        for _ in range(rounds):
+            tasks = [(i, (fn, tuple(args), hold)) for i in range(self.workers)]
+            seen.update(pid for _, pid in self.map(_held, tasks, window=self.workers))
+            if len(seen) >= self.workers:
+                break
+        return len(seen)
+
     def close(self) -> None:
         """Stop the pool / disconnect from Dask (a cluster passed in stays up)."""
         if self._pool is not None:
@@ -218,6 +309,15 @@ class Executor:
             from distributed import wait
             done, _ = wait(futures, return_when="FIRST_COMPLETED")
         return [f for f in futures if f in done]     # submission order among the finished
+
+
+def _held(fn: Callable, args: tuple, hold: float):
+    """:meth:`Executor.warm_all`'s task: ``fn(*args)``, then wait until ``hold`` seconds have passed; the
+    worker's (host, process id)."""
+    t0 = time.monotonic()
+    fn(*args)
+    time.sleep(max(0.0, hold - (time.monotonic() - t0)))
+    return os.uname().nodename, os.getpid()
 
 
 def _run_noted(fn, args, key):
@@ -291,14 +391,15 @@ def make_executor(workers: Optional[int] = None, cluster=None) -> Executor:
         info = client.scheduler_info()["workers"]
         for addr, w in info.items():     # numba threads = the worker's threads
             client.run(_set_numba_threads, w.get("nthreads", 1), workers=[addr])
-        return Executor("dask", max(1, len(info)), client=client, own_client=True)
+        return Executor("dask", max(1, len(info)), client=client, own_client=True,
+                        threads=min((w.get("nthreads", 1) for w in info.values()), default=1))
     workers = 1 if workers is None else int(workers)
     if workers < 1:
         raise ConfigError(f"--workers: must be >= 1 (got {workers})")
     if workers == 1:
         return Executor("inline", 1)
     import multiprocessing as mp
+    threads = max(1, default_workers() // workers)
     pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                  initializer=_pool_worker_init,
-                                  initargs=(max(1, cpu_count() // workers), os.getpid()))
-    return Executor("processes", workers, pool=pool)
+                                  initializer=_pool_worker_init, initargs=(threads, os.getpid()))
+    return Executor("processes", workers, pool=pool, threads=threads)

@@ -11,3 +11,8 @@ fi
 .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip
 .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt
 .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+# compile the numba kernels once, with progress (minutes on a fresh machine, seconds when cached);
+# NANOSTAGE_NO_WARMUP=1 skips it (the first run then compiles what it needs)
+if [ -z "${NANOSTAGE_NO_WARMUP:-}" ]; then
+  .venv/bin/python -m experiment_runner.warmup
+fi

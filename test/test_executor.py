@@ -6,6 +6,9 @@ exactly the per-trial metrics of one in-memory batch run of all trials, whatever
 import json
 import logging
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 
@@ -14,7 +17,8 @@ from experiment_runner.campaigns.runner import run_campaign
 from experiment_runner.campaigns.spec import Campaign, case_preset, conditions, load_campaign
 from experiment_runner.campaigns.stream import STREAM_NAME
 from experiment_runner.campaigns.trials import metric_record, simulate_trials
-from experiment_runner.executor import make_executor
+from experiment_runner import executor as executor_mod
+from experiment_runner.executor import Executor, cgroup_cpu_limit, default_workers, make_executor
 from stage_sim.config import ConfigError
 
 STEP = 5e-6
@@ -159,3 +163,104 @@ def test_executor_map_results_and_errors(dask_cluster):
             assert "in task 'bad'" in "".join(getattr(err.value, "__notes__", [])), ex
     with pytest.raises(ConfigError, match="--workers: must be >= 1"):
         make_executor(0)
+
+
+# --------------------------------------------------------------------------- every core by default
+def test_cgroup_cpu_quota_is_read_along_the_process_cgroup(tmp_path):
+    root, me = tmp_path / "cg", tmp_path / "self"
+    (root / "job" / "step").mkdir(parents=True)
+    (root / "cpu.max").write_text("max 100000\n")                      # v2, no quota at the top
+    (root / "job" / "cpu.max").write_text("300000 100000\n")           # 3 CPUs for the job
+    (root / "job" / "step" / "cpu.max").write_text("max 100000\n")
+    me.write_text("0::/job/step\n")
+    assert cgroup_cpu_limit(str(root), str(me)) == 3.0
+    (root / "job" / "step" / "cpu.max").write_text("150000 100000\n")
+    assert cgroup_cpu_limit(str(root), str(me)) == 1.5
+    v1 = tmp_path / "v1"                                                # v1: cpu,cpuacct controller
+    (v1 / "cpu,cpuacct" / "docker" / "c1").mkdir(parents=True)
+    (v1 / "cpu,cpuacct" / "docker" / "c1" / "cpu.cfs_quota_us").write_text("200000\n")
+    (v1 / "cpu,cpuacct" / "docker" / "c1" / "cpu.cfs_period_us").write_text("100000\n")
+    me.write_text("4:memory:/docker/c1\n3:cpu,cpuacct:/docker/c1\n")
+    assert cgroup_cpu_limit(str(v1), str(me)) == 2.0
+    (v1 / "cpu,cpuacct" / "docker" / "c1" / "cpu.cfs_quota_us").write_text("-1\n")
+    assert cgroup_cpu_limit(str(v1), str(me)) is None
+
+
+def test_default_workers_is_the_affinity_capped_by_the_quota(monkeypatch):
+    monkeypatch.setattr(executor_mod.os, "sched_getaffinity", lambda pid: set(range(16)), raising=False)
+    monkeypatch.setattr(executor_mod, "cgroup_cpu_limit", lambda: None)
+    assert default_workers() == 16
+    monkeypatch.setattr(executor_mod, "cgroup_cpu_limit", lambda: 2.5)
+    assert default_workers() == 3
+    monkeypatch.setattr(executor_mod, "cgroup_cpu_limit", lambda: 0.2)
+    assert default_workers() == 1
+
+
+def test_the_commands_default_to_every_core(monkeypatch):
+    """campaign and design sweeps: one worker process per core; the diagnosis: one thread per core."""
+    import argparse
+    from experiment_runner.campaigns.cli import add_campaign_arguments
+    from experiment_runner.design import add_design_arguments
+    from experiment_runner.diagnosis.pipeline import Options
+    monkeypatch.setattr(executor_mod.os, "sched_getaffinity", lambda pid: set(range(7)), raising=False)
+    monkeypatch.setattr(executor_mod, "cgroup_cpu_limit", lambda: None)
+    for add, argv in ((add_campaign_arguments, ["table_4_2"]), (add_design_arguments, ["fi_stage"])):
+        assert add(argparse.ArgumentParser()).parse_args(argv).workers == 7, add.__name__
+    assert Options().n_jobs == 7
+
+
+# --------------------------------------------------------------------------- chunks and the stream
+def test_chunks_shrink_as_the_work_left_does(camp, monkeypatch, tmp_path):
+    """Guided scheduling: on 4 workers the first chunks are large, the last ones small, and every trial runs once."""
+    data = camp.model_dump()
+    data["trials"] = 120
+    big = Campaign.model_validate(data)
+    (cond,) = conditions(big)
+    jobs = [(c, cond, case_preset(big, c, None, cond), None) for c in big.cases]
+    sizes, ran = [], []
+    monkeypatch.setattr(stream_mod, "chunk_task",
+                        lambda *a: (sizes.append(len(a[5])), ran.extend((a[1], i) for i in a[5]), [])[-1])
+    with stream_mod.TrialStream(tmp_path / STREAM_NAME, big.name, "k", "c", resume=False) as stream:
+        stream_mod.run_trial_jobs(big, jobs, Executor("inline", 4, threads=1), stream)
+    assert sorted(ran) == sorted((c.name, i) for c in big.cases for i in range(120))
+    assert sizes[0] == 30 and max(sizes[-3:]) <= stream_mod.MIN_CHUNK, sizes     # not 8 chunks of 30
+
+
+def test_stream_hands_records_to_the_os_at_once_and_syncs_once_a_second(camp, tmp_path, monkeypatch):
+    synced = []
+    monkeypatch.setattr(stream_mod.os, "fsync", lambda fd: synced.append(fd))
+    path = tmp_path / STREAM_NAME
+    rec = lambda i: {"case": "a", "condition": "c", "trial": i, "x0_m": 0.0, "metrics": {}}  # noqa: E731
+    with stream_mod.TrialStream(path, "x", "k", "c", resume=False) as stream:
+        for i in range(20):
+            stream.append([rec(i)])
+            assert len(path.read_text().splitlines()) == i + 2          # readable by another process at once
+        assert synced == []                                              # not one fsync per chunk
+        stream._synced -= stream_mod.SYNC_SECONDS
+        stream.append([rec(20)])
+        assert len(synced) == 1
+    assert len(synced) == 2                                              # and at close
+
+
+@pytest.mark.slow
+def test_a_killed_run_keeps_its_streamed_trials(tmp_path):
+    """SIGKILL right after an append (no close, no fsync): a resume finds every appended trial."""
+    code = f"""
+import os, signal
+from experiment_runner.campaigns.stream import TrialStream
+s = TrialStream({str(tmp_path / STREAM_NAME)!r}, "x", "k", "c", resume=False)
+for i in range(5):
+    s.append([{{"case": "a", "condition": "c", "trial": i, "x0_m": 0.0, "metrics": {{}}}}])
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=60)
+    assert out.returncode == -9, out.stderr
+    with stream_mod.TrialStream(tmp_path / STREAM_NAME, "x", "k", "c") as stream:
+        assert stream.done("a", "c") == set(range(5))
+
+
+@pytest.mark.slow
+def test_warm_all_runs_on_every_worker_process():
+    with make_executor(2) as ex:
+        assert ex.warm_all(os.getpid, ()) == 2
+        assert ex.threads == max(1, default_workers() // 2)

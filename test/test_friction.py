@@ -223,3 +223,7 @@ def test_numba_cache_is_keyed_by_the_compiled_code(tmp_path):
     law.write_text(law.read_text().replace("1.0 - th ** 2", "1.0 - th * th"))
     doc.write_text(doc.read_text() + "\n# comment\n")
     assert _cache.code_hash(tmp_path) == h0
+    caller = tmp_path / "experiment_runner" / "bench.py"      # calls kernels, sets numba's threads: same cache
+    assert b"numba" in caller.read_bytes()
+    caller.write_text(caller.read_text() + "\n# comment\n")
+    assert _cache.code_hash(tmp_path) == h0

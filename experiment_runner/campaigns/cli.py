@@ -11,7 +11,7 @@ from experiment_runner.campaigns.report import summary_lines
 from experiment_runner.campaigns.runner import MAIN_JOB, main_job, run_campaign
 from experiment_runner.campaigns.spec import list_campaigns, load_campaign
 from experiment_runner.cliargs import positive_float, positive_int
-from experiment_runner.executor import add_executor_arguments, cpu_count
+from experiment_runner.executor import add_executor_arguments, default_workers
 from experiment_runner.outputs import add_overwrite_argument
 from stage_sim.config import ConfigError
 from stage_sim.validation import read_text_file
@@ -39,7 +39,7 @@ def add_campaign_arguments(parser):
     parser.add_argument("--no-mcap", action="store_true", help="skip the MCAP recordings of batch trials")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--json", action="store_true", help="print results.json's findings and calibration")
-    add_executor_arguments(parser, "trials", cpu_count(), "default: one per core; 1 = this process")
+    add_executor_arguments(parser, "trials", default_workers(), "default: one per core; 1 = this process")
     parser.add_argument("--restart", action="store_true",
                         help="discard the trials of an interrupted run in --out (default: resume them)")
     add_overwrite_argument(parser)

@@ -34,6 +34,7 @@ import json
 import math
 import os
 import socket
+import time
 from pathlib import Path
 from typing import Optional
 
@@ -61,9 +62,15 @@ CODE_MODULES = ("stage_sim/config.py", "stage_sim/schema.py", *sorted(f"stage_si
                 "experiment_runner/campaigns/trials.py", "experiment_runner/campaigns/stream.py")
 """Source files (relative to the repository) whose content decides a trial's result."""
 CHUNK_BYTES = 128e6
-"""Budget of one chunk's recorded trajectories [bytes] (about 13 float64 signals per sample): ~40
-trials of 1.5 s at 10 kHz. The batch engine's time per trial falls with the batch (table_4_2, one
-thread: ~6 ms per trial in chunks of 10, ~4.5 in chunks of 20, ~4.2 in chunks of 40)."""
+"""Budget of one chunk's recorded trajectories per core of the worker that runs it [bytes] (about
+13 float64 signals per sample): ~40 trials of 1.5 s at 10 kHz on a worker of one thread. The batch
+engine's time per trial falls with the trials per thread (table_4_2, one thread, CPU time: 2.0 ms
+per trial alone, 1.7 in chunks of 3, 1.5 of 8, 1.2 of 40), so a worker of several threads gets a
+chunk as many times larger."""
+MIN_CHUNK = 8
+"""Fewest trials of a chunk that :func:`chunk_size` makes smaller to balance the workers' last tasks."""
+SYNC_SECONDS = 1.0
+"""Longest time a streamed trial stays in the operating system's cache before it is on disk (fsync)."""
 _BYTES_PER_SAMPLE = 13 * 8 * 2    # signals x float64 x 2 (the engine's buffers were copied into the
                                   # BatchResult; since it returns them, the 2 is headroom: kept, so chunks stay)
 
@@ -132,6 +139,7 @@ class TrialStream:
         outputs.check_file(self.path)         # nanostage's own stream, never a link (made with its folder)
         good = self._load() if resume and self.path.exists() else None
         self._file = outputs.open_stream(self.path, append=good is not None, header=json.dumps(self.header) + "\n")
+        self._synced = time.monotonic()
         if good is not None and good < os.fstat(self._file.fileno()).st_size:
             self._file.truncate(good)          # drop the line cut by an interruption
 
@@ -186,15 +194,24 @@ class TrialStream:
 
     def _write(self, records) -> None:
         self._file.write("".join(json.dumps(r) + "\n" for r in records))
-        self._file.flush()
+        self._file.flush()                      # the OS has it: a killed run keeps every record
+        if time.monotonic() - self._synced >= SYNC_SECONDS:
+            self._sync()
+
+    def _sync(self) -> None:
+        """On disk (fsync): once per :data:`SYNC_SECONDS` and at :meth:`close`, not per chunk (an fsync
+        costs milliseconds, and on many workers chunks complete tens of times a second); a machine
+        that loses power loses at most that much of the stream, which a resume runs again."""
         os.fsync(self._file.fileno())
+        self._synced = time.monotonic()
 
     def done(self, case: str, condition: str) -> set:
         """Trial indices of ``case`` at ``condition`` already in the stream."""
         return self._done.get((case, condition), set())
 
     def append(self, records: list) -> None:
-        """Append trial records (dicts with case, condition, trial, x0_m, metrics) and flush them to disk."""
+        """Append trial records (dicts with case, condition, trial, x0_m, metrics): written through to the
+        operating system at once, on disk within :data:`SYNC_SECONDS`."""
         new = [r for r in records if int(r["trial"]) not in self.done(r["case"], r["condition"])]
         self._write(new)
         for r in new:
@@ -218,7 +235,10 @@ class TrialStream:
         return mets, x0
 
     def close(self) -> None:
-        self._file.close()
+        if not self._file.closed:
+            self._file.flush()
+            self._sync()
+            self._file.close()
 
     def __enter__(self) -> "TrialStream":
         return self
@@ -285,17 +305,23 @@ def warm_up(camp, case, cond, preset, executor) -> None:
                                code_fingerprint()))
 
 
-def chunk_size(n: int, samples: int, workers: int, total: Optional[int] = None) -> int:
-    """Trials per chunk of a job of ``n`` trials of ``samples`` samples each: as large as
-    :data:`CHUNK_BYTES` allows (larger batches run faster per trial) while the task list of
-    ``total`` trials (every job's, default ``n``) keeps at least two chunks per worker (a worker
-    that finishes early takes another); the job is split into equal chunks.
+def chunk_size(n: int, samples: int, workers: int, total: Optional[int] = None, threads: int = 1) -> int:
+    """Trials of the next chunk of a job with ``n`` trials of ``samples`` samples each still to hand
+    out, ``total`` trials (every job's, default ``n``) in all: as large as :data:`CHUNK_BYTES` per
+    thread allows (larger batches run faster per trial), but no more than a ``2 * workers``-th of
+    ``total`` (guided scheduling: as the work left shrinks, so do the chunks, down to
+    :data:`MIN_CHUNK`, and the workers finish together instead of waiting for one worker's last large
+    chunk); the job's rest is split into equal chunks of at most that.
 
     >>> chunk_size(40, 15_000, 2, total=160), chunk_size(40, 15_000, 1, total=160), chunk_size(50, 15_000, 2)
     (40, 40, 13)
+    >>> chunk_size(500, 11_300, 16, total=2000), chunk_size(500, 11_300, 16, total=200)
+    (50, 8)
+    >>> chunk_size(500, 11_300, 1), chunk_size(500, 11_300, 1, threads=16)      # one worker of 1 / 16 threads
+    (50, 250)
     """
-    cap = max(1, int(CHUNK_BYTES // (samples * _BYTES_PER_SAMPLE)))
-    want = max(1, min(cap, n, math.ceil((total or n) / (2 * workers))))
+    cap = max(1, int(CHUNK_BYTES * max(1, threads) // (samples * _BYTES_PER_SAMPLE)))
+    want = max(1, min(cap, n, max(MIN_CHUNK, math.ceil((total or n) / (2 * workers)))))
     return math.ceil(n / math.ceil(n / want))
 
 
@@ -326,18 +352,22 @@ def run_trial_jobs(camp, jobs: list, executor, stream: TrialStream, chunk: Optio
     todo = {key: sorted(set(range(n)) - stream.done(*key)) for key in named}
     total = sum(len(t) for t in todo.values())
 
-    def tasks():
+    def tasks():             # consumed as workers free up: the sizes follow the work still to hand out
+        rest = total
         for case, cond, preset, correction in jobs:
             left = todo[case.name, cond.key]
             if not left:
                 continue
             samples = len(reference(camp, cond, preset.controller.rate).x)
-            size = chunk or chunk_size(len(left), samples, executor.workers, total)
             preset_json = preset.model_dump_json()
             corr = None if correction is None else np.asarray(correction, float).tolist()
-            for a in range(0, len(left), size):
+            a = 0
+            while a < len(left):
+                size = chunk or chunk_size(len(left) - a, samples, executor.workers, rest, executor.threads)
                 yield ((case.name, cond.key, left[a]),
                        (camp_json, case.name, cond.key, preset_json, corr, left[a:a + size], code))
+                a += size
+                rest -= size
 
     for (case_name, cond_key, _), records in executor.map(chunk_task, tasks()):
         stream.append(records)

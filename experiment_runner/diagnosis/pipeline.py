@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from experiment_runner.executor import default_workers
 from .data import DiagData, load_data
 from .frf import locate_modes
 from .fit import (Evaluator, FitResult, bad_point, estimate_lattice, fit_effect, fit_noise_level, fit_with,
@@ -75,7 +76,7 @@ class Options:
     plots: bool = True
     sparse: bool = True
     complexity: float = 0.02              # held-out J penalty per parameter
-    n_jobs: int = 2                       # threads for the candidate fits (neither workers nor cluster)
+    n_jobs: int = field(default_factory=default_workers)  # threads for the candidate fits (neither workers nor cluster)
     workers: int | None = None            # candidate fits as tasks on this many local processes (1: in turn here)
     cluster: object = None                # ... on this Dask cluster (scheduler address or cluster object)
     own_floor: bool = True                # judge each candidate against its own noise floor
