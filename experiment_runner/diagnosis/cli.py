@@ -42,12 +42,15 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
 def _nominal_from_config(path):
     import yaml
 
+    from experiment_runner.nominal_model import has_nominal_model, nominal_preset_from_config
     from experiment_runner.recording import read_recording
     rec = read_recording(path)
     if rec.config:
         doc = yaml.safe_load(rec.config)
         if isinstance(doc, dict) and isinstance(doc.get("preset"), dict):
             return doc["preset"], rec
+        if has_nominal_model(doc):      # a rig's own model terms: translated (experiment_runner.nominal_model)
+            return nominal_preset_from_config(rec.config, source=str(path)), rec
     return None, rec
 
 
@@ -90,8 +93,8 @@ def main_diagnose(args) -> int:
     if nominal is None:
         nominal, rec = _nominal_from_config(args.recording)
         if nominal is None:
-            raise SystemExit("nanostage diagnose: the recording carries no preset in /experiment/config; "
-                             "give the NOMINAL model")
+            raise SystemExit("nanostage diagnose: the recording carries no preset (nor a nominal_model block) "
+                             "in /experiment/config; give the NOMINAL model")
         data = load_data(rec)
     out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
     rep = diagnose(args.recording, nominal, out=out, options=diagnose_options(args), data=data)
