@@ -14,7 +14,8 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
     parser.add_argument("recording", nargs="?", help="contract recording (MCAP file or bag directory)")
     parser.add_argument("nominal", nargs="?", help="nominal model: preset name or YAML, or model file "
                                                    "{preset}; default: the preset in the "
-                                                   "recording's /experiment/config, if any")
+                                                   "recording's /experiment/config, or its nominal_model "
+                                                   "block translated (experiment_runner.nominal_model)")
     parser.add_argument("--out", default=None, help="output folder for report.json/.md, plots, improved model "
                                                     "(default out/diagnose/<recording name>)")
     parser.add_argument("--json", action="store_true", help="print the report (or the self-test summary) as JSON")
