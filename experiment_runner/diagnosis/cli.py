@@ -51,7 +51,11 @@ def _nominal_from_config(path):
         if isinstance(doc, dict) and isinstance(doc.get("preset"), dict):
             return doc["preset"], rec
         if has_nominal_model(doc):      # a rig's own model terms: translated (experiment_runner.nominal_model)
-            return nominal_preset_from_config(rec.config, source=str(path)), rec
+            preset = nominal_preset_from_config(rec.config, source=str(path))
+            import sys
+            print(f"nominal: the recording's nominal_model block, translated as preset {preset['name']!r} "
+                  f"(nanostage convert nominal {path} --out FILE writes it)", file=sys.stderr)
+            return preset, rec
     return None, rec
 
 
