@@ -825,6 +825,13 @@ def add_convert_arguments(parser):
     p.add_argument("source", metavar="FILE", help="DATA_EMPS.mat")
     p.add_argument("--out", required=True, metavar="REC.mcap", help="recording to write")
     add_overwrite_argument(p)
+    from experiment_runner.nominal_model import add_convert_nominal_arguments
+    add_convert_nominal_arguments(sub.add_parser(
+        "nominal", help="a recording's nominal_model block (/experiment/config) as a preset YAML",
+        description="Translate the nominal_model block of a recording's /experiment/config (plant, PID, Ts, "
+                    "quantization in the rig's own terms) into the equivalent nanostage preset "
+                    "(experiment_runner.nominal_model), e.g. to inspect or edit it before "
+                    "nanostage diagnose REC preset.yaml."))
     return parser
 
 
@@ -853,6 +860,9 @@ def _flags(args) -> dict:
 
 
 def main_convert(args) -> int:
+    if args.kind == "nominal":
+        from experiment_runner.nominal_model import main_convert_nominal
+        return main_convert_nominal(args)
     if args.kind == "emps":
         from experiment_runner.diagnosis.realdata import convert_emps
         print(convert_emps(args.source, args.out, overwrite=args.overwrite))

@@ -14,7 +14,9 @@ Design choices
   Eq. A.1. Clamping anti-windup: the increment is discarded when the unsaturated
   command exceeds the limit and ``e`` has the sign of the command.
 * Derivative ``kd s/(s/wd + 1)`` on the error, backward Euler (stable, no ringing for
-  any ``wd``); without ``derivative_cutoff`` the plain difference ``kd (e_k - e_{k-1})/dt``.
+  any ``wd``) or, with ``pid.derivative_discretization: matched``, its pole matched
+  (``exp(-wd dt)``, :func:`derivative_filter`); without ``derivative_cutoff`` the plain
+  difference ``kd (e_k - e_{k-1})/dt``.
 * DOB filters ``Q G_n^-1`` and ``Q`` (Eq. C.1, C.2): Tustin. ``Q`` is fed the command
   *applied at the previous sample*: ``x_meas[k]`` only reflects commands up to ``k-1``
   (zero-order hold), so this aligns both paths and avoids an algebraic loop.
@@ -40,6 +42,7 @@ feedforward friction (1 for Dahl, ``len(k)`` for GMS, 0 without feedforward).
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -50,7 +53,7 @@ from stage_sim import friction
 from stage_sim.config import Controller, Stage
 from stage_sim.friction import dahl_update
 
-__all__ = ["ServoModel", "build_servo", "check_reference", "init_servo_state", "servo_step"]
+__all__ = ["ServoModel", "build_servo", "check_reference", "derivative_filter", "init_servo_state", "servo_step"]
 
 SERVO_STARTED, SERVO_INT, SERVO_DER = 0, 1, 2
 SERVO_DOB_X, SERVO_DOB_U = 3, 5          # two slots each
@@ -108,12 +111,57 @@ class ServoModel(NamedTuple):
     n_state: int
 
 
-def _derivative(kd: float, cutoff: float | None, dt: float):
+def derivative_filter(kd: float, cutoff: float | None, dt: float, method: str = "backward_euler"):
+    """Discrete realization ``(A, B, C, D)`` of the PID's filtered derivative ``kd s/(s/wd + 1)``.
+
+    Every form is the recurrence ``D_k = a D_{k-1} + kd (1 - a)/dt (e_k - e_{k-1})``
+    (:class:`stage_sim.config.Pid`), with ``wd = 2 pi cutoff`` and the pole
+
+    * ``a = 1/(1 + wd dt)`` for ``method="backward_euler"`` (``s = (1 - z^-1)/dt``),
+    * ``a = exp(-wd dt)`` for ``method="matched"`` (pole matched, zero at ``z = 1``),
+    * ``a = 0`` without a ``cutoff`` (the plain difference ``kd (e_k - e_{k-1})/dt``).
+
+    Parameters
+    ----------
+    kd : float
+        Derivative gain [N·s/m].
+    cutoff : float or None
+        Filter corner [Hz].
+    dt : float
+        Control period [s].
+    method : {"backward_euler", "matched"}
+        ``Pid.derivative_discretization``.
+
+    Examples
+    --------
+    The matched form follows the recurrence with ``a = exp(-wd dt)``:
+
+    >>> import math
+    >>> A, B, C, D = derivative_filter(2.0, 1000.0, 1e-4, "matched")
+    >>> a = math.exp(-2 * math.pi * 1000.0 * 1e-4)
+    >>> x, d_rec, e_prev, out = 0.0, 0.0, 0.0, []
+    >>> for e in (1.0, 1.0, 0.5, 0.0):
+    ...     y = D[0, 0] * e + C[0, 0] * x
+    ...     x = A[0, 0] * x + B[0, 0] * e
+    ...     d_rec = a * d_rec + 2.0 * (1 - a) / 1e-4 * (e - e_prev)
+    ...     e_prev = e
+    ...     out.append(bool(abs(y - d_rec) < 1e-9 * abs(d_rec) + 1e-12))
+    >>> out
+    [True, True, True, True]
+    >>> float(A[0, 0]) == a, round(float(derivative_filter(2.0, 1000.0, 1e-4)[0][0, 0]), 6)  # backward Euler pole
+    (True, 0.61413)
+    """
     if kd == 0.0:
         return tuple(np.zeros((1, 1)) for _ in range(4))
     if cutoff is None:      # kd (1 - z^-1)/dt
         return realize([kd / dt, -kd / dt], [1.0, 0.0])
     wd = 2.0 * np.pi * cutoff
+    if method == "matched":
+        a = math.exp(-wd * dt)
+        g = kd * (1.0 - a) / dt
+        return realize([g, -g], [1.0, -a])
+    if method != "backward_euler":
+        raise ValueError(f"derivative discretization must be 'backward_euler' or 'matched', got {method!r}")
     return discretize([kd * wd, 0.0], [1.0, wd], dt, "backward")
 
 
@@ -135,7 +183,7 @@ def build_servo(controller: Controller, stage: Stage) -> ServoModel:
     """
     dt = 1.0 / controller.rate
     pid = controller.pid
-    d_A, d_B, d_C, d_D = _derivative(pid.kd, pid.derivative_cutoff, dt)
+    d_A, d_B, d_C, d_D = derivative_filter(pid.kd, pid.derivative_cutoff, dt, pid.derivative_discretization)
 
     dob = controller.dob
     if dob is not None:

@@ -177,12 +177,27 @@ class Stage(_Strict):
 
 # --------------------------------------------------------------------------- control
 class Pid(_Strict):
-    """PID with filtered derivative and clamping anti-windup, C = kp + ki/s + kd s/(s/wd + 1)."""
+    """PID with filtered derivative and clamping anti-windup, C = kp + ki/s + kd s/(s/wd + 1).
+
+    ``derivative_discretization`` says how the filtered derivative becomes a difference equation
+    (``D_k`` from the errors ``e_k``, ``dt`` the control period, ``wd = 2 pi derivative_cutoff``):
+
+    * ``backward_euler`` (default): ``s = (1 - z^-1)/dt``, i.e. ``D_k = a D_{k-1} + kd (1 - a)/dt
+      (e_k - e_{k-1})`` with ``a = 1/(1 + wd dt)``;
+    * ``matched``: the pole matched, ``a = exp(-wd dt)`` in the same recurrence (zero at ``z = 1``,
+      the derivative slope ``kd`` kept at low frequency) -- a common drive firmware form.
+
+    Both tend to ``kd (e_k - e_{k-1})/dt`` for ``wd dt -> inf``; without ``derivative_cutoff`` the
+    derivative is that plain difference whichever is chosen.
+    """
     kp: NonNeg = Field(description="proportional gain [N/m]", json_schema_extra=unit("N/m", 1.0, 1e10))
     ki: NonNeg = Field(0.0, description="integral gain [N/(m·s)]", json_schema_extra=unit("N/(m·s)", 1e-2, 1e14))
     kd: NonNeg = Field(0.0, description="derivative gain [N·s/m]", json_schema_extra=unit("N·s/m", 1e-3, 1e7))
     derivative_cutoff: Optional[Pos] = Field(None, description="derivative filter corner [Hz]; None = unfiltered",
                                              json_schema_extra=unit("Hz", 1e-1, 1e6))
+    derivative_discretization: Literal["backward_euler", "matched"] = Field(
+        "backward_euler", description="difference equation of the filtered derivative: backward Euler "
+        "(pole 1/(1 + wd dt)) or matched pole (exp(-wd dt)); see the class docstring")
     output_limit: Optional[Pos] = Field(None, description="command saturation [N]; None = drive peak force",
                                         json_schema_extra=unit("N", 1e-3, 1e5))
 

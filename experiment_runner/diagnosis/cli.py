@@ -34,7 +34,8 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
     parser.add_argument("recording", nargs="?", help="contract recording (MCAP file or bag directory)")
     parser.add_argument("nominal", nargs="?", help="nominal model: preset name or YAML, or model file "
                                                    "{preset}; default: the preset in the "
-                                                   "recording's /experiment/config, if any")
+                                                   "recording's /experiment/config, or its nominal_model "
+                                                   "block translated (experiment_runner.nominal_model)")
     parser.add_argument("--out", default=None, help="output folder for report.json/.md, plots, improved model "
                                                     "(default out/diagnose/<recording name>)")
     parser.add_argument("--json", action="store_true", help="print the report (or the self-test summary) as JSON")
@@ -64,17 +65,25 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
 
 
 def _nominal_from_config(rec):
-    """The preset stored in the recording's ``/experiment/config`` (read by the project's YAML
-    loader and validated: errors name the recording, the topic and the field), or None."""
+    """The nominal of the recording's ``/experiment/config`` (read by the project's YAML loader
+    and validated: errors name the recording, the topic and the field): its ``preset``, or its
+    ``nominal_model`` block (a rig's model in its own terms) translated
+    (:mod:`experiment_runner.nominal_model`); None if it carries neither."""
+    from experiment_runner.nominal_model import nominal_preset_from_doc
     from msg_defs.topics import CONFIG
     from stage_sim.config import ConfigError, preset_from_dict
-    preset = rec.config_doc().get("preset")
-    if preset is None:
-        return None
+    doc = rec.config_doc()
+    preset = doc.get("preset")
     source = f"{rec.path}: {CONFIG.name} preset"
-    if not isinstance(preset, dict):
-        raise ConfigError(f"{source}: got {type(preset).__name__}; expected a mapping (a preset)")
-    return preset_from_dict(preset, source)
+    if preset is not None:
+        if not isinstance(preset, dict):
+            raise ConfigError(f"{source}: got {type(preset).__name__}; expected a mapping (a preset)")
+        return preset_from_dict(preset, source)
+    preset = nominal_preset_from_doc(doc, source=str(rec.path))
+    if preset is not None:
+        print(f"nominal: the recording's nominal_model block, translated as preset {preset['name']!r} "
+              f"(nanostage convert nominal {rec.path} --out FILE writes it)", file=sys.stderr)
+    return preset
 
 
 def diagnose_options(args):
@@ -122,8 +131,8 @@ def main_diagnose(args) -> int:
     if nominal is None:
         nominal = _nominal_from_config(rec)
         if nominal is None:
-            raise SystemExit("nanostage diagnose: the recording carries no preset in /experiment/config; "
-                             "give the NOMINAL model")
+            raise SystemExit("nanostage diagnose: the recording carries no preset (nor a nominal_model block) "
+                             "in /experiment/config; give the NOMINAL model")
     data = load_data(rec)
     for e in data.incomplete:
         print(f"warning: incomplete {e} (its samples are used)", file=sys.stderr)
