@@ -719,3 +719,25 @@ def test_a_graph_whose_nodes_compile_their_kernels_first_runs(tmp_path, monkeypa
     _, trials, res = _batch("fi_p2p_5um")
     assert rec.trials()[0].complete and np.array_equal(rec.y, res.y[0])
 
+
+@pytest.mark.slow
+def test_a_node_that_is_there_but_has_not_joined_when_the_start_times_out_is_named_still_starting(tmp_path):
+    """The sequencer's start-up abort tells a node that is not in the graph ("missing") from one
+    that is but has not joined the run yet ("still starting": e.g. still compiling its kernels).
+    Here only the sequencer runs, and a node named plant_sim that never subscribes to
+    /experiment/trajectory."""
+    domain = _domain()
+    lst = Listener(domain, defer_trajectory=True)
+    stand_in = Node("plant_sim", context=lst.ctx)
+    g = Graph("fi_p2p_5um", tmp_path, domain, nodes=("experiment_sequencer",),
+              params={"experiment_sequencer": {"start_timeout": 5.0}})
+    try:
+        code = g.wait_sequencer()
+    finally:
+        codes = g.stop()
+        stand_in.destroy_node()
+        lst.close()
+    assert code == 1 and all(c != "hung" for c in codes.values()), codes
+    assert ("run aborted (trial None): only 0 of 5 nodes after 5.0 s; missing: servo_controller, dither_generator, "
+            "sai_manager, recorder; still starting: plant_sim (node: plant_sim, servo_controller, dither_generator, "
+            "sai_manager, recorder)") in g.stderr("experiment_sequencer"), g.stderr("experiment_sequencer")
