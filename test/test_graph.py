@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -579,3 +581,163 @@ def test_a_graph_that_times_out_says_what_did_not_finish_in_one_line(tmp_path, m
     # what a run leaves is handled as before: here nothing was recorded, and it says so
     assert lines[1:] == [f"no recording: the run ended before the recorder heard /experiment/config "
                          f"({tmp_path / 'run.mcap'})"], lines
+
+
+# =========================================================================== 6. start-up: compiled kernels
+_WARM_UP_CHECK = r"""
+import json, sys
+import numpy as np
+import numba
+import rclpy
+from rclpy.context import Context
+from rclpy.parameter import Parameter
+from experiment_runner.ros.nodes import NODES
+from msg_defs import convert
+from stage_sim.config import PRESET_DIR, load_preset
+import importlib
+
+def loaded():
+    '''Every compiled kernel of the project loaded in this process, with its argument types.'''
+    found = {}
+    for name, mod in list(sys.modules.items()):
+        if name.split(".")[0] in ("stage_sim", "stage_control", "experiment_runner"):
+            for attr, obj in vars(mod).items():
+                if isinstance(obj, numba.core.dispatcher.Dispatcher):
+                    found[f"{obj.py_func.__module__}.{attr}"] = {str(s) for s in obj.signatures}
+    return found
+
+classes = {n.name: getattr(importlib.import_module(n.module), n.cls) for n in NODES}
+for cls in classes.values():
+    cls.warm_up()
+warm = loaded()
+ctx = Context()
+rclpy.init(context=ctx)
+for preset in sorted(p.stem for p in PRESET_DIR.glob("*.yaml")):
+    rate = load_preset(preset).controller.rate
+    traj = convert.trajectory_to_msg(None, np.zeros(4), np.zeros(4), trial=0, case="warm", start=0, rate=rate)
+    dt_ns = int(round(1e9 / rate))
+    for name in ("plant_sim", "servo_controller", "dither_generator", "sai_manager"):
+        node = classes[name](context=ctx, parameter_overrides=[Parameter("preset", value=preset)])
+        node._trajectory(traj)                        # a trial, and its first samples
+        for k in range(2):
+            for need in node.lock.needed:
+                value = (0.0, 0.0) if need == "dither" else 0.0
+                if name == "plant_sim":
+                    node._input(k * dt_ns, need, value)
+                else:
+                    node._put(k * dt_ns, need, value)
+        assert (node.k if name == "plant_sim" else node.last_k) >= 1, (preset, name)
+        node.destroy_node()
+rclpy.shutdown(context=ctx)
+new = {k: sorted(v - warm.get(k, set())) for k, v in loaded().items() if v - warm.get(k, set())}
+print(json.dumps(new))
+"""
+
+
+@pytest.mark.slow
+def test_a_node_that_warmed_up_loads_no_kernel_in_a_trial_of_any_preset(tmp_path):
+    """What each node steps per sample is loaded by its ``warm_up`` (from one preset's models),
+    before it joins a run: trials of every shipped preset, run through the nodes' own
+    code, load or compile no further kernel and no further argument types. Run in a fresh
+    interpreter: what this one has loaded already would hide a kernel that ``warm_up`` misses."""
+    run = subprocess.run([sys.executable, "-c", _WARM_UP_CHECK], env=domain_env(_domain()), capture_output=True,
+                         text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout.splitlines()[-1]) == {}, run.stdout
+
+
+def _kernel_cache_without(tmp_path: Path, *kernels: str) -> Path:
+    """A copy of the compiled-kernel cache without the files of ``kernels`` (glob patterns of
+    ``<module>.<function>-*``), to be used as ``NUMBA_CACHE_DIR``: these are compiled again."""
+    import numba
+    if not numba.config.CACHE_DIR:
+        pytest.skip("the compiled kernels are cached beside the sources (read-only install): not copied")
+    cache = tmp_path / "kernels"
+    shutil.copytree(numba.config.CACHE_DIR, cache)
+    for kernel in kernels:
+        for f in cache.rglob(kernel):
+            f.unlink()
+    return cache
+
+
+@pytest.mark.slow
+def test_a_node_stopped_while_it_compiles_its_kernels_ends_at_once_as_still_starting(tmp_path):
+    """SIGTERM while the plant compiles its step (before it spins): it ends by the signal, as a node
+    still importing does (``launch.STARTING``: ``nanostage graph`` says "still starting"), with
+    its ROS node torn down, no traceback, and without waiting out ``EXIT_GRACE_S``."""
+    cache = _kernel_cache_without(tmp_path, "plant.plant_step-*")
+    domain = _domain()
+    lst = Listener(domain, defer_trajectory=True)
+    err_path = tmp_path / "plant_sim.stderr"
+    with open(err_path, "w") as err:
+        proc = subprocess.Popen([str(BIN / "plant_sim")], stdout=subprocess.DEVNULL, stderr=err,
+                                env=dict(domain_env(domain), NUMBA_CACHE_DIR=str(cache)))
+    try:
+        deadline = time.monotonic() + RUN_TIMEOUT     # the node is made (in the graph): it compiles now
+        while "plant_sim" not in lst.node.get_node_names() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert proc.poll() is None, err_path.read_text()
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        lst.close()
+    err = err_path.read_text()
+    assert code == -signal.SIGTERM, err
+    assert "Traceback" not in err and "did not finish" not in err, err
+    assert not list(cache.rglob("plant.plant_step-*")), "the plant was stopped after it had compiled its step"
+
+
+@pytest.mark.slow
+def test_a_graph_whose_nodes_compile_their_kernels_first_runs(tmp_path, monkeypatch):
+    """The compiled-kernel cache without the plant's and the servo's step functions (as a fresh
+    clone, or any change to compiled code, leaves it: the first run compiles them). Each node
+    compiles its kernels before it joins the run, never inside the lockstep: the run is the
+    batch engine's, with a ``sample_timeout`` of 2 s, less than compiling the plant's step takes.
+    (Compiled at the plant's first sample, the plant sent nothing for seconds, not even its
+    waiting sample again, and the sequencer aborted: "no measured sample after sample 0 within
+    5.0 s (node: plant_sim)"; the plant was stopped before it saved its kernel, so the next
+    runs did the same.)"""
+    import yaml
+    from experiment_runner.experiment import EXPERIMENT_DIR
+    cache = _kernel_cache_without(tmp_path, "plant.plant_step-*", "servo.servo_step-*")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    doc = yaml.safe_load((EXPERIMENT_DIR / "fi_p2p_5um.yaml").read_text())
+    doc.update(name="cold_kernels", trials=1)
+    exp_file = tmp_path / "cold_kernels.yaml"
+    exp_file.write_text(yaml.safe_dump(doc))
+    domain = _domain()
+    with _ros_env(domain):
+        code = run_processes(str(exp_file), tmp_path / "run", timeout=RUN_TIMEOUT, domain_id=domain,
+                             params={"experiment_sequencer": {"sample_timeout": 2.0}})
+    assert code == 0
+    assert list(cache.rglob("plant.plant_step-*.nbi")) and list(cache.rglob("servo.servo_step-*.nbi"))  # compiled
+    rec = read_recording(tmp_path / "run")
+    _, trials, res = _batch("fi_p2p_5um")
+    assert rec.trials()[0].complete and np.array_equal(rec.y, res.y[0])
+
+
+@pytest.mark.slow
+def test_a_node_that_is_there_but_has_not_joined_when_the_start_times_out_is_named_still_starting(tmp_path):
+    """The sequencer's start-up abort tells a node that is not in the graph ("missing") from one
+    that is but has not joined the run yet ("still starting": e.g. still compiling its kernels).
+    Here only the sequencer runs, and a node named plant_sim that never subscribes to
+    /experiment/trajectory."""
+    domain = _domain()
+    lst = Listener(domain, defer_trajectory=True)
+    stand_in = Node("plant_sim", context=lst.ctx)
+    g = Graph("fi_p2p_5um", tmp_path, domain, nodes=("experiment_sequencer",),
+              params={"experiment_sequencer": {"start_timeout": 5.0}})
+    try:
+        code = g.wait_sequencer()
+    finally:
+        codes = g.stop()
+        stand_in.destroy_node()
+        lst.close()
+    assert code == 1 and all(c != "hung" for c in codes.values()), codes
+    assert ("run aborted (trial None): only 0 of 5 nodes after 5.0 s; missing: servo_controller, dither_generator, "
+            "sai_manager, recorder; still starting: plant_sim (node: plant_sim, servo_controller, dither_generator, "
+            "sai_manager, recorder)") in g.stderr("experiment_sequencer"), g.stderr("experiment_sequencer")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from experiment_runner.ros.controller import ControllerNode
-from experiment_runner.ros.node import JointStateOut, finite
+from experiment_runner.ros.node import JointStateOut, finite, warm_up_models
 from experiment_runner.ros.run import run_node
 from msg_defs.topics import PIEZOS, SAI_COMMAND
 from stage_control.dither import dither_step
@@ -26,6 +26,12 @@ class DitherNode(ControllerNode):
         super().__init__("dither_generator", **kwargs)
         self.pub = JointStateOut(self, "/stage/dither")
         self.subscribe_input(SAI_COMMAND, "sai", "effort")
+
+    @classmethod
+    def warm_up(cls):
+        models = warm_up_models()
+        dither_step(models.dither, models.initial_state([0.0]).dither, 0, *(np.zeros(1) for _ in range(3)),
+                    np.zeros((2, 1)))
 
     def active(self, preset):
         return preset.dither is not None

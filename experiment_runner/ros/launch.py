@@ -210,6 +210,9 @@ def _run_nodes(args: dict, timeout: float, interrupted) -> dict:
             cls = getattr(importlib.import_module(spec.module), spec.cls)
             made[spec.name] = cls(parameter_overrides=[Parameter(k, value=v)
                                                        for k, v in args.get(spec.name, {}).items()])
+        for n in made.values():
+            n.warm_up()                          # kernels loaded before any node spins (StageNode.warm_up)
+            interrupted()
         seq, recorder = made["experiment_sequencer"], made["recorder"]
         ex = make_executor()
         for n in made.values():

@@ -4,6 +4,9 @@ contract, validated parameters, the run configuration, and lockstep sample bookk
 Nodes are thin adapters: they convert messages to the arrays the compiled core
 steps take (``msg_defs.convert``) and back; no algorithm lives here.
 
+Start-up: :meth:`StageNode.warm_up` loads the compiled kernels a node steps per sample before
+the node spins, so none is loaded (or compiled) inside the lockstep.
+
 Faults: :meth:`StageNode.fault_event` is how a node reports one (``cause``, ``reason``,
 ``responsible``); the test-only ``fault.*`` parameters of every node drop, delay or
 NaN-fill the messages it publishes on one topic (:class:`FaultyPublisher`; off by default).
@@ -30,6 +33,11 @@ from stage_sim.config import ConfigError, load_preset
 FAULT_MODES = ("drop", "delay", "nan")
 """What the test-only ``fault.*`` parameters can do to the messages of one topic."""
 
+WARM_UP_PRESET = "fi_stage"
+"""The preset whose models :meth:`StageNode.warm_up` steps once. The kernels' argument types
+depend on the structure of the models, not on a preset's values (every shipped preset gives the
+same ones: ``test/test_graph.py``), so this loads what a run of any preset calls."""
+
 
 class StageNode(Node):
     """Base class: contract publishers/subscriptions, validated parameters, run config."""
@@ -42,6 +50,18 @@ class StageNode(Node):
         self.on_config = None
         self.fault = self._fault_params()
         self._events = self.publisher("/experiment/events")    # made early: matched before a fault
+
+    @classmethod
+    def warm_up(cls) -> None:
+        """Load the compiled kernels this node calls for each sample (from the on-disk cache;
+        compiled into it first where the cache is cold: seconds each, tens of seconds on a
+        loaded machine). Called once the node is made, before it spins
+        (:func:`~experiment_runner.ros.run.run_node`,
+        :func:`~experiment_runner.ros.launch.run_one_process`), hence before it joins a run: a
+        kernel loaded at a trial's first sample would stall the lockstep there, and a stalled
+        plant sends nothing, not even its waiting sample again, which the sequencer's
+        ``sample_timeout`` takes for a dead plant. Nothing to load here; the plant and the
+        controllers step their kernels once on a throwaway trial (:func:`warm_up_models`)."""
 
     # ----------------------------------------------------------------- fault injection (tests)
     def _fault_params(self) -> dict | None:
@@ -188,6 +208,13 @@ class StageNode(Node):
         nodes = [responsible] if isinstance(responsible, str) else sorted(responsible)
         self.get_logger().error(f"{cause}: {reason}")
         self.event("fault", reason=f"{cause}: {reason}", cause=cause, responsible=nodes, **fields)
+
+
+def warm_up_models():
+    """The models of :data:`WARM_UP_PRESET` (:class:`experiment_runner.batch.Models`), for a
+    node's :meth:`StageNode.warm_up`."""
+    from experiment_runner.batch import Models
+    return Models.from_preset(load_preset(WARM_UP_PRESET))
 
 
 def check_preset(name):

@@ -12,8 +12,9 @@ Safety: the drive saturates at its peak force and thermal (I²t) limit inside th
 when
 
 * no input arrives for a sample within ``input_timeout`` (wall clock; for the first sample
-  of a trial ``first_input_timeout``: the other nodes may still be loading their compiled
-  kernels, seconds on a loaded machine): the watchdog, naming the silent node -- never a hang;
+  of a trial ``first_input_timeout``: a node may still be starting, e.g. one started late
+  loads its compiled kernels before it joins, seconds on a loaded machine): the watchdog,
+  naming the silent node -- never a hang;
 * an input is NaN or infinite, naming the node that sent it;
 * the simulated state diverges (non-finite or runaway) or the table leaves its travel.
 """
@@ -24,7 +25,7 @@ import time
 
 import numpy as np
 
-from experiment_runner.ros.node import JointStateOut, Lockstep, StageNode, check_preset, finite
+from experiment_runner.ros.node import JointStateOut, Lockstep, StageNode, check_preset, finite, warm_up_models
 from experiment_runner.ros.nodes import publisher_of
 from experiment_runner.ros.run import run_node
 from msg_defs import cdr, convert
@@ -79,8 +80,8 @@ class PlantNode(StageNode):
         self.timeout = self.param("input_timeout", 5.0, "wall-clock time to wait for a sample's "
                                   "inputs before the trial is aborted [s]", 0.01, 3600.0, attr="timeout")
         self.first_timeout = self.param("first_input_timeout", 30.0, "the same for the first sample of a "
-                                        "trial, when the other nodes may still be loading their compiled "
-                                        "kernels [s]", 0.01, 3600.0, attr="first_timeout")
+                                        "trial, when a node may still be starting (one started late loads "
+                                        "its compiled kernels first) [s]", 0.01, 3600.0, attr="first_timeout")
         self.preset_name = self.param("preset", "", "preset name or YAML path; empty = the preset of "
                                       "/experiment/config", check=check_preset)
         self.pub_measured = JointStateOut(self, "/stage/measured")
@@ -103,6 +104,11 @@ class PlantNode(StageNode):
         self.create_timer(0.1, self._watchdog)
         if self.preset is not None:
             self._build()
+
+    @classmethod
+    def warm_up(cls):
+        models = warm_up_models()
+        PlantTrial(models, 0.0, 0).step(0.0, 0.0, 0.0, models.sai_mode)
 
     def _configure(self, cfg):
         if not self.preset_name:

@@ -253,11 +253,14 @@ is told to stop [s]."""
 def run_node(factory, args=None, until=None, on_exit=None, drain=None):
     """``main`` of a node executable: init, spin (until ``until(node)`` is true), clean up.
 
-    Ctrl-C / SIGINT ends it cleanly; ``on_exit(node)`` runs last (e.g. close a file) and may
-    return the process's exit status. Whatever hangs after that, the process ends within
-    :data:`EXIT_GRACE_S` of being stopped. ``drain(node)``: on SIGINT / SIGTERM the node keeps
-    spinning while this is true (at most :data:`DRAIN_MAX_S`): a recorder that is behind takes
-    the messages already on their way before it closes its file.
+    Once made, the node loads its compiled kernels
+    (:meth:`~experiment_runner.ros.node.StageNode.warm_up`) before it spins. Ctrl-C / SIGINT ends
+    it cleanly (while it still loads them: at once, ended by the signal, as while importing);
+    ``on_exit(node)`` runs last (e.g. close a file) and may return the process's exit status.
+    Whatever hangs after that, the process ends within :data:`EXIT_GRACE_S` of being stopped.
+    ``drain(node)``: on SIGINT / SIGTERM the node keeps spinning while this is true (at most
+    :data:`DRAIN_MAX_S`): a recorder that is behind takes the messages already on their way
+    before it closes its file.
     """
     faulthandler.register(signal.SIGUSR1, all_threads=True)     # a hung node's stacks, on request
     chosen = apply_graph_defaults()
@@ -274,8 +277,15 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
         print(f"error: {err}" if isinstance(err, ValueError) else f"error: {executable}: {_rcl_error_text(err)}",
               file=sys.stderr)
         sys.exit(2)
+    starting = {"warm_up": False, "signal": None}      # a signal while the node loads its kernels ends it at once
+
+    def on_signal(sig, frame):
+        stop.set()
+        if starting["warm_up"]:
+            starting["signal"] = sig
+            raise KeyboardInterrupt
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, on_signal)
     status = [0]
     stopping, cleanup = _exit_guard(rclpy.get_default_context(), status, stop,
                                     EXIT_GRACE_S + (DRAIN_MAX_S if drain else 0.0))
@@ -294,6 +304,11 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
             sys.exit(2)
         if chosen:
             node.get_logger().info(f"graph defaults {chosen} (set them to open the graph: docs/security.md)")
+        # the kernels it steps per sample are loaded before the node spins, hence before it joins a
+        # run (StageNode.warm_up); discovery goes on meanwhile. Stopped now, it ends at once (still starting)
+        starting["warm_up"] = True
+        node.warm_up()
+        starting["warm_up"] = False
         ex = make_executor()
         ex.add_node(node)
         while rclpy.ok() and not stop.is_set() and not (until and until(node)):
@@ -318,6 +333,9 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
             teardown(ex, node)
         if rclpy.ok():
             rclpy.shutdown()
+    if starting["signal"] is not None:              # stopped while starting: ended by the signal, as
+        signal.signal(starting["signal"], signal.SIG_DFL)      # while importing (launch.STARTING)
+        os.kill(os.getpid(), starting["signal"])
     if status[0]:
         sys.exit(status[0])
 

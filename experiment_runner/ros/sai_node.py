@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from experiment_runner.ros.controller import ControllerNode
-from experiment_runner.ros.node import JointStateOut, finite
+from experiment_runner.ros.node import JointStateOut, finite, warm_up_models
 from experiment_runner.ros.run import run_node
 from msg_defs import convert
 from msg_defs.topics import SAI_COMMAND
@@ -43,6 +43,11 @@ class SaiNode(ControllerNode):
         self.pub = JointStateOut(self, SAI_COMMAND)
         self.pub_correction = self.publisher("/stage/correction")
         self.iteration = 0
+
+    @classmethod
+    def warm_up(cls):
+        models = warm_up_models()
+        sai_step(models.sai, models.initial_state([0.0]).sai, np.zeros(0), 0, *(np.zeros(1) for _ in range(4)))
 
     def active(self, preset):
         return preset.sai_manager is not None

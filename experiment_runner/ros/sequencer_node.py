@@ -24,6 +24,7 @@ from experiment_runner.ros.node import StageNode
 from experiment_runner.ros.nodes import JOINING, publisher_of
 from experiment_runner.ros.run import run_node
 from msg_defs import convert
+from msg_defs.topics import TRAJECTORY
 from stage_sim.config import ConfigError
 
 
@@ -122,10 +123,15 @@ class SequencerNode(StageNode):
         if self.pub_traj.get_subscription_count() < self.wait_nodes:
             self.ready_since = None
             if now - self.t_created > self.start_timeout:
+                joined = {i.node_name for i in self.get_subscriptions_info_by_topic(TRAJECTORY.name)}
                 present = set(self.get_node_names())
-                missing = [n for n in JOINING if n not in present]
+                waiting = [n for n in JOINING if n not in joined]
+                missing = [n for n in waiting if n not in present]
+                starting = [n for n in waiting if n in present]       # made, not joined: loading its kernels
+                which = "; ".join(f"{label}: {', '.join(nodes)}" for label, nodes in
+                                  (("missing", missing), ("still starting", starting)) if nodes)
                 self._abort(f"only {self.pub_traj.get_subscription_count()} of {self.wait_nodes} nodes "
-                            f"after {self.start_timeout} s; missing: {', '.join(missing) or '?'}", missing)
+                            f"after {self.start_timeout} s; {which or 'missing: ?'}", waiting)
             return
         if self.ready_since is None:
             self.ready_since = now

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from experiment_runner.ros.controller import ControllerNode
-from experiment_runner.ros.node import JointStateOut, finite
+from experiment_runner.ros.node import JointStateOut, finite, warm_up_models
 from experiment_runner.ros.run import run_node
 from msg_defs.topics import SAI_COMMAND
 
@@ -32,6 +32,11 @@ class ServoNode(ControllerNode):
         self.pub_command = JointStateOut(self, "/stage/command")
         self.pub_reference = JointStateOut(self, "/stage/reference")
         self.subscribe_samples(SAI_COMMAND, lambda stamp, n, p, v, e: self._put(stamp, "sai", e[0]))
+
+    @classmethod
+    def warm_up(cls):
+        models = warm_up_models()
+        servo_step(models.servo, models.initial_state([0.0]).servo, *(np.zeros(1) for _ in range(4)))
 
     def build(self, preset):
         self.model = self.models.servo
