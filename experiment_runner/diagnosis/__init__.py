@@ -3,7 +3,7 @@ missing, its fitted parameters, and the held-out proof (issue 5).
 
 Pipeline (:func:`.pipeline.diagnose`): predict (:mod:`.predict`: closed-loop replay,
 force observer, open-loop windows, noise floor) -> locate (:mod:`.locate`) -> name
-(:mod:`.hypotheses`, the effect library) -> fit and choose (:mod:`.fit`) -> show
+(:mod:`.effects`, the effect library) -> fit and choose (:mod:`.fit`) -> show
 (:mod:`.report`). :mod:`.synth` makes concealed-truth recordings; :mod:`.selftest`
 proves the chain on them. Command line: :mod:`.cli`.
 """

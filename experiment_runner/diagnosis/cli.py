@@ -61,8 +61,8 @@ def diagnose_options(args):
 
 def main_diagnose(args) -> int:
     if args.list_effects:
-        from .hypotheses import describe
-        print(json.dumps(describe(as_json=True), indent=1) if args.json else describe())
+        from .effects import LIBRARY
+        print(json.dumps(LIBRARY.describe(as_json=True), indent=1) if args.json else LIBRARY.describe())
         return 0
     if args.selftest and args.power:
         return _main_power(args)

@@ -44,7 +44,7 @@ import numpy as np
 from scipy import optimize
 
 from .data import DiagData
-from .hypotheses import LIBRARY, Effect, Param
+from .effects.base import Effect, Param
 from .model import ModelSpec
 from .predict import NoiseFloor, Observer, sim_batch
 
@@ -370,8 +370,8 @@ class _Joint(Effect):
     """Several fitted effects applied in sequence, all parameters free."""
 
     def __init__(self, parts: list[tuple[Effect, int]], thetas: list | None = None):
-        super().__init__("+".join(e.key for e, _ in parts), " + ".join(e.title for e, _ in parts),
-                         "deterministic", "", "")
+        self.key = "+".join(e.key for e, _ in parts)
+        self.title = " + ".join(e.title for e, _ in parts)
         self.parts = parts
         self.thetas = thetas      # fitted values of the parts: bounds of each relative to its predecessors
 
@@ -400,8 +400,8 @@ def joint_fit(fits: list[FitResult], base: ModelSpec, ev: Evaluator, ctx: dict,
     """Re-fit all selected deterministic effects together (integer ones held at their value;
     at most ``max_iter`` Gauss-Newton iterations); None if there are fewer than
     ``min_effects`` of them."""
-    cont = [f for f in fits if LIBRARY[f.key].kind == "deterministic"]
-    fixed = [f for f in fits if LIBRARY[f.key].kind != "deterministic"]
+    cont = [f for f in fits if f.effect.kind == "deterministic"]
+    fixed = [f for f in fits if f.effect.kind != "deterministic"]
     if len(cont) < max(1, min_effects):
         return None
     spec0 = base
@@ -423,12 +423,12 @@ def fit_with(effect: Effect, selected: list[FitResult], base: ModelSpec, ev: Eva
     stay in the residual. Returns the candidate's :class:`FitResult` (its own parameters;
     ``spec`` and ``J`` are the joint model's) with ``joint`` = the joint :class:`FitResult`.
     """
-    cont = [f for f in selected if LIBRARY[f.key].kind == "deterministic"]
+    cont = [f for f in selected if f.effect.kind == "deterministic"]
     if effect.kind != "deterministic" or not cont:
         return None
     spec0 = base
     for f in selected:
-        if LIBRARY[f.key].kind != "deterministic":
+        if f.effect.kind != "deterministic":
             spec0 = f.effect.apply(spec0, f.theta)
     effect = effect.bound(ctx)
     n_e = len(effect.params(spec0, ctx))

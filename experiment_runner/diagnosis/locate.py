@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import signal
 
+from .context import Context
 from .predict import _taper
 
 __all__ = ["REGIMES", "regimes", "locate", "lowpass"]
@@ -268,8 +269,9 @@ def ripple_periods(x, rl, v, mask, lam_min, lam_max, n: int = 300, top: int = 3)
     return best, {"period_m": lam, "power": p}
 
 
-def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None = None) -> tuple[dict, dict, dict]:
-    """All views; returns (summary for the report, arrays for plots, ctx for the hypotheses)."""
+def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None = None) -> tuple[dict, dict, Context]:
+    """All views; returns (summary for the report, arrays for plots, the recording's :class:`.context.Context`
+    for the effects)."""
     rate = data.rate
     f_band = f_band or f_obs / 2
     mask = data.valid.copy()
@@ -321,17 +323,17 @@ def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None 
     lam_min = max(2 * v_slow / max(f_band, 1e-9), 1e-7)
     periods, pgram = ripple_periods(res.x, rl, data.vs, mask, lam_min, lam_max)
     xs = res.x[mask]
-    ctx = {"u_max": float(np.max(np.abs(data.u[data.valid]))), "v_max": vmax,
-           "x_span": float(np.ptp(xs)) if len(xs) else 1e-3,
-           "x_center": float(0.5 * (xs.max() + xs.min())) if len(xs) else 0.0,
-           "x_half_span": float(0.5 * np.ptp(xs)) if len(xs) else 1e-3,
-           "r_rms": float(np.sqrt(tot / max(1, mask.sum()))),
-           "peak_hz": [p["f_hz"] for p in spec["peaks"] if p["f_hz"] > 2.0],
-           "line_hz": spec["lines_hz"], "ripple_period": periods,
-           "stroke": float(np.median(strokes)) if strokes else 0.0}
+    ctx = Context(u_max=float(np.max(np.abs(data.u[data.valid]))), v_max=vmax,
+                  x_span=float(np.ptp(xs)) if len(xs) else 1e-3,
+                  x_center=float(0.5 * (xs.max() + xs.min())) if len(xs) else 0.0,
+                  x_half_span=float(0.5 * np.ptp(xs)) if len(xs) else 1e-3,
+                  r_rms=float(np.sqrt(tot / max(1, mask.sum()))),
+                  peak_hz=tuple(p["f_hz"] for p in spec["peaks"] if p["f_hz"] > 2.0),
+                  line_hz=tuple(spec["lines_hz"]), ripple_period=tuple(periods),
+                  stroke=float(np.median(strokes)) if strokes else 0.0)
     summary = {
         "f_band_hz": f_band,
-        "residual_rms_N": ctx["r_rms"],
+        "residual_rms_N": ctx.r_rms,
         "floor_rms_N": float(np.sqrt(tot_f / max(1, mfl.sum()))),
         "regimes": reg,
         "segments": segs, "segments_total": n_blocks,

@@ -31,7 +31,10 @@ from .data import DiagData, load_data
 from .frf import locate_modes
 from .fit import (Evaluator, FitResult, bad_point, estimate_lattice, fit_effect, fit_noise_level, fit_with,
                   joint_fit, n_eff, noise_components, sparse_regression)
-from .hypotheses import LIBRARY, get_effect, library
+from .context import Context
+from .effects import LIBRARY
+from .effects.body import Mode
+from .effects.stochastic import NoiseLevel, Quantization
 from .judge import ReplayJudge, controller_check, equivalent_reference
 from .locate import locate, lowpass
 from .model import ModelSpec, load_model
@@ -42,12 +45,6 @@ from .predict import (NoiseFloor, Observer, band_rms, compare_replay, force_reso
 
 __all__ = ["Options", "diagnose"]
 
-# at most one effect of each group: alternative friction models; and GMS fits the Coulomb force
-# itself (the sum of its block capacities)
-EXCLUSIVE = ({"dahl", "gms", "stribeck", "lugre", "regularized_coulomb"}, {"gms", "coulomb"})
-# quantities a nominal states as known (a data-sheet force constant): among candidates the replay
-# cannot tell apart, one of these is adopted last (it moves only when the data demand it)
-KNOWN = frozenset({"force_constant"})
 # the model's servo on the recorded reference and measurement must reproduce the recorded command
 # to this relative RMS, else the replay follows the equivalent reference (judge.equivalent_reference)
 CONTROLLER_TOL = 0.02
@@ -68,7 +65,8 @@ REFINE_JOINT_MAX = 8
 class Options:
     bandwidth: float | None = None        # force-observer bandwidth [Hz] (default rate/25)
     max_fit_seconds: float = 3.0          # fit set cap (whole trials) [s]
-    effects: list | None = None           # restrict the candidates (keys)
+    effects: list | None = None           # restrict the candidates (keys of the library)
+    library: object = None                # the effects (an effects.Library; default effects.LIBRARY)
     floor_seeds: tuple = (90001, 90002)   # noise seeds of the simulated recordings (floor)
     window_s: float = 0.01                # open-loop window length [s]
     max_steps: int = 6                    # forward-selection steps (each must pass the replay judge)
@@ -154,9 +152,9 @@ def _task_state(token: str, blob: bytes) -> dict:
         return st
 
 
-def _candidate_task(token: str, blob: bytes, key: str, current: ModelSpec, selected: list, J_fit_cur: float,
+def _candidate_task(token: str, blob: bytes, e, current: ModelSpec, selected: list, J_fit_cur: float,
                     floor: NoiseFloor, ctx: dict):
-    """Executor task: :func:`_fit_candidate` of effect ``key`` against noise ``floor``.
+    """Executor task: :func:`_fit_candidate` of effect ``e`` (bound) against noise ``floor``.
 
     ``blob`` is the pickled recording (smoothed, masked), observer bandwidth, fit-set cap
     and base model of diagnosis ``token``; ``ctx`` the locate context of this step. BLAS runs single-threaded, as in
@@ -166,7 +164,6 @@ def _candidate_task(token: str, blob: bytes, key: str, current: ModelSpec, selec
     from threadpoolctl import threadpool_limits
     st = _task_state(token, blob)
     ev = Evaluator(st["obs"], floor, st["max_fit_seconds"])
-    e = get_effect(key).bound(ctx)
     with threadpool_limits(limits=1, user_api="blas"):
         try:
             f, err = _fit_candidate(e, current, selected, J_fit_cur, ev, ctx, st["base"], st["own_floor"],
@@ -181,10 +178,10 @@ def _spec_without(selected: list, base: ModelSpec) -> ModelSpec:
     first, as :func:`.fit.fit_with` builds them)."""
     spec = base
     for f in selected:
-        if LIBRARY[f.key].kind != "deterministic":
+        if f.effect.kind != "deterministic":
             spec = f.effect.apply(spec, f.theta)
     for f in selected:
-        if LIBRARY[f.key].kind == "deterministic":
+        if f.effect.kind == "deterministic":
             spec = f.effect.apply(spec, f.theta)
     return spec
 
@@ -273,14 +270,14 @@ def _refine_by_replay(bf: FitResult, selected: list, base: ModelSpec, ctx: dict,
     from .fit import _Joint, _Transform
     try:
         e = bf.effect
-        cont = [f for f in selected if LIBRARY[f.key].kind == "deterministic"] if with_selected else []
+        cont = [f for f in selected if f.effect.kind == "deterministic"] if with_selected else []
         prev = base
         for f in selected:
-            if LIBRARY[f.key].kind != "deterministic":
+            if f.effect.kind != "deterministic":
                 prev = f.effect.apply(prev, f.theta)
         if not with_selected:
             for f in selected:
-                if LIBRARY[f.key].kind == "deterministic":
+                if f.effect.kind == "deterministic":
                     prev = f.effect.apply(prev, f.theta)
         parts = [(f.effect, len(f.theta)) for f in cont] + [(e, len(bf.theta))]
         th = [np.asarray(f.theta, float) for f in cont]
@@ -427,16 +424,16 @@ def _proposals(data: DiagData, res, floor: "_Floor", f_o: float, f_band: float, 
         return {}
     out = {}
     for k in PROPOSAL_KEYS:
-        new = list(c.get(k) or [])
-        old = [v for v in (ctx.get(k) or []) if all(abs(math.log(v / w)) > 0.15 for w in new if v > 0 and w > 0)]
-        out[k] = (new + old)[:3] if k == "ripple_period" else new + old
+        new = list(getattr(c, k))
+        old = [v for v in getattr(ctx, k) if all(abs(math.log(v / w)) > 0.15 for w in new if v > 0 and w > 0)]
+        out[k] = tuple((new + old)[:3] if k == "ripple_period" else new + old)
     return out
 
 
-def ctx_for(ctx: dict, selected: list) -> dict:
-    """The locate context for fits on top of ``selected``: with the Coulomb level adopted, the
+def ctx_for(ctx: Context, selected: list) -> Context:
+    """The located context for fits on top of ``selected``: with the Coulomb level adopted, the
     position-dependent friction has no level parameter of its own (``level_fitted``)."""
-    return dict(ctx, level_fitted=any(f.key == "coulomb" for f in selected))
+    return dataclasses.replace(ctx, level_fitted=any(f.effect.sets_friction_level for f in selected))
 
 
 def _unidentified(f: FitResult) -> bool:
@@ -456,7 +453,7 @@ def _spec_moved(selected: list, theta, base: ModelSpec) -> ModelSpec:
     ``theta`` (theirs, in order, first)."""
     k, moved = 0, []
     for f in selected:
-        if LIBRARY[f.key].kind == "deterministic":
+        if f.effect.kind == "deterministic":
             n = len(f.theta)
             f = dataclasses.replace(f, theta=np.asarray(theta[k:k + n], float))
             k += n
@@ -677,7 +674,7 @@ class _Run:
         q_held = estimate_lattice(data.y[data.held]) if data.held.any() else None
         qinfo = {"nominal_m": q_nom, "estimate_m": q_hat, "held_out_estimate_m": q_held}
         if q_hat is not None and (q_nom == 0 or abs(q_hat / q_nom - 1) > 0.05):
-            eff = get_effect("quantization")
+            eff = Quantization()
             base = eff.apply(base, [q_hat])
             ref = q_held or q_hat
             qinfo.update(found=True, held_out_error_nominal=abs(q_nom - ref) / ref, held_out_error_improved=abs(q_hat - ref) / ref)
@@ -738,20 +735,19 @@ class _Run:
         # ---------------------------------------------------------------- locate
         t = time.perf_counter()
         loc, loc_arrays, ctx = locate(data, res_nom, fl.resA, fl.simA, obs.f_o, f_band)
-        q_eff = base.preset.stage.encoder.resolution
-        ctx["delta_lo"] = max(3 * q_eff, 3e-8)
-        ctx["delta_hi"] = max(1e-4, 30 * ctx["delta_lo"])
         # modes anywhere up to Nyquist: the command -> measurement transfer against the nominal's
         try:
-            ctx["frf_modes"] = locate_modes(spec0, data)
+            frf_modes = locate_modes(spec0, data)
         except (ValueError, np.linalg.LinAlgError) as err:
-            ctx["frf_modes"] = []
+            frf_modes = []
             _log(opt, f"frf mode location failed: {err!r}")
-        loc["frf_modes"] = ctx["frf_modes"]
-        ctx["smoothing_hz"] = data.smooth_hz
+        loc["frf_modes"] = frf_modes
+        ctx = dataclasses.replace(ctx, frf_modes=tuple(frf_modes), smoothing_hz=data.smooth_hz,
+                                  resolution=base.preset.stage.encoder.resolution)
         timing["locate_s"] = time.perf_counter() - t
         self.t, self.loc, self.loc_arrays, self.ctx = t, loc, loc_arrays, ctx
-        self.library = library(ctx)      # the effects bound to this recording (never the shared LIBRARY)
+        # the effects bound to this recording (the options' library is never changed)
+        self.library = (opt.library or LIBRARY).bound(ctx)
 
     def prepare(self):
         """The evaluator, the nominal's and base model's costs and the candidate effects."""
@@ -763,7 +759,7 @@ class _Run:
         Jfb, Jhb, _ = ev.both(base) if base is not spec0 else (Jf0, Jh0, 0)
         neff = max(fl.n_eff, 10.0)
         tol_ad = max(0.1, 3 * math.sqrt(2 / neff), 2 * abs(fl.msB - 1))
-        keys = opt.effects or [k for k, e in LIBRARY.items() if e.kind in ("deterministic", "integer")]
+        keys = opt.effects or self.library.candidates()
         self.t, self.ev, self.Jf0, self.Jh0, self.Jfb, self.Jhb = t, ev, Jf0, Jh0, Jfb, Jhb
         self.neff, self.tol_ad, self.keys = neff, tol_ad, keys
 
@@ -794,7 +790,7 @@ class _Run:
         # joint fit of the selected deterministic effects: used only if the replay is not worse and no
         # parameter sits at its bound; then the found effects carry the joint values (as the YAML does)
         joint = None
-        if len([f for f in selected if LIBRARY[f.key].kind == "deterministic"]) >= 2:
+        if len([f for f in selected if f.effect.kind == "deterministic"]) >= 2:
             try:
                 jf = joint_fit(selected, base, ev, ctx_for(ctx, selected))
             except Exception as err:   # noqa: BLE001
@@ -874,7 +870,7 @@ class _Run:
                     # proposed by the force residual's spectrum; decided by the replay: the data's replay
                     # error must be inconsistent with the current model's run-to-run floor (a calibrated
                     # z-score over its simulated recordings) and consistent with the candidate's
-                    cand = get_effect("noise_level").apply(current, [sig])
+                    cand = NoiseLevel().apply(current, [sig])
                     jfl2 = judge.floor(cand)
                     z_old = judge.consistency(jfl.replay, jfl)
                     z_new = judge.consistency(jfl.replay, jfl2, norm=jfl)
@@ -883,7 +879,7 @@ class _Run:
                     # is adopted only if it makes the data consistent with the model's own recordings)
                     if abs(z_old) > judge.t_q and abs(z_new) < abs(z_old) - judge.t_q and abs(z_new) <= judge.t_q:
                         ninfo["found"] = True
-                        found.append({"effect": "noise_level", "title": LIBRARY["noise_level"].title, "kind": "stochastic",
+                        found.append({"effect": "noise_level", "title": NoiseLevel.title, "kind": "stochastic",
                                       "step": len(steps) + 1,
                                       "params": [{"name": "noise_current_rms", "unit": "A", "value": sig,
                                                   "sigma": est.get("sigma_unc"), "nominal": s0}],
@@ -912,7 +908,7 @@ class _Run:
         in the report)."""
         fj, found, selected, base = self.fit_judge, self.found, self.selected, self.base
         t = time.perf_counter()
-        det = [f for f in selected if LIBRARY[f.key].kind == "deterministic"]
+        det = [f for f in selected if f.effect.kind == "deterministic"]
         if fj is None or not det:
             return
         rows = {fe["effect"]: fe for fe in found if fe.get("kind") == "deterministic"}
@@ -991,7 +987,7 @@ class _Run:
         to 1000x the current level ``s0`` does not bracket it."""
         from scipy.optimize import brentq
         fj = self.fit_judge
-        e = get_effect("noise_level")
+        e = NoiseLevel()
 
         def g(log_s):
             fl = fj.floor(e.apply(current, [math.exp(log_s)]))
@@ -1166,9 +1162,9 @@ class _Run:
             e = self.library[k]      # bound to this recording: its applicability may depend on it
             if k in taken or k in banned or e.kind not in ("deterministic", "integer"):
                 continue
-            clash = {t for g in EXCLUSIVE if k in g for t in g & taken if t != k}
-            if k == "coulomb" and "position_friction" in taken:
-                continue                 # its level dF_0 is the Coulomb level
+            clash = self.library.exclusive_of(k) & taken
+            if taken & set(e.not_after):
+                continue                 # e.g. the Coulomb level after position-dependent friction (its level dF_0)
             if len(clash) > 1:
                 continue
             rep = next(iter(clash)) if clash else None
@@ -1200,8 +1196,8 @@ class _Run:
 
         if ex is not None:
             out = [None] * len(todo)
-            for i, (f, err, n, sec) in ex.map(_candidate_task, ((i, (token, blob, e.key) + on(rep)
-                                                                  + (J_fit_cur, ev.floor, dict(ctx)))
+            for i, (f, err, n, sec) in ex.map(_candidate_task, ((i, (token, blob, e) + on(rep)
+                                                                  + (J_fit_cur, ev.floor, ctx))
                                                                  for i, (e, rep) in enumerate(todo))):
                 ev.evals += n
                 ev.seconds += sec
@@ -1258,7 +1254,7 @@ class _Run:
             elif c.accepted and _at_nominal(f, self.spans(f)):
                 why = (f"the data do not move it: every parameter within {NOMINAL_Z:g} standard errors of "
                        "the current model's value")
-            elif c.accepted and LIBRARY[f.key].kind == "integer" and all(
+            elif c.accepted and f.effect.kind == "integer" and all(
                     f.nominal.get(n) is not None and float(f.nominal[n]) == float(v) for n, v in zip(f.names, f.theta)):
                 # the improvement is the re-fit of the others, not this effect
                 why = "no change: the current model's value"
@@ -1311,8 +1307,8 @@ class _Run:
         base, fit_judge, ctx = self.base, self.fit_judge, self.ctx
         f = j["fit"]
         i = int(round(float(f.theta[0])))
-        m = f.effect._modes[i]
-        sm = LIBRARY["structural_mode"].bound(ctx)
+        m = f.effect.mode(f.theta)
+        sm = Mode().bound(ctx)
         bf = dataclasses.replace(f, key="structural_mode", effect=sm, names=["f", "zeta", "fraction"],
                                  theta=np.array([m["f_hz"], m["zeta"], m["fraction"]]), on_bound=[], joint=None)
         sel = [s for s in selected if s.key != f.replaces]
@@ -1369,11 +1365,11 @@ class _Run:
         base, fit_judge, refine, ctx = self.base, self.fit_judge, self.refine, self.ctx
         if not refine:
             return judged
-        judged = [self.refine_integer(j, selected, jfl, s0) if LIBRARY[j["fit"].key].kind == "integer" else j
+        judged = [self.refine_integer(j, selected, jfl, s0) if j["fit"].effect.kind == "integer" else j
                   for j in judged]
         judged = [self.refine_located(j, selected, jfl, s0) if j["fit"].key == "located_mode" and j["cmp"].stable
                   else j for j in judged]
-        stable = [j for j in judged if j["cmp"].stable and LIBRARY[j["fit"].key].kind == "deterministic"]
+        stable = [j for j in judged if j["cmp"].stable and j["fit"].effect.kind == "deterministic"]
         by_replay = sorted(stable, key=lambda j: j["cmp"].D_after)
         by_observer = sorted(stable, key=lambda j: j["fit"].J_held)
         top = {id(j) for j in by_replay[:REFINE_TOP]}
@@ -1393,7 +1389,7 @@ class _Run:
             f = j["fit"]
             if any(j is x for x in stable):
                 sel = [s for s in selected if s.key != f.replaces]
-                n_sel = sum(len(s.theta) for s in sel if LIBRARY[s.key].kind == "deterministic")
+                n_sel = sum(len(s.theta) for s in sel if s.effect.kind == "deterministic")
                 blind = any(j is x for x in lost)
                 ref = _refine_by_replay(f, sel, base, ctx_for(ctx, sel), fit_judge, jfl,
                                         start=self.replay_start(f, sel, jfl) if f.on_bound or blind else None,
@@ -1474,14 +1470,14 @@ class _Run:
         base = self.base
         k = 0
         for f, fe in zip(selected, path["found"]):
-            if LIBRARY[f.key].kind != "deterministic":
+            if f.effect.kind != "deterministic":
                 continue
             n = len(f.theta)
             f.theta, f.sigma = jf.theta[k:k + n], jf.sigma[k:k + n]
             fe["params"] = f.params()
             fe["derived"] = f.effect.derived(base, f.theta)
             k += n
-        if new is not None and LIBRARY[new.key].kind == "deterministic" and len(jf.theta) >= k + len(new.theta):
+        if new is not None and new.effect.kind == "deterministic" and len(jf.theta) >= k + len(new.theta):
             n = len(new.theta)
             new.theta, new.sigma = jf.theta[k:k + n], jf.sigma[k:k + n]
             new.derived = new.effect.derived(base, new.theta)
@@ -1533,7 +1529,7 @@ class _Run:
         selected = path["selected"]
         opt, base, judge, fit_judge, refine, ctx = self.opt, self.base, self.judge, self.fit_judge, self.refine, self.ctx
         changed = False
-        for e in [s for s in selected if s is not last and LIBRARY[s.key].kind == "deterministic"]:
+        for e in [s for s in selected if s is not last and s.effect.kind == "deterministic"]:
             rest = [s for s in selected if s is not e]
             try:
                 spec_wo = _spec_without(rest, base)
@@ -1541,8 +1537,8 @@ class _Run:
                 continue
             best_wo = (self.fit_D(spec_wo), spec_wo, None)
             others = [s for s in rest if s is not last]
-            if refine and LIBRARY[last.key].kind == "deterministic":
-                n_o = sum(len(s.theta) for s in others if LIBRARY[s.key].kind == "deterministic")
+            if refine and last.effect.kind == "deterministic":
+                n_o = sum(len(s.theta) for s in others if s.effect.kind == "deterministic")
                 ref = _refine_by_replay(last, others, base, ctx_for(ctx, others), fit_judge, path["jfl"],
                                         with_selected=0 < n_o and n_o + len(last.theta) <= REFINE_JOINT_MAX)
                 if ref is not None and not (ref["joint"].on_bound if ref["joint"] is not None
@@ -1581,15 +1577,14 @@ class _Run:
         own floor, a second walk starts from step 1's runner-up (:meth:`second_start`) and is kept
         only if its held-out replay is better beyond the first path's floor (the adoption test);
         the path's ``second_start`` says what both found. Returns :attr:`path`."""
-        ctx0 = dict(self.ctx)
+        ctx0 = self.ctx
         self.first_step = None
         a = self.walk()
         second = self.second_start(a)
         if second is None:
             return a
-        ctx_a = dict(self.ctx)
-        self.ctx.clear()
-        self.ctx.update(ctx0)
+        ctx_a = self.ctx
+        self.ctx = ctx0
         _log(self.opt, f"second start: {second['fit'].key} first (the path from {a['steps'][0]['accepted']} "
                        "left a residual beyond its floor)")
         b = self.walk(first=second)
@@ -1603,8 +1598,7 @@ class _Run:
             "replay_D_greedy": judge.D(a["jfl"].replay, a["jfl"]),
             "why": c.why if c is not None else "unstable"}
         if chosen is a:
-            self.ctx.clear()
-            self.ctx.update(ctx_a)
+            self.ctx = ctx_a
         self.path = chosen
         self.ev.floor = chosen["floor"].floor
         _log(self.opt, f"second start: {[fe['effect'] for fe in chosen['found']]} kept "
@@ -1728,12 +1722,12 @@ class _Run:
         on the model: the effect was refined under the floor of the model without it."""
         path = self.path
         selected = path["selected"]
-        det = [s for s in selected if LIBRARY[s.key].kind == "deterministic"]
+        det = [s for s in selected if s.effect.kind == "deterministic"]
         if not det:
             return
         last = det[-1]
         others = [s for s in selected if s is not last]
-        n_o = sum(len(s.theta) for s in others if LIBRARY[s.key].kind == "deterministic")
+        n_o = sum(len(s.theta) for s in others if s.effect.kind == "deterministic")
         ref = _refine_by_replay(last, others, self.base, ctx_for(self.ctx, others), self.fit_judge, path["jfl"],
                                 with_selected=0 < n_o and n_o + len(last.theta) <= REFINE_JOINT_MAX, max_nfev=20)
         if ref is None or (ref["joint"].on_bound if ref["joint"] is not None else ref["at_bound"]):
@@ -1764,11 +1758,11 @@ class _Run:
             equiv = [top] + [j for j in ok[1:] if judge.equivalent(jfl, j["rp"], top["rp"], of_b=tfl)[0]]
             # adopt one of them: not a quantity the nominal states as known (a data-sheet force
             # constant) unless the data demand it, then the simplest, then the best replay
-            best = min(equiv, key=lambda j: (j["fit"].key in KNOWN, len(j["fit"].theta), j["cmp"].D_after))
+            best = min(equiv, key=lambda j: (j["fit"].key in self.library.known, len(j["fit"].theta), j["cmp"].D_after))
             # a simpler adoptable candidate wins unless the more complex one improves on it beyond the
             # floor (e.g. position-dependent friction over a plain Coulomb level it contains)
             for j in sorted(ok, key=lambda j: (len(j["fit"].theta), j["cmp"].D_after)):
-                if len(j["fit"].theta) >= len(best["fit"].theta) or j["fit"].key in KNOWN:
+                if len(j["fit"].theta) >= len(best["fit"].theta) or j["fit"].key in self.library.known:
                     continue
                 # the threshold from recordings of the simpler model (the current model's scatter with
                 # the distance from it: a candidate at the floor was "within the floor" of one 28x above)
@@ -1825,10 +1819,10 @@ class _Run:
             if refit is not None and not refit.on_bound and self.replay_D(refit.spec) <= best["cmp"].D_after:
                 self.adopt(refit, new=bf)
                 new_spec = refit.spec
-        if refine and LIBRARY[bf.key].kind == "deterministic":
+        if refine and bf.effect.kind == "deterministic":
             # the adopted effects refined together by the replay of the fit samples (output error),
             # kept off their bounds and if the held-out replay is not worse
-            n_sel = sum(len(f.theta) for f in selected if LIBRARY[f.key].kind == "deterministic")
+            n_sel = sum(len(f.theta) for f in selected if f.effect.kind == "deterministic")
             ref = _refine_by_replay(bf, selected, base, ctx_for(ctx, selected), fit_judge, path["jfl"],
                                     with_selected=0 < n_sel and n_sel + len(bf.theta) <= REFINE_JOINT_MAX)
             if ref is not None and not (ref["joint"].on_bound if ref["joint"] is not None else ref["at_bound"]) \
@@ -1842,13 +1836,13 @@ class _Run:
         # a confounded alternative that states a known quantity (force constant) is not adopted later;
         # the others may be, if they add beyond the floor on top of this one (then they were not
         # confounded: the data demand both, and the earlier "confounded" mark is withdrawn)
-        path["banned"] |= {j["fit"].key for j in conf if j["fit"].key in KNOWN}
+        path["banned"] |= {j["fit"].key for j in conf if j["fit"].key in self.library.known}
         for fe in path["found"]:
             if bf.key in fe["confounded_with"]:
                 fe["confounded_with"] = [k for k in fe["confounded_with"] if k != bf.key]
                 fe["alternatives"] = [a for a in fe["alternatives"] if a["effect"] != bf.key]
                 fe.setdefault("also_adopted", []).append(bf.key)
-        path["found"].append({"effect": bf.key, "title": bf.title, "kind": LIBRARY[bf.key].kind, "step": step,
+        path["found"].append({"effect": bf.key, "title": bf.title, "kind": bf.effect.kind, "step": step,
                               "params": bf.params(), "derived": bf.derived, "expressible": bf.expressible,
                               "confounded_with": [j["fit"].key for j in conf], "alternatives": alts,
                               "J_held": bf.J_held, "replay": best["cmp"].row(),
@@ -1861,7 +1855,7 @@ class _Run:
             self.renew_floor(path["current"])
         # the next proposals come from what the adopted model leaves: ripple periods, spectral peaks and
         # lines located again in its force residual (the nominal's was dominated by the adopted effect)
-        ctx.update(_proposals(data, obs.run(new_spec), path["floor"], obs.f_o, f_band, ctx))
+        self.ctx = dataclasses.replace(ctx, **_proposals(data, obs.run(new_spec), path["floor"], obs.f_o, f_band, ctx))
 
 
 def _sparse(data, res, ctx, f_band):
@@ -1870,14 +1864,14 @@ def _sparse(data, res, ctx, f_band):
     rl = lowpass(res.r, mask, data.rate, f_band)
     x, v = res.x, data.vs
     acc = lowpass(np.gradient(data.vs, axis=0) * data.rate, data.valid, data.rate, f_band)
-    xc, xs = ctx.get("x_center", 0.0), max(ctx.get("x_half_span", 1e-3), 1e-12)
-    vmax = max(ctx.get("v_max", 1e-3), 1e-12)
+    xc, xs = ctx.x_center, max(ctx.x_half_span, 1e-12)
+    vmax = max(ctx.v_max, 1e-12)
     xi = (x - xc) / xs
     feats = {"1": np.ones_like(x), "v": v, "sign(v)": np.tanh(v / (0.01 * vmax)), "v|v|": v * np.abs(v),
              "|v|": np.abs(v), "|phi_f|": np.abs(res.phi),
              "x": xi, "x^2": xi ** 2, "a": acc, "u": data.u, "phi_f": res.phi, "phi_f*x": res.phi * xi,
              "phi_f*x^2": res.phi * xi ** 2}
-    per = (ctx.get("ripple_period") or [None])[0]
+    per = (ctx.ripple_period or [None])[0]
     if per:
         feats[f"sin(2pi x/{per:.3g})"] = np.sin(2 * np.pi * x / per)
         feats[f"cos(2pi x/{per:.3g})"] = np.cos(2 * np.pi * x / per)
