@@ -16,7 +16,8 @@ import yaml
 from experiment_runner.diagnosis import add_diagnose_arguments
 from experiment_runner.diagnosis.cli import diagnose_options
 from experiment_runner.diagnosis.model import load_model
-from experiment_runner.diagnosis.pipeline import Options, diagnose
+from experiment_runner.diagnosis.options import Options
+from experiment_runner.diagnosis.pipeline import diagnose
 from experiment_runner.diagnosis.report import jsonable
 from experiment_runner.diagnosis.selftest import CASES, EXPERIMENTS
 from experiment_runner.diagnosis.synth import synth

@@ -13,7 +13,8 @@ from scipy import signal
 from experiment_runner.diagnosis.data import load_data
 from experiment_runner.diagnosis.model import load_model
 from experiment_runner.diagnosis.openloop import OpenLoopJudge
-from experiment_runner.diagnosis.pipeline import Options, diagnose
+from experiment_runner.diagnosis.options import Options
+from experiment_runner.diagnosis.pipeline import diagnose
 from experiment_runner.diagnosis.predict import Observer
 from experiment_runner.tabular import convert_table
 from independent import lugre_rk4, regularized_coulomb_rk4

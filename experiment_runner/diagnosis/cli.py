@@ -52,8 +52,8 @@ def _nominal_from_config(path):
 
 
 def diagnose_options(args):
-    """The :class:`.pipeline.Options` of parsed ``nanostage diagnose`` arguments."""
-    from .pipeline import Options
+    """The :class:`.options.Options` of parsed ``nanostage diagnose`` arguments."""
+    from .options import Options
     return Options(bandwidth=args.bandwidth, max_fit_seconds=args.max_fit_seconds,
                    effects=[e.strip() for e in args.effects.split(",")] if args.effects else None,
                    plots=not args.no_plots, verbose=args.verbose, workers=args.workers, cluster=args.cluster)

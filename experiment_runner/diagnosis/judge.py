@@ -171,7 +171,9 @@ class ReplayJudge:
         self.token = next(_TOKENS)      # replay cache key on the specs (an id() could be reused)
 
     # ------------------------------------------------------------------ simulation
-    def _simulate(self, spec: ModelSpec, seeds):
+    def simulate_recordings(self, spec: ModelSpec, seeds):
+        """Recordings of ``spec`` on the judged trials with noise ``seeds`` (one batch call): ``(u, y)``
+        each (K, T, B), the simulator's status (K, B) and the preset."""
         p = spec.preset
         K = len(seeds)
         B = len(self.cols)
@@ -195,7 +197,7 @@ class ReplayJudge:
         if hit is not None:
             return hit
         nf = noise_free(spec)
-        u, y, status, p = self._simulate(nf, [0])
+        u, y, status, p = self.simulate_recordings(nf, [0])
         u, y = u[0], y[0]
         ok, why = True, ""
         if np.any(status != 0) or not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
@@ -215,7 +217,7 @@ class ReplayJudge:
     def floor(self, spec: ModelSpec) -> Floor:
         """Run-to-run floor of ``spec``: ``K`` simulated recordings (one batch call)."""
         rp = self.replay(spec)
-        u, y, _, _ = self._simulate(spec, self.seeds)
+        u, y, _, _ = self.simulate_recordings(spec, self.seeds)
         du = (u - rp.u[None])[:, self.mask]
         dy = (y - rp.y[None])[:, self.mask]
         su = float(np.sqrt(np.mean(du ** 2))) if du.size else 1.0

@@ -19,20 +19,22 @@ leaves), low-passed at ``f_band`` (zero phase) unless said otherwise:
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import signal
 
 from .context import Context
-from .predict import _taper
+from .predict import taper
 
-__all__ = ["REGIMES", "regimes", "locate", "lowpass"]
+__all__ = ["REGIMES", "regimes", "locate", "lowpass", "proposals", "PROPOSAL_KEYS"]
 
 REGIMES = ("in_position", "settling", "reversal", "acceleration", "constant_velocity")
 
 
 def lowpass(r: np.ndarray, mask: np.ndarray, rate: float, f_hi: float) -> np.ndarray:
     sos = signal.butter(2, min(0.95, 2 * f_hi / rate), output="sos")
-    return np.where(mask, signal.sosfiltfilt(sos, _taper(r, mask), axis=0), 0.0)
+    return np.where(mask, signal.sosfiltfilt(sos, taper(r, mask), axis=0), 0.0)
 
 
 def regimes(x_ref, v_ref, valid, rate: float, t_settle: float = 0.02) -> np.ndarray:
@@ -344,3 +346,24 @@ def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None 
     arrays = {"rl": rl, "fl": fl, "mask": mask, "labels": lab, "spectrum": spec, "state": st,
               "periodogram": pgram, "variables": variables}
     return summary, arrays, ctx
+
+
+PROPOSAL_KEYS = ("ripple_period", "peak_hz", "line_hz")
+"""The context's entries located again in what an adopted model leaves (:func:`proposals`)."""
+
+
+def proposals(data, res, res_floor, floor_data, f_obs: float, f_band: float, ctx: Context) -> dict:
+    """The context's proposal entries (:data:`PROPOSAL_KEYS`) from the force residual ``res`` of the
+    current model (its floor's residual ``res_floor`` on the simulated recording ``floor_data``): new
+    findings first, then the earlier ones of ``ctx`` not within 15 % of them (at most three periods;
+    peaks and lines as located). Empty when the residual cannot be located (the earlier proposals stay)."""
+    try:
+        _, _, c = locate(data, res, res_floor, floor_data, f_obs, f_band)
+    except Exception:     # noqa: BLE001 - the earlier proposals stay
+        return {}
+    out = {}
+    for k in PROPOSAL_KEYS:
+        new = list(getattr(c, k))
+        old = [v for v in getattr(ctx, k) if all(abs(math.log(v / w)) > 0.15 for w in new if v > 0 and w > 0)]
+        out[k] = tuple((new + old)[:3] if k == "ripple_period" else new + old)
+    return out

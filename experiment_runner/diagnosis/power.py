@@ -48,18 +48,32 @@ from __future__ import annotations
 import json
 import math
 import time
+import traceback
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 
+from experiment_runner.batch import simulate
+from experiment_runner.executor import make_executor
+from experiment_runner.experiment import Experiment, build_trials
+from stage_control.tuning import loop_shape_pid
 from stage_sim import friction
+from stage_sim.config import load_preset, preset_from_dict
+from stage_sim.friction.base import FrictionVariation
 
+from .data import from_trials
 from .effects import LIBRARY
 from .effects.base import Draw, log_uniform
 from .effects.friction_laws import Gms
 from .effects.stochastic import NOISE
+from .judge import ReplayJudge
+from .model import ModelSpec
+from .options import Options
+from .pipeline import diagnose
+from .report import jsonable
 from .truth import check_params
 
 __all__ = ["PowerCase", "make_cases", "run_power", "DEFAULT_CASES", "dealt_effects"]
@@ -111,7 +125,6 @@ class PowerCase:
 # --------------------------------------------------------------------------- nominals
 def nominal_doc(case: PowerCase) -> dict:
     """The nominal preset (mapping) of a case."""
-    from stage_sim.config import load_preset
     base = {"rigid": "fi_stage_nofi", "isolated": "fi_stage", "sai": "sai_stage"}[case.stage]
     d = load_preset(base).model_dump(mode="json")
     d["name"] = f"power_{case.name}_nominal"
@@ -124,7 +137,6 @@ def nominal_doc(case: PowerCase) -> dict:
         elif case.friction == "coulomb":
             b["friction"] = friction.coulomb.element(fr["f_c"], viscous=fr.get("viscous", 0.0))
     if case.rate != d["controller"]["rate"]:
-        from stage_control.tuning import loop_shape_pid
         d["controller"]["rate"] = case.rate
         d["controller"]["pid"].update(loop_shape_pid(2.0, 40.0, delay=0.5 / case.rate))
     d["stage"]["drive"]["noise_current_rms"] = NOISE * case.noise
@@ -138,7 +150,6 @@ def _truth_effect(e: str, q: float, rng, d: dict, case: PowerCase, info: dict) -
     :meth:`~.effects.base.Effect.conceal`; the sign is the generator's first draw); returns the truth
     values of the effect's parameters. A friction law written over the bearings keeps the variation
     an earlier effect gave them."""
-    from stage_sim.friction.base import FrictionVariation
     kept = [{k: b["friction"][k] for k in FrictionVariation.model_fields if k in b["friction"]}
             for b in d["stage"]["bearings"]]
     sign = 1.0 if rng.random() < 0.5 else -1.0
@@ -241,7 +252,6 @@ def make_cases(n: int = DEFAULT_CASES, master_seed: int = MASTER_SEED) -> list[P
 
 # --------------------------------------------------------------------------- one case
 def _trials(case: PowerCase, nominal):
-    from experiment_runner.experiment import Experiment, build_trials
     exp = Experiment.model_validate({"name": case.name, "preset": "fi_stage_nofi", "profile": case.profile,
                                      "trials": case.trials, "starts": {"margin": 0.005, "seed": case.seed % 100000},
                                      "window": 25e-9})
@@ -250,7 +260,6 @@ def _trials(case: PowerCase, nominal):
 
 def build_case(case: PowerCase):
     """(nominal Preset, truth Preset, truth values {effect: {param: value}}, DiagData, trials)."""
-    from stage_sim.config import preset_from_dict
     nom_doc = nominal_doc(case)
     nominal = preset_from_dict(nom_doc, f"power case {case.name} nominal")
     tr = _trials(case, nominal)
@@ -268,9 +277,7 @@ def build_case(case: PowerCase):
 
 def record(truth, trials):
     """What a rig records of ``trials`` run on ``truth`` (noise on): a :class:`~.data.DiagData`."""
-    from experiment_runner.batch import simulate
 
-    from .data import from_trials
     res = simulate(truth, np.stack([t.x_ref for t in trials]), np.stack([t.v_ref for t in trials]),
                    seeds=[truth.simulation.seed + t.index for t in trials], check=False)
     B = len(trials)
@@ -287,8 +294,6 @@ def replay_change(nominal, variants: dict, data) -> dict:
     """How far the nominal's held-out replay is from recordings of each variant (presets),
     beyond its own run-to-run floor: ``sqrt(|E D(variant) - E D(nominal)| / E D(nominal))``
     (:mod:`.judge`; 4 simulated recordings per variant)."""
-    from .judge import ReplayJudge
-    from .model import ModelSpec
     j = ReplayJudge(data)
     nom = ModelSpec(nominal)
     fl = j.floor(nom)
@@ -296,7 +301,7 @@ def replay_change(nominal, variants: dict, data) -> dict:
     base = float(np.mean(j.sim_blocks(fl.replay, fl).sum(axis=1) / n))
     out = {}
     for k, p in variants.items():
-        u, y, _, _ = j._simulate(ModelSpec(p), j.seeds[:4])
+        u, y, _, _ = j.simulate_recordings(ModelSpec(p), j.seeds[:4])
         e2 = [((u[i] - fl.replay.u) / fl.sigma_u) ** 2 + ((y[i] - fl.replay.y) / fl.sigma_y) ** 2 for i in range(4)]
         Dv = float(np.mean([np.sum(x[j.mask]) / n for x in e2]))
         # a floor without noise (a stage that never slips at its encoder step) counts as 2 per
@@ -368,15 +373,12 @@ def run_case(case: PowerCase, keep=None) -> dict:
 
 
 def _run_case(case: PowerCase, keep) -> dict:
-    from .model import ModelSpec
-    from .pipeline import Options, diagnose
     try:
         nominal, truth, expect, data, tr = build_case(case)
         variants = {"truth": truth}
         alldata = data.subset(np.arange(data.shape[1]))
         given = {}
         if len(case.effects) == 2:
-            from stage_sim.config import preset_from_dict
             for i, (e, q) in enumerate(zip(case.effects, case.quantiles)):
                 doc = nominal.model_dump(mode="json")
                 _truth_effect(e, q, np.random.default_rng([case.seed, 7, i]), doc, case, _info(tr))
@@ -387,7 +389,6 @@ def _run_case(case: PowerCase, keep) -> dict:
             given = {a: replay_change(variants[b], {"truth": truth}, alldata)["truth"],
                      b: replay_change(variants[a], {"truth": truth}, alldata)["truth"]}
         change = replay_change(nominal, variants, alldata)
-        from .judge import ReplayJudge
         truth_stable = ReplayJudge(data.subset(np.arange(data.shape[1]))).replay(ModelSpec(truth)).ok
         out_dir = None if keep is None else Path(keep) / case.name
         rep = diagnose(None, ModelSpec(nominal), out=out_dir, data=data, options=Options(plots=keep is not None,
@@ -403,7 +404,6 @@ def _run_case(case: PowerCase, keep) -> dict:
             res["reasons"] = {e: _reason(rep, e) for e in case.effects if not res["detected"].get(e)}
         res["extra_reasons"] = {e: _extra_reason(rep, e) for e in res.get("extra") or (res["named"] if not case.effects else [])}
     except Exception as err:      # noqa: BLE001 - a crashing case is a failed case, reported
-        import traceback
         res = {"case": case.name, "kind": case.kind, "effects": list(case.effects), "error": repr(err),
                "traceback": traceback.format_exc(limit=4), "named": [], "replay_change": {}}
     return res
@@ -442,7 +442,6 @@ def _extra_reason(rep: dict, effect: str) -> str:
 
 # --------------------------------------------------------------------------- the study
 def _task(case: PowerCase, keep):
-    import numba
     numba.set_num_threads(1)
     return run_case(case, keep)
 
@@ -511,7 +510,6 @@ def run_power(n_cases: int = DEFAULT_CASES, workers: int | None = 2, cluster=Non
               verbose: bool = False, only=None) -> dict:
     """Run the study (cases on ``workers`` local processes or a Dask ``cluster``); returns the
     summary with ``results``; with ``out`` writes ``power.json``, ``report.md`` and the plot."""
-    from experiment_runner.executor import make_executor
     cases = make_cases(n_cases)
     if only:
         cases = [c for c in cases if any(o in c.name for o in only)]
@@ -541,7 +539,6 @@ def _fmt_change(r) -> str:
 def write_report(out, s: dict) -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    from .report import jsonable
     (out / "power.json").write_text(json.dumps(jsonable(s), indent=1))
     plots = []
     try:

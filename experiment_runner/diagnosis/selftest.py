@@ -34,7 +34,8 @@ import yaml
 from .effects import LIBRARY, Case
 from .effects.base import NOMINAL
 from .effects.forces import no_ilc
-from .pipeline import Options, diagnose
+from .options import Options
+from .pipeline import diagnose
 from .synth import synth
 from .truth import check_params
 
@@ -143,7 +144,7 @@ def judge(case: Case, rep: dict) -> dict:
 def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verbose: bool = False,
                  workers: int | None = None, cluster=None) -> dict:
     """Run the cases (``only``: names or prefixes); returns the summary dict. ``workers`` /
-    ``cluster``: where each diagnosis runs its candidate fits (:class:`.pipeline.Options`)."""
+    ``cluster``: where each diagnosis runs its candidate fits (:class:`.options.Options`)."""
     cases = [c for c in CASES if not only or any(c.name.startswith(o) for o in only)]
     tmp = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="nanostage_selftest_"))
     tmp.mkdir(parents=True, exist_ok=True)
