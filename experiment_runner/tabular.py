@@ -76,7 +76,7 @@ import numpy as np
 from stage_sim.validation import ConfigError
 
 __all__ = ["Table", "read_table", "Mapping", "load_mapping", "mapping_from_dict", "Signals", "prepare",
-           "convert_table", "sha256", "EMPS_MAPPING", "add_convert_arguments", "main_convert"]
+           "convert_table", "convert_emps", "sha256", "EMPS_MAPPING", "add_convert_arguments", "main_convert"]
 
 EMPS_MAPPING = Path(__file__).with_name("mappings") / "emps.yaml"
 """The mapping of the EMPS benchmark's ``DATA_EMPS.mat`` (``nanostage convert emps``)."""
@@ -789,6 +789,21 @@ _HELP = {"time": "column of the sample times [s after --scale]",
          "input": "column of a known external force on the table (-> /stage/external_force)"}
 
 
+def convert_emps(mat_path, out, overwrite: bool = True) -> Path:
+    """Write ``DATA_EMPS.mat`` as a contract recording; returns the MCAP file.
+
+    The table importer (:func:`convert_table`) with the shipped
+    mapping :data:`EMPS_MAPPING` (README): ``/stage/reference``
+    position ``qg`` and velocity (not in the source: central difference of ``qg``, said so in
+    ``/experiment/config``), ``/stage/command`` effort ``gtau * vir`` [N], ``/stage/measured``
+    position ``qm``, and the drive voltage ``vir`` [V] as logged on ``/source/channels``.
+    Stamps are ``k * 1 ms`` (the mean period; the logged times jitter by ~2e-8 s around it);
+    ``gtau``, ``kp``, ``kv`` are in the config (``provenance.scalars``). One trial.
+    """
+    return convert_table(mat_path, load_mapping(EMPS_MAPPING), out, overwrite=overwrite,
+                         source="nanostage convert emps")
+
+
 def add_convert_arguments(parser):
     sub = parser.add_subparsers(dest="kind", required=True, metavar="KIND")
     p = sub.add_parser(
@@ -850,7 +865,6 @@ def _flags(args) -> dict:
 
 def main_convert(args) -> int:
     if args.kind == "emps":
-        from experiment_runner.diagnosis.realdata import convert_emps
         print(convert_emps(args.source, args.out, overwrite=args.overwrite))
         return 0
     if args.list:

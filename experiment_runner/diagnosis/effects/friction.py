@@ -11,7 +11,7 @@ from stage_sim import friction
 
 from ..context import Context
 from ..model import ModelSpec, coulomb_total, friction_elements
-from .base import Case, Draw, Effect, Param, Parameter, bearing_f_c, both_bearings, for_bearings
+from .base import Case, Effect, Param, Parameter, bearing_f_c, both_bearings, for_bearings
 
 __all__ = ["Coulomb", "Viscous", "PositionFriction", "Asymmetry", "friction_weights", "scaled_variation",
            "edit_elements", "virgin_x50", "F_C_NOMINAL"]
