@@ -48,6 +48,7 @@ import numpy as np
 from scipy import stats
 
 from experiment_runner.batch import Models, simulate
+from stage_control.servo import build_servo, init_servo_state, servo_step
 
 from .data import DiagData
 from .model import ModelSpec
@@ -379,7 +380,6 @@ class ReplayJudge:
 # --------------------------------------------------------------------------- controller
 def _servo_on(spec: ModelSpec, data: DiagData, x_ref: np.ndarray, cols) -> np.ndarray:
     """The model's servo on the recorded measurement and the reference ``x_ref`` (T, B)."""
-    from stage_control.servo import build_servo, init_servo_state, servo_step
     p = spec.preset
     sm = build_servo(p.controller, p.stage)
     T = data.shape[0]
@@ -414,7 +414,6 @@ def equivalent_reference(spec: ModelSpec, data: DiagData) -> np.ndarray:
     recorded command: per sample, the servo's output is affine in the reference sample (for
     PID, DOB and NIASA; a feedforward friction model is solved by the secant through two
     trial values), so it is solved exactly and the servo advanced with the solution."""
-    from stage_control.servo import build_servo, init_servo_state, servo_step
     p = spec.preset
     sm = build_servo(p.controller, p.stage)._replace(limit=1e300)      # the affine law, unsaturated
     T, B = data.shape
