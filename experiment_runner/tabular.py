@@ -72,7 +72,7 @@ import numpy as np
 from stage_sim.validation import ConfigError, input_file_problem
 
 __all__ = ["Table", "read_table", "Mapping", "load_mapping", "mapping_from_dict", "Signals", "prepare",
-           "convert_table", "sha256", "EMPS_MAPPING", "add_convert_arguments", "main_convert"]
+           "convert_table", "convert_emps", "sha256", "EMPS_MAPPING", "add_convert_arguments", "main_convert"]
 
 EMPS_MAPPING = Path(__file__).with_name("mappings") / "emps.yaml"
 """The mapping of the EMPS benchmark's ``DATA_EMPS.mat`` (``nanostage convert emps``)."""
@@ -792,6 +792,21 @@ _HELP = {"time": "column of the sample times [s after --scale]",
          "input": "column of a known external force on the table (-> /stage/external_force)"}
 
 
+def convert_emps(mat_path, out, overwrite: bool = True) -> Path:
+    """Write ``DATA_EMPS.mat`` as a contract recording; returns the MCAP file.
+
+    The table importer (:func:`convert_table`) with the shipped
+    mapping :data:`EMPS_MAPPING` (README): ``/stage/reference``
+    position ``qg`` and velocity (not in the source: central difference of ``qg``, said so in
+    ``/experiment/config``), ``/stage/command`` effort ``gtau * vir`` [N], ``/stage/measured``
+    position ``qm``, and the drive voltage ``vir`` [V] as logged on ``/source/channels``.
+    Stamps are ``k * 1 ms`` (the mean period; the logged times jitter by ~2e-8 s around it);
+    ``gtau``, ``kp``, ``kv`` are in the config (``provenance.scalars``). One trial.
+    """
+    return convert_table(mat_path, load_mapping(EMPS_MAPPING), out, overwrite=overwrite,
+                         source="nanostage convert emps")
+
+
 def add_convert_arguments(parser):
     from experiment_runner.outputs import add_overwrite_argument
     sub = parser.add_subparsers(dest="kind", required=True, metavar="KIND")
@@ -864,7 +879,6 @@ def main_convert(args) -> int:
         from experiment_runner.nominal_model import main_convert_nominal
         return main_convert_nominal(args)
     if args.kind == "emps":
-        from experiment_runner.diagnosis.realdata import convert_emps
         print(convert_emps(args.source, args.out, overwrite=args.overwrite))
         return 0
     if args.list:

@@ -15,7 +15,9 @@ from experiment_runner.diagnosis import power
 from experiment_runner.diagnosis.data import DiagData
 from experiment_runner.diagnosis.fit import (Evaluator, estimate_lattice, fit_effect, gauss_newton,
                                              sparse_regression)
-from experiment_runner.diagnosis.hypotheses import LIBRARY, describe, get_effect, virgin_x50
+from experiment_runner.diagnosis.context import Context
+from experiment_runner.diagnosis.effects import LIBRARY
+from experiment_runner.diagnosis.effects.friction import virgin_x50
 from experiment_runner.diagnosis.locate import REGIMES, regimes
 from experiment_runner.diagnosis.model import ModelSpec, load_model
 from experiment_runner.diagnosis.predict import NoiseFloor, Observer, closed_loop, force_resolution, sim_batch, sim_data
@@ -74,7 +76,7 @@ def test_open_loop_windows_drift_small_for_exact_model():
     spec = ModelSpec(NOM)
     res = ob.run(spec, snap_every=100)
     w_ok = open_loop_windows(spec, ob, res, 100)
-    wrong = get_effect("coulomb").apply(spec, [4.0])
+    wrong = LIBRARY["coulomb"].apply(spec, [4.0])
     res_w = ob.run(wrong, snap_every=100)
     w_bad = open_loop_windows(wrong, ob, res_w, 100)
     assert len(w_ok["start"]) > 50
@@ -128,7 +130,7 @@ def test_fit_recovers_coulomb_and_rejects_others(coulomb_case):
     d, ob, fl, spec = coulomb_case
     ev = Evaluator(ob, fl)
     J0 = ev.J(spec)
-    ctx = {"u_max": float(np.abs(d.u).max()), "v_max": 0.02, "x_center": 0.0, "x_half_span": 5e-3}
+    ctx = Context(u_max=float(np.abs(d.u).max()), v_max=0.02, x_center=0.0, x_half_span=5e-3)
     f = fit_effect(LIBRARY["coulomb"], spec, ev, ctx)
     assert f.theta[0] == pytest.approx(5.31 * 1.3, rel=1e-3)
     assert f.J_held < 2 and J0 > 1e4
@@ -146,7 +148,7 @@ def _fit_on(d, nominal, key, ctx=None, starts=None):
     fl = NoiseFloor(d.rate, [Observer(sim, bandwidth=ob.f_o).run(spec).r], [sim.fit | sim.held], f_max=ob.f_o,
                     rms_min=force_resolution(spec, ob.f_o))     # as the diagnosis bounds it
     ev = Evaluator(ob, fl)
-    ctx = {"u_max": float(np.abs(d.u).max()), "v_max": 0.02, "delta_lo": 3e-8, "delta_hi": 1e-4, **(ctx or {})}
+    ctx = Context(**{"u_max": float(np.abs(d.u).max()), "v_max": 0.02, **(ctx or {})})
     return fit_effect(LIBRARY[key], spec, ev, ctx, starts=starts), ev.J(spec)
 
 
@@ -156,7 +158,7 @@ def test_gms_effect_on_a_maxwell_slip_model_scales_its_own_blocks():
     gms = load_preset("fi_stage_nofi_gms")
     e = LIBRARY["gms"]
     spec = ModelSpec(gms)
-    ps = e.params(spec, {})
+    ps = e.params(spec, Context())
     assert ps[0].name == "x_scale" and len(ps) == 1 + len(gms.stage.bearings[0].friction.k)
     same = e.apply(spec, [p.x0 for p in ps]).preset.stage.bearings[0].friction
     assert np.allclose(same.k, gms.stage.bearings[0].friction.k, rtol=1e-9)
@@ -191,11 +193,11 @@ def test_a_start_the_simulator_refuses_is_a_bad_point_not_a_lost_candidate():
     nominal, truth, expect, data, _ = power.build_case(case)
     spec = ModelSpec(nominal)
     e = LIBRARY["fi_compliance"]
-    p = e.params(spec, {})
+    p = e.params(spec, Context())
     stiff = [p[0].hi, 0.02, p[2].lo]
     with pytest.raises(ValueError, match="sub-steps"):
         e.apply(spec, stiff).compiled()
-    f, J0 = _fit_on(data, nominal, "fi_compliance", starts=[stiff] + e.starts(spec, {}))
+    f, J0 = _fit_on(data, nominal, "fi_compliance", starts=[stiff] + e.starts(spec, Context()))
     assert f.theta[0] == pytest.approx(expect["fi_compliance"]["k_fi"], rel=0.05)
     assert f.J_held < 1e-3 * J0
 
@@ -210,15 +212,15 @@ def test_noise_floor_whitening_is_unit_for_the_model_itself(coulomb_case):
 # --------------------------------------------------------------------------- library, model files
 @pytest.mark.parametrize("key", list(LIBRARY))
 def test_every_effect_applies_to_the_nominal(key):
-    e = get_effect(key).bound({"x_center": 0.0, "x_half_span": 5e-3, "delta_lo": 3e-8, "delta_hi": 1e-4,
-                               "smoothing_hz": 1000.0, "frf_modes": [{"f_hz": 1500.0, "zeta": 0.02, "fraction": 0.05}]})
+    e = LIBRARY[key].bound(Context(x_center=0.0, x_half_span=5e-3, smoothing_hz=1000.0,
+                                   frf_modes=({"f_hz": 1500.0, "zeta": 0.02, "fraction": 0.05},)))
     spec = ModelSpec(NOM)
     if e.applicable(spec) is not None:            # needs what the nominal lacks (isolator_transient: an SAI)
         assert key == "isolator_transient", e.applicable(spec)
         spec = ModelSpec(load_preset("sai_stage"))
         assert e.applicable(spec) is None
-    ctx = {"u_max": 8.0, "v_max": 0.02, "x_span": 1e-2, "peak_hz": [150.0], "ripple_period": [4e-4],
-           "line_hz": [120.0], "r_rms": 0.5}
+    ctx = Context(u_max=8.0, v_max=0.02, x_span=1e-2, peak_hz=(150.0,), ripple_period=(4e-4,), line_hz=(120.0,),
+                  r_rms=0.5)
     ps = e.params(spec, ctx)
     assert all(p.lo <= p.x0 <= p.hi for p in ps), key
     new = e.apply(spec, [p.x0 for p in ps])
@@ -232,9 +234,8 @@ def test_viscous_lands_where_the_friction_is():
     behind the FI joint) the bearings' viscous, behind the joint, as the power study's truths and a
     bearing's lubricant put it -- not a damper on the table, which a joint would not filter; a
     decrease scales the bearings down; a table-only nominal keeps it on the table."""
-    from experiment_runner.diagnosis.hypotheses import get_effect
     from stage_sim.config import load_preset
-    e = get_effect("viscous")
+    e = LIBRARY["viscous"]
     iso = ModelSpec(load_preset("fi_stage"))
     st0 = iso.preset.stage
     c0 = e.nominal(iso)["c"]
@@ -255,13 +256,13 @@ def test_viscous_lands_where_the_friction_is():
 
 
 def test_list_effects_covers_the_issue():
-    keys = {r["key"] for r in describe(as_json=True)}
+    keys = {r["key"] for r in LIBRARY.describe(as_json=True)}
     for k in ("dahl", "gms", "coulomb", "viscous", "stribeck", "fi_compliance", "position_friction", "ripple",
               "structural_mode", "delay", "force_constant", "mass", "noise_level", "quantization",
               "dither_imbalance", "isolator_transient", "sparse_regression", "fractional_delay", "located_mode",
               "regularized_coulomb", "lugre"):
         assert k in keys
-    text = describe()
+    text = LIBRARY.describe()
     assert "signature" in text and "needs" in text
 
 
@@ -269,9 +270,9 @@ def test_model_file_round_trip(tmp_path):
     """Every effect is a preset field: the improved preset YAML (here with ripple, offset and
     asymmetric friction) loads back as the same preset; the old additive-force files are refused."""
     spec = ModelSpec(NOM)
-    spec = get_effect("ripple").apply(spec, [0.1, 0.05, 4e-4])
-    spec = get_effect("offset").apply(spec, [0.2])
-    spec = get_effect("friction_asymmetry").apply(spec, [0.5, 3.0])
+    spec = LIBRARY["ripple"].apply(spec, [0.1, 0.05, 4e-4])
+    spec = LIBRARY["offset"].apply(spec, [0.2])
+    spec = LIBRARY["friction_asymmetry"].apply(spec, [0.5, 3.0])
     pre = tmp_path / "p.yaml"
     pre.write_text(spec.preset_yaml())
     back = load_preset(pre)

@@ -19,6 +19,8 @@ import pytest
 
 from experiment_runner.diagnosis import add_diagnose_arguments, main_diagnose
 from experiment_runner.diagnosis import realdata as R
+from experiment_runner.diagnosis.datasets import DataMissing, data_root
+from experiment_runner.tabular import convert_emps
 from stage_sim.config import load_preset
 
 pytestmark = pytest.mark.slow
@@ -27,13 +29,13 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def emps_cli(tmp_path_factory):
     try:
-        mat = R.data_root() / "emps" / "DATA_EMPS.mat"
-    except R.DataMissing as err:
+        mat = data_root() / "emps" / "DATA_EMPS.mat"
+    except DataMissing as err:
         pytest.skip(f"EMPS data missing: {err}")
     if not mat.is_file():
         pytest.skip(f"EMPS data missing: {mat} is not a file")
     d = tmp_path_factory.mktemp("emps_cli")
-    rec = R.convert_emps(mat, d / "rec")
+    rec = convert_emps(mat, d / "rec")
     p = argparse.ArgumentParser()
     add_diagnose_arguments(p)
     out = d / "diagnosis"

@@ -16,9 +16,10 @@ import yaml
 from experiment_runner.diagnosis import add_diagnose_arguments
 from experiment_runner.diagnosis.cli import diagnose_options
 from experiment_runner.diagnosis.model import load_model
-from experiment_runner.diagnosis.pipeline import Options, diagnose
+from experiment_runner.diagnosis.options import Options
+from experiment_runner.diagnosis.pipeline import diagnose
 from experiment_runner.diagnosis.report import jsonable
-from experiment_runner.diagnosis.selftest import CASES, EXPERIMENTS, _nominal_doc, _truth_doc
+from experiment_runner.diagnosis.selftest import CASES, EXPERIMENTS
 from experiment_runner.diagnosis.synth import synth
 from stage_sim.config import ConfigError
 
@@ -42,9 +43,9 @@ def case(tmp_path_factory):
     d = tmp_path_factory.mktemp("diag_ex")
     c = next(c for c in CASES if c.name == "coulomb+viscous")
     exp = dict(EXPERIMENTS[c.experiment], preset=c.nominal)
-    (d / "truth.yaml").write_text(yaml.safe_dump(_truth_doc(c), sort_keys=False))
+    (d / "truth.yaml").write_text(yaml.safe_dump(c.truth_doc(), sort_keys=False))
     (d / "exp.yaml").write_text(yaml.safe_dump(exp, sort_keys=False))
-    (d / "nominal.yaml").write_text(yaml.safe_dump(_nominal_doc(c), sort_keys=False))
+    (d / "nominal.yaml").write_text(yaml.safe_dump(c.nominal_doc(), sort_keys=False))
     return synth(d / "truth.yaml", d / "exp.yaml", d / "rec.mcap"), d / "nominal.yaml"
 
 
@@ -77,6 +78,18 @@ def test_dask_local_cluster_same_report(case, threaded):
                       silence_logs=logging.ERROR) as cluster:
         rep = diagnose(rec, nominal, options=Options(plots=False, effects=EFFECTS, cluster=cluster))
     assert _canon(rep) == _canon(threaded)
+
+
+@pytest.mark.slow
+def test_a_library_object_selects_as_effect_keys_do(case, threaded):
+    """``Diagnosis(library=...)`` proposes the candidates of the library it is given: the library of
+    the three effects gives the report that selecting their keys from the default library gives."""
+    from experiment_runner.diagnosis.effects import LIBRARY
+    from experiment_runner.diagnosis.estimator import Diagnosis
+    rec, nominal = case
+    d = Diagnosis(library=LIBRARY.select(EFFECTS), plots=False).fit(rec, nominal)
+    assert d.effects_ == ["coulomb", "viscous"]
+    assert _canon(dict(d.report_, _improved_spec=d.model_)) == _canon(threaded)
 
 
 def test_bad_workers_named(case):

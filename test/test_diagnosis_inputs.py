@@ -13,7 +13,8 @@ from scipy import signal
 from experiment_runner.diagnosis.data import load_data
 from experiment_runner.diagnosis.model import load_model
 from experiment_runner.diagnosis.openloop import OpenLoopJudge
-from experiment_runner.diagnosis.pipeline import Options, diagnose
+from experiment_runner.diagnosis.options import Options
+from experiment_runner.diagnosis.pipeline import diagnose
 from experiment_runner.diagnosis.predict import Observer
 from experiment_runner.tabular import convert_table
 from independent import lugre_rk4, regularized_coulomb_rk4
@@ -179,13 +180,14 @@ def test_fractional_delay_shift_ends_at_no_delay(delay, lo):
     """The fractional delay's shift cannot take the model's total delay below zero: there the
     model is flat in it (a shift of -0.31 on a model without delay was the same model as no
     shift, and the observer's fit wandered there); the end at zero delay is a physical one."""
-    from experiment_runner.diagnosis.hypotheses import LIBRARY
+    from experiment_runner.diagnosis.context import Context
+    from experiment_runner.diagnosis.effects import LIBRARY
     from experiment_runner.diagnosis.model import ModelSpec
     from stage_sim.config import preset_from_dict
     d = _nominal(m=2.0, c=30.0, q=1e-9, noise=0.002)
     d["stage"]["drive"].update(delay_samples=int(delay), delay_fraction=delay - int(delay))
     spec = ModelSpec(preset_from_dict(d))
-    (p,) = LIBRARY["fractional_delay"].params(spec, {})
+    (p,) = LIBRARY["fractional_delay"].params(spec, Context())
     assert p.lo == pytest.approx(lo) and p.hi == pytest.approx(0.999)
     assert p.physical_lo == (lo > -0.999)
 
@@ -252,9 +254,9 @@ def test_isolator_hypothesis_in_any_rigid_nominal_same_candidate():
     """fi_compliance applies to a table with friction (its friction becomes the bearing's behind the
     joint) and to a table with bolted bearings; the same parameters give the same plant in both
     writings (every DOF mass, joint, friction), the rigid mass kept."""
-    from experiment_runner.diagnosis.hypotheses import get_effect
+    from experiment_runner.diagnosis.effects import LIBRARY
     from stage_sim.plant import build_plant
-    e = get_effect("fi_compliance")
+    e = LIBRARY["fi_compliance"]
     a, b = (load_model(x).with_changes({"controller.rate": 1000.0}) for x in _rigid_nominals())
     assert e.applicable(a) is None and e.applicable(b) is None
     theta = [3.0e4, 0.05, 0.25]
@@ -331,12 +333,12 @@ def test_open_loop_judge_prewhitened_sees_a_mode_the_drift_buries(tmp_path):
     nominal's window errors are within their floor (0.93x: the re-initialised state's drift
     dominates); prewhitened by the floor's own AR filter the rigid nominal is far above it (> 10x)
     while the truth stays at its floor (1 +- 0.2), and the judge adopts the truth over the nominal."""
-    from experiment_runner.diagnosis.hypotheses import get_effect
+    from experiment_runner.diagnosis.effects import LIBRARY
     rate = 10000.0
     rec = _mode_record(tmp_path, rate, T=0.5, f_b=1500.0)
     d = load_data(rec)
     nom = load_model(_nominal(m=2.0, c=30.0, q=1e-10, noise=0.002)).with_changes({"controller.rate": rate})
-    truth = get_effect("structural_mode").apply(nom, [1500.0, 0.02, 0.2])
+    truth = LIBRARY["structural_mode"].apply(nom, [1500.0, 0.02, 0.2])
     j = OpenLoopJudge(d, Observer(d))
     fl_n, fl_t = j.floor(nom), j.floor(truth)
     assert j.floor_ratio(fl_n.replay, fl_n) > 10

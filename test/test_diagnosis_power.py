@@ -230,7 +230,8 @@ def test_second_start_finds_the_pair_a_stand_in_had_absorbed(tmp_path):
     (replay D 27.8). The path from step 1's runner-up, the joint, adds the Stribeck curve and
     reaches the floor (D 2.03): it is kept, and the report says why."""
     from experiment_runner.diagnosis.model import ModelSpec
-    from experiment_runner.diagnosis.pipeline import Options, diagnose
+    from experiment_runner.diagnosis.options import Options
+    from experiment_runner.diagnosis.pipeline import diagnose
     from experiment_runner.diagnosis.power import judge_case
     case = PowerCase(index=93, effects=("fi_compliance", "stribeck"), stage="rigid", friction="coulomb",
                      rate=1000.0, noise=2.0, record="sine", quantiles=(0.7361101347540763, 0.6788227103221747),
@@ -262,22 +263,23 @@ def test_a_parameters_sigma_is_its_spread_over_the_models_own_recordings():
 
     from scipy.optimize import minimize_scalar
 
+    from experiment_runner.diagnosis.fit import spec_with
     from experiment_runner.diagnosis.model import ModelSpec
-    from experiment_runner.diagnosis.pipeline import Options, _Run, _spec_without
+    from experiment_runner.diagnosis.options import Options
+    from experiment_runner.diagnosis.pipeline import diagnose_stages
     case = PowerCase(index=65, effects=("mass",), stage="isolated", friction="gms", rate=1000.0, noise=1.0,
                      record="p2p1", quantiles=(0.017266704834976786,), seed=1650044624, trials=1,
                      profile={"kind": "point_to_point", "distance": 0.0011869291091236476, "dwell": 0.25})
     nominal, _, expect, data, _ = build_case(case)
-    r = _Run(None, ModelSpec(nominal), None, Options(plots=False, n_jobs=1), data, None)
-    rep = r.run()
+    rep, run = diagnose_stages(None, ModelSpec(nominal), options=Options(plots=False, n_jobs=1), data=data)
     assert [f["effect"] for f in rep["found"]] == ["mass"]
     p = rep["found"][0]["params"][0]
     assert p["name"] == "m_table" and p["sigma"] >= p["sigma_boot"] > 0
-    fj, f = r.fit_judge, r.selected[0]
-    fl = fj.floor(r.current)
+    fj, f = run.prediction.fit_judge, run.path.selected[0]
+    fl = fj.floor(run.path.current)
 
     def cost(m, k):
-        rp = fj.replay(_spec_without([dataclasses.replace(f, theta=np.array([m]))], r.base))
+        rp = fj.replay(spec_with([dataclasses.replace(f, theta=np.array([m]))], run.problem.base))
         e = np.concatenate([e[fj.mask] for e in fj._errors(fl.u[k], fl.y[k], rp, fl)])
         return float(e @ e)
 

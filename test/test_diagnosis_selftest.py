@@ -129,8 +129,8 @@ def test_sai_mode_missing_from_the_recording_comes_from_the_nominal(tmp_path):
 
     from experiment_runner.diagnosis.data import load_data
     from experiment_runner.diagnosis.model import ModelSpec
-    from experiment_runner.diagnosis.pipeline import _fill_plant_inputs
     from experiment_runner.diagnosis.predict import replay
+    from experiment_runner.diagnosis.stages import fill_plant_inputs
     from experiment_runner.diagnosis.selftest import EXPERIMENTS
     from experiment_runner.diagnosis.synth import synth
     truth = load_preset("sai_stage").model_dump(mode="json")
@@ -143,7 +143,7 @@ def test_sai_mode_missing_from_the_recording_comes_from_the_nominal(tmp_path):
     blind = load_data(dataclasses.replace(rec, isolator=None))
     assert blind.mode is None
     spec = ModelSpec(load_preset(tmp_path / "truth.yaml"))
-    notes = _fill_plant_inputs(spec, blind, replay(spec, blind))
+    notes = fill_plant_inputs(spec, blind, replay(spec, blind))
     assert any("/stage/isolator" in n for n in notes)
     assert np.array_equal(blind.mode[blind.valid], recorded.mode[recorded.valid])
 

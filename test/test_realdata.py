@@ -19,13 +19,15 @@ import numpy as np
 import pytest
 
 from experiment_runner.diagnosis import realdata as R
+from experiment_runner.diagnosis.datasets import DataMissing, data_root
+from experiment_runner.tabular import convert_emps
 
 
 @pytest.fixture(scope="module")
 def root():
     try:
-        return R.data_root()
-    except R.DataMissing as err:
+        return data_root()
+    except DataMissing as err:
         pytest.fail(f"real data missing: {err}")
 
 
@@ -46,7 +48,7 @@ def emps_run(root, tmp_path_factory):
 def test_convert_emps_is_the_contract_mapping(emps, tmp_path):
     from experiment_runner.recording import read_recording
     from stage_control.cascaded import CascadedPP, cascaded_command
-    rec = read_recording(R.convert_emps(emps.path, tmp_path / "emps"))
+    rec = read_recording(convert_emps(emps.path, tmp_path / "emps"))
     assert len(rec) == 24841
     np.testing.assert_array_equal(rec.u, emps.gtau * emps.vir)
     np.testing.assert_array_equal(rec.y, emps.qm)
@@ -61,8 +63,8 @@ def test_convert_refuses_a_bad_file(tmp_path):
     bad = tmp_path / "x.mat"
     bad.write_bytes(b"not a mat file")
     with pytest.raises(ValueError, match="x.mat"):
-        R.convert_emps(bad, tmp_path / "out")
-    with pytest.raises(R.DataMissing, match="nothing.mat"):
+        convert_emps(bad, tmp_path / "out")
+    with pytest.raises(DataMissing, match="nothing.mat"):
         R.load_emps(tmp_path / "nothing.mat")
 
 
@@ -147,8 +149,8 @@ def test_tribometer_pre_sliding_beats_coulomb_on_held_out_strokes(root, tmp_path
 
 
 def test_data_root_names_where_it_looked(tmp_path):
-    with pytest.raises(R.DataMissing, match=str(tmp_path)):
-        R.data_root(tmp_path)
+    with pytest.raises(DataMissing, match=str(tmp_path)):
+        data_root(tmp_path)
 
 
 def test_convert_command_line(emps, tmp_path, capsys):

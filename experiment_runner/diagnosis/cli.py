@@ -87,8 +87,8 @@ def _nominal_from_config(rec):
 
 
 def diagnose_options(args):
-    """The :class:`.pipeline.Options` of parsed ``nanostage diagnose`` arguments."""
-    from .pipeline import Options
+    """The :class:`.options.Options` of parsed ``nanostage diagnose`` arguments."""
+    from .options import Options
     return Options(bandwidth=args.bandwidth, max_fit_seconds=args.max_fit_seconds,
                    effects=args.effects,
                    plots=not args.no_plots, verbose=args.verbose, workers=args.workers, cluster=args.cluster)
@@ -96,8 +96,8 @@ def diagnose_options(args):
 
 def main_diagnose(args) -> int:
     if args.list_effects:
-        from .hypotheses import describe
-        print(json.dumps(describe(as_json=True), indent=1) if args.json else describe())
+        from .effects import LIBRARY
+        print(json.dumps(LIBRARY.describe(as_json=True), indent=1) if args.json else LIBRARY.describe())
         return 0
     if args.selftest and args.power:
         return _main_power(args)

@@ -21,7 +21,8 @@ from __future__ import annotations
 from .data import DiagData, load_data
 from .judge import Replay, ReplayJudge, controller_check, equivalent_reference
 from .model import ModelSpec, load_model
-from .pipeline import CONTROLLER_TOL, Options, diagnose
+from .options import CONTROLLER_TOL, Options
+from .pipeline import diagnose
 
 __all__ = ["Diagnosis"]
 
@@ -32,7 +33,8 @@ class Diagnosis:
     Parameters
     ----------
     **options
-        Fields of :class:`.pipeline.Options` (e.g. ``effects=[...]``, ``plots=False``).
+        Fields of :class:`.options.Options` (e.g. ``library=LIBRARY.select([...])``, ``effects=[...]``,
+        ``plots=False``): ``library`` is the :class:`.effects.Library` the candidates come from.
     """
 
     def __init__(self, **options):

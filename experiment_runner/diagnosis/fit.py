@@ -15,41 +15,38 @@ Cost
 Uncertainty
     From the Jacobian at the optimum: ``cov = s^2 (J^T J)^-1`` with ``s^2`` the residual
     mean square, inflated by the residual's correlation time (effective sample count).
-Choice (:mod:`.pipeline`)
-    Forward selection on *held-out* samples: every candidate is fitted on top of the current
-    model -- from the second step on together with the effects already selected, all their
-    parameters free again (:func:`fit_with`; after an integer effect the others are re-fitted
-    with it) -- and judged by its held-out ``J`` against its *own* noise floor (a candidate
-    that changes the drive or the dynamics changes what noise leaves); if it does not fit
-    the fit set better than the current model, the larger of its own-floor and
-    current-floor ``J`` counts (it may only look good by making its own floor noisier). Candidates within
-    run-to-run noise of the best (``J`` difference below ``6 sqrt(J/n_eff)``) are
-    statistically equivalent: the simplest (fewest parameters, then ``J (1 + 0.02 p)``) is
-    named, the others are reported as its confounded set. It is accepted if it improves the
-    held-out ``J`` by more than run-to-run noise and, after the first effect, explains at
-    least a quarter of the remaining excess ``J - 1``; repeat until the model is adequate
-    (``J_held <= 1 + tol``) or nothing improves. The selected effects are then fitted
-    jointly; parameters correlating above 0.95 across effects are reported as confounded.
-    Quantization is judged first, directly from the lattice of the measured positions;
-    drive noise last, from the residual spectrum where drive noise dominates the floor.
+Use (:mod:`.tasks`, :mod:`.selection`)
+    Every candidate is fitted on top of the current model -- from the second step on together
+    with the adopted effects, all their parameters free again (:func:`fit_with`; integer ones
+    held) -- and its held-out ``J`` is taken against its *own* noise floor (a candidate that
+    changes the drive or the dynamics changes what noise leaves; if it does not fit the fit set
+    better than the current model, the larger of its own-floor and current-floor ``J`` counts).
+    The force residual proposes, ranks and gives start values; the closed-loop replay decides
+    (:mod:`.judge`, :mod:`.selection`). After the selection the adopted effects are fitted jointly
+    (:func:`joint_fit`); parameters correlating above 0.95 across effects are reported as
+    confounded. Quantization is estimated from the lattice of the measured positions
+    (:func:`estimate_lattice`); drive noise from the residual spectrum where drive noise dominates
+    the floor (:func:`fit_noise_level`).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize
+from scipy import optimize, signal
 
 from .data import DiagData
-from .hypotheses import LIBRARY, Effect, Param
+from .effects.base import Effect, Param
 from .model import ModelSpec
-from .predict import NoiseFloor, Observer, sim_batch
+from .observer import Observer
+from .predict import NoiseFloor, sim_batch
 
 __all__ = ["Evaluator", "FitResult", "fit_effect", "fit_with", "joint_fit", "estimate_lattice", "fit_noise_level",
-           "sparse_regression"]
+           "sparse_regression", "JointEffect", "Transform", "bad_point", "n_eff", "spec_with", "spec_moved"]
 
 
 # --------------------------------------------------------------------------- evaluation
@@ -172,7 +169,7 @@ class FitResult:
                  "nominal": self.nominal.get(n)} for n, u, v, s in zip(self.names, self.units, self.theta, self.sigma)]
 
 
-class _Transform:
+class Transform:
     """Parameter <-> optimiser variable: log for log params, linear scaled otherwise."""
 
     def __init__(self, params: list[Param]):
@@ -232,7 +229,7 @@ def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nf
         sigma = np.array([np.nan])        # an integer found by search: no standard error (not "± 0")
         corr = None
     else:
-        tr = _Transform(params)
+        tr = Transform(params)
         lo, hi = tr.bounds()
         best = None
 
@@ -366,12 +363,12 @@ def gauss_newton(fun, z0, lo, hi, r0=None, max_iter: int = 8, h: float = 1e-3, r
 
 
 # --------------------------------------------------------------------------- joint fit
-class _Joint(Effect):
+class JointEffect(Effect):
     """Several fitted effects applied in sequence, all parameters free."""
 
     def __init__(self, parts: list[tuple[Effect, int]], thetas: list | None = None):
-        super().__init__("+".join(e.key for e, _ in parts), " + ".join(e.title for e, _ in parts),
-                         "deterministic", "", "")
+        self.key = "+".join(e.key for e, _ in parts)
+        self.title = " + ".join(e.title for e, _ in parts)
         self.parts = parts
         self.thetas = thetas      # fitted values of the parts: bounds of each relative to its predecessors
 
@@ -395,19 +392,45 @@ class _Joint(Effect):
         return s
 
 
+def spec_with(selected: list[FitResult], base: ModelSpec) -> ModelSpec:
+    """``base`` with the ``selected`` effects at their current values (stochastic and integer ones
+    first, as :func:`fit_with` builds them)."""
+    spec = base
+    for f in selected:
+        if f.effect.kind != "deterministic":
+            spec = f.effect.apply(spec, f.theta)
+    for f in selected:
+        if f.effect.kind == "deterministic":
+            spec = f.effect.apply(spec, f.theta)
+    return spec
+
+
+def spec_moved(selected: list[FitResult], theta, base: ModelSpec) -> ModelSpec:
+    """:func:`spec_with` with the deterministic ``selected`` effects at the joint values ``theta``
+    (theirs, in order, first)."""
+    k, moved = 0, []
+    for f in selected:
+        if f.effect.kind == "deterministic":
+            n = len(f.theta)
+            f = dataclasses.replace(f, theta=np.asarray(theta[k:k + n], float))
+            k += n
+        moved.append(f)
+    return spec_with(moved, base)
+
+
 def joint_fit(fits: list[FitResult], base: ModelSpec, ev: Evaluator, ctx: dict,
               min_effects: int = 2, max_iter: int = 4) -> FitResult | None:
     """Re-fit all selected deterministic effects together (integer ones held at their value;
     at most ``max_iter`` Gauss-Newton iterations); None if there are fewer than
     ``min_effects`` of them."""
-    cont = [f for f in fits if LIBRARY[f.key].kind == "deterministic"]
-    fixed = [f for f in fits if LIBRARY[f.key].kind != "deterministic"]
+    cont = [f for f in fits if f.effect.kind == "deterministic"]
+    fixed = [f for f in fits if f.effect.kind != "deterministic"]
     if len(cont) < max(1, min_effects):
         return None
     spec0 = base
     for f in fixed:
         spec0 = f.effect.apply(spec0, f.theta)
-    joint = _Joint([(f.effect, len(f.theta)) for f in cont], [f.theta for f in cont])
+    joint = JointEffect([(f.effect, len(f.theta)) for f in cont], [f.theta for f in cont])
     x0 = np.concatenate([f.theta for f in cont])
     # bounds of each part relative to the model it is applied to
     r = fit_effect(joint, spec0, ev, ctx, starts=[list(x0)], max_nfev=max_iter)
@@ -423,12 +446,12 @@ def fit_with(effect: Effect, selected: list[FitResult], base: ModelSpec, ev: Eva
     stay in the residual. Returns the candidate's :class:`FitResult` (its own parameters;
     ``spec`` and ``J`` are the joint model's) with ``joint`` = the joint :class:`FitResult`.
     """
-    cont = [f for f in selected if LIBRARY[f.key].kind == "deterministic"]
+    cont = [f for f in selected if f.effect.kind == "deterministic"]
     if effect.kind != "deterministic" or not cont:
         return None
     spec0 = base
     for f in selected:
-        if LIBRARY[f.key].kind != "deterministic":
+        if f.effect.kind != "deterministic":
             spec0 = f.effect.apply(spec0, f.theta)
     effect = effect.bound(ctx)
     n_e = len(effect.params(spec0, ctx))
@@ -437,7 +460,7 @@ def fit_with(effect: Effect, selected: list[FitResult], base: ModelSpec, ev: Eva
     for f in cont:
         cur = f.effect.apply(cur, f.theta)
     starts = effect.starts(cur, ctx)
-    joint = _Joint([(f.effect, len(f.theta)) for f in cont] + [(effect, n_e)],
+    joint = JointEffect([(f.effect, len(f.theta)) for f in cont] + [(effect, n_e)],
                    [f.theta for f in cont] + [starts[0]])
     jf = fit_effect(joint, spec0, ev, ctx, starts=[x_sel + list(st) for st in starts])
     if jf is None:
@@ -491,7 +514,6 @@ def noise_components(spec: ModelSpec, data: DiagData, obs_factory, seeds=(7001,)
 
     Returns (f, S_q, S_n, sigma_ref): with drive noise sigma, S(f) ~ S_q + (sigma/sigma_ref)^2 S_n.
     """
-    from scipy import signal
     s0 = spec.preset.stage.drive.noise_current_rms
     sigma_ref = sigma_ref or (s0 if s0 > 0 else 1e-3)
     out = []
@@ -519,7 +541,6 @@ def fit_noise_level(r_meas: np.ndarray, mask: np.ndarray, rate: float, comps, f_
                     f_min: float = 0.0) -> dict:
     """Drive-noise RMS current implied by the measured residual spectrum (robust median over
     the bands between ``f_min`` and ``f_max`` where drive noise dominates the floor)."""
-    from scipy import signal
     f, S_q, S_n, sigma_ref = comps
     psd = []
     for b in range(r_meas.shape[1]):

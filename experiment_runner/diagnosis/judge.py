@@ -48,6 +48,7 @@ import numpy as np
 from scipy import stats
 
 from experiment_runner.batch import Models, simulate
+from stage_control.servo import build_servo, init_servo_state, servo_step
 
 from .data import DiagData
 from .model import ModelSpec
@@ -171,7 +172,9 @@ class ReplayJudge:
         self.token = next(_TOKENS)      # replay cache key on the specs (an id() could be reused)
 
     # ------------------------------------------------------------------ simulation
-    def _simulate(self, spec: ModelSpec, seeds):
+    def simulate_recordings(self, spec: ModelSpec, seeds):
+        """Recordings of ``spec`` on the judged trials with noise ``seeds`` (one batch call): ``(u, y)``
+        each (K, T, B), the simulator's status (K, B) and the preset."""
         p = spec.preset
         K = len(seeds)
         B = len(self.cols)
@@ -195,7 +198,7 @@ class ReplayJudge:
         if hit is not None:
             return hit
         nf = noise_free(spec)
-        u, y, status, p = self._simulate(nf, [0])
+        u, y, status, p = self.simulate_recordings(nf, [0])
         u, y = u[0], y[0]
         ok, why = True, ""
         if np.any(status != 0) or not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
@@ -215,7 +218,7 @@ class ReplayJudge:
     def floor(self, spec: ModelSpec) -> Floor:
         """Run-to-run floor of ``spec``: ``K`` simulated recordings (one batch call)."""
         rp = self.replay(spec)
-        u, y, _, _ = self._simulate(spec, self.seeds)
+        u, y, _, _ = self.simulate_recordings(spec, self.seeds)
         du = (u - rp.u[None])[:, self.mask]
         dy = (y - rp.y[None])[:, self.mask]
         su = float(np.sqrt(np.mean(du ** 2))) if du.size else 1.0
@@ -377,7 +380,6 @@ class ReplayJudge:
 # --------------------------------------------------------------------------- controller
 def _servo_on(spec: ModelSpec, data: DiagData, x_ref: np.ndarray, cols) -> np.ndarray:
     """The model's servo on the recorded measurement and the reference ``x_ref`` (T, B)."""
-    from stage_control.servo import build_servo, init_servo_state, servo_step
     p = spec.preset
     sm = build_servo(p.controller, p.stage)
     T = data.shape[0]
@@ -412,7 +414,6 @@ def equivalent_reference(spec: ModelSpec, data: DiagData) -> np.ndarray:
     recorded command: per sample, the servo's output is affine in the reference sample (for
     PID, DOB and NIASA; a feedforward friction model is solved by the secant through two
     trial values), so it is solved exactly and the servo advanced with the solution."""
-    from stage_control.servo import build_servo, init_servo_state, servo_step
     p = spec.preset
     sm = build_servo(p.controller, p.stage)._replace(limit=1e300)      # the affine law, unsaturated
     T, B = data.shape

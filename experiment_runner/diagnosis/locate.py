@@ -19,19 +19,22 @@ leaves), low-passed at ``f_band`` (zero phase) unless said otherwise:
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import signal
 
-from .predict import _taper
+from .context import Context
+from .predict import taper
 
-__all__ = ["REGIMES", "regimes", "locate", "lowpass"]
+__all__ = ["REGIMES", "regimes", "locate", "lowpass", "proposals", "PROPOSAL_KEYS"]
 
 REGIMES = ("in_position", "settling", "reversal", "acceleration", "constant_velocity")
 
 
 def lowpass(r: np.ndarray, mask: np.ndarray, rate: float, f_hi: float) -> np.ndarray:
     sos = signal.butter(2, min(0.95, 2 * f_hi / rate), output="sos")
-    return np.where(mask, signal.sosfiltfilt(sos, _taper(r, mask), axis=0), 0.0)
+    return np.where(mask, signal.sosfiltfilt(sos, taper(r, mask), axis=0), 0.0)
 
 
 def regimes(x_ref, v_ref, valid, rate: float, t_settle: float = 0.02) -> np.ndarray:
@@ -268,8 +271,9 @@ def ripple_periods(x, rl, v, mask, lam_min, lam_max, n: int = 300, top: int = 3)
     return best, {"period_m": lam, "power": p}
 
 
-def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None = None) -> tuple[dict, dict, dict]:
-    """All views; returns (summary for the report, arrays for plots, ctx for the hypotheses)."""
+def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None = None) -> tuple[dict, dict, Context]:
+    """All views; returns (summary for the report, arrays for plots, the recording's :class:`.context.Context`
+    for the effects)."""
     rate = data.rate
     f_band = f_band or f_obs / 2
     mask = data.valid.copy()
@@ -321,17 +325,17 @@ def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None 
     lam_min = max(2 * v_slow / max(f_band, 1e-9), 1e-7)
     periods, pgram = ripple_periods(res.x, rl, data.vs, mask, lam_min, lam_max)
     xs = res.x[mask]
-    ctx = {"u_max": float(np.max(np.abs(data.u[data.valid]))), "v_max": vmax,
-           "x_span": float(np.ptp(xs)) if len(xs) else 1e-3,
-           "x_center": float(0.5 * (xs.max() + xs.min())) if len(xs) else 0.0,
-           "x_half_span": float(0.5 * np.ptp(xs)) if len(xs) else 1e-3,
-           "r_rms": float(np.sqrt(tot / max(1, mask.sum()))),
-           "peak_hz": [p["f_hz"] for p in spec["peaks"] if p["f_hz"] > 2.0],
-           "line_hz": spec["lines_hz"], "ripple_period": periods,
-           "stroke": float(np.median(strokes)) if strokes else 0.0}
+    ctx = Context(u_max=float(np.max(np.abs(data.u[data.valid]))), v_max=vmax,
+                  x_span=float(np.ptp(xs)) if len(xs) else 1e-3,
+                  x_center=float(0.5 * (xs.max() + xs.min())) if len(xs) else 0.0,
+                  x_half_span=float(0.5 * np.ptp(xs)) if len(xs) else 1e-3,
+                  r_rms=float(np.sqrt(tot / max(1, mask.sum()))),
+                  peak_hz=tuple(p["f_hz"] for p in spec["peaks"] if p["f_hz"] > 2.0),
+                  line_hz=tuple(spec["lines_hz"]), ripple_period=tuple(periods),
+                  stroke=float(np.median(strokes)) if strokes else 0.0)
     summary = {
         "f_band_hz": f_band,
-        "residual_rms_N": ctx["r_rms"],
+        "residual_rms_N": ctx.r_rms,
         "floor_rms_N": float(np.sqrt(tot_f / max(1, mfl.sum()))),
         "regimes": reg,
         "segments": segs, "segments_total": n_blocks,
@@ -342,3 +346,24 @@ def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None 
     arrays = {"rl": rl, "fl": fl, "mask": mask, "labels": lab, "spectrum": spec, "state": st,
               "periodogram": pgram, "variables": variables}
     return summary, arrays, ctx
+
+
+PROPOSAL_KEYS = ("ripple_period", "peak_hz", "line_hz")
+"""The context's entries located again in what an adopted model leaves (:func:`proposals`)."""
+
+
+def proposals(data, res, res_floor, floor_data, f_obs: float, f_band: float, ctx: Context) -> dict:
+    """The context's proposal entries (:data:`PROPOSAL_KEYS`) from the force residual ``res`` of the
+    current model (its floor's residual ``res_floor`` on the simulated recording ``floor_data``): new
+    findings first, then the earlier ones of ``ctx`` not within 15 % of them (at most three periods;
+    peaks and lines as located). Empty when the residual cannot be located (the earlier proposals stay)."""
+    try:
+        _, _, c = locate(data, res, res_floor, floor_data, f_obs, f_band)
+    except Exception:     # noqa: BLE001 - the earlier proposals stay
+        return {}
+    out = {}
+    for k in PROPOSAL_KEYS:
+        new = list(getattr(c, k))
+        old = [v for v in getattr(ctx, k) if all(abs(math.log(v / w)) > 0.15 for w in new if v > 0 and w > 0)]
+        out[k] = tuple((new + old)[:3] if k == "ripple_period" else new + old)
+    return out

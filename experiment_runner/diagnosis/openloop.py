@@ -5,7 +5,7 @@ excitation) has no loop to replay: the recorded command drove the plant. What th
 from a model is then its **open-loop prediction**: the recorded command (and the known
 external force, ``/stage/external_force``) through the model's plant over windows, each
 window started from the model's state *re-initialised from the measurement* (the force
-observer of :mod:`.predict`, which makes the model follow the measured position, gives the
+observer (:mod:`.observer`), which makes the model follow the measured position, gives the
 state at the window start, friction and joint states included); the window's initial position
 and velocity are then re-estimated from the measured window (least squares of an offset and a
 velocity offset, :func:`_initial_offset`: the smoothed measurement's velocity at the start is
@@ -30,7 +30,7 @@ the ``K`` simulated recordings, lags inside a window; a window's first ``AR_ORDE
 left out), scaled to unit RMS on them -- the noise model of a generalised-least-squares test, the
 floor's simulated recordings being whitened by the same filter, so the test keeps its calibration
 (the truth model at 0.98-1.01x its floor on the mode, damper and regularised-Coulomb records at
-1 and 10 kHz), and an output-error fit on it (:func:`.pipeline._refine_by_replay`, through
+1 and 10 kHz), and an output-error fit on it (:func:`.refinement.refine_by_replay`, through
 :meth:`OpenLoopJudge.residual`) is weighted least squares with that noise model. The reported RMS
 errors stay in metres.
 
@@ -47,11 +47,13 @@ import math
 
 import numpy as np
 
+from stage_sim.plant import PlantInputs, PlantState
+
 from . import engine as E
-from .data import DiagData
+from .data import DiagData, smooth
 from .judge import FLOOR_SEEDS, Floor, Replay, ReplayJudge
 from .model import ModelSpec
-from stage_sim.plant import PlantInputs, PlantState
+from .observer import Observer
 
 __all__ = ["WINDOW_S", "OpenLoopJudge", "sim_batch", "window_replay", "noisy_model", "quiet_model"]
 
@@ -82,7 +84,7 @@ class OpenLoopJudge(ReplayJudge):
     data : DiagData
         The open-loop record; its held-out samples (all usable ones if none) inside complete
         windows are judged.
-    obs : predict.Observer
+    obs : observer.Observer
         The force observer on ``data`` (its smoothing and masks): it re-initialises the windows.
     window_s : float
         Window length [s] (at least 20 samples); windows tile each trial from its start.
@@ -165,7 +167,6 @@ class OpenLoopJudge(ReplayJudge):
         holds the model's noise and the uncertainty of the re-initialised state. The simulated
         recording ``k`` is stored as the data's prediction plus its own prediction error, so the
         judge's statistics (``S_k - R``) are those of the closed-loop judge."""
-        from .predict import Observer
         rp = self.replay(spec)
         _, r = self._observed(spec)
         r = missing_force(r, self.obs.data.lengths[self.cols], self.rate, self.obs.f_o)
@@ -265,7 +266,6 @@ def missing_force(r: np.ndarray, lengths, rate: float, f_o: float) -> np.ndarray
     tracking force also holds the smoothing's own misfit of fast command changes; a simulated recording
     must show that misfit itself (as the data does), not have it added: below the cutoff it keeps the
     simulated recording near the data (the model's missing physics), above it the model runs free."""
-    from .data import smooth
     return smooth(r, rate, MISSING_LP * f_o, lengths)[0]
 
 
@@ -282,7 +282,6 @@ def _initial_offset(e: np.ndarray, basis) -> np.ndarray:
 def window_replay(spec: ModelSpec, data: DiagData) -> dict:
     """The open-loop windows of ``spec`` over every usable sample of ``data`` as a replay dict
     (:func:`.predict.replay`'s keys; ``u`` the recorded command, ``y``/``x`` the prediction)."""
-    from .predict import Observer
     obs = Observer(data, bandwidth=data.rate / 25.0, smooth_hz=data.smooth_hz or None)
     j = OpenLoopJudge(dataclasses.replace(data, held=data.valid.copy()), obs)
     rp = j.replay(spec)
@@ -296,7 +295,6 @@ def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
     """Recordings simulated from ``spec`` on an open-loop record, one per seed (one kernel call):
     the recorded command, the known force plus ``spec``'s observer force on the data (as a known
     force), the model's noise; each a :class:`DiagData` with the record's masks and split."""
-    from .predict import Observer
     obs = Observer(data, bandwidth=data.rate / 25.0, smooth_hz=data.smooth_hz or None)
     res = obs.run(spec)
     pm = noisy_model(spec)

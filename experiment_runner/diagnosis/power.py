@@ -48,35 +48,55 @@ from __future__ import annotations
 import json
 import math
 import time
+import traceback
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from experiment_runner import outputs
+from experiment_runner.batch import simulate
+from experiment_runner.executor import make_executor
+from experiment_runner.experiment import Experiment, build_trials
+from stage_control.tuning import loop_shape_pid
+from stage_sim import friction
+from stage_sim.config import load_preset, preset_from_dict
+from stage_sim.friction.base import FrictionVariation
 
-from .pipeline import EXCLUSIVE
+from .data import from_trials
+from .effects import LIBRARY
+from .effects.base import Draw, log_uniform
+from .effects.friction_laws import Gms
+from .effects.stochastic import NOISE
+from .judge import ReplayJudge
+from .model import ModelSpec
+from .options import Options
+from .pipeline import diagnose
+from .report import jsonable
+from .truth import check_params
 
-__all__ = ["PowerCase", "make_cases", "run_power", "DEFAULT_CASES", "EFFECTS"]
+__all__ = ["PowerCase", "make_cases", "run_power", "DEFAULT_CASES", "dealt_effects"]
 
 DEFAULT_CASES = 150
 """Default study size: 45 negative controls, 15 pairs, 90 single-effect cases (5 per effect)."""
 
-EFFECTS = ("coulomb", "viscous", "mass", "force_constant", "delay", "dahl", "gms", "stribeck", "fi_compliance",
-           "position_friction", "ripple", "structural_mode", "friction_asymmetry", "offset", "dither_imbalance",
-           "isolator_transient", "noise_level", "quantization", "lugre", "regularized_coulomb", "fractional_delay")
-"""Every effect of the library (:data:`.hypotheses.LIBRARY`) that a truth can be written with, in
-the order they are dealt (not ``located_mode``: a structural mode fitted on the transfer, dealt as
-``structural_mode``; not ``sparse_regression``: a residual term, no physics to conceal)."""
-
-SEPARATE = ({"delay", "fractional_delay"},)
-"""Effects never dealt as a pair (besides the friction laws of :data:`.pipeline.EXCLUSIVE`): one
-drive delay, whole and fractional samples."""
-
-STOCHASTIC = {"noise_level", "quantization"}
-NOISE = 7.1e-4                   # the Ch. 4 presets' drive noise [A RMS]
 MASTER_SEED = 20240611
+
+
+def dealt_effects(library=LIBRARY) -> list[str]:
+    """The keys of every effect a truth can be written with (:attr:`.effects.base.Effect.deal`), in the
+    order they are dealt (an effect whose truths are another's, ``truth_of``, is dealt as that one)."""
+    return [e.key for e in library.dealt()]
+
+
+def _never_paired(a: str, b: str, library=LIBRARY) -> bool:
+    """Whether effects ``a`` and ``b`` are never dealt as a pair: of one exclusive group (two friction
+    laws) or declared apart (:attr:`.effects.base.Effect.never_paired_with`: one drive delay, whole and
+    fractional samples)."""
+    return (b in library.exclusive_of(a) or b in library[a].never_paired_with
+            or a in library[b].never_paired_with)
 
 
 @dataclass
@@ -104,14 +124,8 @@ class PowerCase:
 
 
 # --------------------------------------------------------------------------- nominals
-def _gms_friction():
-    from stage_sim.config import load_preset
-    return load_preset("fi_stage_nofi_gms").stage.bearings[0].friction.model_dump(mode="json")
-
-
 def nominal_doc(case: PowerCase) -> dict:
     """The nominal preset (mapping) of a case."""
-    from stage_sim.config import load_preset
     base = {"rigid": "fi_stage_nofi", "isolated": "fi_stage", "sai": "sai_stage"}[case.stage]
     d = load_preset(base).model_dump(mode="json")
     d["name"] = f"power_{case.name}_nominal"
@@ -120,11 +134,10 @@ def nominal_doc(case: PowerCase) -> dict:
     for b in d["stage"]["bearings"]:
         fr = b["friction"]
         if case.friction == "gms":
-            b["friction"] = _gms_friction()
+            b["friction"] = Gms.table_4_4()
         elif case.friction == "coulomb":
-            b["friction"] = {"model": "coulomb", "f_c": fr["f_c"], "f_s": None, "viscous": fr.get("viscous", 0.0)}
+            b["friction"] = friction.coulomb.element(fr["f_c"], viscous=fr.get("viscous", 0.0))
     if case.rate != d["controller"]["rate"]:
-        from stage_control.tuning import loop_shape_pid
         d["controller"]["rate"] = case.rate
         d["controller"]["pid"].update(loop_shape_pid(2.0, 40.0, delay=0.5 / case.rate))
     d["stage"]["drive"]["noise_current_rms"] = NOISE * case.noise
@@ -132,193 +145,37 @@ def nominal_doc(case: PowerCase) -> dict:
     return d
 
 
-# --------------------------------------------------------------------------- effect sizes
-def _logu(q: float, lo: float, hi: float) -> float:
-    return float(lo * (hi / lo) ** q)
-
-
-def _fc_total(d) -> float:
-    return sum(b["friction"]["f_c"] for b in d["stage"]["bearings"])
-
-
-def _bearings(d, fn):
-    for b in d["stage"]["bearings"]:
-        fn(b["friction"], b)
-
-
+# --------------------------------------------------------------------------- truths
 def _truth_effect(e: str, q: float, rng, d: dict, case: PowerCase, info: dict) -> dict:
-    """Apply effect ``e`` of size quantile ``q`` to the preset mapping ``d`` (in place);
-    returns the truth values of the effect's parameters (the library's parametrization).
-    A friction law written over the bearings keeps the variation an earlier effect gave them."""
-    from stage_sim.friction.base import FrictionVariation
+    """Apply effect ``e`` of size quantile ``q`` to the preset mapping ``d`` (in place, the effect's
+    :meth:`~.effects.base.Effect.conceal`; the sign is the generator's first draw); returns the truth
+    values of the effect's parameters. A friction law written over the bearings keeps the variation
+    an earlier effect gave them."""
     kept = [{k: b["friction"][k] for k in FrictionVariation.model_fields if k in b["friction"]}
             for b in d["stage"]["bearings"]]
-    out = _write_effect(e, q, rng, d, case, info)
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    out = LIBRARY[e].conceal(d, Draw(q=q, sign=sign, rng=rng, stage=case.stage, friction=case.friction,
+                                     rate=case.rate, **info))
     for b, var in zip(d["stage"]["bearings"], kept):
         for k, v in var.items():
             b["friction"].setdefault(k, v)
     return out
 
 
-def _write_effect(e: str, q: float, rng, d: dict, case: PowerCase, info: dict) -> dict:
-    sign = 1.0 if rng.random() < 0.5 else -1.0
-    nb = len(d["stage"]["bearings"])
-    fc = _fc_total(d)
-    if e == "coulomb":
-        m = _logu(q, 0.003, 0.6)
-        s = 1 + sign * m
-        _bearings(d, lambda fr, b: fr.update(f_c=fr["f_c"] * s, **({"f_s": fr["f_s"] * s} if fr.get("f_s") else {})))
-        if case.friction == "gms":
-            return {"F_C": fc * s}
-        return {"F_C": fc * s}
-    if e == "viscous":
-        c = _logu(q, 0.02, 30.0)
-        _bearings(d, lambda fr, b: fr.update(viscous=fr.get("viscous", 0.0) + c / nb))
-        return {"c": c}
-    if e == "mass":
-        m = _logu(q, 0.003, 0.6)
-        d["stage"]["table"]["mass"] *= 1 + sign * m
-        return {"m_table": d["stage"]["table"]["mass"]}
-    if e == "force_constant":
-        m = _logu(q, 0.003, 0.5)
-        r = 1 + sign * m
-        d["stage"]["drive"]["force_constant_ratio"] = r
-        return {"ratio": r}
-    if e == "delay":
-        n = int(min(6, math.floor(_logu(q, 1.0, 7.0))))
-        d["stage"]["drive"]["delay_samples"] = n
-        return {"delay_samples": n}
-    if e == "dahl":
-        if case.friction == "dahl":
-            f = math.exp(sign * _logu(q, 0.03, 2.5))
-            _bearings(d, lambda fr, b: fr.update(k_sigma=fr["k_sigma"] * f))
-            return {"k_sigma": sum(b["friction"]["k_sigma"] for b in d["stage"]["bearings"])}
-        # Coulomb nominal: the truth has pre-motion over x_pre = F_C / k_sigma
-        x_pre = _logu(1 - q, 3e-8, 3e-5)
-        _bearings(d, lambda fr, b: b.update(friction={"model": "dahl", "k_sigma": fr["f_c"] / x_pre, "f_c": fr["f_c"],
-                                                      "shape": 1.0, "viscous": fr.get("viscous", 0.0)}))
-        return {"k_sigma": fc / x_pre}
-    if e == "gms":
-        from .hypotheses import virgin_x50
-        g = _gms_friction()
-        if case.friction == "gms":
-            f = math.exp(sign * _logu(q, 0.03, 2.5))
-        else:          # Dahl nominal: the GMS of Table 4.4, its pre-motion length scaled
-            f = math.exp(sign * _logu(q, 0.02, 2.0))
-        g["k"] = [k * f for k in g["k"]]
-        _bearings(d, lambda fr, b: b.update(friction=dict(g)))
-        els = [b["friction"] for b in d["stage"]["bearings"]]
-        return {"F_C": float(sum(x["f_c"] * sum(x["alpha"]) for x in els)), "x_50": virgin_x50(els)}
-    if e == "stribeck":
-        m = _logu(q, 0.02, 2.0)
-        vs = _logu(rng.random(), 0.02, 0.3) * info["v_max"]
-
-        def lug(fr, b):
-            k = fr.get("k_sigma") or (sum(fr["k"]) if fr["model"] == "gms" else fr["f_c"] / 1e-6)
-            b["friction"] = {"model": "lugre", "sigma0": k, "sigma1": 0.0, "viscous": fr.get("viscous", 0.0),
-                             "f_c": fr["f_c"], "f_s": fr["f_c"] * (1 + m), "v_s": vs, "exponent": 2.0}
-        _bearings(d, lug)
-        return {"F_S": fc * (1 + m), "v_s": vs}
-    if e == "fi_compliance":
-        if case.stage == "isolated":
-            f = math.exp(sign * _logu(q, 0.05, 2.0))
-            for b in d["stage"]["bearings"]:
-                b["joint"]["stiffness"] *= f
-                b["joint"]["damping"] *= math.sqrt(f)
-            return {"k_fi": sum(b["joint"]["stiffness"] for b in d["stage"]["bearings"])}
-        k = _logu(1 - q, 2e4, 2e7)
-        mt = d["stage"]["table"]["mass"] * (1 + sum(m_["mass_ratio"] for m_ in d["stage"]["modes"]))
-        for b in d["stage"]["bearings"]:
-            mr = b["mass"] * mt / (b["mass"] + mt)
-            b["joint"] = {"stiffness": k / nb, "damping": 2 * 0.02 * math.sqrt(k / nb * mr)}
-        return {"k_fi": k}
-    if e == "position_friction":
-        m = _logu(q, 0.01, 0.8)
-        g1 = sign * m * fc / info["half_span"]
-        _bearings(d, lambda fr, b: fr.update(f_c_gradient=g1 / nb, position_center=info["x_center"]))
-        return {"g_1": g1}
-    if e == "ripple":
-        a = _logu(q, 0.003, 0.6)
-        per = _logu(rng.random(), max(info["stroke"] / 30, 2e-6), max(info["stroke"] / 3, 4e-6))
-        d["stage"]["force_ripple"] = [{"amplitude": a, "period": per, "phase": float(rng.uniform(-3, 3))}]
-        return {"amplitude": a, "period": per}
-    if e == "structural_mode":
-        mu = _logu(q, 0.01, 0.5)
-        f = _logu(rng.random(), 30.0, 0.3 * case.rate)
-        from .hypotheses import rigid_mass, split_mode
-        frac = mu * d["stage"]["table"]["mass"] / rigid_mass(d["stage"])    # a mode of mu x the table mass, split off it
-        split_mode(d, f, 0.03, frac)
-        return {"f": f, "fraction": frac}
-    if e == "friction_asymmetry":
-        m = _logu(q, 0.01, 1.0)
-        _bearings(d, lambda fr, b: fr.update(f_c_difference=sign * m * fr["f_c"]))
-        return {"dF_C": sign * m * fc, "dc": 0.0}
-    if e == "offset":
-        f0 = sign * _logu(q, 0.003, 1.0)
-        d["stage"]["force_offset"] = f0
-        return {"F_0": f0}
-    if e == "dither_imbalance":
-        a = _logu(q, 0.005, 0.5)
-        f = _logu(rng.random(), 20.0, 0.4 * case.rate)
-        d["stage"]["periodic_force"] = [{"amplitude": a, "frequency": f, "phase": float(rng.uniform(-3, 3))}]
-        return {"amplitude": a, "f": f}
-    if e == "isolator_transient":
-        j = d["stage"]["sai"]["impact_impulse"]
-        f = math.exp(sign * _logu(q, 0.1, 2.5))
-        d["stage"]["sai"]["impact_impulse"] = j * f
-        return {"impact_impulse": j * f}
-    if e == "lugre":
-        tau = _logu(q, 2e-5, 1e-3)            # creep time sigma1 / sigma0 [s]
-
-        def lug(fr, b):
-            k = fr.get("k_sigma") or fr["f_c"] / 1e-6
-            b["friction"] = {"model": "lugre", "sigma0": k, "sigma1": tau * k, "viscous": fr.get("viscous", 0.0),
-                             "f_c": fr["f_c"], "f_s": fr["f_c"], "v_s": 1e-3, "exponent": 2.0}
-        _bearings(d, lug)
-        els = [b["friction"] for b in d["stage"]["bearings"]]
-        return {"sigma0": sum(x["sigma0"] for x in els), "sigma1": sum(x["sigma1"] for x in els)}
-    if e == "regularized_coulomb":
-        v = _logu(q, 1e-4, 3e-2) * info["v_max"]
-        _bearings(d, lambda fr, b: b.update(friction={"model": "regularized_coulomb", "f_c": fr["f_c"], "v_reg": v,
-                                                      "viscous": fr.get("viscous", 0.0)}))
-        return {"v_reg": v}
-    if e == "fractional_delay":
-        f = _logu(q, 0.05, 0.9)
-        d["stage"]["drive"]["delay_fraction"] = f
-        return {"shift": f}
-    if e == "noise_level":
-        f = math.exp(sign * _logu(q, 0.05, 1.6))
-        d["stage"]["drive"]["noise_current_rms"] *= f
-        return {"noise_current_rms": d["stage"]["drive"]["noise_current_rms"]}
-    if e == "quantization":
-        f = math.exp(sign * _logu(q, 0.1, 3.0))
-        d["stage"]["encoder"]["resolution"] *= f
-        return {"resolution": d["stage"]["encoder"]["resolution"]}
-    raise KeyError(e)
-
-
 # --------------------------------------------------------------------------- cases
-def _compatible(e: str, stage: str, friction: str, rate: float) -> bool:
-    if e == "isolator_transient":
-        return stage == "sai"
-    if stage == "sai":
-        return e not in ("fi_compliance",) and friction == "dahl" and rate == 1e4
-    if e == "dahl":
-        return friction in ("dahl", "coulomb")
-    if e == "gms":
-        return friction in ("dahl", "gms")
-    if e in ("lugre", "regularized_coulomb"):
-        return friction in ("dahl", "coulomb")       # one element per bearing to rewrite
-    return True
+def _compatible(e: str, stage: str, law: str, rate: float) -> bool:
+    """Whether a truth of effect ``e`` can be written on this setting: the effect's own rule
+    (:meth:`~.effects.base.Effect.conceal_on`), and an SAI stage only as the seed's (Dahl, 10 kHz)."""
+    return LIBRARY[e].conceal_on(stage, law) and (stage != "sai" or (law == "dahl" and rate == 1e4))
 
 
 def _draw_setting(rng, effects: tuple):
     for _ in range(200):
         stage = "sai" if "isolator_transient" in effects else str(rng.choice(["rigid", "rigid", "isolated"]))
-        friction = "dahl" if stage == "sai" else str(rng.choice(["dahl", "gms", "coulomb"]))
+        law = "dahl" if stage == "sai" else str(rng.choice(["dahl", "gms", "coulomb"]))
         rate = 1e4 if stage == "sai" else float(rng.choice([1e4, 1e3]))
-        if all(_compatible(e, stage, friction, rate) for e in effects):
-            return stage, friction, rate
+        if all(_compatible(e, stage, law, rate) for e in effects):
+            return stage, law, rate
     raise RuntimeError(f"no setting for {effects}")
 
 
@@ -329,12 +186,12 @@ def _draw_record(rng, case: PowerCase):
     rec = str(rng.choice(kinds))
     slow = case.rate < 5e3
     if rec in ("p2p1", "p2p"):
-        dist = float(rng.choice([-1, 1])) * _logu(rng.random(), 2e-6, 2e-3)
+        dist = float(rng.choice([-1, 1])) * log_uniform(rng.random(), 2e-6, 2e-3)
         prof = {"kind": "point_to_point", "distance": dist, "dwell": 0.25 if slow else 0.06}
         trials = 1 if rec == "p2p1" else 4
     elif rec == "circle":
-        prof = {"kind": "circle", "radius": _logu(rng.random(), 2e-4, 2e-3),
-                "speed": _logu(rng.random(), 0.005, 0.04), "cycles": 1.0}
+        prof = {"kind": "circle", "radius": log_uniform(rng.random(), 2e-4, 2e-3),
+                "speed": log_uniform(rng.random(), 0.005, 0.04), "cycles": 1.0}
         r, v = prof["radius"], prof["speed"]
         period = 2 * math.pi * r / v
         if period > 0.6:              # keep the record affordable: at most ~0.6 s per trial
@@ -343,12 +200,12 @@ def _draw_record(rng, case: PowerCase):
             prof["speed"] = 2 * math.pi * r / 0.25
         trials = int(rng.integers(3, 7))
     elif rec == "sine":
-        f1 = _logu(rng.random(), 3.0, 10.0) if slow else _logu(rng.random(), 5.0, 15.0)
-        prof = {"kind": "sine_sweep", "frequencies": [f1, 3 * f1], "amplitude": _logu(rng.random(), 2e-5, 3e-4),
+        f1 = log_uniform(rng.random(), 3.0, 10.0) if slow else log_uniform(rng.random(), 5.0, 15.0)
+        prof = {"kind": "sine_sweep", "frequencies": [f1, 3 * f1], "amplitude": log_uniform(rng.random(), 2e-5, 3e-4),
                 "periods": 3, "settle_periods": 1}
         trials = 3
     else:
-        prof = {"kind": "step_sequence", "distance": _logu(rng.random(), 2e-6, 5e-5), "n_forward": 3,
+        prof = {"kind": "step_sequence", "distance": log_uniform(rng.random(), 2e-6, 5e-5), "n_forward": 3,
                 "n_backward": 3, "dwell": 0.08 if slow else 0.03}
         trials = 3
     return rec, prof, trials
@@ -356,20 +213,20 @@ def _draw_record(rng, case: PowerCase):
 
 def make_cases(n: int = DEFAULT_CASES, master_seed: int = MASTER_SEED) -> list[PowerCase]:
     """The ``n`` cases of the study: 30 % negative controls, 10 % pairs, the rest single
-    effects dealt over :data:`EFFECTS` in turn, sizes stratified per effect."""
+    effects dealt over :func:`dealt_effects` in turn, sizes stratified per effect."""
     n = int(n)
     n_neg = max(1, round(0.3 * n)) if n >= 3 else 0
     n_pair = round(0.1 * n)
     n_single = max(0, n - n_neg - n_pair)
     rng0 = np.random.default_rng(master_seed)
-    order = list(EFFECTS)
+    order = dealt_effects()
     singles = [order[i % len(order)] for i in range(n_single)]
     per = {e: singles.count(e) for e in order}
     strata = {e: list(rng0.permutation(per[e])) for e in order}
     pairs = []
     while len(pairs) < n_pair:
-        a, b = (str(x) for x in rng0.choice([e for e in order if e != "isolator_transient"], 2, replace=False))
-        if any({a, b} <= g for g in EXCLUSIVE + SEPARATE) or (a, b) in pairs or (b, a) in pairs:
+        a, b = (str(x) for x in rng0.choice([e for e in order if LIBRARY[e].paired], 2, replace=False))
+        if _never_paired(a, b) or (a, b) in pairs or (b, a) in pairs:
             continue
         pairs.append((a, b))
     specs = [(s,) for s in singles] + pairs + [()] * n_neg
@@ -396,7 +253,6 @@ def make_cases(n: int = DEFAULT_CASES, master_seed: int = MASTER_SEED) -> list[P
 
 # --------------------------------------------------------------------------- one case
 def _trials(case: PowerCase, nominal):
-    from experiment_runner.experiment import Experiment, build_trials
     exp = Experiment.model_validate({"name": case.name, "preset": "fi_stage_nofi", "profile": case.profile,
                                      "trials": case.trials, "starts": {"margin": 0.005, "seed": case.seed % 100000},
                                      "window": 25e-9})
@@ -405,7 +261,6 @@ def _trials(case: PowerCase, nominal):
 
 def build_case(case: PowerCase):
     """(nominal Preset, truth Preset, truth values {effect: {param: value}}, DiagData, trials)."""
-    from stage_sim.config import preset_from_dict
     nom_doc = nominal_doc(case)
     nominal = preset_from_dict(nom_doc, f"power case {case.name} nominal")
     tr = _trials(case, nominal)
@@ -423,9 +278,7 @@ def build_case(case: PowerCase):
 
 def record(truth, trials):
     """What a rig records of ``trials`` run on ``truth`` (noise on): a :class:`~.data.DiagData`."""
-    from experiment_runner.batch import simulate
 
-    from .data import from_trials
     res = simulate(truth, np.stack([t.x_ref for t in trials]), np.stack([t.v_ref for t in trials]),
                    seeds=[truth.simulation.seed + t.index for t in trials], check=False)
     B = len(trials)
@@ -442,8 +295,6 @@ def replay_change(nominal, variants: dict, data) -> dict:
     """How far the nominal's held-out replay is from recordings of each variant (presets),
     beyond its own run-to-run floor: ``sqrt(|E D(variant) - E D(nominal)| / E D(nominal))``
     (:mod:`.judge`; 4 simulated recordings per variant)."""
-    from .judge import ReplayJudge
-    from .model import ModelSpec
     j = ReplayJudge(data)
     nom = ModelSpec(nominal)
     fl = j.floor(nom)
@@ -451,7 +302,7 @@ def replay_change(nominal, variants: dict, data) -> dict:
     base = float(np.mean(j.sim_blocks(fl.replay, fl).sum(axis=1) / n))
     out = {}
     for k, p in variants.items():
-        u, y, _, _ = j._simulate(ModelSpec(p), j.seeds[:4])
+        u, y, _, _ = j.simulate_recordings(ModelSpec(p), j.seeds[:4])
         e2 = [((u[i] - fl.replay.u) / fl.sigma_u) ** 2 + ((y[i] - fl.replay.y) / fl.sigma_y) ** 2 for i in range(4)]
         Dv = float(np.mean([np.sum(x[j.mask]) / n for x in e2]))
         # a floor without noise (a stage that never slips at its encoder step) counts as 2 per
@@ -466,7 +317,6 @@ def _named(rep: dict) -> list[tuple[str, set]]:
 
 def judge_case(case: PowerCase, rep: dict, expect: dict, change: dict) -> dict:
     """Outcome of one case: named first / pair / false positive, parameter errors, reasons."""
-    from .selftest import _check_params
     named = _named(rep)
     keys = [k for k, _ in named]
     truth = set(case.effects)
@@ -486,7 +336,7 @@ def judge_case(case: PowerCase, rep: dict, expect: dict, change: dict) -> dict:
         entry = next((f for f in rep["found"] if f["effect"] == e), None)
         if entry is None:
             entry = next((a for f in rep["found"] for a in f.get("alternatives") or [] if a["effect"] == e), None)
-        ok, ch = _check_params(entry, exp_)
+        ok, ch = check_params(entry, exp_)
         params[e] = {"ok": ok if entry is not None else None, "checks": ch}
     out["params"] = params
     return out
@@ -524,15 +374,12 @@ def run_case(case: PowerCase, keep=None) -> dict:
 
 
 def _run_case(case: PowerCase, keep) -> dict:
-    from .model import ModelSpec
-    from .pipeline import Options, diagnose
     try:
         nominal, truth, expect, data, tr = build_case(case)
         variants = {"truth": truth}
         alldata = data.subset(np.arange(data.shape[1]))
         given = {}
         if len(case.effects) == 2:
-            from stage_sim.config import preset_from_dict
             for i, (e, q) in enumerate(zip(case.effects, case.quantiles)):
                 doc = nominal.model_dump(mode="json")
                 _truth_effect(e, q, np.random.default_rng([case.seed, 7, i]), doc, case, _info(tr))
@@ -543,7 +390,6 @@ def _run_case(case: PowerCase, keep) -> dict:
             given = {a: replay_change(variants[b], {"truth": truth}, alldata)["truth"],
                      b: replay_change(variants[a], {"truth": truth}, alldata)["truth"]}
         change = replay_change(nominal, variants, alldata)
-        from .judge import ReplayJudge
         truth_stable = ReplayJudge(data.subset(np.arange(data.shape[1]))).replay(ModelSpec(truth)).ok
         out_dir = None if keep is None else Path(keep) / case.name
         rep = diagnose(None, ModelSpec(nominal), out=out_dir, data=data, options=Options(plots=keep is not None,
@@ -559,7 +405,6 @@ def _run_case(case: PowerCase, keep) -> dict:
             res["reasons"] = {e: _reason(rep, e) for e in case.effects if not res["detected"].get(e)}
         res["extra_reasons"] = {e: _extra_reason(rep, e) for e in res.get("extra") or (res["named"] if not case.effects else [])}
     except Exception as err:      # noqa: BLE001 - a crashing case is a failed case, reported
-        import traceback
         res = {"case": case.name, "kind": case.kind, "effects": list(case.effects), "error": repr(err),
                "traceback": traceback.format_exc(limit=4), "named": [], "replay_change": {}}
     return res
@@ -598,7 +443,6 @@ def _extra_reason(rep: dict, effect: str) -> str:
 
 # --------------------------------------------------------------------------- the study
 def _task(case: PowerCase, keep):
-    import numba
     numba.set_num_threads(1)
     return run_case(case, keep)
 
@@ -667,7 +511,6 @@ def run_power(n_cases: int = DEFAULT_CASES, workers: int | None = 2, cluster=Non
               verbose: bool = False, only=None) -> dict:
     """Run the study (cases on ``workers`` local processes or a Dask ``cluster``); returns the
     summary with ``results``; with ``out`` writes ``power.json``, ``report.md`` and the plot."""
-    from experiment_runner.executor import make_executor
     cases = make_cases(n_cases)
     if only:
         cases = [c for c in cases if any(o in c.name for o in only)]
@@ -696,7 +539,6 @@ def _fmt_change(r) -> str:
 # --------------------------------------------------------------------------- report
 def write_report(out, s: dict) -> Path:
     out = outputs.prepare_folder(out)
-    from .report import jsonable
     outputs.write_text(out / "power.json", json.dumps(jsonable(s), indent=1))
     plots = []
     try:
@@ -774,7 +616,7 @@ def _plot(out: Path, s: dict) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     res = [r for r in s["results"] if r["kind"] == "single" and "error" not in r]
-    effs = [e for e in EFFECTS if any(r["effects"][0] == e for r in res)]
+    effs = [e for e in dealt_effects() if any(r["effects"][0] == e for r in res)]
     if not effs:
         return []
     nc = 6

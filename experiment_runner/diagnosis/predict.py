@@ -6,10 +6,10 @@ Three views, all from the three contract topics alone:
    its controller in closed loop (:func:`experiment_runner.batch.simulate`). Compared with the recording: command
    error ``u_meas - u_sim`` (within the servo bandwidth, the force the model is missing)
    and position error ``y_meas - y_sim``.
-2. **Force residual** (:func:`observe`): the force observer of :mod:`.engine` -- the
+2. **Force residual** (:class:`.observer.Observer`): the force observer of :mod:`.engine` -- the
    model, driven by the recorded command, follows the measured position; the tracking
    force ``r[k]`` is the force the model is missing at each sample (zero up to noise
-   when the model is right). This is what the hypotheses are fitted to.
+   when the model is right). This is what the effects are fitted to.
 3. **Open-loop windows** (:func:`open_loop_windows`): the recorded command through the
    model in open loop over short windows, each re-initialised from the observer state
    (which follows the measurement); the position drift at the window end, and the
@@ -23,7 +23,6 @@ mean square of 1 = indistinguishable from a perfect model).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import math
 
@@ -35,79 +34,14 @@ from experiment_runner.batch import simulate
 from stage_sim.plant import PlantInputs, PlantState
 
 from . import engine as E
-from .data import DiagData, smooth
+from .data import DiagData
 from .model import ModelSpec
+from .observer import Observer, ObsResult
+from .openloop import sim_batch as open_loop_sim_batch
+from .openloop import window_replay
 
-__all__ = ["Observer", "ObsResult", "smoothing_hz", "replay", "sim_data", "sim_batch", "NoiseFloor", "open_loop_windows",
-           "closed_loop", "band_rms"]
-
-
-@dataclass
-class ObsResult:
-    r: np.ndarray        # (T, B) force residual [N]
-    x: np.ndarray        # observer table position [m]
-    v: np.ndarray        # observer table velocity [m/s]
-    phi: np.ndarray      # normalised table friction state [-]
-    snaps: tuple | None = None   # (every, z, fr, ps, dbuf) plant-state snapshots for open-loop windows
-    bad: int = 0
-
-
-SMOOTH_FACTOR = 2.5
-"""Default cutoff of the zero-phase smoothing of the measured position, in observer bandwidths."""
-
-
-def smoothing_hz(spec: ModelSpec, rate: float, f_o: float) -> float:
-    """Cutoff [Hz] of the smoothing of the measured position the observer follows:
-    ``SMOOTH_FACTOR * f_o``, or (nearly raw) ``0.45 * rate`` for a model with a semi-active
-    isolator: its lock mode (~2 kHz) rings after every lock, and with the ring smoothed out of
-    the measurement the observer would fight the model's own ring (the isolator transient
-    could not be fitted)."""
-    if spec.preset.stage.sai is not None:
-        return 0.45 * rate
-    return min(SMOOTH_FACTOR * f_o, 0.45 * rate)
-
-
-class Observer:
-    """Force observer on one :class:`DiagData` (smoothing done once, runs per model);
-    ``smooth_hz``: see :func:`smoothing_hz` (default ``SMOOTH_FACTOR`` x the bandwidth)."""
-
-    def __init__(self, data: DiagData, bandwidth: float | None = None, smooth_hz: float | None = None,
-                 burn_out: float = 0.004):
-        self.data = data
-        self.f_o = float(bandwidth or data.rate / 25.0)
-        self.omega = 2.0 * np.pi * self.f_o
-        fs = min(smooth_hz or SMOOTH_FACTOR * self.f_o, 0.45 * data.rate)
-        if data.ys is None or data.smooth_hz != fs:
-            data.ys, data.vs = smooth(data.y, data.rate, fs, data.lengths)
-            data.smooth_hz = fs
-        # the smoothed signal is unreliable near each trial's end: leave it out of the sets
-        n_out = int(round(burn_out * data.rate))
-        k = np.arange(data.shape[0])[:, None]
-        tail = k >= (data.lengths[None, :] - n_out)
-        data.fit &= ~tail
-        data.held &= ~tail
-        self.u = np.ascontiguousarray(data.u)
-        self.ys = np.ascontiguousarray(data.ys)
-        self.vs = np.ascontiguousarray(data.vs)
-        self.inputs = tuple(np.ascontiguousarray(a) for a in data.plant_inputs())    # d0, d1, mode
-        self.fe = np.ascontiguousarray(data.known_force())                        # known external force
-        self.calls = 0
-
-    def run(self, spec: ModelSpec, cols=None, snap_every: int = 0) -> ObsResult:
-        c = spec.compiled()
-        u, ys, vs, fe, inputs = self.u, self.ys, self.vs, self.fe, self.inputs
-        if cols is not None:
-            u, ys, vs, fe = (np.ascontiguousarray(a[:, cols]) for a in (u, ys, vs, fe))
-            inputs = tuple(np.ascontiguousarray(a[:, cols]) for a in inputs)
-        T, B = u.shape
-        st = E.new_state(c.pm, ys[0], sai_mode=float(inputs[2][0, 0]))
-        outs = [np.empty((T, B)) for _ in range(4)]
-        ns = (T + snap_every - 1) // snap_every if snap_every > 0 else 1
-        snaps = [np.zeros((ns,) + a.shape) for a in st[:4]]
-        inp = PlantInputs(u, *inputs, fe if fe is not None and np.any(fe) else np.zeros((0, 0)))
-        bad = E.observe(c.pm, c.fc_tot, inp, ys, vs, st, self.omega, c.m_eff, int(snap_every), *outs, *snaps)
-        self.calls += 1
-        return ObsResult(*outs, snaps=(snap_every, *snaps) if snap_every > 0 else None, bad=int(bad))
+__all__ = ["replay", "sim_data", "sim_batch", "NoiseFloor", "open_loop_windows", "closed_loop", "band_rms",
+           "force_resolution", "taper"]
 
 
 # --------------------------------------------------------------------------- closed loop
@@ -128,8 +62,7 @@ def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
     call (trials x seeds); each is a :class:`DiagData` with the recording's masks and split.
     An open-loop record: :func:`.openloop.sim_batch` (the recorded command, no controller)."""
     if data.open_loop:
-        from .openloop import sim_batch as open_sim_batch
-        return open_sim_batch(spec, data, seeds)
+        return open_loop_sim_batch(spec, data, seeds)
     B = data.shape[1]
     seeds = list(seeds)
     xr = np.tile(data.x_ref, (1, len(seeds)))
@@ -150,7 +83,6 @@ def replay(spec: ModelSpec, data: DiagData, seed: int = 1000):
     record: the model's open-loop windows re-initialised from the measurement, over all samples
     (:func:`.openloop.window_replay`; ``u`` is the recorded command)."""
     if data.open_loop:
-        from .openloop import window_replay
         return window_replay(spec, data)
     B = data.shape[1]
     y, u, x, inputs = closed_loop(spec, data.x_ref, data.v_ref, seed + np.arange(B), data.f_ext)
@@ -173,7 +105,7 @@ def compare_replay(data: DiagData, rp: dict) -> dict:
 
 
 # --------------------------------------------------------------------------- noise floor
-def _taper(r: np.ndarray, mask: np.ndarray, n_taper: int = 16) -> np.ndarray:
+def taper(r: np.ndarray, mask: np.ndarray, n_taper: int = 16) -> np.ndarray:
     """Residual with the masked-out samples set to zero, edges tapered (per column)."""
     out = np.where(mask, r, 0.0)
     if n_taper > 0:
@@ -230,7 +162,7 @@ class NoiseFloor:
         for r, m in zip(residuals, masks):
             if not np.all(np.isfinite(r[m])) or np.max(np.abs(r[m]), initial=0.0) > 1e100:
                 raise ValueError("noise floor: the simulated residual is not finite (the model diverged)")
-            rt = _taper(r, m)
+            rt = taper(r, m)
             for b in range(r.shape[1]):
                 n = int(m[:, b].sum())
                 if n < 64:
@@ -274,7 +206,7 @@ class NoiseFloor:
         T = r.shape[0]
         n = int(2 ** np.ceil(np.log2(2 * T)))
         g = self.gain(n)
-        rt = _taper(r, mask)
+        rt = taper(r, mask)
         w = np.fft.irfft(np.fft.rfft(rt, n=n, axis=0) * g[:, None], n=n, axis=0)[:T]
         return np.where(mask, w, 0.0)
 
@@ -287,7 +219,7 @@ class NoiseFloor:
 def band_rms(r: np.ndarray, mask: np.ndarray, rate: float, f_hi: float) -> float:
     """RMS [N] of the residual low-passed (zero phase, 2nd order) at ``f_hi``, over ``mask``."""
     sos = signal.butter(2, min(0.95, 2 * f_hi / rate), output="sos")
-    rl = signal.sosfiltfilt(sos, _taper(r, mask), axis=0)
+    rl = signal.sosfiltfilt(sos, taper(r, mask), axis=0)
     return float(np.sqrt(np.mean(rl[mask] ** 2))) if mask.any() else float("nan")
 
 

@@ -5,7 +5,7 @@ Two public data sets live in ``../shared/data`` (each folder's README says what 
 ``emps/DATA_EMPS.mat``
     The EMPS benchmark (ONERA / LS2N): a ball-screw positioning axis (~95 kg load side)
     under a cascaded P position / P velocity controller, 1 kHz, 24.84 s. A real
-    positioning axis: :func:`convert_emps` writes it as a contract recording
+    positioning axis: :func:`experiment_runner.tabular.convert_emps` writes it as a contract recording
     (``/stage/reference.position = qg``, ``/stage/command.effort = gtau vir`` [N],
     ``/stage/measured.position = qm``) and :func:`run_emps` runs
     :func:`~.pipeline.diagnose` on it from a plain nominal model
@@ -48,11 +48,22 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy import signal
+from scipy.io import loadmat
 
 from experiment_runner import outputs
-from experiment_runner.tabular import sha256
+from experiment_runner.recording import read_recording
+from experiment_runner.tabular import convert_emps, sha256
+from stage_control.cascaded import CascadedPP, RigidAxis, cascaded_command, simulate_rigid
+from stage_sim.config import load_preset
 
-__all__ = ["DataMissing", "data_root", "EmpsData", "load_emps", "convert_emps", "EMPS_PUBLISHED",
+from .datasets import DataMissing, data_root, need_file
+from .model import friction_elements, total_mass
+from .options import Options
+from .pipeline import diagnose
+from .tribometer import identify_tribometer, load_tribometer
+
+__all__ = ["EmpsData", "load_emps", "EMPS_PUBLISHED",
            "EMPS_PUBLISHED_ASYM", "EMPS_NOMINAL", "idim_ls", "run_emps", "run_realdata", "main_realdata",
            "add_realdata_arguments", "rigid_quantities", "run_tribometer",
            "to_markdown"]
@@ -69,36 +80,6 @@ EMPS_SHA256 = "6cf6814ae14618795da0101aae2bb97ff0c6351b0501b5492751b02b07facf7e"
 # replay judge decides (pipeline), the data-sheet force constant (gtau) is adopted last among
 # candidates the replay cannot tell apart (a rigid axis: r u = M qdd + F <=> u = (M/r) qdd + F/r),
 # so it moves only if the data demand it.
-
-
-class DataMissing(FileNotFoundError):
-    """A real data set is not where it should be; the message says where it was looked for."""
-
-
-def data_root(explicit=None) -> Path:
-    """The shared data folder (``shared/data``).
-
-    ``explicit`` (or else ``$NANOSTAGE_DATA``), when given, is the only place looked in;
-    otherwise ``../shared/data`` relative to the repository (this file's ``../../..``) and to
-    the working directory, then ``/work/shared/data``. Raises :class:`DataMissing` naming
-    every place tried.
-    """
-    import os
-    repo = Path(__file__).resolve().parents[2]
-    given = explicit or os.environ.get("NANOSTAGE_DATA")
-    cands = [Path(given)] if given else [repo.parent / "shared" / "data", Path.cwd().parent / "shared" / "data",
-                                         Path("/work/shared/data")]
-    for c in cands:
-        if (c / "emps").is_dir() or (c / "microtribometer_reciprocating").is_dir():
-            return c
-    raise DataMissing("real data folder not found; tried " + ", ".join(str(c) for c in cands)
-                      + " (it must hold emps/ or microtribometer_reciprocating/; set NANOSTAGE_DATA or pass --data)")
-
-
-def _need_file(path: Path, what: str) -> Path:
-    if not path.is_file():
-        raise DataMissing(f"{what}: {path} does not exist")
-    return path
 
 
 # =========================================================================== EMPS
@@ -127,8 +108,7 @@ class EmpsData:
 
 def load_emps(path) -> EmpsData:
     """Read ``DATA_EMPS.mat`` (MATLAB v5) and check its arrays (shape, finiteness, sampling)."""
-    from scipy.io import loadmat
-    path = _need_file(Path(path), "EMPS data")
+    path = need_file(Path(path), "EMPS data")
     try:
         m = loadmat(path)
     except Exception as err:   # noqa: BLE001 - any reader failure: say which file
@@ -150,22 +130,6 @@ def load_emps(path) -> EmpsData:
     return EmpsData(path=path, **cols, **sc)
 
 
-def convert_emps(mat_path, out, overwrite: bool = True) -> Path:
-    """Write ``DATA_EMPS.mat`` as a contract recording; returns the MCAP file.
-
-    The table importer (:func:`experiment_runner.tabular.convert_table`) with the shipped
-    mapping :data:`experiment_runner.tabular.EMPS_MAPPING` (README): ``/stage/reference``
-    position ``qg`` and velocity (not in the source: central difference of ``qg``, said so in
-    ``/experiment/config``), ``/stage/command`` effort ``gtau * vir`` [N], ``/stage/measured``
-    position ``qm``, and the drive voltage ``vir`` [V] as logged on ``/source/channels``.
-    Stamps are ``k * 1 ms`` (the mean period; the logged times jitter by ~2e-8 s around it);
-    ``gtau``, ``kp``, ``kv`` are in the config (``provenance.scalars``). One trial.
-    """
-    from experiment_runner.tabular import EMPS_MAPPING, convert_table, load_mapping
-    return convert_table(mat_path, load_mapping(EMPS_MAPPING), out, overwrite=overwrite,
-                         source="nanostage convert emps")
-
-
 def idim_ls(d: EmpsData, cutoff: float = 100.0, decimate: int = 10, asymmetric: bool = False) -> dict:
     """The benchmark's IDIM-LS recipe (README): 4th-order Butterworth ``cutoff`` [Hz] zero phase
     on ``qm`` and on the force, central differences, decimation by ``decimate``, least squares of
@@ -174,7 +138,6 @@ def idim_ls(d: EmpsData, cutoff: float = 100.0, decimate: int = 10, asymmetric: 
     Returns values, relative standard deviations (LS, white residual) and the relative error
     ``||tau - A theta|| / ||tau||``. A check of the data path, independent of the diagnosis.
     """
-    from scipy import signal
     fs = 1.0 / d.dt
     sos = signal.butter(4, cutoff / (fs / 2), output="sos")
     q = signal.sosfiltfilt(sos, d.qm)
@@ -232,7 +195,6 @@ def _preset_axis(preset) -> dict:
     A force-constant ratio ``r`` (the table feels ``r u``) is the same rigid model as mass and
     friction divided by ``r`` (``u = (M/r) qdd + F/r``): reported in command units.
     """
-    from .model import friction_elements, total_mass
     st = preset.stage
     r = st.drive.force_constant_ratio
     fc = fv = dfc = dfv = g1 = g2 = 0.0
@@ -315,7 +277,6 @@ def _held_blocks(n: int) -> np.ndarray:
 
 def _closed_loop_errors(d: EmpsData, axis_kw: dict, held: np.ndarray) -> dict:
     """Cascaded-loop replay of ``qg`` on a rigid axis; relative errors as in the README."""
-    from stage_control.cascaded import CascadedPP, RigidAxis, simulate_rigid
     ctrl = CascadedPP(kp=d.kp, kv=d.kv, gain=d.gtau, limit=10.0, rate=1.0 / d.dt)
     sim = simulate_rigid(ctrl, RigidAxis(**axis_kw), d.qg, q0=d.qm[0])
 
@@ -349,16 +310,11 @@ def _offset_candidates(rep: dict) -> list[dict]:
 
 def run_emps(root: Path, out: Path, structure_check: bool = True, plots: bool = True, verbose: bool = False) -> dict:
     """Convert, diagnose from the plain nominal, compare with the published model (see module doc)."""
-    from scipy import signal
 
-    from experiment_runner.recording import read_recording
-    from stage_control.cascaded import CascadedPP, cascaded_command
-    from stage_sim.config import load_preset
 
-    from .pipeline import Options, diagnose
     T0 = time.perf_counter()
     out = Path(out)
-    mat = _need_file(Path(root) / "emps" / "DATA_EMPS.mat", "EMPS data (shared/data/emps)")
+    mat = need_file(Path(root) / "emps" / "DATA_EMPS.mat", "EMPS data (shared/data/emps)")
     d = load_emps(mat)
     notes = []
     digest = sha256(mat)
@@ -461,9 +417,8 @@ def _emps_plots(out: Path, d: EmpsData, replay: dict, held: np.ndarray) -> list[
 # --------------------------------------------------------------------------- tribometer run
 def run_tribometer(root: Path, out: Path, plots: bool = True) -> dict:
     """Open-loop, position-driven friction identification (:mod:`.tribometer`)."""
-    from .tribometer import identify_tribometer, load_tribometer
     T0 = time.perf_counter()
-    path = _need_file(Path(root) / "microtribometer_reciprocating" / "test_data_2.txt",
+    path = need_file(Path(root) / "microtribometer_reciprocating" / "test_data_2.txt",
                       "tribometer data (shared/data/microtribometer_reciprocating)")
     d = load_tribometer(path)
     r = identify_tribometer(d)

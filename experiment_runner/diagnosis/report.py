@@ -78,7 +78,7 @@ import numpy as np
 
 from experiment_runner import outputs
 
-from .locate import REGIMES
+from .locate import REGIMES, lowpass, spectrum
 from .units import axis_units
 
 __all__ = ["write_report", "to_markdown", "jsonable"]
@@ -112,7 +112,8 @@ def _fmt(v, unit=""):
     return f"{v:.4g}{(' ' + unit) if unit else ''}"
 
 
-def to_markdown(rep: dict) -> str:
+def _md_headline(rep: dict) -> list[str]:
+    """Title, the held-out replay table, the verdict and the recording."""
     L = []
     rc = rep["recording"]
     L.append(f"# Diagnosis: {Path(rc['source']).name} against `{rep['nominal']['name']}`\n")
@@ -145,6 +146,12 @@ def to_markdown(rep: dict) -> str:
              f"{rep['noise']['adequacy_tolerance']:.3g}).\n")
     for n in rc.get("notes") or []:
         L.append(f"- note: {n}")
+    return L
+
+
+def _md_found(rep: dict) -> list[str]:
+    """The effects found, with their parameters."""
+    L = []
     L.append("\n## Effects found\n")
     if not rep["found"]:
         L.append("None: nothing beats the nominal model by more than run-to-run noise.\n")
@@ -159,6 +166,14 @@ def to_markdown(rep: dict) -> str:
             for k, v in (f.get("derived") or {}).items():
                 L.append(f"|  |  | {k} (derived) | {_fmt(v)} |  |  |  |")
         L.append("")
+    return L
+
+
+def _md_proof(rep: dict) -> list[str]:
+    """The held-out figures of both models."""
+    L = []
+    U = rep.get("units") or axis_units("linear")
+    fu, pu = U["force"], U["position"]
     v = rep["validation"]
     L.append("## Held-out proof\n")
     L.append("| metric (held-out samples) | nominal | improved | fall | reference |")
@@ -178,6 +193,13 @@ def to_markdown(rep: dict) -> str:
     o = v["open_loop_drift_rms_m"]
     L.append(f"| open-loop {o['window_s'] * 1e3:.3g} ms window drift RMS [{pu}] | {_fmt(o['nominal'])} | "
              f"{_fmt(o['improved'])} |  |  |")
+    return L
+
+
+def _md_locate(rep: dict) -> list[str]:
+    """Where the nominal model disagrees."""
+    L = []
+    fu = (rep.get("units") or axis_units("linear"))["force"]
     loc = rep["locate"]
     L.append("\n## Where the nominal model disagrees\n")
     L.append(f"Force residual RMS {_fmt(loc['residual_rms_N'], fu)} against a floor of "
@@ -200,6 +222,12 @@ def to_markdown(rep: dict) -> str:
         L.append("\nTime blocks with the largest excess: " + "; ".join(
             f"trial {s['trial']} {s['t_start_s']:.3f}–{s['t_end_s']:.3f} s ({s['regime']}, {100 * s['excess_share']:.1f} %)"
             for s in loc["segments"][:5]))
+    return L
+
+
+def _md_candidates(rep: dict) -> list[str]:
+    """Each step's candidates, the second start and the joint fit."""
+    L = []
     L.append("\n## Candidates\n")
     for st in rep["selection"]["steps"]:
         if st.get("stopped"):
@@ -237,6 +265,14 @@ def to_markdown(rep: dict) -> str:
             L.append("Confounded parameters (|correlation| > 0.95): " + "; ".join(
                 f"{a} ~ {b} ({c:+.3f})" for a, b, c in jf["confounded_parameters"]))
         L.append("")
+    return L
+
+
+def _md_noise(rep: dict) -> list[str]:
+    """Noise, quantization, sparse regression and the files."""
+    L = []
+    U = rep.get("units") or axis_units("linear")
+    fu, pu = U["force"], U["position"]
     sto = rep["stochastic"]
     q = sto["quantization"]
     n = sto["noise_level"]
@@ -254,6 +290,14 @@ def to_markdown(rep: dict) -> str:
     L.append("`improved_preset.yaml` (runs as is), plots: "
              + ", ".join(f"`{p}`" for p in rep.get("plots", [])))
     L.append(f"\nWall time {rep['timing_s']['total_s']:.3g} s.")
+    return L
+
+
+def to_markdown(rep: dict) -> str:
+    """``report.md`` from the report dict."""
+    L = []
+    for section in (_md_headline, _md_found, _md_proof, _md_locate, _md_candidates, _md_noise):
+        L += section(rep)
     return "\n".join(L) + "\n"
 
 
@@ -262,7 +306,6 @@ def _plots(out: Path, rep: dict, data, arr: dict) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .locate import lowpass
     files = []
     rate = data.rate
     fb = arr["f_band"]
@@ -298,9 +341,8 @@ def _plots(out: Path, rep: dict, data, arr: dict) -> list[str]:
     plt.close(fig)
     files.append("residual_time.png")
 
-    from .locate import spectrum
     spn = arr["loc"]["spectrum"]
-    sp_new = spectrum(arr["res_new"].r, arr["floor"].resB.r, mask, arr["floor"].simB.fit | arr["floor"].simB.held,
+    sp_new = spectrum(arr["res_new"].r, arr["floor"].res_b.r, mask, arr["floor"].sim_b.fit | arr["floor"].sim_b.held,
                       rate, 1e9, nperseg=spn.get("nperseg", 1024))
     fig, ax = plt.subplots(figsize=(8, 4.5))
     f = spn["f_hz"]

@@ -44,6 +44,8 @@ from scipy.optimize import least_squares, nnls
 
 from stage_sim.friction import dahl_update, gms_update, lugre_update
 
+from .datasets import DataMissing
+
 __all__ = ["TribData", "load_tribometer", "identify_tribometer", "transition_lengths"]
 
 GMS_BLOCKS = 10
@@ -94,7 +96,6 @@ def load_tribometer(path) -> TribData:
     """Read ``test_data_2.txt`` (tab-separated, one header line) into SI; find the reversals."""
     path = Path(path)
     if not path.is_file():
-        from .realdata import DataMissing
         raise DataMissing(f"tribometer data: {path} does not exist")
     try:
         a = np.loadtxt(path, skiprows=1)

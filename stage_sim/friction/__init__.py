@@ -12,7 +12,8 @@ design advisor (:func:`law`, :func:`initial_stiffness`).
 
 **Adding a law**: write ``stage_sim/friction/NAME.py`` with the attributes and functions of
 the others (``NAME``, ``Schema``, ``IMPLICIT``, ``FEEDFORWARD``, ``params``, ``n_state``,
-``stiffness_at_rest``, ``explicit_damping``, ``sliding_force``, ``virgin``, and the kernels
+``stiffness_at_rest``, ``explicit_damping``, ``sliding_force``, ``virgin``, ``element`` (the
+law's preset mapping: every module that writes an element of the law calls it), and the kernels
 ``update``/``held``/``level`` for a stateful law or ``implicit``/``level`` for an implicit
 one), then append it to :data:`LAWS` here and add its branch to each dispatcher below.
 

@@ -7,7 +7,7 @@ from pydantic import Field, model_validator
 
 from stage_sim.schema import Finite, _Strict
 
-__all__ = ["FrictionVariation", "Model", "virgin_curve"]
+__all__ = ["FrictionVariation", "Model", "virgin_curve", "variation_entries"]
 
 
 class FrictionVariation(_Strict):
@@ -35,6 +35,24 @@ class FrictionVariation(_Strict):
         if self.f_c == 0 and (self.f_c_gradient or self.f_c_curvature):
             raise ValueError("f_c_gradient/f_c_curvature need f_c > 0")
         return self
+
+
+def variation_entries(fields: dict) -> dict:
+    """The friction variation entries ``fields`` (names of :class:`FrictionVariation`) of an
+    element mapping, checked by name: what a law's ``element`` constructor appends.
+
+    >>> variation_entries({"f_c_difference": 0.4})
+    {'f_c_difference': 0.4}
+    >>> variation_entries({"f_c_diff": 0.4})
+    Traceback (most recent call last):
+    ...
+    TypeError: unknown friction variation field(s) f_c_diff (known: f_c_difference, viscous_difference, f_c_gradient, f_c_curvature, position_center)
+    """
+    unknown = [k for k in fields if k not in FrictionVariation.model_fields]
+    if unknown:
+        raise TypeError(f"unknown friction variation field(s) {', '.join(unknown)} "
+                        f"(known: {', '.join(FrictionVariation.model_fields)})")
+    return dict(fields)
 
 
 class Model:

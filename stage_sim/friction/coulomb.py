@@ -15,7 +15,7 @@ from pydantic import Field
 from stage_sim.schema import NonNeg
 from stage_sim.validation import unit
 
-from .base import FrictionVariation, Model
+from .base import FrictionVariation, Model, variation_entries
 
 NAME = "coulomb"
 IMPLICIT = True        # solved per sub-step from the velocity the other forces give
@@ -33,6 +33,16 @@ class CoulombFriction(FrictionVariation):
 
 
 Schema = CoulombFriction
+
+
+def element(f_c: float, f_s: float | None = None, viscous: float = 0.0, **variation) -> dict:
+    """A Coulomb element as a preset mapping (``model: coulomb``; ``f_s`` None = ``f_c``; the
+    values as given, validated with the preset). ``variation``: :class:`.base.FrictionVariation` fields.
+
+    >>> element(5.31, viscous=10.0)
+    {'model': 'coulomb', 'f_c': 5.31, 'f_s': None, 'viscous': 10.0}
+    """
+    return {"model": NAME, "f_c": f_c, "f_s": f_s, "viscous": viscous, **variation_entries(variation)}
 
 
 def params(cfg: CoulombFriction) -> np.ndarray:

@@ -14,7 +14,7 @@ from pydantic import Field
 from stage_sim.schema import NonNeg, Pos
 from stage_sim.validation import unit
 
-from .base import FrictionVariation, Model
+from .base import FrictionVariation, Model, variation_entries
 
 NAME = "dahl"
 IMPLICIT = False       # an explicit, stateful law: held force + exact state update per sub-step
@@ -32,6 +32,17 @@ class DahlFriction(FrictionVariation):
 
 
 Schema = DahlFriction
+
+
+def element(k_sigma: float, f_c: float, shape: float = 1.0, viscous: float = 0.0, **variation) -> dict:
+    """A Dahl friction element as a preset mapping (``model: dahl``; the values as given,
+    validated with the preset). ``variation``: :class:`.base.FrictionVariation` fields.
+
+    >>> element(2.19e6, 5.31)
+    {'model': 'dahl', 'k_sigma': 2190000.0, 'f_c': 5.31, 'shape': 1.0, 'viscous': 0.0}
+    """
+    return {"model": NAME, "k_sigma": k_sigma, "f_c": f_c, "shape": shape, "viscous": viscous,
+            **variation_entries(variation)}
 
 
 # --------------------------------------------------------------------------- scalar kernels

@@ -14,7 +14,7 @@ from pydantic import Field, model_validator
 from stage_sim.schema import NonNeg, Pos
 from stage_sim.validation import unit
 
-from .base import FrictionVariation, Model
+from .base import FrictionVariation, Model, variation_entries
 
 NAME = "gms"
 IMPLICIT = False
@@ -39,6 +39,18 @@ class GmsFriction(FrictionVariation):
 
 
 Schema = GmsFriction
+
+
+def element(k: list, alpha: list, f_c: float, viscous: float = 0.0, **variation) -> dict:
+    """A generalized Maxwell-slip element as a preset mapping (``model: gms``; block stiffnesses
+    ``k`` [N/m] and capacity fractions ``alpha``, the values as given, validated with the preset).
+    ``variation``: :class:`.base.FrictionVariation` fields.
+
+    >>> element([1e5, 2e5], [0.4, 0.6], 5.0)
+    {'model': 'gms', 'k': [100000.0, 200000.0], 'alpha': [0.4, 0.6], 'f_c': 5.0, 'viscous': 0.0}
+    """
+    return {"model": NAME, "k": list(k), "alpha": list(alpha), "f_c": f_c, "viscous": viscous,
+            **variation_entries(variation)}
 
 
 # --------------------------------------------------------------------------- scalar kernels

@@ -47,7 +47,7 @@ from pydantic import Field
 from stage_sim.schema import NonNeg, Pos
 from stage_sim.validation import unit
 
-from .base import Model
+from .base import Model, variation_entries
 from .gms import GmsFriction, gms_block, gms_block_tangent
 from .gms import sliding_force, stiffness_at_rest, virgin  # noqa: F401  (the same as the seed's GMS)
 
@@ -89,6 +89,18 @@ class GmsRateStateFriction(GmsFriction):
 
 
 Schema = GmsRateStateFriction
+
+
+def element(k: list, alpha: list, f_c: float, a: float, b: float | None = None, v_r: float = 0.08,
+            theta0: float = 1.0, viscous: float = 0.0, **variation) -> dict:
+    """A GMS element with rate-and-state sliders as a preset mapping (``model: gms_rate_state``;
+    the values as given, validated with the preset). ``variation``: :class:`.base.FrictionVariation` fields.
+
+    >>> element([1e5], [1.0], 5.0, a=0.02)["b"] is None
+    True
+    """
+    return {"model": NAME, "k": list(k), "alpha": list(alpha), "f_c": f_c, "a": a, "b": b, "v_r": v_r,
+            "theta0": theta0, "viscous": viscous, **variation_entries(variation)}
 
 
 # --------------------------------------------------------------------------- scalar kernels

@@ -14,7 +14,7 @@ from pydantic import Field
 from stage_sim.schema import NonNeg, Pos
 from stage_sim.validation import unit
 
-from .base import FrictionVariation, Model
+from .base import FrictionVariation, Model, variation_entries
 
 NAME = "lugre"
 IMPLICIT = False
@@ -35,6 +35,18 @@ class LugreFriction(FrictionVariation):
 
 
 Schema = LugreFriction
+
+
+def element(sigma0: float, f_c: float, f_s: float, v_s: float, sigma1: float = 0.0, viscous: float = 0.0,
+            exponent: float = 2.0, **variation) -> dict:
+    """A LuGre element as a preset mapping (``model: lugre``; the values as given, validated with
+    the preset). ``variation``: :class:`.base.FrictionVariation` fields.
+
+    >>> element(2.19e6, 5.31, 8.5, 1e-3)["f_s"]
+    8.5
+    """
+    return {"model": NAME, "sigma0": sigma0, "sigma1": sigma1, "viscous": viscous, "f_c": f_c, "f_s": f_s,
+            "v_s": v_s, "exponent": exponent, **variation_entries(variation)}
 
 
 # --------------------------------------------------------------------------- scalar kernels

@@ -18,7 +18,7 @@ from pydantic import Field
 from stage_sim.schema import NonNeg, Pos
 from stage_sim.validation import unit
 
-from .base import FrictionVariation
+from .base import FrictionVariation, variation_entries
 
 NAME = "regularized_coulomb"
 IMPLICIT = True
@@ -36,6 +36,16 @@ class RegularizedCoulombFriction(FrictionVariation):
 
 
 Schema = RegularizedCoulombFriction
+
+
+def element(f_c: float, v_reg: float, viscous: float = 0.0, **variation) -> dict:
+    """A regularised Coulomb element as a preset mapping (``model: regularized_coulomb``; the values
+    as given, validated with the preset). ``variation``: :class:`.base.FrictionVariation` fields.
+
+    >>> element(5.31, 1e-4)
+    {'model': 'regularized_coulomb', 'f_c': 5.31, 'v_reg': 0.0001, 'viscous': 0.0}
+    """
+    return {"model": NAME, "f_c": f_c, "v_reg": v_reg, "viscous": viscous, **variation_entries(variation)}
 
 
 def params(cfg: RegularizedCoulombFriction) -> np.ndarray:

@@ -1,0 +1,37 @@
+"""Where the real data sets are (``../shared/data``), and the error when one is not there."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+__all__ = ["DataMissing", "data_root", "need_file"]
+
+
+class DataMissing(FileNotFoundError):
+    """A real data set is not where it should be; the message says where it was looked for."""
+
+
+def data_root(explicit=None) -> Path:
+    """The shared data folder (``shared/data``).
+
+    ``explicit`` (or else ``$NANOSTAGE_DATA``), when given, is the only place looked in;
+    otherwise ``../shared/data`` relative to the repository (this package's ``../../..``) and to
+    the working directory, then ``/work/shared/data``. Raises :class:`DataMissing` naming
+    every place tried.
+    """
+    repo = Path(__file__).resolve().parents[2]
+    given = explicit or os.environ.get("NANOSTAGE_DATA")
+    cands = [Path(given)] if given else [repo.parent / "shared" / "data", Path.cwd().parent / "shared" / "data",
+                                         Path("/work/shared/data")]
+    for c in cands:
+        if (c / "emps").is_dir() or (c / "microtribometer_reciprocating").is_dir():
+            return c
+    raise DataMissing("real data folder not found; tried " + ", ".join(str(c) for c in cands)
+                      + " (it must hold emps/ or microtribometer_reciprocating/; set NANOSTAGE_DATA or pass --data)")
+
+
+def need_file(path: Path, what: str) -> Path:
+    """``path`` if it is a file, else :class:`DataMissing` naming ``what`` and the path."""
+    if not path.is_file():
+        raise DataMissing(f"{what}: {path} does not exist")
+    return path

@@ -1,0 +1,297 @@
+"""What every effect of the diagnosis library is and declares.
+
+An :class:`Effect` is one hypothesis: a model change with parameters, bounds and a signature.
+:meth:`Effect.apply` turns a parameter vector into a modified :class:`~..model.ModelSpec`, relative
+to the model it is added to. ``kind`` says how it is fitted:
+
+``deterministic``  fitted to the force residual on the fit set, refined by the replay (:mod:`..fit`);
+``integer``        a grid over integers (actuator delay, a located mode's index);
+``stochastic``     decided by its own stage: the measurement lattice (quantization) or the
+                   replay's run-to-run consistency (drive noise).
+
+Each effect class declares, besides its model change: its ``key``, ``title``, ``physics`` and
+``signature`` (``nanostage diagnose --list-effects``), its documented :class:`Parameter` s with
+units and plausible ranges on a linear and a rotary axis, its exclusive groups (at most one
+adopted effect per group), whether it states a quantity a nominal gives as known
+(``known_quantity``), its concealed truth for the power study (:meth:`Effect.conceal`, on the
+settings :meth:`Effect.conceal_on`) and its self-test cases (:meth:`Effect.selftest_cases`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, ClassVar
+
+import numpy as np
+
+from stage_sim.config import load_preset, preset_from_dict, with_overrides
+
+from ..context import Context
+from ..model import ModelSpec
+from ..units import unit_for
+
+__all__ = ["Param", "Parameter", "Effect", "Case", "Draw", "log_uniform", "both_bearings", "for_bearings",
+           "bearing_f_c", "NOMINAL"]
+
+NOMINAL = "fi_stage_nofi"
+"""The self-test's default nominal preset (the Ch. 4 stage without FI, Dahl bearings)."""
+
+
+@dataclass
+class Param:
+    """A fitted parameter on a given model: its bounds and start (:meth:`Effect.params`)."""
+    name: str
+    unit: str
+    lo: float
+    hi: float
+    x0: float
+    log: bool = False
+    doc: str = ""
+    physical_lo: bool = False
+    """The lower bound is a physical limit (a capacity >= 0): reaching it is a result (the element
+    is absent), not "not identified"."""
+
+    def clip(self, v):
+        """``v`` within ``[lo, hi]``."""
+        return float(min(max(v, self.lo), self.hi))
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A parameter as the library documents it (``--list-effects``).
+
+    ``plausible`` is the range of physically plausible values on a linear axis, in ``unit``;
+    ``plausible_rotary`` the range on a rotary axis, in ``unit_for(unit, "rotary")`` (None where the
+    unit is the same on both axes: ``plausible`` holds for both).
+    """
+    name: str
+    unit: str
+    meaning: str
+    plausible: tuple | None = None
+    plausible_rotary: tuple | None = None
+
+    def plausible_on(self, axis: str = "linear") -> tuple | None:
+        """The plausible range on an axis of ``axis`` (``linear`` or ``rotary``), in that axis' unit.
+
+        >>> p = Parameter("c", "N·s/m", "viscous coefficient", (1e-3, 1e5), (1e-7, 1e2))
+        >>> p.plausible_on("rotary")
+        (1e-07, 100.0)
+        >>> Parameter("f", "Hz", "frequency", (1.0, 1e5)).plausible_on("rotary")
+        (1.0, 100000.0)
+        """
+        if axis == "rotary" and unit_for(self.unit, "rotary") != self.unit:
+            return self.plausible_rotary
+        return self.plausible
+
+    def row(self) -> dict:
+        """The parameter as ``--list-effects --json`` gives it."""
+        return {"name": self.name, "unit": self.unit, "unit_rotary": unit_for(self.unit, "rotary"),
+                "meaning": self.meaning, "plausible": self.plausible_on("linear"),
+                "plausible_rotary": self.plausible_on("rotary")}
+
+
+def log_uniform(q: float, lo: float, hi: float) -> float:
+    """The value at quantile ``q`` (0...1) of a log-uniform range ``[lo, hi]``.
+
+    >>> log_uniform(0.5, 1e-3, 1e-1)
+    0.01
+    """
+    return float(lo * (hi / lo) ** q)
+
+
+@dataclass
+class Draw:
+    """What a power-study case gives an effect's truth writer (:meth:`Effect.conceal`): the size
+    quantile ``q`` (0...1: well below to well above what the record shows), the sign, the case's
+    random generator (drawn in a fixed order: same study, same cases), the setting (stage
+    ``rigid``/``isolated``/``sai``, the nominal's friction law ``dahl``/``gms``/``coulomb``, the
+    control rate) and the record's scales."""
+    q: float
+    sign: float
+    rng: np.random.Generator
+    stage: str
+    friction: str
+    rate: float
+    x_center: float
+    half_span: float
+    stroke: float
+    v_max: float
+
+    def size(self, lo: float, hi: float) -> float:
+        """The effect's size at this case's quantile of the log-uniform range ``[lo, hi]``."""
+        return log_uniform(self.q, lo, hi)
+
+    def random_log(self, lo: float, hi: float) -> float:
+        """A log-uniform draw from ``[lo, hi]`` (one number of the case's generator)."""
+        return log_uniform(self.rng.random(), lo, hi)
+
+
+def for_bearings(d: dict, fn) -> None:
+    """``fn(friction mapping, bearing mapping)`` for every bearing of preset mapping ``d``."""
+    for b in d["stage"]["bearings"]:
+        fn(b["friction"], b)
+
+
+def bearing_f_c(d: dict) -> float:
+    """Sum of the bearings' Coulomb forces of preset mapping ``d`` [N]."""
+    return sum(b["friction"]["f_c"] for b in d["stage"]["bearings"])
+
+
+def both_bearings(path_tail: str, value) -> dict:
+    """Dotted overrides setting ``path_tail`` of both bearings of a two-bearing stage to ``value``.
+
+    >>> both_bearings("friction.viscous", 10.0)
+    {'stage.bearings.0.friction.viscous': 10.0, 'stage.bearings.1.friction.viscous': 10.0}
+    """
+    return {f"stage.bearings.0.{path_tail}": value, f"stage.bearings.1.{path_tail}": value}
+
+
+@dataclass
+class Case:
+    """A self-test case: a concealed truth (the nominal with the dotted ``changes`` and then the
+    ``edit``, or nothing for a negative control; drive noise and quantization on), the recording
+    kind (``experiment``: a key of :data:`..selftest.EXPERIMENTS`) and what the diagnosis must find
+    (``effect``: a key, a pair of keys, or None; ``expect``: parameter or derived name -> truth value,
+    for a pair effect -> {name: value})."""
+    name: str
+    effect: str | tuple | None
+    changes: dict = field(default_factory=dict)
+    edit: Callable | None = None
+    expect: dict = field(default_factory=dict)
+    experiment: str = "circle"
+    seed: int = 101
+    nominal: str = NOMINAL
+    nominal_edit: Callable | None = None
+    """Makes the nominal (and the truth's base) from the ``nominal`` preset's mapping."""
+
+    @property
+    def effects(self) -> tuple:
+        """The expected effects (``()`` for a negative control)."""
+        return () if self.effect is None else ((self.effect,) if isinstance(self.effect, str) else tuple(self.effect))
+
+    def expects(self) -> dict:
+        """effect -> {parameter: truth value}."""
+        return {self.effect: self.expect} if isinstance(self.effect, str) else dict(self.expect)
+
+    def nominal_doc(self) -> dict:
+        """The nominal preset mapping."""
+        data = load_preset(self.nominal).model_dump(mode="json")
+        if self.nominal_edit is not None:
+            self.nominal_edit(data)
+            data["name"] = f"{data['name']}_{self.name}_nominal"
+        return data
+
+    def truth_doc(self) -> dict:
+        """The concealed truth's preset mapping (noise seed ``seed``)."""
+        nom = preset_from_dict(self.nominal_doc())
+        p = with_overrides(nom, self.changes) if self.changes else nom
+        data = p.model_dump(mode="json")
+        if self.edit is not None:
+            self.edit(data)
+        data["name"] = f"truth_{self.name}"
+        data["simulation"]["seed"] = self.seed
+        return data
+
+    @staticmethod
+    def pair(name: str, first: "Case", second: "Case", seed: int, experiment: str | None = None) -> "Case":
+        """The case of two effects: the truths of ``first`` and ``second`` (their changes, then their
+        edits in that order) on ``first``'s nominal and recording kind (or ``experiment``)."""
+        edits = [e for e in (first.edit, second.edit) if e is not None]
+
+        def edit(d):
+            for e in edits:
+                e(d)
+        return Case(name, (first.effect, second.effect), {**first.changes, **second.changes},
+                    edit=edit if edits else None, expect={first.effect: first.expect, second.effect: second.expect},
+                    experiment=experiment or first.experiment, seed=seed, nominal=first.nominal,
+                    nominal_edit=first.nominal_edit)
+
+
+class Effect:
+    """One hypothesis of the library (module docstring). Subclasses declare the class attributes
+    and implement :meth:`params` and :meth:`apply`; :meth:`conceal` and :meth:`selftest_cases` unless
+    ``truth_of`` names the effect whose truths stand for theirs."""
+
+    key: ClassVar[str] = ""
+    title: ClassVar[str] = ""
+    kind: ClassVar[str] = "deterministic"
+    physics: ClassVar[str] = ""
+    signature: ClassVar[str] = ""
+    parameters: ClassVar[tuple] = ()
+    """The documented parameters (:class:`Parameter`)."""
+    expressible: ClassVar[bool] = True
+    """The fitted model is a preset the simulator runs as is."""
+    needs: ClassVar[str] = ""
+    """What a model must have for the effect to apply (said by ``--list-effects``)."""
+    exclusive: ClassVar[tuple] = ()
+    """Names of the groups of which at most one effect is adopted (alternative friction laws)."""
+    known_quantity: ClassVar[bool] = False
+    """States a quantity a nominal gives as known (a data-sheet force constant): among candidates the
+    replay cannot tell apart it is adopted last, and it moves only when the data demand it."""
+    not_after: ClassVar[tuple] = ()
+    """Keys of adopted effects after which this one is not proposed (it is part of them)."""
+    sets_friction_level: ClassVar[bool] = False
+    """Adopted, it is the Coulomb level (:attr:`..context.Context.level_fitted`)."""
+    deal: ClassVar[int | None] = None
+    """Place in the power study's deal of single-effect cases (the study is fixed by it; a new
+    effect takes the next number); None: not dealt (``truth_of``)."""
+    paired: ClassVar[bool] = True
+    """Dealt in the power study's pairs."""
+    never_paired_with: ClassVar[tuple] = ()
+    """Keys it is never dealt with as a pair (besides its exclusive groups)."""
+    truth_of: ClassVar[str | None] = None
+    """The key of the effect whose concealed truths and self-test cases stand for this one's (a mode
+    fitted on the transfer is concealed as a structural mode)."""
+
+    def bound(self, ctx: Context) -> "Effect":
+        """This effect for a recording whose located context is ``ctx``: a copy that carries what
+        its model change needs from the recording (block slip distances, located modes, the
+        position centre). Library instances are never changed, so fits on threads and concurrent
+        diagnoses share them safely; a context-free effect is its own bound form."""
+        return self
+
+    def applicable(self, spec: ModelSpec) -> str | None:
+        """``None`` if the effect can be added to ``spec``, else the reason it cannot."""
+        return None
+
+    def params(self, spec: ModelSpec, ctx: Context) -> list[Param]:
+        """The fitted parameters on ``spec``, bounds and starts from ``ctx``."""
+        return []
+
+    def apply(self, spec: ModelSpec, theta) -> ModelSpec:
+        """``spec`` with the effect of parameters ``theta``."""
+        raise NotImplementedError
+
+    def nominal(self, spec: ModelSpec) -> dict:
+        """The model's values of the parameters (None where it has no such term)."""
+        return {}
+
+    def derived(self, spec: ModelSpec, theta) -> dict:
+        """Physical quantities derived from the fit (compared with a truth in the self-test)."""
+        return {}
+
+    def starts(self, spec: ModelSpec, ctx: Context) -> list:
+        """Initial parameter vectors (multi-start); default: the x0 of :meth:`params`."""
+        return [[p.x0 for p in self.params(spec, ctx)]]
+
+    # ------------------------------------------------------------------ concealed truths
+    def conceal_on(self, stage: str, friction: str) -> bool:
+        """Whether a power-study truth of this effect can be written on a nominal of ``stage``
+        (``rigid``/``isolated``/``sai``) with bearings of law ``friction`` (``dahl``/``gms``/``coulomb``)."""
+        return True
+
+    def conceal(self, d: dict, draw: Draw) -> dict:
+        """Write the effect of size ``draw`` into the preset mapping ``d`` (in place); returns the
+        truth values of its parameters (this effect's parametrisation) for the power study."""
+        raise NotImplementedError(f"{self.key}: no concealed truth of its own (truth_of {self.truth_of!r})")
+
+    def selftest_cases(self) -> list[Case]:
+        """The self-test cases whose truth this effect is (a pair case lists both effects)."""
+        return []
+
+    # ------------------------------------------------------------------ listing
+    def row(self) -> dict:
+        """The effect as ``--list-effects --json`` gives it."""
+        return {"key": self.key, "title": self.title, "kind": self.kind, "physics": self.physics,
+                "signature": self.signature, "parameters": [p.row() for p in self.parameters],
+                "in_preset": self.expressible, "needs": self.needs, "exclusive": list(self.exclusive),
+                "known_quantity": self.known_quantity}

@@ -1,0 +1,179 @@
+"""Forward selection: the effects adopted one by one, each by the closed-loop replay.
+
+Each step (:meth:`ForwardSelection.step`) fits every candidate (re-fitting the adopted ones with it,
+:mod:`.tasks`); the force observer proposes and ranks, the replay decides (:mod:`.selection`,
+:mod:`.refining`): the best candidate whose replay is stable and beyond the run-to-run floor of the
+current model is adopted (:func:`.adoption.adopt_best`), its statistically equivalent alternatives
+are reported, never adopted too. The walk stops when the current model's replay is within its own
+floor or nothing is adoptable. When the greedy walk ends beyond its floor, a second walk starts from
+step 1's runner-up (:meth:`ForwardSelection.second_start`) and is kept only if its held-out replay is
+better beyond the first walk's floor (the adoption test).
+"""
+from __future__ import annotations
+
+from .adoption import adopt_best, keep_refit, refit_selected
+from .context import Context
+from .fit import spec_with
+from .refining import refine_rows
+from .selection import Candidate, FirstStep, JudgedRow, Path, Problem, choose, judge_rows, rank, step_rows
+from .tasks import fit_candidates
+
+__all__ = ["ForwardSelection"]
+
+
+class ForwardSelection:
+    """The forward selection of one diagnosis (:meth:`run`).
+
+    Parameters
+    ----------
+    problem : Problem
+        What the selection works on.
+    context : Context
+        The located context of the recording (each walk starts from it).
+    """
+
+    def __init__(self, problem: Problem, context: Context):
+        self.problem = problem
+        self.context = context
+        self.first_step: FirstStep | None = None
+        self.path: Path | None = None
+
+    def run(self) -> Path:
+        """The greedy walk, and the walk from step 1's runner-up when the greedy one ends beyond its
+        floor; returns the kept walk (its ``second_start`` says what both found)."""
+        problem, judge = self.problem, self.problem.judge
+        a = self.walk()
+        second = self.second_start(a)
+        if second is None:
+            return a
+        problem.options.log(f"second start: {second.fit.key} first (the path from {a.steps[0]['accepted']} "
+                            "left a residual beyond its floor)")
+        b = self.walk(first=second)
+        c = judge.compare(a.replay_floor, b.replay_floor.replay) if b.replay_floor.replay.ok else None
+        chosen = b if c is not None and c.accepted else a
+        chosen.second_start = {
+            "first": second.fit.key, "chosen": chosen is b,
+            "effects": [fe["effect"] for fe in b.found], "greedy_effects": [fe["effect"] for fe in a.found],
+            "replay_D": judge.D(b.replay_floor.replay, a.replay_floor) if b.replay_floor.replay.ok else None,
+            "replay_D_greedy": judge.D(a.replay_floor.replay, a.replay_floor),
+            "why": c.why if c is not None else "unstable"}
+        self.path = chosen
+        problem.evaluator.floor = chosen.floor.noise
+        problem.options.log(f"second start: {[fe['effect'] for fe in chosen.found]} kept "
+                            f"({chosen.second_start['why']})")
+        return chosen
+
+    def walk(self, first: JudgedRow | None = None) -> Path:
+        """One forward path from the base model: steps until none is adopted; ``first``, a judged
+        candidate of the first step, is adopted there in place of the step's choice."""
+        p = self.problem
+        self.path = Path(current=p.base, J_held=p.J_held_base, J_fit=p.J_fit_base, floor=p.base_floor,
+                         replay_floor=p.base_replay_floor, context=self.context)
+        p.evaluator.floor = p.base_floor.noise
+        for step in range(1, p.options.max_steps + 1):
+            if not self.step(step, first if step == 1 else None):
+                break
+        return self.path
+
+    def second_start(self, a: Path) -> JudgedRow | None:
+        """The first step's runner-up, when the greedy path ``a`` ends with a replay beyond its own
+        run-to-run floor: the best adoptable candidate of step 1 other than the adopted one and the
+        ones confounded with it (by the selection's complexity-penalised replay). Forward selection
+        commits to its first choice; where that choice is a stand-in that absorbs what two other
+        effects do (12 Maxwell-slip blocks for a compliant joint plus a Stribeck curve), the path
+        from the runner-up is the only way back. None when the path ends at its floor or step 1 had
+        no other adoptable candidate."""
+        if self.first_step is None or not a.found or a.steps[0].get("accepted") is None:
+            return None
+        judge = self.problem.judge
+        if judge.consistency(a.replay_floor.replay, a.replay_floor) <= judge.t_q or not a.replay_floor.replay.ok:
+            return None
+        st = a.steps[0]
+        skip = {st["accepted"], *st["confounded_with"]}
+        ok = sorted([j for j in self.first_step.judged if j.ok and j.fit.key not in skip],
+                    key=lambda j: rank(j, self.problem.options.complexity))
+        return ok[0] if ok else None
+
+    def candidates(self) -> list[Candidate]:
+        """Every candidate of this step. A member of an exclusive group (alternative friction laws)
+        whose one adopted member is the only conflict is a *replacement*: fitted on the model without
+        that member (the more flexible member the data preferred first may not be the physics: Dahl
+        for a GMS, Dahl for a Stribeck curve)."""
+        p, path = self.problem, self.path
+        taken = {f.key for f in path.selected}
+        todo = []
+        for k in p.keys:
+            e = p.library[k]      # bound to this recording: its applicability may depend on it
+            if k in taken or k in path.banned or e.kind not in ("deterministic", "integer"):
+                continue
+            clash = p.library.exclusive_of(k) & taken
+            if taken & set(e.not_after):
+                continue                 # a part of an adopted effect (the Coulomb level of position friction)
+            if len(clash) > 1:
+                continue
+            rep = next(iter(clash)) if clash else None
+            try:
+                cur = path.current if rep is None else spec_with([f for f in path.selected if f.key != rep], p.base)
+            except Exception:     # noqa: BLE001 - e.g. an asymmetry larger than the friction left without rep
+                continue
+            if e.applicable(cur) is not None:
+                continue
+            todo.append(Candidate(e, rep))
+        return todo
+
+    def _stop_record(self, step: int, z: float) -> dict:
+        """The record of a step that stops because the current model's replay is within its floor."""
+        judge, path = self.problem.judge, self.path
+        fl = path.replay_floor
+        return {"step": step, "J_held_before": path.J_held, "replay_D_before": judge.D(fl.replay, fl),
+                "replay_z_before": z, "z_critical": judge.t_q,
+                "floor_rms": {"command_N": fl.sigma_u, "position_m": fl.sigma_y},
+                "threshold": None, "accepted": None, "confounded_with": [], "candidates": [],
+                "stopped": "replay within the run-to-run floor"}
+
+    def step(self, step: int, first: JudgedRow | None = None) -> bool:
+        """Forward step ``step``: propose, fit, judge and refine every candidate, choose one
+        (:func:`.selection.choose`), record the step and adopt the choice. Returns whether the
+        selection goes on. ``first``: a judged candidate of an earlier walk's first step, adopted at
+        step 1 from that step's record (:meth:`second_start`)."""
+        p, path = self.problem, self.path
+        opt, judge = p.options, p.judge
+        if first is not None:
+            path.steps.append(dict(self.first_step.record, accepted=first.fit.key, confounded_with=[],
+                                   second_start=True))
+            adopt_best(p, path, step, first, [], [])
+            return True
+        refit_selected(p, path, step)
+        J_held, floor = path.J_held, path.replay_floor
+        z_cur = judge.consistency(floor.replay, floor)
+        if z_cur <= judge.t_q:
+            # the current model's replay is within its run-to-run floor (calibrated z): nothing to explain
+            path.steps.append(self._stop_record(step, z_cur))
+            opt.log(f"step {step}: replay z {z_cur:.3g} <= {judge.t_q:.3g}: within the floor, stop")
+            return False
+        fits, failed = fit_candidates(p, self.candidates(), path.current, path.selected, path.J_fit, path.context)
+        if not fits:
+            return False
+        sim_blocks = judge.sim_blocks(floor.replay, floor)
+        judged = judge_rows(p, fits, floor, sim_blocks, first=not path.selected, ctx=path.context)
+        D_cur = judge.D(floor.replay, floor)
+        judged = refine_rows(p, path, judged, sim_blocks)
+        best, conf, alts = choose(p, judged, floor)
+        rows = step_rows(p, judged, J_held, p.n_eff)
+        kept = best is None and keep_refit(p, path)
+        path.steps.append({"step": step, "J_held_before": J_held, "replay_D_before": D_cur,
+                           "replay_z_before": z_cur, "z_critical": judge.t_q,
+                           "floor_rms": {"command_N": floor.sigma_u, "position_m": floor.sigma_y},
+                           "threshold": min((r["threshold"] for r in rows), default=None),
+                           "accepted": best.fit.key if best else None,
+                           "confounded_with": [j.fit.key for j in conf or []], "candidates": rows,
+                           "refit_kept": kept, "failed": dict(failed)})
+        if step == 1:
+            self.first_step = FirstStep(judged=judged, record=path.steps[-1])
+        opt.log(f"step {step}: replay D {D_cur:.4g} -> " + ", ".join(
+            f"{r['effect']} {r['replay']['D_after']:.4g} ({r['why']})" for r in rows[:5])
+            + f"; accepted {best.fit.key if best else None}")
+        if best is None:
+            return False
+        adopt_best(p, path, step, best, conf, alts)
+        return True

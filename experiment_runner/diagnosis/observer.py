@@ -1,0 +1,88 @@
+"""The force observer: the model, driven by the recorded command, follows the measured position.
+
+:class:`Observer` smooths a recording's measurement once (zero phase, cutoff :func:`smoothing_hz`)
+and runs any model's compiled observer on it (:func:`.engine.observe`): the tracking force
+``r[k]`` (:attr:`ObsResult.r`) is the force the model is missing at each sample (zero up to noise
+when the model is right); the model's state is snapshot for the open-loop windows.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stage_sim.plant import PlantInputs
+
+from . import engine as E
+from .data import DiagData, smooth
+from .model import ModelSpec
+
+__all__ = ["Observer", "ObsResult", "smoothing_hz", "SMOOTH_FACTOR"]
+
+
+@dataclass
+class ObsResult:
+    r: np.ndarray        # (T, B) force residual [N]
+    x: np.ndarray        # observer table position [m]
+    v: np.ndarray        # observer table velocity [m/s]
+    phi: np.ndarray      # normalised table friction state [-]
+    snaps: tuple | None = None   # (every, z, fr, ps, dbuf) plant-state snapshots for open-loop windows
+    bad: int = 0
+
+
+SMOOTH_FACTOR = 2.5
+"""Default cutoff of the zero-phase smoothing of the measured position, in observer bandwidths."""
+
+
+def smoothing_hz(spec: ModelSpec, rate: float, f_o: float) -> float:
+    """Cutoff [Hz] of the smoothing of the measured position the observer follows:
+    ``SMOOTH_FACTOR * f_o``, or (nearly raw) ``0.45 * rate`` for a model with a semi-active
+    isolator: its lock mode (~2 kHz) rings after every lock, and with the ring smoothed out of
+    the measurement the observer would fight the model's own ring (the isolator transient
+    could not be fitted)."""
+    if spec.preset.stage.sai is not None:
+        return 0.45 * rate
+    return min(SMOOTH_FACTOR * f_o, 0.45 * rate)
+
+
+class Observer:
+    """Force observer on one :class:`DiagData` (smoothing done once, runs per model);
+    ``smooth_hz``: see :func:`smoothing_hz` (default ``SMOOTH_FACTOR`` x the bandwidth)."""
+
+    def __init__(self, data: DiagData, bandwidth: float | None = None, smooth_hz: float | None = None,
+                 burn_out: float = 0.004):
+        self.data = data
+        self.f_o = float(bandwidth or data.rate / 25.0)
+        self.omega = 2.0 * np.pi * self.f_o
+        fs = min(smooth_hz or SMOOTH_FACTOR * self.f_o, 0.45 * data.rate)
+        if data.ys is None or data.smooth_hz != fs:
+            data.ys, data.vs = smooth(data.y, data.rate, fs, data.lengths)
+            data.smooth_hz = fs
+        # the smoothed signal is unreliable near each trial's end: leave it out of the sets
+        n_out = int(round(burn_out * data.rate))
+        k = np.arange(data.shape[0])[:, None]
+        tail = k >= (data.lengths[None, :] - n_out)
+        data.fit &= ~tail
+        data.held &= ~tail
+        self.u = np.ascontiguousarray(data.u)
+        self.ys = np.ascontiguousarray(data.ys)
+        self.vs = np.ascontiguousarray(data.vs)
+        self.inputs = tuple(np.ascontiguousarray(a) for a in data.plant_inputs())    # d0, d1, mode
+        self.fe = np.ascontiguousarray(data.known_force())                        # known external force
+        self.calls = 0
+
+    def run(self, spec: ModelSpec, cols=None, snap_every: int = 0) -> ObsResult:
+        c = spec.compiled()
+        u, ys, vs, fe, inputs = self.u, self.ys, self.vs, self.fe, self.inputs
+        if cols is not None:
+            u, ys, vs, fe = (np.ascontiguousarray(a[:, cols]) for a in (u, ys, vs, fe))
+            inputs = tuple(np.ascontiguousarray(a[:, cols]) for a in inputs)
+        T, B = u.shape
+        st = E.new_state(c.pm, ys[0], sai_mode=float(inputs[2][0, 0]))
+        outs = [np.empty((T, B)) for _ in range(4)]
+        ns = (T + snap_every - 1) // snap_every if snap_every > 0 else 1
+        snaps = [np.zeros((ns,) + a.shape) for a in st[:4]]
+        inp = PlantInputs(u, *inputs, fe if fe is not None and np.any(fe) else np.zeros((0, 0)))
+        bad = E.observe(c.pm, c.fc_tot, inp, ys, vs, st, self.omega, c.m_eff, int(snap_every), *outs, *snaps)
+        self.calls += 1
+        return ObsResult(*outs, snaps=(snap_every, *snaps) if snap_every > 0 else None, bad=int(bad))

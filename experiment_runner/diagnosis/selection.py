@@ -1,0 +1,265 @@
+"""The forward selection's objects and its decisions: what a step judges and what it adopts.
+
+:class:`Problem` is what the selection works on (fixed for one diagnosis); a :class:`Path` is one
+walk of it (the current model, its floors, the adopted effects and the steps); each step proposes
+:class:`Candidate` s, fits them (:mod:`.tasks`), and judges each by its closed-loop replay against
+the current model's run-to-run floor (:func:`judge_rows` -> :class:`JudgedRow`); :func:`choose`
+picks the one to adopt and the ones confounded with it.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .context import Context
+from .data import DiagData
+from .effects import Library
+from .effects.base import Effect
+from .fit import Evaluator, FitResult
+from .floors import ForceFloor
+from .judge import Comparison, Floor, Replay, ReplayJudge
+from .model import ModelSpec
+from .observer import Observer
+from .options import Options
+
+__all__ = ["Problem", "Candidate", "JudgedRow", "Path", "FirstStep", "judge_rows", "rank", "choose", "step_rows",
+           "for_fits_on", "NOMINAL_Z"]
+
+NOMINAL_Z = 2.0
+"""An effect whose every parameter is within this many standard errors of the current model's value
+(a stated mass, force constant, delay) is not adopted: the data do not demand the change."""
+
+
+@dataclass
+class Problem:
+    """What the forward selection works on: fixed for one diagnosis (the evaluator's floor follows
+    the current model)."""
+    options: Options
+    data: DiagData
+    observer: Observer
+    base: ModelSpec
+    """The nominal with the quantization found from the lattice: where every path starts."""
+    library: Library
+    """The effects, bound to the recording."""
+    keys: list
+    """The keys proposed, in order."""
+    evaluator: Evaluator
+    judge: ReplayJudge
+    """The held-out samples' judge (closed-loop replay, or open-loop windows)."""
+    fit_judge: ReplayJudge | None
+    """The fit samples' judge (the replay refinement's); None: no refinement."""
+    base_floor: ForceFloor
+    base_replay_floor: Floor
+    J_held_base: float
+    J_fit_base: float
+    band_hz: float
+    """The force residual's band [Hz] (half the observer bandwidth)."""
+    n_eff: float
+    """Effective sample count of the held-out force residual (the base model's floor; at least 10)."""
+    executor: object = None
+    token: str | None = None
+    blob: bytes | None = None
+
+    @property
+    def refines(self) -> bool:
+        """Candidates are refined by the replay of the fit samples."""
+        return self.fit_judge is not None
+
+    def held_out_D(self, spec: ModelSpec, floor: Floor) -> float:
+        """Replay error of the held-out samples in units of ``floor`` (inf: unstable)."""
+        rp = self.judge.replay(spec)
+        return self.judge.D(rp, floor) if rp.ok else float("inf")
+
+    def fit_D(self, spec: ModelSpec, floor: Floor) -> float:
+        """Replay error of the fit samples in units of ``floor`` (the held-out one without a fit judge)."""
+        if self.fit_judge is None:
+            return self.held_out_D(spec, floor)
+        rp = self.fit_judge.replay(spec)
+        return self.fit_judge.D(rp, floor) if rp.ok else float("inf")
+
+    def spans(self, f: FitResult, ctx: Context):
+        """The ranges (hi - lo) of candidate ``f``'s parameters on the base model, or None."""
+        try:
+            return [p.hi - p.lo for p in f.effect.params(self.base, ctx)]
+        except Exception:     # noqa: BLE001 - no ranges: the standard errors alone decide
+            return None
+
+
+@dataclass
+class Candidate:
+    """An effect proposed at a step; ``replaces``: the adopted member of its exclusive group it is
+    fitted without (a replacement), else None."""
+    effect: Effect
+    replaces: str | None = None
+
+
+@dataclass
+class JudgedRow:
+    """A fitted candidate judged by its replay against the current model's run-to-run floor."""
+    fit: FitResult
+    replay: Replay
+    comparison: Comparison
+    on_bound: list
+    """Its parameters at a bound (and the adopted effects' when fitted together)."""
+    ok: bool
+    """Adoptable: beyond the floor, identified, moved by the data."""
+    why: str
+
+
+@dataclass
+class Path:
+    """One walk of the forward selection: the current model and what led to it."""
+    current: ModelSpec
+    J_held: float
+    """The current model's held-out force-residual J (its own floor)."""
+    J_fit: float
+    floor: ForceFloor
+    """The current model's force-residual floor."""
+    replay_floor: Floor
+    """The current model's run-to-run replay floor."""
+    context: Context
+    """The located context (proposals renewed after every adoption)."""
+    steps: list = field(default_factory=list)
+    """The report's step records."""
+    selected: list = field(default_factory=list)
+    """The adopted effects' fits, in order."""
+    found: list = field(default_factory=list)
+    """The report's rows of the adopted effects (one per selected fit)."""
+    banned: set = field(default_factory=set)
+    """Keys not proposed again (withdrawn, replaced, a known quantity's confounded alternative)."""
+    refit: tuple | None = None
+    """(model, joint fit): the best re-fit of the adopted effects alone a step's joint refinements reached."""
+    second_start: dict | None = None
+    """What the walk from step 1's runner-up found (:meth:`.forward.ForwardSelection.run`)."""
+
+
+@dataclass
+class FirstStep:
+    """Step 1 of the greedy walk: its judged rows and its record (the second start begins there)."""
+    judged: list
+    record: dict
+
+
+def for_fits_on(ctx: Context, selected: list) -> Context:
+    """The located context for fits on top of ``selected``: with the Coulomb level adopted, the
+    position-dependent friction has no level parameter of its own (``level_fitted``)."""
+    return dataclasses.replace(ctx, level_fitted=any(f.effect.sets_friction_level for f in selected))
+
+
+def _unidentified(f: FitResult) -> bool:
+    """Every parameter of ``f`` has a standard error above its magnitude (nothing determined)."""
+    sig, th = np.asarray(f.sigma, float), np.asarray(f.theta, float)
+    ok = np.isfinite(sig)
+    return bool(ok.all() and np.all(sig > np.abs(th)))
+
+
+def _at_nominal(f: FitResult, spans=None) -> bool:
+    """Every parameter of ``f`` has a current-model value and is within :data:`NOMINAL_Z` standard
+    errors of it, or within 1e-4 of its range ``spans`` (hi - lo per parameter, if given) of it: a
+    value of no change whose standard error is as small (a fractional delay of 1e-6 samples at its
+    lower end, credited with what the refinement of the adopted effects did)."""
+    if not f.names:
+        return False
+    nom = [f.nominal.get(n) for n in f.names]
+    sig = np.asarray(f.sigma, float)
+    if any(v is None for v in nom) or not np.all(np.isfinite(sig)) or len(sig) != len(nom):
+        return False
+    tol = NOMINAL_Z * sig
+    if spans is not None and len(spans) == len(sig):
+        tol = np.maximum(tol, 1e-4 * np.asarray(spans, float))
+    return bool(np.all(np.abs(np.asarray(f.theta, float) - np.asarray(nom, float)) <= tol))
+
+
+def judge_rows(problem: Problem, fits: list, floor: Floor, sim_blocks, first: bool, ctx: Context) -> list:
+    """Each fit's replay judged against the current model's run-to-run ``floor`` (``sim_blocks``: its
+    simulated recordings' block errors); ``first``: the first step (no share of the remaining excess
+    is asked)."""
+    opt, judge = problem.options, problem.judge
+    out = []
+    D_floor = float(np.mean(sim_blocks.sum(axis=1))) / max(judge.n, 1)
+    for f in fits:
+        rp = judge.replay(f.spec)
+        c = judge.compare(floor, rp, fl_blocks=sim_blocks)
+        share = c.T / max(c.D_before - D_floor, 1e-300)
+        if c.accepted and not first and share < opt.min_share:
+            c.accepted = False
+            c.why = (f"removes {100 * share:.0f} % of the remaining replay excess over the floor "
+                     f"(< {100 * opt.min_share:.0f} %)")
+        bound = list(f.on_bound) + ([n for n in f.joint.on_bound if not n.startswith(f.key + ".")]
+                                    if f.joint is not None else [])
+        why = c.why
+        if c.accepted and bound:
+            why = f"not identified: {', '.join(bound)} at its bound"
+        elif c.accepted and _unidentified(f):
+            why = "not identified: every parameter's standard error exceeds its value"
+        elif c.accepted and _at_nominal(f, problem.spans(f, ctx)):
+            why = (f"the data do not move it: every parameter within {NOMINAL_Z:g} standard errors of "
+                   "the current model's value")
+        elif c.accepted and f.effect.kind == "integer" and all(
+                f.nominal.get(n) is not None and float(f.nominal[n]) == float(v) for n, v in zip(f.names, f.theta)):
+            # the improvement is the re-fit of the others, not this effect
+            why = "no change: the current model's value"
+        out.append(JudgedRow(fit=f, replay=rp, comparison=c, on_bound=bound, ok=c.accepted and why == c.why, why=why))
+    return out
+
+
+def rank(row: JudgedRow, complexity: float) -> float:
+    """A judged candidate's rank: its replay with the selection's complexity penalty per parameter (a
+    12-block GMS must do clearly better than the one Coulomb level it contains)."""
+    return row.comparison.D_after * (1 + complexity * len(row.fit.theta))
+
+
+def choose(problem: Problem, judged: list, floor: Floor) -> tuple:
+    """``(best, confounded, alternatives)`` among the judged candidates of a step (best None: none
+    adoptable). Candidates the held-out replay cannot tell from the best are confounded; one of them
+    is adopted: not a quantity the nominal states as known unless the data demand it, then the
+    simplest, then the best replay; a simpler adoptable candidate wins unless the more complex one
+    improves on it beyond the floor."""
+    judge, known = problem.judge, problem.library.known
+    ok = sorted([j for j in judged if j.ok], key=lambda j: rank(j, problem.options.complexity))
+    best = conf = None
+    alts = []
+    if ok:
+        top = ok[0]
+        tfl = judge.floor(top.fit.spec) if len(ok) > 1 else None     # recordings of the best's model
+        equiv = [top] + [j for j in ok[1:] if judge.equivalent(floor, j.replay, top.replay, of_b=tfl)[0]]
+        best = min(equiv, key=lambda j: (j.fit.key in known, len(j.fit.theta), j.comparison.D_after))
+        for j in sorted(ok, key=lambda j: (len(j.fit.theta), j.comparison.D_after)):
+            if len(j.fit.theta) >= len(best.fit.theta) or j.fit.key in known:
+                continue
+            # the threshold from recordings of the simpler model (the current model's scatter grows with
+            # the distance from it: a candidate at the floor is "within the floor" of one far above)
+            if not judge.compare(floor, best.replay, rp_base=j.replay, of_base=judge.floor(j.fit.spec)).accepted:
+                conf = [best] + [x for x in equiv if x is not best]
+                best = j
+                break
+        conf = [j for j in (conf or equiv) if j is not best]
+        alts = [{"effect": j.fit.key, "title": j.fit.title, "params": j.fit.params(),
+                 "derived": j.fit.derived, "replay_D": j.comparison.D_after} for j in conf]
+    return best, conf, alts
+
+
+def _threshold(J: float, n_eff: float) -> float:
+    """The force residual's significance threshold of a J change (the report's ``J_significant``)."""
+    return max(6 * math.sqrt(max(J, 1.0) / n_eff), 0.05 * max(J - 1, 0.0), 0.02)
+
+
+def step_rows(problem: Problem, judged: list, J_held: float, n_eff: float) -> list:
+    """The report's rows of a step's candidates, best replay first."""
+    opt, judge = problem.options, problem.judge
+    threshold = _threshold(J_held, n_eff)
+    rows = []
+    for j in judged:
+        f, c = j.fit, j.comparison
+        rows.append({"effect": f.key, "title": f.title, "J_fit": f.J_fit, "J_held": f.J_held,
+                     "score": f.J_held * (1 + opt.complexity * len(f.theta)), "params": f.params(),
+                     "derived": f.derived, "on_bound": j.on_bound, "evals": f.evals, "seconds": round(f.seconds, 3),
+                     "J_improvement": J_held - f.J_held, "J_significant": bool(J_held - f.J_held > threshold),
+                     "replay": c.row(), "improvement": c.T, "threshold": c.threshold_sim,
+                     "block_se": c.se_block, "stable": c.stable, "significant": j.ok, "why": j.why,
+                     "replay_rms": dict(zip(("command_N", "position_m"), judge.rms(j.replay)))})
+    rows.sort(key=lambda r: r["replay"]["D_after"])
+    return rows

@@ -1,0 +1,245 @@
+"""The stages of a diagnosis before the forward selection, each returning what the later ones read.
+
+:func:`read` (recording and nominal, checked against each other; the nominal's replay; the force
+observer) -> :func:`quantization` (the encoder lattice) -> :func:`predict` (the nominal's force
+residual and open-loop windows, noise floors, the replay judges) -> :func:`locate` (where and what
+the residual holds; the library bound to the recording) -> :func:`prepare` (the selection's
+:class:`.selection.Problem`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from stage_sim.config import ConfigError
+
+from .context import Context
+from .data import DiagData, load_data
+from .effects import Library
+from .effects.stochastic import Quantization
+from .fit import Evaluator, estimate_lattice
+from .floors import ForceFloor
+from .frf import locate_modes
+from .judge import Floor, ReplayJudge, controller_check, equivalent_reference
+from .locate import locate as locate_residual
+from .model import ModelSpec, load_model
+from .observer import ObsResult, Observer, smoothing_hz
+from .openloop import OpenLoopJudge
+from .options import CONTROLLER_TOL, Options
+from .predict import open_loop_windows, replay
+from .selection import Problem
+
+__all__ = ["Setup", "Lattice", "Prediction", "Location", "read", "quantization", "predict", "locate", "prepare",
+           "fill_plant_inputs"]
+
+
+@dataclass
+class Setup:
+    """What :func:`read` leaves: the recording and the nominal as the diagnosis runs them."""
+    data: DiagData
+    nominal: ModelSpec
+    """The nominal model (at the recording's rate)."""
+    notes: list
+    """The report's notes on the recording and the model."""
+    nominal_replay: dict
+    """The nominal's closed-loop replay of the recorded reference (:func:`.predict.replay`)."""
+    observer: Observer
+    band_hz: float
+    """The force residual's band [Hz] (half the observer bandwidth)."""
+    window: int
+    """Length of the report's open-loop windows [samples]."""
+
+
+@dataclass
+class Lattice:
+    """What :func:`quantization` leaves."""
+    base: ModelSpec
+    """The nominal with the encoder step found from the lattice (where the selection starts)."""
+    found: list
+    """The report's row of the quantization, when found."""
+    stochastic: dict
+    """The report's ``stochastic`` entries so far."""
+
+
+@dataclass
+class Prediction:
+    """What :func:`predict` leaves."""
+    residual: ObsResult
+    """The nominal's force residual (with window snapshots)."""
+    windows: dict | None
+    """The nominal's open-loop windows (:func:`.predict.open_loop_windows`)."""
+    floor: ForceFloor
+    """The base model's force-residual floor."""
+    controller_error: float
+    """Relative RMS by which the model's controller misses the recorded command (0: open loop)."""
+    reference: np.ndarray | None
+    """The equivalent reference the replay follows, or None (the recorded one)."""
+    judge: ReplayJudge
+    fit_judge: ReplayJudge | None
+    replay_floor: Floor
+    """The base model's run-to-run replay floor."""
+
+
+@dataclass
+class Location:
+    """What :func:`locate` leaves."""
+    summary: dict
+    """The report's ``locate`` section."""
+    arrays: dict
+    """Arrays for the plots."""
+    context: Context
+    library: Library
+    """The effects bound to this recording (the options' library is never changed)."""
+
+
+def fill_plant_inputs(spec: ModelSpec, data, rp: dict) -> list[str]:
+    """Give ``data`` the dither forces and SAI command it lacks but the model's plant takes, from the
+    nominal closed-loop replay ``rp`` (the model's own dither generator and SAI manager on the
+    recorded reference: the switching rule and the dither's open-loop part depend on the reference
+    only). Returns the notes for the report."""
+    p, notes = spec.preset, []
+    if p.dither is not None and data.d0 is None:
+        data.d0, data.d1 = rp["d0"], rp["d1"]
+        notes.append("dither forces not recorded (/stage/dither): the nominal model's dither generator on the "
+                     "recorded reference")
+    if p.stage.sai is not None and p.sai_manager is not None and data.mode is None:
+        data.mode = rp["mode"]
+        notes.append("SAI mode not recorded (/stage/isolator): the nominal model's SAI manager on the recorded "
+                     "reference")
+    return notes
+
+
+def read(recording, nominal, opt: Options, data: DiagData | None, timing: dict) -> Setup:
+    """Load the recording and the nominal (checked against each other), replay the nominal, build the
+    force observer.
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        A closed-loop record against a nominal without a controller, or axes that differ.
+    """
+    t = time.perf_counter()
+    data = data if data is not None else load_data(recording)
+    timing["read_s"] = time.perf_counter() - t
+    spec0 = load_model(nominal)
+    if not data.open_loop and "controller" not in spec0.preset.model_fields_set:
+        raise ConfigError(f"{nominal}: controller: the nominal states no controller, but the recording has a "
+                          "reference (/stage/reference): a closed-loop record is replayed through the model's "
+                          "controller; give the controller (controller.pid ...), or record open loop")
+    kind = spec0.preset.stage.kind
+    if data.axis != kind:
+        raise ConfigError(f"{nominal}: stage.kind: the nominal is {kind} but the recording is {data.axis} "
+                          "(/experiment/config run.axis): give a nominal of the recording's axis")
+    notes = list(data.notes)
+    rate_p = spec0.preset.controller.rate
+    if abs(rate_p - data.rate) > 1e-3 * data.rate:
+        notes.append(f"recording rate {data.rate:.6g} Hz differs from the model's controller.rate {rate_p:.6g} Hz; "
+                     "the model is run at the recording's rate")
+        spec0 = spec0.with_changes({"controller.rate": float(data.rate)})
+    rp_nom = replay(spec0, data, seed=opt.floor_seeds[0] + 7)
+    notes += fill_plant_inputs(spec0, data, rp_nom)
+    f_o = opt.bandwidth or data.rate / 25.0
+    obs = Observer(data, bandwidth=f_o, smooth_hz=smoothing_hz(spec0, data.rate, f_o))
+    return Setup(data=data, nominal=spec0, notes=notes, nominal_replay=rp_nom, observer=obs, band_hz=obs.f_o / 2,
+                 window=max(8, int(round(opt.window_s * data.rate))))
+
+
+def quantization(setup: Setup, opt: Options) -> Lattice:
+    """The encoder's lattice from the measured positions (a stochastic effect, decided by its own
+    estimate: adopted when it differs from the nominal's step by more than 5 %)."""
+    data, spec0 = setup.data, setup.nominal
+    found = []
+    base = spec0
+    q_nom = spec0.preset.stage.encoder.resolution
+    q_hat = estimate_lattice(data.y[data.valid])
+    q_held = estimate_lattice(data.y[data.held]) if data.held.any() else None
+    qinfo = {"nominal_m": q_nom, "estimate_m": q_hat, "held_out_estimate_m": q_held}
+    if q_hat is not None and (q_nom == 0 or abs(q_hat / q_nom - 1) > 0.05):
+        eff = Quantization()
+        base = eff.apply(base, [q_hat])
+        ref = q_held or q_hat
+        qinfo.update(found=True, held_out_error_nominal=abs(q_nom - ref) / ref, held_out_error_improved=abs(q_hat - ref) / ref)
+        found.append({"effect": "quantization", "title": eff.title, "kind": "stochastic", "step": 0,
+                      "params": [{"name": "resolution", "unit": "m", "value": q_hat,
+                                  "sigma": abs(q_hat - ref) if q_held else None, "nominal": q_nom}],
+                      "derived": {}, "expressible": True, "confounded_with": [],
+                      "held_out": {"metric": "relative lattice-step error",
+                                   "nominal": qinfo["held_out_error_nominal"], "improved": qinfo["held_out_error_improved"]}})
+    else:
+        qinfo["found"] = False
+        if q_hat is None and q_nom > 0:
+            qinfo["note"] = "measured positions are not on a lattice"
+    opt.log("quantization", qinfo)
+    return Lattice(base=base, found=found, stochastic={"quantization": qinfo})
+
+
+def predict(setup: Setup, base: ModelSpec, opt: Options, timing: dict) -> Prediction:
+    """The nominal's force-observer residual and open-loop windows, the noise floors and the replay
+    judges: the closed-loop replay of the held-out trials against the run-to-run floor (on an
+    open-loop record the same statistics on the open-loop windows re-initialised from the
+    measurement), and the same of the fit samples for the output-error refinement."""
+    data, spec0, obs, notes = setup.data, setup.nominal, setup.observer, setup.notes
+    t = time.perf_counter()
+    res_nom = obs.run(spec0, snap_every=setup.window)
+    windows = open_loop_windows(spec0, obs, res_nom, setup.window)
+    timing["predict_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    fl = ForceFloor(base, data, obs.f_o, opt.floor_seeds, data.smooth_hz)
+    ctl_err = controller_check(spec0, data) if not data.open_loop else 0.0
+    x_eq = None
+    if ctl_err > CONTROLLER_TOL:
+        x_eq = equivalent_reference(spec0, data)
+        notes.append(f"the model's controller reproduces the recorded command only to {100 * ctl_err:.1f} % RMS "
+                     "(run on the recorded reference and measurement): the closed-loop replay follows the "
+                     "equivalent reference, for which it reproduces the recorded command exactly")
+    if data.open_loop:
+        judge = OpenLoopJudge(data, obs)
+        fit_judge = OpenLoopJudge(dataclasses.replace(data, held=data.fit), obs) if data.fit.any() else None
+    else:
+        judge = ReplayJudge(data, x_ref=x_eq)
+        fit_judge = ReplayJudge(dataclasses.replace(data, held=data.fit), x_ref=x_eq) if data.fit.any() else None
+    replay_floor = judge.floor(base)
+    timing["floor_s"] = time.perf_counter() - t
+    opt.log(f"floor: sim B ms {fl.check_ms:.3f}, n_eff {fl.n_eff:.0f}; replay floor {replay_floor.sigma_u:.3g} N, "
+            f"{replay_floor.sigma_y:.3g} m (controller check {ctl_err:.3g})")
+    return Prediction(residual=res_nom, windows=windows, floor=fl, controller_error=ctl_err, reference=x_eq,
+                      judge=judge, fit_judge=fit_judge, replay_floor=replay_floor)
+
+
+def locate(setup: Setup, base: ModelSpec, pred: Prediction, opt: Options, timing: dict) -> Location:
+    """Where and what the nominal's residual holds (regimes, spectra, bins; modes on the command ->
+    measurement transfer, anywhere up to Nyquist); the library bound to the recording."""
+    data, obs = setup.data, setup.observer
+    t = time.perf_counter()
+    summary, arrays, ctx = locate_residual(data, pred.residual, pred.floor.res_a, pred.floor.sim_a, obs.f_o,
+                                           setup.band_hz)
+    try:
+        frf_modes = locate_modes(setup.nominal, data)
+    except (ValueError, np.linalg.LinAlgError) as err:
+        frf_modes = []
+        opt.log(f"frf mode location failed: {err!r}")
+    summary["frf_modes"] = frf_modes
+    ctx = dataclasses.replace(ctx, frf_modes=tuple(frf_modes), smoothing_hz=data.smooth_hz,
+                              resolution=base.preset.stage.encoder.resolution)
+    timing["locate_s"] = time.perf_counter() - t
+    return Location(summary=summary, arrays=arrays, context=ctx, library=opt.effect_library().bound(ctx))
+
+
+def prepare(setup: Setup, base: ModelSpec, pred: Prediction, loc: Location, opt: Options, executor) -> tuple:
+    """The evaluator and the selection's :class:`.selection.Problem`; returns ``(problem, J_fit_nominal,
+    J_held_nominal, adequacy tolerance)``."""
+    spec0, fl = setup.nominal, pred.floor
+    ev = Evaluator(setup.observer, fl.noise, opt.max_fit_seconds)
+    Jf0, Jh0, _ = ev.both(spec0)
+    Jfb, Jhb, _ = ev.both(base) if base is not spec0 else (Jf0, Jh0, 0)
+    neff = max(fl.n_eff, 10.0)
+    tol_ad = max(0.1, 3 * math.sqrt(2 / neff), 2 * abs(fl.check_ms - 1))
+    problem = Problem(options=opt, data=setup.data, observer=setup.observer, base=base, library=loc.library,
+                      keys=list(opt.effects) if opt.effects else loc.library.candidates(), evaluator=ev,
+                      judge=pred.judge, fit_judge=pred.fit_judge, base_floor=fl, base_replay_floor=pred.replay_floor,
+                      J_held_base=Jhb, J_fit_base=Jfb, band_hz=setup.band_hz, n_eff=neff, executor=executor)
+    return problem, Jf0, Jh0, tol_ad
