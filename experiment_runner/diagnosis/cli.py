@@ -20,7 +20,7 @@ def effect_keys(text: str) -> list[str]:
     >>> effect_keys("viscous, stribeck")
     ['viscous', 'stribeck']
     """
-    from .hypotheses import LIBRARY
+    from .effects import LIBRARY
     keys = [k.strip() for k in text.split(",") if k.strip()]
     unknown = [k for k in keys if k not in LIBRARY]
     if unknown or not keys:
