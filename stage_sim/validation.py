@@ -448,11 +448,13 @@ def input_file_problem(path) -> str | None:
     return None
 
 
-def read_text_file(path, what: str = "input", max_bytes: int = MAX_YAML_BYTES) -> str:
+def read_text_file(path, what: str = "input", max_bytes: int = MAX_YAML_BYTES, fallback: str | None = None) -> str:
     """The UTF-8 text of a small input file, read safely; :class:`ConfigError` naming the file.
 
     Refuses what :func:`input_file_problem` refuses, and a file over ``max_bytes`` (from its
-    size before reading, and again from what the read returns), without blocking.
+    size before reading, and again from what the read returns), without blocking. A leading
+    UTF-8 byte-order mark is dropped. Text that is not UTF-8 is refused, or decoded with the
+    ``fallback`` encoding when one is given (e.g. ``"latin-1"`` for a data logger's export).
     """
     problem = input_file_problem(path)
     if problem is not None:
@@ -485,8 +487,10 @@ def read_text_file(path, what: str = "input", max_bytes: int = MAX_YAML_BYTES) -
         raise ConfigError(f"{path}: more than {max_bytes} bytes; a {what} file has at most {max_bytes} bytes")
     data = b"".join(chunks)
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
+        if fallback:
+            return data.decode(fallback, errors="replace")
         raise ConfigError(f"{path}: not UTF-8 text (byte {err.start}: {data[err.start:err.start + 1]!r}); "
                           f"a {what} file is YAML text") from None
 
