@@ -19,7 +19,9 @@ Reading
     ours, a rig's or any tool that follows the contract, into numpy arrays
     (:class:`Recording`), with the optional ``/stage/external_force`` and
     ``/source/channels`` where present; a file without ``/stage/reference`` is an
-    open-loop record, read only on request (``require_reference=False``). It reads
+    open-loop record, read only on request (``require_reference=False``).
+    ``Recording.command_kind`` says what ``/stage/command`` holds (``drive`` or
+    ``measured``: ``/experiment/config`` ``command.kind``, default ``drive``). It reads
     through the MCAP index; if the file was cut short (a
     killed recorder) it falls back to reading record by record up to the last complete
     chunk and says what it salvaged in ``Recording.salvaged`` (messages, of how many
