@@ -70,8 +70,9 @@ Joining two loggers (``sources``; ``--join FILE --join-time COL``)
     ``time_unit``, ``skip_rows``, ``method``, ``time_offset`` [s] added to its times) must
     have a strictly increasing time column. The record is the primary file's samples within
     the overlap of all time bases (the rest is dropped, not extrapolated); a mapped column the
-    primary lacks is taken from the joined file that has it (``STEM.COL`` when several do)
-    and put on the primary's times: ``linear`` interpolation between its two neighbouring
+    primary lacks is taken from the joined file that has it (``STEM.COL``, the file's name
+    without its suffix, names a joined file's column explicitly: when several files have it,
+    or the primary too) and put on the primary's times: ``linear`` interpolation between its two neighbouring
     samples (a sampled signal: a load cell, a second encoder), or ``hold`` (its last sample at
     or before the time: a held command). Refused: no overlap, a time column that goes back,
     and time bases whose spans differ by 100x or more (time units that differ). Each join is
@@ -597,10 +598,8 @@ def _read_json(path: Path, text: str, strict: bool = True) -> Table | None:
             raw[name] = np.array([math.nan if v is None else v for v in values], dtype=np.float64)
         elif any(isinstance(v, (int, float)) or isinstance(v, str) and _is_number(v) for v in values):
             raw[name] = ["null" if v is None else str(v) for v in values]   # checked (with the record) on use
-        if name in raw and len(values) == 1:
-            v = raw.pop(name)
-            if isinstance(v, np.ndarray):
-                scalars[name] = float(v[0])
+        if len(values) == 1 and isinstance(raw.get(name), np.ndarray):
+            scalars[name] = float(raw.pop(name)[0])      # a one-element list: a scalar, as in a MAT file
 
     def records(prefix, recs):
         nonlocal row_word
@@ -874,6 +873,9 @@ def mapping_from_dict(data: dict, source: str = "mapping", base: Path | None = N
                           "command column holds as well)")
     kw["command_includes_input"] = inc
     if data.get("sources"):
+        if "time" not in kw:
+            raise ConfigError(f"{source}: {lab('sources')} needs {lab('time')} (files are joined on their time "
+                              "columns)")
         kw["sources"] = _sources(data["sources"], where("sources"), base)
     scale = data.get("scale") or {}
     if not isinstance(scale, dict):
@@ -1493,8 +1495,8 @@ def add_convert_arguments(parser):
                         "input): the command written is command - input")
     p.add_argument("--join", action="append", default=[], metavar="FILE",
                    help="a second logger's file, joined on its time column: its mapped columns are interpolated "
-                        "at this file's times within the overlap; a column of both files is named STEM.COL; "
-                        "repeatable")
+                        "at this file's times within the overlap; STEM.COL names its column COL where this file "
+                        "has one of that name too; repeatable")
     p.add_argument("--join-time", action="append", default=[], metavar="COL",
                    help="time column of the --join file (one for all, or one per --join)")
     p.add_argument("--join-time-unit", action="append", default=[], metavar="s|ms|us|ns",

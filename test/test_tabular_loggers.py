@@ -172,6 +172,8 @@ def test_a_joined_held_command_and_the_refusals(tmp_path, capsys):
                                  "--join", str(force2), "--join-time", tn, *more, "--out", str(sub / "o")], capsys)
         assert rc == 2 and frag in err and len(err.strip().splitlines()) == 1, (name, err)
         assert not (sub / "o").exists()
+    rc, out, err = _convert([*base, "--join-time", tname, "--out", str(tmp_path / "o")], capsys)
+    assert rc == 2 and "--join-time without --join" in err
     # a time column that goes back
     text = force.read_text().splitlines()
     text[10], text[11] = text[11], text[10]
@@ -189,6 +191,23 @@ def test_join_from_a_mapping_file_with_sources(tmp_path):
     with pytest.warns(ConfigWarning, match="joined at 250 Hz"):
         rec = read_recording(convert_table(pos, load_mapping(mp), tmp_path / "m"))
     np.testing.assert_allclose(rec.u[::4], f2[:len(rec.u[::4])], rtol=0, atol=1e-12)
+    # the joined file's column named explicitly, and the mapping's refusals
+    mp.write_text(yaml.safe_dump({"time": "t", "reference": "x_ref", "measured": "y", "command": "force.F",
+                                  "sources": [{"file": "force.csv", "time": tname}]}))
+    with pytest.warns(ConfigWarning):
+        rec2 = read_recording(convert_table(pos, load_mapping(mp), tmp_path / "m2"))
+    np.testing.assert_array_equal(rec2.u, rec.u)
+    bad = {"rate: 1000\ncommand: F\nmeasured: y\nsources: [{file: force.csv, time: t}]\n": "sources needs time",
+           "time: t\ncommand: F\nmeasured: y\nsources: [{file: force.csv}]\n": "sources[0].time: got None",
+           "time: t\ncommand: F\nmeasured: y\nsources: [{file: f.csv, time: t, method: cubic}]\n":
+               "sources[0].method: got 'cubic'; expected linear",
+           "time: t\ncommand: F\nmeasured: y\nsources: [{file: f.csv, time: t, when: 1}]\n":
+               "sources[0]: unknown key(s) 'when'"}
+    for text, frag in bad.items():
+        mp.write_text(text)
+        with pytest.raises(ConfigError) as err:
+            load_mapping(mp)
+        assert frag in str(err.value) and "rig.yaml" in str(err.value), (text, str(err.value))
 
 
 # --------------------------------------------------------------------------- time unit
