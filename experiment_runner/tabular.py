@@ -182,7 +182,8 @@ class Table:
     def describe(self) -> str:
         """Columns (with their units where a header row gives them) and scalars, a line each
         group; the header lines skipped."""
-        cols = ", ".join(f"{n} [{self.units[n]}]" if self.units.get(n) else n for n in self.names) or "none"
+        unit = {n: str(u).strip().strip("[]()").strip() for n, u in self.units.items()}
+        cols = ", ".join(f"{n} [{unit[n]}]" if unit.get(n) else n for n in self.names) or "none"
         sc = ", ".join(f"{k} = {v:.6g}" for k, v in self.scalars.items()) or "none"
         head = "".join(f"\n  header: {h}" for h in self.header)
         return f"{self.path}: {self.format}{head}\n  columns: {cols}\n  scalars: {sc}"

@@ -95,7 +95,7 @@ def test_a_units_row_under_the_names_and_a_header_line_inside_the_data(tmp_path,
     assert tab.names == ["t", "x_ref", "y", "u"] and tab.units == {"t": "[s]", "x_ref": "[m]", "y": "[m]", "u": "[N]"}
     assert tab.header == ["[Header]", "Device=rig 2", "[Data]"]
     rc, out, _ = _convert([str(src), "--list"], capsys)
-    assert rc == 0 and "columns: t [[s]], x_ref [[m]], y [[m]], u [[N]]" in out and "header: Device=rig 2" in out
+    assert rc == 0 and "columns: t [s], x_ref [m], y [m], u [N]" in out and "header: Device=rig 2" in out
     # a second log appended to the first: its header line is named, with the hint
     text = src.read_text().splitlines()
     src.write_text("\n".join(text[:20] + ["t\tx_ref\ty\tu"] + text[20:]) + "\n")
