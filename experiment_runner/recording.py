@@ -19,7 +19,9 @@ Reading
     ours, a rig's or any tool that follows the contract, into numpy arrays
     (:class:`Recording`), with the optional ``/stage/external_force`` and
     ``/source/channels`` where present; a file without ``/stage/reference`` is an
-    open-loop record, read only on request (``require_reference=False``). It reads
+    open-loop record, read only on request (``require_reference=False``).
+    ``Recording.command_kind`` says what ``/stage/command`` holds (``drive`` or
+    ``measured``: ``/experiment/config`` ``command.kind``, default ``drive``). It reads
     through the MCAP index; if the file was cut short (a
     killed recorder) it falls back to reading record by record up to the last complete
     chunk and says what it salvaged in ``Recording.salvaged`` (messages, of how many
@@ -47,8 +49,8 @@ import numpy as np
 
 from experiment_runner import outputs
 from msg_defs import cdr, convert
-from msg_defs.topics import (BEARING, CLOCK, COMMAND, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS, EXTERNAL_FORCE,
-                             ISOLATOR, ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS,
+from msg_defs.topics import (BEARING, CLOCK, COMMAND, COMMAND_KINDS, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS,
+                             EXTERNAL_FORCE, ISOLATOR, ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS,
                              SOURCE_CHANNELS, TABLE, TOPICS, TRUTH, Qos, qos_yaml)
 
 __all__ = ["RecordingError", "McapRecorder", "Recording", "JointSeries", "Trial", "Damage", "read_recording",
@@ -403,6 +405,25 @@ class Recording:
         kind = (run.get("axis") if isinstance(run, dict) else None) or \
             (stage.get("kind") if isinstance(stage, dict) else None)
         return kind if kind in ("linear", "rotary") else "linear"
+
+    @property
+    def command_kind(self) -> str:
+        """What ``/stage/command`` holds: ``"drive"`` -- a command to a drive with a force
+        constant (the force applied may differ from it: force-constant ratio, delay, saturation)
+        -- or ``"measured"`` -- the force actually applied, measured (no force-constant error
+        is possible). ``/experiment/config`` ``command.kind`` (msg_defs/README.md); a recording
+        without it (every simulated one, and any written before the key existed) is ``drive``.
+        A value other than these two raises :class:`~stage_sim.validation.ConfigError` naming
+        the recording and the key: the kind decides which physics a diagnosis may consider."""
+        from stage_sim.validation import ConfigError
+        cmd = self.config_doc().get("command")
+        if cmd is None:
+            return "drive"
+        kind = cmd.get("kind", "drive") if isinstance(cmd, dict) else cmd
+        if kind not in COMMAND_KINDS:
+            raise ConfigError(f"{self.path}: {CONFIG.name}: command.kind: got {kind!r}; expected drive (a command "
+                              "to a drive with a force constant) or measured (the force applied, measured)")
+        return kind
 
     @property
     def duration(self) -> float:

@@ -32,7 +32,7 @@ __all__ = [
     "Qos", "Topic", "TOPICS", "CONTRACT_TOPICS",
     "REFERENCE", "COMMAND", "MEASURED", "TRUTH", "DITHER", "ISOLATOR", "CORRECTION", "CLOCK",
     "CONFIG", "EVENTS", "TRAJECTORY", "RESULTS", "SAI_COMMAND", "EXTERNAL_FORCE", "SOURCE_CHANNELS",
-    "TABLE", "BEARING", "MOTOR", "PIEZOS", "ISOLATOR_JOINT", "EVENT_KINDS", "FAULT_CAUSES",
+    "TABLE", "BEARING", "MOTOR", "PIEZOS", "ISOLATOR_JOINT", "EVENT_KINDS", "FAULT_CAUSES", "COMMAND_KINDS",
     "get_topic", "rosbag2_qos", "offered_qos_yaml", "qos_yaml", "markdown_table",
     "INFINITE_DURATION",
 ]
@@ -146,7 +146,8 @@ REFERENCE = Topic(
 COMMAND = Topic(
     "/stage/command", "sensor_msgs/msg/JointState", "N (N·m on a rotary stage)", _LOCKSTEP,
     "every control sample",
-    'name ["motor"], effort [F_a]: servo force command sent to the drive for [k, k+1)', stream=True)
+    'name ["motor"], effort [F_a]: servo force command sent to the drive for [k, k+1) (or the force '
+    "applied, measured: /experiment/config command.kind, see COMMAND_KINDS)", stream=True)
 MEASURED = Topic(
     "/stage/measured", "sensor_msgs/msg/JointState", "m (rad on a rotary stage)", _LOCKSTEP,
     "every control sample",
@@ -226,6 +227,14 @@ TOPICS: dict[str, Topic] = {t.name: t for t in (
 
 CONTRACT_TOPICS = (REFERENCE.name, COMMAND.name, MEASURED.name)
 """The topics every recording has (what a hardware rig can give)."""
+
+COMMAND_KINDS = {
+    "drive": "a command to a drive with a force constant: the force applied may differ from it "
+             "(force-constant ratio, delay, saturation)",
+    "measured": "the force actually applied, measured (a load cell, a drive's own force estimate): no "
+                "force-constant error is possible"}
+"""What ``/stage/command`` effort holds, said by ``/experiment/config`` ``command.kind``
+(the project's extension of the contract, msg_defs/README.md); absent = ``drive``."""
 
 SAI_COMMAND = Topic(
     "/sai/command", "sensor_msgs/msg/JointState", "1, m", Qos("reliable", "volatile", 1000),

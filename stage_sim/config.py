@@ -28,7 +28,8 @@ from pydantic import Field, ValidationError, model_validator
 from stage_sim.friction import FRICTION
 from stage_sim.friction import CoulombFriction, DahlFriction, GmsFriction, LugreFriction  # noqa: F401  (re-exported)
 from stage_sim.schema import Finite, Fraction, NonNeg, Pos, _Number, _Strict  # noqa: F401  (re-exported)
-from stage_sim.validation import ConfigError, check_plausible, format_validation_error, load_yaml_file, unit
+from stage_sim.validation import (ConfigError, check_plausible, format_validation_error, load_yaml_file, model_axis,
+                                  unit)
 
 PRESET_DIR = Path(__file__).with_name("presets")
 
@@ -323,7 +324,7 @@ def preset_from_dict(data: dict, source: str = "<dict>") -> Preset:
     try:
         return Preset.model_validate(data)
     except ValidationError as err:
-        raise format_validation_error(err, source, "preset", Preset) from None
+        raise format_validation_error(err, source, "preset", Preset, model_axis(data)) from None
 
 
 def read_yaml_file(name_or_path: str | Path, directory: Path, kind: str) -> tuple[dict, Path]:

@@ -23,6 +23,17 @@ likely given in::
 
 Zero is always plausible for a field that allows it (it means "none"/"off").
 
+Rotary stages (``stage.kind: rotary``) hold rad, N·m, kg·m² in the same fields: the ranges
+and the messages are then the rotary ones (:data:`ROTARY_UNITS`, :func:`plausible_range`).
+A rotary quantity is the linear one seen at a radius r (torque F·r, angle x/r, stiffness and
+viscous coefficient k·r², inertia m·r²), so a rotary range is the linear range carried over
+every radius of :data:`ROTARY_RADIUS` (1 mm to 1 m: a small servo motor to a roll). A
+viscous coefficient of 1e-4 N·m·s/rad or a pre-sliding stiffness of 1 N·m/rad (a small
+rotary servo) is plausible; the hints name rotary units (N·mm, mrad, kg·cm², ...)::
+
+    stage.table.mass: got 3000 kg·m², outside the plausible range 1e-10 to 1000 kg·m²; likely
+      given in kg·cm² (3000 kg·cm² = 0.3 kg·m²) or kg·mm² (...) or g·cm² (...) instead of kg·m²
+
 Choice: an implausible value is an **error** by default. A stiffness a million times
 too small simulates nonsense without any other sign, and the ranges are wide (several
 decades around the seed's values, linear and rotary stages alike), so a real value
@@ -70,7 +81,8 @@ from typing import Annotated, Literal, Union, get_args, get_origin
 import yaml
 from pydantic import BaseModel, ValidationError
 
-__all__ = ["ConfigError", "ConfigWarning", "Problem", "unit", "format_validation_error", "field_line",
+__all__ = ["ConfigError", "ConfigWarning", "Problem", "unit", "plausible_range", "model_axis", "ROTARY_UNITS",
+           "ROTARY_RADIUS", "format_validation_error", "field_line",
            "plausibility_problems", "check_plausible", "load_yaml", "load_yaml_file", "read_text_file",
            "input_file_problem", "is_number_type", "MAX_YAML_BYTES", "MAX_NODES", "MAX_DEPTH", "MAX_NUMBER_CHARS"]
 
@@ -111,8 +123,29 @@ UNIT_ALTERNATIVES = {
     "s": (("ms", 1e-3), ("µs", 1e-6)),
     "Hz": (("kHz", 1e3), ("MHz", 1e6)),
     "A": (("mA", 1e-3), ("µA", 1e-6)),
+    # rotary stages
+    "N·m": (("mN·m", 1e-3), ("N·mm", 1e-3), ("N·cm", 1e-2)),
+    "N·m/rad": (("N·m/mrad", 1e3), ("N·m/µrad", 1e6), ("N·mm/rad", 1e-3)),
+    "N·m·s/rad": (("N·mm·s/rad", 1e-3), ("N·m·s/mrad", 1e3)),
+    "N·m/(rad·s)": (("N·mm/(rad·s)", 1e-3),),
+    "N·m·s": (("mN·m·s", 1e-3), ("N·mm·s", 1e-3)),
+    "kg·m²": (("kg·cm²", 1e-4), ("kg·mm²", 1e-6), ("g·cm²", 1e-7)),
+    "rad": (("mrad", 1e-3), ("µrad", 1e-6), ("deg", math.pi / 180)),
+    "rad/s": (("mrad/s", 1e-3), ("deg/s", math.pi / 180), ("rpm", math.pi / 30)),
+    "N·m/A": (("mN·m/A", 1e-3), ("N·mm/A", 1e-3)),
 }
 """Units a value is commonly given in by mistake, with their factor to the SI unit."""
+
+ROTARY_UNITS = {
+    "N": ("N·m", 1), "N/m": ("N·m/rad", 2), "N·s/m": ("N·m·s/rad", 2), "N/(m·s)": ("N·m/(rad·s)", 2),
+    "N·s": ("N·m·s", 1), "kg": ("kg·m²", 2), "1/kg": ("1/(kg·m²)", -2), "m": ("rad", -1), "m/s": ("rad/s", -1),
+    "N/A": ("N·m/A", 1),
+}
+"""A linear SI unit -> (the unit the same field holds on a rotary stage, the power p of the
+radius r with rotary value = linear value * r**p). Units not listed (s, Hz, A, 1/s, 1) are
+the same on both."""
+ROTARY_RADIUS = (1e-3, 1.0)
+"""Radii [m] over which a linear plausible range is carried to a rotary one."""
 
 _PREFIX_FACTORS = (1e3, 1e6, 1e9, 1e-3, 1e-6, 1e-9)
 
@@ -123,6 +156,33 @@ def unit(name: str, lo: float, hi: float) -> dict:
     Use as ``Field(..., json_schema_extra=unit("N/m", 1.0, 1e10))``.
     """
     return {"unit": name, "plausible": (float(lo), float(hi))}
+
+
+def plausible_range(meta: dict, axis: str = "linear") -> tuple[str, float, float]:
+    """``(unit, lo, hi)`` of a field's metadata (:func:`unit`) on a ``linear`` or ``rotary`` axis.
+
+    >>> plausible_range(unit("N·s/m", 1e-3, 1e5), "rotary")
+    ('N·m·s/rad', 1e-09, 100000.0)
+    >>> plausible_range(unit("Hz", 1.0, 1e5), "rotary")
+    ('Hz', 1.0, 100000.0)
+    """
+    lo, hi = meta["plausible"]
+    name = meta["unit"]
+    if axis != "rotary" or name not in ROTARY_UNITS:
+        return name, lo, hi
+    rot, p = ROTARY_UNITS[name]
+    ends = [r ** p for r in ROTARY_RADIUS]
+    return rot, float(f"{lo * min(ends):.12g}"), float(f"{hi * max(ends):.12g}")
+
+
+def model_axis(model) -> str:
+    """``"rotary"`` when ``model`` (or its ``stage``) says ``kind: rotary``, else ``"linear"``;
+    ``model`` may be a validated model or its mapping."""
+    for obj in (model, model.get("stage") if isinstance(model, dict) else getattr(model, "stage", None)):
+        kind = obj.get("kind") if isinstance(obj, dict) else getattr(obj, "kind", None)
+        if kind == "rotary":
+            return "rotary"
+    return "linear"
 
 
 def _hint(value: float, unit_name: str, lo: float, hi: float) -> str:
@@ -137,16 +197,15 @@ def _hint(value: float, unit_name: str, lo: float, hi: float) -> str:
     return ""
 
 
-def _implausible(path: str, value: float, meta: dict) -> Problem | None:
-    lo, hi = meta["plausible"]
+def _implausible(path: str, value: float, meta: dict, axis: str = "linear") -> Problem | None:
+    u, lo, hi = plausible_range(meta, axis)
     if value == 0 or lo <= abs(value) <= hi:
         return None
-    u = meta["unit"]
     return Problem(path, value, f"got {value:g} {u}, outside the plausible range {lo:g} to {hi:g} {u}"
                    f"{_hint(value, u, lo, hi)}")
 
 
-def plausibility_problems(model: BaseModel, paths=None) -> list[Problem]:
+def plausibility_problems(model: BaseModel, paths=None, axis: str | None = None) -> list[Problem]:
     """Fields of a validated ``model`` (recursively) whose value is outside its plausible range.
 
     Parameters
@@ -154,7 +213,10 @@ def plausibility_problems(model: BaseModel, paths=None) -> list[Problem]:
     model : pydantic.BaseModel
     paths : iterable of str, optional
         Check only fields at or below these dotted paths (e.g. the paths overrides set).
+    axis : {"linear", "rotary"}, optional
+        Units and ranges (:func:`plausible_range`); default the model's own (:func:`model_axis`).
     """
+    axis = axis or model_axis(model)
     sel = None if paths is None else [p.split(".") for p in paths]
     out: list[Problem] = []
 
@@ -173,7 +235,8 @@ def plausibility_problems(model: BaseModel, paths=None) -> list[Problem]:
                     vals = val if isinstance(val, list) else [val]
                     for i, v in enumerate(vals):
                         if isinstance(v, (int, float)) and not isinstance(v, bool):
-                            p = _implausible(".".join(sub + ([str(i)] if isinstance(val, list) else [])), v, meta)
+                            p = _implausible(".".join(sub + ([str(i)] if isinstance(val, list) else [])), v, meta,
+                                             axis)
                             if p:
                                 out.append(p)
                 else:
@@ -272,13 +335,16 @@ def _show(value) -> str:
     return text if len(text) <= 80 else text[:77] + "..."
 
 
-def _about(info) -> str:
+def _about(info, axis: str = "linear") -> str:
     if info is None:
         return ""
     desc = info.description or ""
     meta = info.json_schema_extra if isinstance(info.json_schema_extra, dict) else {}
-    if meta.get("unit") and f"[{meta['unit']}]" not in desc:
-        desc = f"{desc} [{meta['unit']}]".strip()
+    if meta.get("unit"):
+        u = plausible_range(meta, axis)[0] if "plausible" in meta else meta["unit"]
+        desc = desc.replace(f"[{meta['unit']}]", f"[{u}]")
+        if f"[{u}]" not in desc:
+            desc = f"{desc} [{u}]".strip()
     return f" -- {desc}" if desc else ""
 
 
@@ -289,10 +355,10 @@ def field_line(path: str, value, problem: str) -> str:
 
 
 def format_validation_error(err: ValidationError, source: str, kind: str = "configuration",
-                            root: type[BaseModel] | None = None) -> ConfigError:
+                            root: type[BaseModel] | None = None, axis: str = "linear") -> ConfigError:
     """A :class:`ConfigError` for a pydantic ``err``: one line per problem, naming the field
     path, the bad value and what is allowed (``root``: the model validated, for field
-    descriptions, units and allowed keys)."""
+    descriptions, units and allowed keys; ``axis``: units of a ``rotary`` stage's fields)."""
     lines = [f"{source}: invalid {kind}"]
     problems = []
     for e in err.errors():
@@ -302,7 +368,7 @@ def format_validation_error(err: ValidationError, source: str, kind: str = "conf
         value = e.get("input")
         ctx = e.get("ctx") or {}
         if kind_ == "missing":
-            line = f"  {where}: required field is missing{_about(info)}"
+            line = f"  {where}: required field is missing{_about(info, axis)}"
         elif kind_ == "extra_forbidden":
             parent = _resolve(root, e["loc"][:-1])[2] if root else None
             allowed = f"; allowed keys: {', '.join(parent.model_fields)}" if _is_model(parent) else ""
@@ -323,7 +389,7 @@ def format_validation_error(err: ValidationError, source: str, kind: str = "conf
             expected = e["msg"].removeprefix("Input should be ")
             if isinstance(value, float) and not math.isfinite(value) and "finite" not in expected:
                 expected = f"a finite number, {expected}"
-            line = field_line(where, value, f"expected {expected}{_about(info)}")
+            line = field_line(where, value, f"expected {expected}{_about(info, axis)}")
         lines.append(line)
         problems.append(Problem(where, value, line.split(": ", 1)[1]))
     return ConfigError("\n".join(lines), problems)
@@ -382,11 +448,13 @@ def input_file_problem(path) -> str | None:
     return None
 
 
-def read_text_file(path, what: str = "input", max_bytes: int = MAX_YAML_BYTES) -> str:
+def read_text_file(path, what: str = "input", max_bytes: int = MAX_YAML_BYTES, fallback: str | None = None) -> str:
     """The UTF-8 text of a small input file, read safely; :class:`ConfigError` naming the file.
 
     Refuses what :func:`input_file_problem` refuses, and a file over ``max_bytes`` (from its
-    size before reading, and again from what the read returns), without blocking.
+    size before reading, and again from what the read returns), without blocking. A leading
+    UTF-8 byte-order mark is dropped. Text that is not UTF-8 is refused, or decoded with the
+    ``fallback`` encoding when one is given (e.g. ``"latin-1"`` for a data logger's export).
     """
     problem = input_file_problem(path)
     if problem is not None:
@@ -419,8 +487,10 @@ def read_text_file(path, what: str = "input", max_bytes: int = MAX_YAML_BYTES) -
         raise ConfigError(f"{path}: more than {max_bytes} bytes; a {what} file has at most {max_bytes} bytes")
     data = b"".join(chunks)
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
+        if fallback:
+            return data.decode(fallback, errors="replace")
         raise ConfigError(f"{path}: not UTF-8 text (byte {err.start}: {data[err.start:err.start + 1]!r}); "
                           f"a {what} file is YAML text") from None
 

@@ -413,6 +413,43 @@ def test_a_stiffness_in_n_per_um_is_refused_as_likely_the_wrong_unit(tmp_path):
     load_preset(_write(tmp_path, data, "off.yaml"))
 
 
+def test_a_rotary_stage_has_rotary_ranges_and_rotary_unit_messages(tmp_path):
+    """A small rotary servo: a viscous coefficient of 1e-4 N·m·s/rad, a pre-sliding (Dahl)
+    stiffness of 1 N·m/rad, a 0.02 N·m Coulomb torque, a rotor of 2e-6 kg·m² -- values a linear
+    stage would not have -- load on a rotary preset; the same values on a linear preset are
+    refused; what is still implausible on a rotary stage is said in rotary units."""
+    data = yaml.safe_load((PRESET_DIR / "rotary_nofi.yaml").read_text())
+    data["stage"]["table"]["mass"] = 2e-6
+    for b in data["stage"]["bearings"]:
+        b["mass"] = 1e-7
+        b["force_noise_rms"] = 0.0
+        b["friction"] = {"model": "dahl", "k_sigma": 1.0, "f_c": 0.02, "viscous": 1e-4}
+    p = load_preset(_write(tmp_path, data, "servo.yaml"))
+    assert p.stage.kind == "rotary" and p.stage.bearings[0].friction.viscous == 1e-4
+    assert p.stage.bearings[0].friction.k_sigma == 1.0
+    linear = dict(data, stage=dict(data["stage"], kind="linear"))
+    with pytest.raises(ConfigError) as err:
+        load_preset(_write(tmp_path, linear, "lin.yaml"))
+    assert "stage.bearings.0.friction.viscous: got 0.0001 N·s/m, outside the plausible range 0.001 to 100000 N·s/m" \
+        in str(err.value)
+    # a rotary value off by a unit: rotary ranges, rotary units, rotary hints
+    data["stage"]["bearings"][0]["friction"]["viscous"] = 2e6        # 2 N·m·s/rad written in N·mm·s/rad
+    data["stage"]["table"]["mass"] = 3000.0                          # 0.3 kg·m² written in kg·cm²
+    with pytest.raises(ConfigError) as err:
+        load_preset(_write(tmp_path, data, "bad.yaml"))
+    msg = str(err.value)
+    assert ("  stage.bearings.0.friction.viscous: got 2e+06 N·m·s/rad, outside the plausible range 1e-09 to 100000 "
+            "N·m·s/rad; likely given in N·mm·s/rad (2e+06 N·mm·s/rad = 2000 N·m·s/rad)") in msg
+    assert ("  stage.table.mass: got 3000 kg·m², outside the plausible range 1e-10 to 1000 kg·m²; likely given in "
+            "kg·cm² (3000 kg·cm² = 0.3 kg·m²)") in msg
+    assert "N/m" not in msg and "N·s/m" not in msg and " kg," not in msg
+    # a schema error on a rotary stage names the rotary unit
+    data["stage"]["table"]["mass"] = -1
+    with pytest.raises(ConfigError, match=r"stage.table.mass: got -1; expected greater than 0 -- moving table "
+                                          r"mass \[kg·m²\]"):
+        load_preset(_write(tmp_path, data, "neg.yaml"))
+
+
 def test_overrides_are_checked_and_a_wrong_path_is_named():
     p = load_preset("fi_stage")
     with pytest.raises(ConfigError, match=r"^exp.yaml: implausible.*\n  controller.pid.kp: got 0.8 N/m.*N/µm"):

@@ -25,7 +25,7 @@ from rosbags.typesys import Stores, get_typestore
 from experiment_runner.recording import run_config_yaml
 from msg_defs import convert
 from stage_sim.config import ConfigError, Preset, list_presets, load_preset, preset_from_dict, with_overrides
-from stage_sim.validation import ConfigWarning, load_yaml
+from stage_sim.validation import ConfigWarning, load_yaml, model_axis, plausible_range
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 PRESETS = {name: load_preset(name) for name in list_presets()}
@@ -101,7 +101,7 @@ def test_every_preset_round_trips_through_yaml_and_the_recording_config(name):
 @given(st.data())
 def test_random_valid_changes_round_trip(data):
     name, path, val, info = data.draw(st.sampled_from(PLAUSIBLE))
-    lo, hi = info.json_schema_extra["plausible"]
+    _, lo, hi = plausible_range(info.json_schema_extra, model_axis(PRESETS[name]))
     new = data.draw(st.floats(math.log10(lo), math.log10(hi)).map(lambda e: 10.0 ** e))
     new = math.copysign(new, val) if val else new
     try:
@@ -182,7 +182,7 @@ PREFIXES = (1e3, 1e6, 1e9, 1e-3, 1e-6, 1e-9)
 @given(st.sampled_from(PLAUSIBLE), st.sampled_from(PREFIXES), st.floats(0.0, 1.0))
 def test_a_value_off_by_a_unit_prefix_is_refused_as_likely_a_wrong_unit(leaf, prefix, where):
     name, path, val, info = leaf
-    lo, hi = info.json_schema_extra["plausible"]
+    unit_name, lo, hi = plausible_range(info.json_schema_extra, model_axis(PRESETS[name]))   # rotary: rotary
     true = 10 ** (math.log10(lo) + where * (math.log10(hi) - math.log10(lo)))
     wrong = true / prefix                 # what a value in the wrong unit reads as in SI
     assume(not lo <= wrong <= hi)
@@ -191,7 +191,7 @@ def test_a_value_off_by_a_unit_prefix_is_refused_as_likely_a_wrong_unit(leaf, pr
     except ConfigError as err:
         assume(err.problems and "plausible" in err.problems[0].message)   # else a cross-field rule spoke first
         line = next(p for p in err.problems if p.path == path)
-        assert line.value == wrong and "likely" in line.message and info.json_schema_extra["unit"] in line.message
+        assert line.value == wrong and "likely" in line.message and f" {unit_name}" in line.message
         assert str(err).startswith("exp.yaml: implausible value(s)")
     else:
         raise AssertionError(f"{path} = {wrong} accepted")

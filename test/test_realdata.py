@@ -156,7 +156,7 @@ def test_data_root_names_where_it_looked(tmp_path):
 def test_convert_command_line(emps, tmp_path, capsys):
     from experiment_runner.cli import main
     assert main(["convert", "emps", str(emps.path), "--out", str(tmp_path / "rec")]) == 0
-    assert capsys.readouterr().out.strip().endswith("rec.mcap")
+    assert capsys.readouterr().out.startswith(f"{tmp_path / 'rec' / 'rec.mcap'}: 24841 samples at 1000 Hz")
     # a bad input is one line on stderr and exit 2, nothing written
     assert main(["convert", "emps", str(tmp_path / "missing.mat"), "--out", str(tmp_path / "r2")]) == 2
     err = capsys.readouterr().err.strip()

@@ -379,7 +379,7 @@ def test_mapping_file_errors_name_the_file_and_key(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert f"m{i}.yaml" in err and frag in err and len(err.splitlines()) == 1, (text, err)
     assert main(["convert", "table", str(src), "--mapping", str(tmp_path / "none.yaml"), "--out", "o"]) == 2
-    assert "none.yaml: no such mapping file (shipped mappings: emps)" in capsys.readouterr().err
+    assert "none.yaml: no such mapping file (shipped mappings: emps, emps_pulses)" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
@@ -441,7 +441,11 @@ def test_convert_emps_is_the_table_importer_and_gives_the_same_recording(emps_fi
     qg, qm, vir = (m[k].ravel() for k in ("qg", "qm", "vir"))
     gtau = float(m["gtau"].ravel()[0])
     assert main(["convert", "emps", str(emps_file), "--out", str(tmp_path / "emps")]) == 0
-    rec = read_recording(capsys.readouterr().out.strip())
+    out = capsys.readouterr().out
+    assert out.startswith(f"{tmp_path / 'emps' / 'emps.mcap'}: 24841 samples at 1000 Hz") and "command: drive" in out
+    assert "external_force" not in out                     # DATA_EMPS.mat has no pulses
+    rec = read_recording(tmp_path / "emps")
+    assert rec.command_kind == "drive" and rec.external_force is None
     # the pre-importer converter's mapping (convert_emps before issue 12), value for value
     n = len(qg)
     np.testing.assert_array_equal(rec.stamp_ns, np.arange(n) * 1_000_000)

@@ -321,7 +321,7 @@ def run_emps(root: Path, out: Path, structure_check: bool = True, plots: bool = 
     if digest != EMPS_SHA256:
         notes.append(f"{mat}: sha256 {digest} differs from the README's {EMPS_SHA256}")
     t = time.perf_counter()
-    rec_path = convert_emps(mat, out / "recording")
+    rec_path = convert_emps(mat, out / "recording", overwrite=True)   # nanostage's own, in its output
     rec = read_recording(rec_path)
     conv = {"recording": str(rec_path), "samples": len(rec), "seconds": time.perf_counter() - t,
             "max_abs_command_diff_N": float(np.max(np.abs(rec.u - d.force))),
