@@ -95,6 +95,7 @@ def test_budget_refuses_a_bad_value_and_checkpoints_only_while_searching():
     for bad in (0, -1.0, float("nan"), float("inf"), "60"):
         with pytest.raises(ValueError, match="max_seconds: got"):
             Budget(bad)
+    assert not Budget(None).spent()                # no limit
     b = Budget(1e-9, progress=False)
     checkpoint()                                   # no search running: nothing
     b.check()                                      # not searching: nothing

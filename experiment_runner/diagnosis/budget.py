@@ -56,16 +56,18 @@ class Budget:
 
     Parameters
     ----------
-    max_seconds : float
-        The budget [s], from the start (finite, > 0).
+    max_seconds : float or None
+        The budget [s], from the start (finite, > 0); None: no limit.
     progress : bool
         Progress lines on ``stream`` (default stderr).
     """
 
-    def __init__(self, max_seconds: float = DEFAULT_MAX_SECONDS, progress: bool = True, stream=None):
-        if not (isinstance(max_seconds, (int, float)) and math.isfinite(max_seconds) and max_seconds > 0):
-            raise ValueError(f"max_seconds: got {max_seconds!r}; expected a finite number of seconds > 0")
-        self.max_seconds = float(max_seconds)
+    def __init__(self, max_seconds: float | None = DEFAULT_MAX_SECONDS, progress: bool = True, stream=None):
+        if max_seconds is not None and not (isinstance(max_seconds, (int, float)) and math.isfinite(max_seconds)
+                                            and max_seconds > 0):
+            raise ValueError(f"max_seconds: got {max_seconds!r}; expected a finite number of seconds > 0 "
+                             "(or None: no limit)")
+        self.max_seconds = None if max_seconds is None else float(max_seconds)
         self.progress = progress
         self.stream = stream
         self.t0 = time.perf_counter()
@@ -87,7 +89,7 @@ class Budget:
     def spent(self) -> bool:
         """Whether the search must stop (the budget is spent, or :meth:`halt` was called); the first
         time, the stage reached is noted."""
-        if self.stopped is None and self.elapsed() >= self.max_seconds:
+        if self.stopped is None and self.max_seconds is not None and self.elapsed() >= self.max_seconds:
             self.halt("time budget")
         return self.stopped is not None
 

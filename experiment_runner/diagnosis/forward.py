@@ -44,7 +44,7 @@ class ForwardSelection:
     def __init__(self, problem: Problem, context: Context, budget: Budget | None = None):
         self.problem = problem
         self.context = context
-        self.budget = budget if budget is not None else Budget(float("inf"), progress=False)
+        self.budget = budget if budget is not None else Budget(None, progress=False)
         self.first_step: FirstStep | None = None
         self.path: Path | None = None
 
@@ -104,7 +104,8 @@ class ForwardSelection:
                 p.evaluator.floor = self.path.floor.noise
                 todo = [c.effect.key for c in self.candidates()]
                 self.budget.skip(f"forward step {step}" + (" of the second start" if first is not None else "")
-                                 + (f" ({len(todo)} candidates: {', '.join(todo)})" if todo else "")
+                                 + (f" (cut short, none adopted; {len(todo)} candidates: {', '.join(todo)})"
+                                    if todo else " (cut short, none adopted)")
                                  + (" and later" if step < p.options.max_steps else ""))
                 break
             last = self.path.steps[-1] if self.path.steps and self.path.steps[-1]["step"] == step else {}

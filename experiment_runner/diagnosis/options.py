@@ -59,9 +59,9 @@ class Options:
     """After the first effect: share of the remaining replay excess over the floor a candidate must
     remove (the remnant of an imperfect fit is not "explained" by extras)."""
     verbose: bool = False
-    max_seconds: float = DEFAULT_MAX_SECONDS
+    max_seconds: float | None = DEFAULT_MAX_SECONDS
     """Wall-clock budget of the diagnosis [s]: the search stops there, keeping the model of its last
-    completed step; the validation and the report follow (:mod:`.budget`)."""
+    completed step; the validation and the report follow (:mod:`.budget`). None: no limit."""
     progress: bool = True
     """A progress line per stage and step on stderr, with the elapsed seconds."""
     extra: dict = field(default_factory=dict)

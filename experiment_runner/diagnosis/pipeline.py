@@ -64,6 +64,8 @@ def diagnose_stages(recording, nominal, out=None, options: Options | None = None
 
     Raises
     ------
+    ValueError
+        ``options.max_seconds`` not a finite number > 0 (nor None).
     stage_sim.config.ConfigError
         ``options.workers`` below 1, or the Dask scheduler ``options.cluster`` cannot be
         reached (before any work is done); a nominal that does not fit the recording.
