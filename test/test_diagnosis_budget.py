@@ -49,7 +49,7 @@ def test_tiny_budget_ends_early_with_the_statement_leading_the_report(record, tm
     assert b["max_seconds"] == 1.0 and b["reached"] is True and b["stopped"] == "time budget"
     assert b["spent_s"] >= 1.0
     assert any(x.startswith("forward step 1") for x in b["not_examined"]), b["not_examined"]
-    assert "joint refit of the adopted effects" in b["not_examined"]
+    assert "drive-noise level" in b["not_examined"]
     assert rep["found"] == []                     # coulomb is adopted by a full run; none here
     assert rep["verdict"].endswith("(partial: the time budget was reached)")
     md = [ln for ln in (out / "report.md").read_text().splitlines() if ln.strip()]

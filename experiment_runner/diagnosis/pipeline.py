@@ -104,8 +104,9 @@ def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex, budge
         path = ForwardSelection(problem, loc.context, budget).run()
     forget(problem.token)     # this process's copy (an executor running the tasks here, workers=1)
     found = lattice.found + path.found
+    n_det = sum(f.effect.kind == "deterministic" for f in path.selected)
     joint = (closing.refit_jointly(problem, path, found)
-             if budget.allows("joint refit of the adopted effects") else None)
+             if n_det < 2 or budget.allows("joint refit of the adopted effects") else None)
     timing["fit_s"] = time.perf_counter() - t
     t = time.perf_counter()
     if budget.allows("drive-noise level"):
@@ -115,7 +116,7 @@ def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex, budge
                                              "found": False, "note": "not examined (time budget)"}
     timing["noise_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    if (budget.allows("uncertainty widening (roughness profiles)")
+    if (path.selected and budget.allows("uncertainty widening (the ± given are the fits' own: lower bounds)")
             and uncertainty.widen(pred.fit_judge, found, path.selected, problem.base, path.current, opt)):
         timing["uncertainty_s"] = time.perf_counter() - t
     budget.done("selection", ", ".join(fe["effect"] for fe in found) or "nothing adopted")
