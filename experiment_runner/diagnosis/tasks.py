@@ -138,6 +138,7 @@ def fit_candidates(problem: Problem, todo: list[Candidate], current: ModelSpec, 
             out[i] = f
             if f is not None:
                 f.replaces = todo[i].replaces
+            progress(f"  fitted {todo[i].effect.key}" + ("" if f is not None else " (failed)"))
         fits = [f for f in out if f is not None]
     else:
         def one(c: Candidate):
