@@ -10,6 +10,8 @@ import sys
 
 from experiment_runner.cliargs import positive_float, positive_int
 
+from .budget import DEFAULT_MAX_SECONDS
+
 __all__ = ["add_diagnose_arguments", "main_diagnose", "effect_keys"]
 
 
@@ -56,7 +58,11 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
                         help="force-observer bandwidth [Hz] (default rate/25)")
     parser.add_argument("--max-fit-seconds", type=positive_float, default=3.0, help="cap of the fit set [s of data]")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
-    parser.add_argument("--verbose", action="store_true", help="progress on stdout")
+    parser.add_argument("--verbose", action="store_true", help="details of every stage on stdout")
+    parser.add_argument("--max-seconds", type=positive_float, default=DEFAULT_MAX_SECONDS,
+                        help="wall-clock budget [s] (default %(default)g): the search stops there and keeps the "
+                             "model of its last completed step; the report says what was not examined")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     from experiment_runner.outputs import add_overwrite_argument
     add_overwrite_argument(parser)
     from experiment_runner.executor import add_executor_arguments
@@ -91,7 +97,8 @@ def diagnose_options(args):
     from .options import Options
     return Options(bandwidth=args.bandwidth, max_fit_seconds=args.max_fit_seconds,
                    effects=args.effects,
-                   plots=not args.no_plots, verbose=args.verbose, workers=args.workers, cluster=args.cluster)
+                   plots=not args.no_plots, verbose=args.verbose, workers=args.workers, cluster=args.cluster,
+                   max_seconds=args.max_seconds, progress=not args.quiet)
 
 
 def main_diagnose(args) -> int:
@@ -139,10 +146,19 @@ def main_diagnose(args) -> int:
     for e in data.excluded:
         print(f"warning: excluded {e}", file=sys.stderr)
     prepare_folder(out, args.overwrite, files=REPORT_FILES, option="--out")     # bad input above: no folder made
-    rep = diagnose(args.recording, nominal, out=out, options=diagnose_options(args), data=data)
+    import time
+    started = time.time()
+    try:
+        rep = diagnose(args.recording, nominal, out=out, options=diagnose_options(args), data=data)
+    except KeyboardInterrupt:       # SIGINT / SIGTERM: a search it stopped left its partial report
+        if _interrupted_report(out / "report.json", started):
+            print(f"partial report (interrupted): {out / 'report.md'}", file=sys.stderr)
+        raise
     if args.json:
         print(json.dumps(jsonable(rep), indent=1))
         return 0
+    if rep["budget"]["reached"]:
+        print(f"partial: {rep['budget']['statement']}")
     for line in replay_lines(rep):
         print(line)
     print(f"verdict: {rep['verdict']}")
@@ -168,6 +184,17 @@ def main_diagnose(args) -> int:
     print(f"report: {out / 'report.md'}   improved preset: {out / 'improved_preset.yaml'}   "
           f"({rep['timing_s']['total_s']:.1f} s)")
     return 0
+
+
+def _interrupted_report(path, since: float) -> bool:
+    """Whether ``path`` is a report.json written since ``since`` (epoch s) by an interrupted run."""
+    try:
+        if path.stat().st_mtime < since:
+            return False
+        b = json.loads(path.read_text()).get("budget") or {}
+    except (OSError, ValueError):
+        return False
+    return str(b.get("stopped") or "").startswith("interrupted")
 
 
 def _main_power(args) -> int:

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, signal
 
+from .budget import checkpoint
 from .data import DiagData
 from .effects.base import Effect, Param
 from .model import ModelSpec
@@ -78,6 +79,7 @@ class Evaluator:
         self._lock = threading.Lock()
 
     def _run(self, spec, cols):
+        checkpoint()          # a search whose budget is spent stops here (:mod:`.budget`)
         t = time.perf_counter()
         res = self.obs.run(spec, cols=cols)
         with self._lock:

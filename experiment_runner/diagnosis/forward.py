@@ -8,10 +8,17 @@ are reported, never adopted too. The walk stops when the current model's replay 
 floor or nothing is adoptable. When the greedy walk ends beyond its floor, a second walk starts from
 step 1's runner-up (:meth:`ForwardSelection.second_start`) and is kept only if its held-out replay is
 better beyond the first walk's floor (the adoption test).
+
+With a :class:`.budget.Budget`, a step stopped by it (time spent, or an interruption) is dropped
+whole: the walk keeps the model of its last completed step, and an unfinished second walk is not
+compared.
 """
 from __future__ import annotations
 
+import copy
+
 from .adoption import adopt_best, keep_refit, refit_selected
+from .budget import Budget, BudgetReached
 from .context import Context
 from .fit import spec_with
 from .refining import refine_rows
@@ -30,11 +37,14 @@ class ForwardSelection:
         What the selection works on.
     context : Context
         The located context of the recording (each walk starts from it).
+    budget : Budget, optional
+        The diagnosis's budget (progress lines; a step it stops is dropped whole).
     """
 
-    def __init__(self, problem: Problem, context: Context):
+    def __init__(self, problem: Problem, context: Context, budget: Budget | None = None):
         self.problem = problem
         self.context = context
+        self.budget = budget if budget is not None else Budget(None, progress=False)
         self.first_step: FirstStep | None = None
         self.path: Path | None = None
 
@@ -46,9 +56,17 @@ class ForwardSelection:
         second = self.second_start(a)
         if second is None:
             return a
+        if not self.budget.allows(f"second start from {second.fit.key}"):
+            self.path = a
+            return a
         problem.options.log(f"second start: {second.fit.key} first (the path from {a.steps[0]['accepted']} "
                             "left a residual beyond its floor)")
         b = self.walk(first=second)
+        if self.budget.stopped is not None:        # an unfinished walk is not compared
+            self.budget.skip(f"second start from {second.fit.key} (unfinished, not compared)")
+            self.path = a
+            problem.evaluator.floor = a.floor.noise
+            return a
         c = judge.compare(a.replay_floor, b.replay_floor.replay) if b.replay_floor.replay.ok else None
         chosen = b if c is not None and c.accepted else a
         chosen.second_start = {
@@ -71,7 +89,29 @@ class ForwardSelection:
                          replay_floor=p.base_replay_floor, context=self.context)
         p.evaluator.floor = p.base_floor.noise
         for step in range(1, p.options.max_steps + 1):
-            if not self.step(step, first if step == 1 else None):
+            kept = _snapshot(self.path)
+            self.budget.say(f"forward step {step}" + (" of the second start" if first is not None else "") + " ...")
+            try:
+                self.budget.check()
+                going = self.step(step, first if step == 1 else None)
+                if self.budget.stopped is not None:    # something in the step was cut short: not adopted
+                    raise BudgetReached(self.budget.stopped)
+            except (BudgetReached, KeyboardInterrupt) as err:
+                if isinstance(err, KeyboardInterrupt):     # SIGINT / SIGTERM: a partial report, then exit
+                    self.budget.halt(f"interrupted ({err or 'SIGINT'})")
+                    self.budget.interrupt = err
+                self.path = _restore(self.path, kept)
+                p.evaluator.floor = self.path.floor.noise
+                todo = [c.effect.key for c in self.candidates()]
+                self.budget.skip(f"forward step {step}" + (" of the second start" if first is not None else "")
+                                 + (f" (cut short, none adopted; {len(todo)} candidates: {', '.join(todo)})"
+                                    if todo else " (cut short, none adopted)")
+                                 + (" and later" if step < p.options.max_steps else ""))
+                break
+            last = self.path.steps[-1] if self.path.steps and self.path.steps[-1]["step"] == step else {}
+            self.budget.done(f"forward step {step}" + (" of the second start" if first is not None else ""),
+                             f"adopted {last['accepted']}" if last.get("accepted") else "nothing adopted")
+            if not going:
                 break
         return self.path
 
@@ -177,3 +217,18 @@ class ForwardSelection:
             return False
         adopt_best(p, path, step, best, conf, alts)
         return True
+
+
+def _snapshot(path: Path) -> tuple:
+    """What a step may change of ``path`` (:func:`_restore` puts it back when the step is dropped)."""
+    return (copy.copy(path), list(path.steps), list(path.selected), copy.deepcopy(path.found), set(path.banned),
+            [(f, f.theta, f.sigma, f.derived) for f in path.selected])
+
+
+def _restore(path: Path, kept: tuple) -> Path:
+    """``path`` as :func:`_snapshot` saw it."""
+    old, steps, selected, found, banned, fits = kept
+    for f, theta, sigma, derived in fits:
+        f.theta, f.sigma, f.derived = theta, sigma, derived
+    old.steps, old.selected, old.found, old.banned = steps, selected, found, banned
+    return old

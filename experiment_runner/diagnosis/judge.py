@@ -50,6 +50,7 @@ from scipy import stats
 from experiment_runner.batch import Models, simulate
 from stage_control.servo import build_servo, init_servo_state, servo_step
 
+from .budget import checkpoint
 from .data import DiagData
 from .model import ModelSpec
 
@@ -175,6 +176,7 @@ class ReplayJudge:
     def simulate_recordings(self, spec: ModelSpec, seeds):
         """Recordings of ``spec`` on the judged trials with noise ``seeds`` (one batch call): ``(u, y)``
         each (K, T, B), the simulator's status (K, B) and the preset."""
+        checkpoint()          # a search whose budget is spent stops here (:mod:`.budget`)
         p = spec.preset
         K = len(seeds)
         B = len(self.cols)

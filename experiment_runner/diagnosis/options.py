@@ -5,6 +5,7 @@ from dataclasses import dataclass, field
 
 from experiment_runner.executor import default_workers
 
+from .budget import DEFAULT_MAX_SECONDS
 from .effects import LIBRARY, Library
 
 __all__ = ["Options", "CONTROLLER_TOL"]
@@ -58,6 +59,11 @@ class Options:
     """After the first effect: share of the remaining replay excess over the floor a candidate must
     remove (the remnant of an imperfect fit is not "explained" by extras)."""
     verbose: bool = False
+    max_seconds: float | None = DEFAULT_MAX_SECONDS
+    """Wall-clock budget of the diagnosis [s]: the search stops there, keeping the model of its last
+    completed step; the validation and the report follow (:mod:`.budget`). None: no limit."""
+    progress: bool = True
+    """A progress line per stage and step on stderr, with the elapsed seconds."""
     extra: dict = field(default_factory=dict)
 
     def effect_library(self) -> Library:

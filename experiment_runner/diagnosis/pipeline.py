@@ -13,6 +13,14 @@ The stages, in order, each a function returning a typed result the later ones re
 :func:`.verdict.validate` -> :func:`.verdict.assemble`. Same data, same decision: no random draw;
 the candidate fits give the same report on threads, local processes or a Dask cluster
 (:mod:`.tasks`).
+
+Time is bounded (:mod:`.budget`, ``Options.max_seconds``): once the budget is spent the selection
+stops, keeping the model of its last completed step (a step cut short is dropped whole), the joint
+refit, drive-noise level, uncertainty widening and sparse regression are skipped, and the validation
+and the report follow, led by the statement of what was not examined (report ``budget``). A SIGINT
+or SIGTERM during the selection ends it the same way; the partial report (marked interrupted) is
+written and the interruption raised again. Each stage and step prints a progress line on stderr
+(``Options.progress``).
 """
 from __future__ import annotations
 
@@ -25,6 +33,7 @@ from threadpoolctl import threadpool_limits
 from experiment_runner.executor import make_executor
 
 from . import closing, stages, uncertainty
+from .budget import Budget
 from .data import DiagData
 from .forward import ForwardSelection
 from .options import Options
@@ -55,11 +64,14 @@ def diagnose_stages(recording, nominal, out=None, options: Options | None = None
 
     Raises
     ------
+    ValueError
+        ``options.max_seconds`` not a finite number > 0 (nor None).
     stage_sim.config.ConfigError
         ``options.workers`` below 1, or the Dask scheduler ``options.cluster`` cannot be
         reached (before any work is done); a nominal that does not fit the recording.
     """
     opt = options or Options()
+    budget = Budget(opt.max_seconds, progress=opt.progress)
     with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
         ex = None
         if opt.workers is not None or opt.cluster is not None:
@@ -69,37 +81,51 @@ def diagnose_stages(recording, nominal, out=None, options: Options | None = None
                 warm = threading.Thread(target=warm_up, args=(ex,), daemon=True, name="nanostage-diagnose-warm-up")
                 warm.start()
                 stack.callback(warm.join)          # before the executor closes
-        return _run(recording, nominal, out, opt, data, ex)
+        return _run(recording, nominal, out, opt, data, ex, budget)
 
 
-def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex) -> tuple[dict, Run]:
+def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex, budget: Budget) -> tuple[dict, Run]:
     """Every stage in order (module docstring)."""
     T0 = time.perf_counter()
     timing: dict = {}
     setup = stages.read(recording, nominal, opt, data, timing)
+    budget.done("read", "the nominal replayed")
     lattice = stages.quantization(setup, opt)
     pred = stages.predict(setup, lattice.base, opt, timing)
+    budget.done("predict", "force residual, floors")
     loc = stages.locate(setup, lattice.base, pred, opt, timing)
+    budget.done("locate")
     t = time.perf_counter()
     problem, J_fit_nominal, J_held_nominal, tol_ad = stages.prepare(setup, lattice.base, pred, loc, opt, ex)
     if ex is not None:        # the candidate-fit tasks' shared state, once
         problem.token, problem.blob = shared_state(problem)
-    path = ForwardSelection(problem, loc.context).run()
+    budget.done("prepare")
+    with budget.searching():
+        path = ForwardSelection(problem, loc.context, budget).run()
     forget(problem.token)     # this process's copy (an executor running the tasks here, workers=1)
     found = lattice.found + path.found
-    joint = closing.refit_jointly(problem, path, found)
+    n_det = sum(f.effect.kind == "deterministic" for f in path.selected)
+    joint = (closing.refit_jointly(problem, path, found)
+             if n_det < 2 or budget.allows("joint refit of the adopted effects") else None)
     timing["fit_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    closing.drive_noise(problem, path, found, lattice.stochastic)
+    if budget.allows("drive-noise level"):
+        closing.drive_noise(problem, path, found, lattice.stochastic)
+    else:
+        lattice.stochastic["noise_level"] = {"nominal_A": problem.base.preset.stage.drive.noise_current_rms,
+                                             "found": False, "note": "not examined (time budget)"}
     timing["noise_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    if uncertainty.widen(pred.fit_judge, found, path.selected, problem.base, path.current, opt):
+    if (path.selected and budget.allows("uncertainty widening (the ± given are the fits' own: lower bounds)")
+            and uncertainty.widen(pred.fit_judge, found, path.selected, problem.base, path.current, opt)):
         timing["uncertainty_s"] = time.perf_counter() - t
+    budget.done("selection", ", ".join(fe["effect"] for fe in found) or "nothing adopted")
     t = time.perf_counter()
     val = validate(setup, pred, problem, path, opt)
     timing["validate_s"] = time.perf_counter() - t
+    budget.done("validate")
     sparse = None
-    if opt.sparse and not val.adequate:
+    if opt.sparse and not val.adequate and budget.allows("sparse regression of the remaining residual"):
         t = time.perf_counter()
         sparse = sparse_terms(setup.data, val.residual, path.context, setup.band_hz)
         timing["sparse_s"] = time.perf_counter() - t
@@ -108,9 +134,16 @@ def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex) -> tu
               J_fit_nominal=J_fit_nominal, J_held_nominal=J_held_nominal, adequacy_tolerance=tol_ad, validation=val)
     timing["total_s"] = time.perf_counter() - T0
     report = assemble(run, timing, sparse)
+    report["budget"] = budget.summary()
+    if budget.stopped is not None:         # never a confident answer from an unfinished search
+        report["verdict"] += (" (partial: the time budget was reached)" if budget.stopped == "time budget"
+                              else f" (partial: {budget.stopped})")
     if out is not None:
         write_report(out, report, path.current, setup.nominal, setup.data, plot_arrays(run, loc.arrays),
                      plots=opt.plots)
         report["timing_s"]["total_s"] = time.perf_counter() - T0
+        budget.done("report", str(out))
     report["_improved_spec"] = path.current
+    if budget.interrupt is not None:      # the partial report is written: end as interrupted
+        raise budget.interrupt
     return report, run

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from .budget import checkpoint
 from .context import Context
 from .fit import FitResult, JointEffect, Transform, bad_point
 from .model import ModelSpec
@@ -109,6 +110,7 @@ class _OutputError:
 
     def residual(self, z):
         """The replay error of the fit samples at ``z`` in floor units, or :attr:`bad`."""
+        checkpoint()          # a search whose budget is spent stops here (:mod:`.budget`)
         th = self.tr.to_theta(z)
         if not np.all(np.isfinite(th)):
             return self.bad

@@ -13,6 +13,7 @@ import dataclasses
 
 import numpy as np
 
+from .budget import progress
 from .effects.body import Mode
 from .fit import spec_moved, spec_with
 from .judge import Floor
@@ -166,6 +167,7 @@ def refine_rows(problem: Problem, path: Path, judged: list, sim_blocks) -> list:
                 if ref.joint is not None and f.replaces is None:
                     refits.append((j2, spec_moved(sel, ref.joint.theta, problem.base), ref.joint))
                 j2.why += " (refined by the replay)"
+                progress(f"  refined {f.key} by the replay")
                 out.append(j2)
                 continue
         out.append(j)

@@ -65,6 +65,10 @@ Files written to the output folder ``DIR``
                         open_loop_drift_rms_m {nominal, improved, window_s}
 ``improved_model``      name, preset_yaml (file name)
 ``timing_s``            wall time per stage
+``budget``              the wall-clock budget (:mod:`.budget`): max_seconds, spent_s, reached,
+                        stopped ("time budget" or "interrupted (SIGINT)" ...), after_stage,
+                        not_examined [what the search did not get to], statement (report.md's and
+                        stdout's leading line when reached)
 
 ``J`` is the whitened mean square of the force residual: 1 means "as a perfect model would
 leave it" (noise and quantization only).
@@ -298,6 +302,10 @@ def to_markdown(rep: dict) -> str:
     L = []
     for section in (_md_headline, _md_found, _md_proof, _md_locate, _md_candidates, _md_noise):
         L += section(rep)
+    b = rep.get("budget") or {}
+    if b.get("reached"):       # what was not examined leads, under the title
+        L.insert(1, f"**Partial: {b['statement']}.** The model is the one of the last completed step; "
+                    "a step cut short is not adopted.\n")
     return "\n".join(L) + "\n"
 
 

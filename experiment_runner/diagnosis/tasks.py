@@ -18,6 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from threadpoolctl import threadpool_limits
 
+from .budget import checkpoint, halt_search, progress
 from .context import Context
 from .fit import Evaluator, FitResult, fit_effect, fit_with, spec_with
 from .floors import light_floor
@@ -137,10 +138,12 @@ def fit_candidates(problem: Problem, todo: list[Candidate], current: ModelSpec, 
             out[i] = f
             if f is not None:
                 f.replaces = todo[i].replaces
+            progress(f"  fitted {todo[i].effect.key}" + ("" if f is not None else " (failed)"))
         fits = [f for f in out if f is not None]
     else:
         def one(c: Candidate):
             try:
+                checkpoint()          # the budget spent: the rest is not fitted (the step is dropped)
                 f = fit_candidate(c.effect, *on(c.replaces), J_fit_cur, ev, ctx, base, opt.own_floor,
                                   opt.floor_seeds[0])
             except Exception as err:     # noqa: BLE001 - one bad candidate must not stop the diagnosis
@@ -149,12 +152,17 @@ def fit_candidates(problem: Problem, todo: list[Candidate], current: ModelSpec, 
                 return None
             if f is not None:
                 f.replaces = c.replaces
+            progress(f"  fitted {c.effect.key}" + ("" if f is not None else " (failed)"))
             return f
         # the compiled kernels release the GIL: candidates are fitted on parallel threads
         current.compiled()
         if opt.n_jobs > 1 and len(todo) > 1:
             with ThreadPoolExecutor(opt.n_jobs) as pool:
-                fits = [f for f in pool.map(one, todo) if f is not None]
+                try:
+                    fits = [f for f in pool.map(one, todo) if f is not None]
+                except KeyboardInterrupt as err:   # SIGINT / SIGTERM: the fits running stop at their next evaluation
+                    halt_search(f"interrupted ({err or 'SIGINT'})")
+                    raise
         else:
             fits = [f for f in map(one, todo) if f is not None]
     fits.sort(key=lambda f: f.J_held * (1 + opt.complexity * len(f.theta)))
