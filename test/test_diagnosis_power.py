@@ -239,7 +239,8 @@ def test_second_start_finds_the_pair_a_stand_in_had_absorbed(tmp_path):
                      profile={"kind": "sine_sweep", "frequencies": [3.6392302889418167, 10.917690866825449],
                               "amplitude": 0.00017801475431217456, "periods": 3, "settle_periods": 1})
     nominal, _, expect, data, _ = build_case(case)
-    diagnose(None, ModelSpec(nominal), out=tmp_path, data=data, options=Options(plots=False, n_jobs=1))
+    diagnose(None, ModelSpec(nominal), out=tmp_path, data=data, options=Options(plots=False, n_jobs=1,
+                                                                               max_seconds=None))
     rep = json.loads((tmp_path / "report.json").read_text())
     r = judge_case(case, rep, expect, {})
     assert r["named"] == ["fi_compliance", "stribeck"] and r["both_named"]

@@ -393,7 +393,8 @@ def _run_case(case: PowerCase, keep) -> dict:
         truth_stable = ReplayJudge(data.subset(np.arange(data.shape[1]))).replay(ModelSpec(truth)).ok
         out_dir = None if keep is None else Path(keep) / case.name
         rep = diagnose(None, ModelSpec(nominal), out=out_dir, data=data, options=Options(plots=keep is not None,
-                                                                                          n_jobs=1, progress=False))
+                                                                                          n_jobs=1, progress=False,
+                                                                                          max_seconds=None))
         res = judge_case(case, rep, expect, change)
         if given:
             res["replay_change_given_other"] = given

@@ -57,6 +57,7 @@ from experiment_runner.tabular import convert_emps, sha256
 from stage_control.cascaded import CascadedPP, RigidAxis, cascaded_command, simulate_rigid
 from stage_sim.config import load_preset
 
+from .budget import DEFAULT_MAX_SECONDS
 from .datasets import DataMissing, data_root, need_file
 from .model import friction_elements, total_mass
 from .options import Options
@@ -308,8 +309,12 @@ def _offset_candidates(rep: dict) -> list[dict]:
     return out
 
 
-def run_emps(root: Path, out: Path, structure_check: bool = True, plots: bool = True, verbose: bool = False) -> dict:
-    """Convert, diagnose from the plain nominal, compare with the published model (see module doc)."""
+def run_emps(root: Path, out: Path, structure_check: bool = True, plots: bool = True, verbose: bool = False,
+             max_seconds: float | None = DEFAULT_MAX_SECONDS) -> dict:
+    """Convert, diagnose from the plain nominal, compare with the published model (see module doc).
+
+    ``max_seconds``: the diagnosis's wall-clock budget (``nanostage diagnose``'s default; ``None``: no
+    limit, for a check whose answer must not depend on the machine's load)."""
 
 
     T0 = time.perf_counter()
@@ -331,7 +336,7 @@ def run_emps(root: Path, out: Path, structure_check: bool = True, plots: bool = 
     vir = cascaded_command(ctrl, rec.x_ref, rec.y)
     conv["controller_law_rel_error"] = float(np.linalg.norm(vir - d.vir) / np.linalg.norm(d.vir))
     nominal = load_preset(EMPS_NOMINAL)
-    opts = {"verbose": verbose}
+    opts = {"verbose": verbose, "max_seconds": max_seconds}
     t = time.perf_counter()
     rep = diagnose(rec_path, EMPS_NOMINAL, out=out / "diagnosis",
                    options=Options(plots=plots, **opts))
