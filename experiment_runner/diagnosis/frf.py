@@ -403,8 +403,12 @@ def noise_band_modes(f, S_data, S_sims, S_det, X, D, rate: float, max_modes: int
             band["why"] = "mode parameter at its bound: " + ", ".join(("f", "zeta", "fraction")[k - 3] for k in at)
         elif not (ze < 0.2 and ph < 0.8):
             band["why"] = "not a lightly damped mode of a fraction of the mass"
+        elif any(abs(math.log(fb / m["f_hz"])) < 0.2 and m["lr"] / m["lr_threshold"] >= lr / thr for m in modes):
+            band["why"] = "the same mode as a stronger one located already (blocked frequency within 20 %)"
         else:
             band["why"] = "located"
+            # the other side of a mode located already, fitted more strongly here: this fit replaces it
+            modes = [m for m in modes if abs(math.log(fb / m["f_hz"])) >= 0.2]
             dev = l_d[win] - _ratio_model(h0.x, fo[win], Xo[win], Do[win], rate, False)
             modes.append({"f_hz": fb, "zeta": ze, "fraction": ph, "feature_hz": fc,
                           "kind": "closed-loop noise response", "depth_db": float(10 * np.max(np.abs(dev)) / math.log(10)),

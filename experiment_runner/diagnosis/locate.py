@@ -412,7 +412,7 @@ def noise_spectrum_modes(spec, data) -> tuple[list, dict]:
     ux, _, sx, _ = jx.simulate_recordings(noise_free(spec), [0])
     mask = j.mask
     du = ux[0] - np.tile(rp.u, (1, EXCITATION_RUNS))
-    mx = np.tile(mask, (1, EXCITATION_RUNS)) & np.repeat(sx[0] == 0, B)[None, :]
+    mx = np.tile(mask, (1, EXCITATION_RUNS)) & (sx[0] == 0)[None, :]
     f = np.fft.rfftfreq(nps, 1.0 / rate)
     D = drive_frf(spec, f)
     X = loop_from_excitation(exc[:, jx.cols], du, mx, rate, nps, D)
