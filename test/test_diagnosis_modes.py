@@ -83,3 +83,48 @@ def test_noise_spectrum_locates_a_mode_only_the_noise_excites():
     assert abs(m["f_hz"] / F_B - 1) < 0.05 and 1 / 1.5 < m["zeta"] / ZETA < 1.5, m
     assert abs(m["fraction"] / FRACTION - 1) < 0.35, m
     assert m["lr"] > m["lr_threshold"]
+
+
+# --------------------------------------------------------------------------- what the improved model leaves
+def _moving(rate=1e4, T_s=2.0, stroke=4e-3):
+    """One trial sweeping the stroke back and forth (0.5 Hz sine) as DiagData, and its time."""
+    t = np.arange(int(T_s * rate)) / rate
+    x = 0.5 * stroke * np.sin(2 * np.pi * 0.5 * t)
+    return from_trials(rate, [0.0], [x], [np.gradient(x) * rate], [0 * t], [x]), t, x
+
+
+def test_remaining_names_a_line_and_a_position_period_with_their_shares():
+    """A residual of a 0.3 N line at 120 Hz, a 0.2 N sinusoid of period 0.5 mm in position and
+    0.01 N white noise: the line (frequency within 1 Hz, amplitude within 10 %) and the period
+    (within 5 %, amplitude within 15 %) are listed, with shares adding to about the whole
+    (0.045 / 0.02 of 0.065 N^2: 69 % and 31 % within 8 points)."""
+    from experiment_runner.diagnosis.signatures import remaining
+    d, t, x = _moving()
+    rng = np.random.default_rng(0)
+    r = (0.3 * np.sin(2 * np.pi * 120 * t) + 0.2 * np.sin(2 * np.pi * x / 0.5e-3 + 0.4)
+         + 0.01 * rng.normal(size=t.size))[:, None]
+    out = remaining(d, r, d.valid, 1000.0, floor_rms=0.01)
+    ln = out["lines"][0]
+    assert abs(ln["f_hz"] - 120) < 1 and abs(ln["amplitude_N"] / 0.3 - 1) < 0.1, ln
+    assert abs(ln["share"] - 0.69) < 0.08, ln
+    pp = out["position_periodic"]
+    assert abs(pp["period_m"] / 0.5e-3 - 1) < 0.05 and abs(pp["amplitude_N"] / 0.2 - 1) < 0.15, pp
+    assert abs(pp["share"] - 0.31) < 0.08, pp
+    kinds = [s["kind"] for s in out["signatures"]]
+    assert kinds[:2] == ["line in time", "periodic in position"], out["signatures"]
+    assert out["ratio"] > 10
+
+
+def test_remaining_lists_nothing_in_white_noise():
+    """A white residual: no line 10 dB above its spectrum, no position period or stroke level of
+    10 % share, no regime concentration; the report says the residual is spread."""
+    from experiment_runner.diagnosis.report import _md_noise
+    from experiment_runner.diagnosis.signatures import remaining
+    d, t, x = _moving()
+    r = np.random.default_rng(1).normal(0, 0.05, (t.size, 1))
+    out = remaining(d, r, d.valid, 1000.0, floor_rms=0.01)
+    assert out["signatures"] == [], out["signatures"]
+    out.pop("arrays")
+    rep = {"stochastic": {"quantization": {}, "noise_level": {}}, "remaining": out, "timing_s": {"total_s": 1.0}}
+    md = "\n".join(_md_noise(rep))
+    assert "What the improved model leaves" in md and "the residual is spread" in md
