@@ -128,3 +128,30 @@ def test_remaining_lists_nothing_in_white_noise():
     rep = {"stochastic": {"quantization": {}, "noise_level": {}}, "remaining": out, "timing_s": {"total_s": 1.0}}
     md = "\n".join(_md_noise(rep))
     assert "What the improved model leaves" in md and "the residual is spread" in md
+
+
+@pytest.mark.slow
+def test_diagnosis_reports_what_it_could_not_explain(tmp_path):
+    """A truth with a 0.3 N force ripple of period 0.5 mm, diagnosed with only ``viscous`` allowed:
+    nothing is adopted, the improved model stays far beyond its floor, and the report says what is
+    left (period within 2 %, amplitude within 10 %, most of the residual) in report.md and
+    remaining.png instead of stopping silently."""
+    from experiment_runner import profiles
+    from experiment_runner.diagnosis.options import Options
+    from experiment_runner.diagnosis.pipeline import diagnose
+    nom = ModelSpec(load_preset("fi_stage_nofi"))
+    truth = LIBRARY["ripple"].apply(nom, [0.3, 0.0, 0.5e-3])
+    ref = profiles.circle_x(1e-3, 20e-3, cycles=1)
+    n = 4
+    xr = ref.x[:, None] + np.linspace(-4e-3, 4e-3, n)[None, :]
+    vr = np.repeat(ref.v[:, None], n, axis=1)
+    y, u, _, _ = closed_loop(truth, xr, vr, 100 + np.arange(n))
+    d = from_trials(1e4, np.zeros(n), *[[a[:, b] for b in range(n)] for a in (xr, vr, u, y)])
+    rep = diagnose(None, nom, out=tmp_path / "out", data=d, options=Options(effects=["viscous"]))
+    assert rep["found"] == [] and rep["replay"]["floor_ratio"]["improved"] > 10
+    left = rep["remaining"]
+    pp = left["position_periodic"]
+    assert abs(pp["period_m"] / 0.5e-3 - 1) < 0.02 and abs(pp["amplitude_N"] / 0.3 - 1) < 0.1, pp
+    assert left["signatures"][0]["kind"] == "periodic in position" and left["signatures"][0]["share"] > 0.7
+    assert "What the improved model leaves" in (tmp_path / "out" / "report.md").read_text()
+    assert (tmp_path / "out" / "remaining.png").stat().st_size > 0

@@ -81,28 +81,41 @@ def _position(r, y, held, moving) -> tuple[dict | None, dict | None, dict]:
     stroke = float(np.ptp(x))
     if not (ms > 0 and stroke > 0):
         return None, None, {}
-    # level along the stroke: a straight line in position
-    A = np.column_stack([np.ones_like(x), x])
-    c, *_ = np.linalg.lstsq(A, e, rcond=None)
-    e1 = e - A @ c
-    level = {"slope_N_per_m": float(c[1]), "change_over_stroke_N": float(c[1] * stroke), "stroke_m": stroke,
-             "share": float(1 - np.mean(e1 ** 2) / ms)}
     # periodic in position: a sinusoid of the position, at least 3 periods along the stroke, at most
-    # one period per 20 distinct positions
+    # one period per 20 distinct positions; fitted together with a level along the stroke (a
+    # straight line in position), each credited with what it adds to the other
     dx = np.diff(np.unique(np.round(x / (stroke * 1e-6))))
     n_pos = len(dx) + 1
     p_min = max(stroke / max(n_pos / 20, 3.0), stroke / 2000)
     periods = np.geomspace(stroke / 3, p_min, 300) if stroke / 3 > p_min else np.array([])
+
+    def fit(*cols):
+        A = np.column_stack([np.ones_like(x), *cols])
+        c, *_ = np.linalg.lstsq(A, e, rcond=None)
+        return c, float(np.mean((e - A @ c) ** 2))
+
     best, scan = None, []
     for p in periods:
         w = 2 * np.pi * x / p
-        B_ = np.column_stack([np.ones_like(x), x, np.sin(w), np.cos(w)])
-        cc, *_ = np.linalg.lstsq(B_, e, rcond=None)
-        share = float(1 - np.mean((e - B_ @ cc) ** 2) / np.mean(e1 ** 2)) * (1 - level["share"])
-        scan.append(share)
-        if best is None or share > best["share"]:
-            best = {"period_m": float(p), "amplitude_N": float(math.hypot(cc[2], cc[3])), "share": share,
-                    "periods_on_stroke": float(stroke / p)}
+        c, m = fit(x, np.sin(w), np.cos(w))
+        scan.append(1 - m / ms)
+        if best is None or m < best[1]:
+            best = (p, m, c)
+    c_line, m_line = fit(x)
+    best_out = None
+    if best is None:
+        level_share = 1 - m_line / ms
+        slope = c_line[1]
+    else:
+        p, m_all, c = best
+        w = 2 * np.pi * x / p
+        _, m_nox = fit(np.sin(w), np.cos(w))
+        level_share, slope = (m_nox - m_all) / ms, c[1]
+        best_out = {"period_m": float(p), "amplitude_N": float(math.hypot(c[2], c[3])),
+                    "share": float((m_line - m_all) / ms), "periods_on_stroke": float(stroke / p)}
+    level = {"slope_N_per_m": float(slope), "change_over_stroke_N": float(slope * stroke), "stroke_m": stroke,
+             "share": float(level_share)}
+    best = best_out
     return level, best, {"periods_m": periods, "share": np.array(scan)}
 
 
