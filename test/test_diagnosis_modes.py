@@ -155,3 +155,4 @@ def test_diagnosis_reports_what_it_could_not_explain(tmp_path):
     assert left["signatures"][0]["kind"] == "periodic in position" and left["signatures"][0]["share"] > 0.7
     assert "What the improved model leaves" in (tmp_path / "out" / "report.md").read_text()
     assert (tmp_path / "out" / "remaining.png").stat().st_size > 0
+

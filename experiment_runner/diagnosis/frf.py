@@ -47,7 +47,7 @@ from .model import ModelSpec
 from experiment_runner.metrics import cross_spectra
 
 __all__ = ["measured_frf", "model_frf", "mode_ratio", "locate_modes", "transfer_ratio", "noise_band_modes",
-           "loop_from_excitation", "drive_frf", "psd_trials", "transfer_summary"]
+           "loop_from_excitation", "drive_frf", "psd_trials"]
 
 
 def _nperseg(data: DiagData, nperseg: int | None) -> int:
@@ -111,8 +111,11 @@ def transfer_ratio(spec: ModelSpec, data: DiagData, nperseg: int | None = None):
     instruments: the command on an open-loop record (the known force, if any, then enters
     exactly); the recorded reference and the known force on a closed-loop one, per bin the one
     of the larger coherence ``|P_zy|^2 / (P_zz P_yy)`` with the measurement. Averaged over the
-    trials (valid samples, linear detrend per segment). Returns ``(f [Hz], R, coherence,
-    instrument per bin)`` for ``f > 0``, or None (trials shorter than a segment)."""
+    trials (valid samples, linear detrend per segment). The model's transfer is its linear part
+    (:func:`model_frf`): where its friction holds the table (pre-sliding stiffness, low
+    frequencies) ``R`` shows the friction, not a mass (:func:`locate_modes` reads narrow features
+    only). Returns ``(f [Hz], R, coherence, instrument per bin)`` for ``f > 0``, or None (trials
+    shorter than a segment)."""
     nps = _nperseg(data, nperseg)
     fk = data.known_force()
     names = ["command"] if data.open_loop else ["reference", "known force"]
@@ -163,14 +166,15 @@ def mode_ratio(f, f_b: float, zeta: float, phi: float) -> np.ndarray:
     return 1.0 / ((1.0 - phi) + phi * g)
 
 
-def locate_modes(spec: ModelSpec, data: DiagData, min_coherence: float = 0.8, max_modes: int = 2) -> list[dict]:
+def locate_modes(spec: ModelSpec, data: DiagData, min_coherence: float = 0.8, max_modes: int = 2,
+                 est=None) -> list[dict]:
     """Narrow features of ``|R|`` (:func:`transfer_ratio`: measured over model transfer, by
     instrument variables; coherent bins, ratio detrended by a running median over an octave) at
     least 4 robust standard deviations out, each fitted by :func:`mode_ratio` times a complex gain
     over an octave each side; kept if lightly damped (zeta < 0.2), of a fraction of the mass (< 0.8)
     and fitting to 15 % RMS. Returns the fitted modes ``{f_hz, zeta, fraction, feature_hz, kind,
-    depth_db, fit_rms, source}``, deepest first."""
-    est = transfer_ratio(spec, data)
+    depth_db, fit_rms, source}``, deepest first. ``est``: :func:`transfer_ratio`'s result, if at hand."""
+    est = transfer_ratio(spec, data) if est is None else est
     if est is None:
         return []
     f, Rall, coh, which = est
@@ -199,35 +203,6 @@ def locate_modes(spec: ModelSpec, data: DiagData, min_coherence: float = 0.8, ma
             fit.update(feature_hz=float(fk), kind=kind, depth_db=float(20 * dev[i] / math.log(10)),
                        source=f"transfer ({which[ok][i]} as instrument)")
             out.append(fit)
-    return out
-
-
-def transfer_summary(f, R, coh, min_coherence: float = 0.5) -> dict | None:
-    """The measured / model transfer in bands (octaves from the lowest coherent bin): ``|R|``
-    (median), phase [deg] (median), coherence; and the frequency above which ``|R|`` has fallen
-    3 dB and 20 dB below its low-frequency level with the phase there -- what a rigid model
-    misses smoothly (a mass error is a flat ``|R|``; a zero-phase low-pass of the measurement a
-    fall without phase; a mode a resonance / anti-resonance pair with a phase swing)."""
-    ok = (coh >= min_coherence) & np.isfinite(R) & (R != 0)
-    if ok.sum() < 6:
-        return None
-    fo, Ro = f[ok], R[ok]
-    bands = []
-    lo = fo[0]
-    while lo < fo[-1]:
-        sel = (fo >= lo) & (fo < 2 * lo)
-        if sel.sum():
-            bands.append({"f_lo_hz": float(lo), "f_hi_hz": float(2 * lo), "magnitude": float(np.median(np.abs(Ro[sel]))),
-                          "phase_deg": float(np.degrees(np.median(np.angle(Ro[sel])))),
-                          "coherence": float(np.median(coh[ok][sel]))})
-        lo *= 2
-    ref = bands[0]["magnitude"] if bands else 1.0
-    mag = np.abs(Ro)
-    out = {"bands": bands, "low_frequency_magnitude": ref}
-    for db in (3, 20):
-        below = np.flatnonzero(mag < ref * 10 ** (-db / 20))
-        out[f"fall_{db}db_hz"] = float(fo[below[0]]) if len(below) else None
-        out[f"fall_{db}db_phase_deg"] = float(np.degrees(np.angle(Ro[below[0]]))) if len(below) else None
     return out
 
 

@@ -26,7 +26,7 @@ import numpy as np
 from scipy import signal
 
 from .context import Context
-from .frf import drive_frf, locate_modes, loop_from_excitation, noise_band_modes, psd_trials, transfer_ratio, transfer_summary
+from .frf import drive_frf, locate_modes, loop_from_excitation, noise_band_modes, psd_trials, transfer_ratio
 from .judge import ReplayJudge, noise_free
 from .predict import taper
 
@@ -428,16 +428,12 @@ def transfer_modes(spec, data) -> tuple[list, dict]:
     """Modes of ``data`` against model ``spec``: narrow features of the measured transfer
     (:func:`.frf.locate_modes`, by instrument variables) and, on a closed-loop record, of the noise
     response (:func:`noise_spectrum_modes`) not within 15 % of one of them. Returns ``(modes,
-    info)``: ``info`` holds the transfer's summary in bands (:func:`.frf.transfer_summary`) and the
-    noise spectrum's examined bands."""
-    modes = list(locate_modes(spec, data))
-    info: dict = {}
+    info)``: ``info`` holds the transfer's instruments and the noise spectrum's examined bands."""
     est = transfer_ratio(spec, data)
+    modes = list(locate_modes(spec, data, est=est)) if est is not None else []
+    info: dict = {}
     if est is not None:
-        f, R, coh, which = est
-        info["transfer"] = transfer_summary(f, R, coh)
-        if info["transfer"] is not None:
-            info["transfer"]["instruments"] = sorted(set(which.tolist()))
+        info["instruments"] = sorted(set(est[3].tolist()))
     nb, nb_info = noise_spectrum_modes(spec, data)
     info["noise_spectrum"] = nb_info
     for m in nb:
