@@ -156,3 +156,16 @@ def test_diagnosis_reports_what_it_could_not_explain(tmp_path):
     assert "What the improved model leaves" in (tmp_path / "out" / "report.md").read_text()
     assert (tmp_path / "out" / "remaining.png").stat().st_size > 0
 
+
+
+def test_a_single_bin_line_is_no_mode_a_mode_fits_inside_its_bounds():
+    """The transfer-ratio fit of a true mode ratio (500 Hz, zeta 0.02, 20 %) lands inside its
+    bounds; a ratio of 1 with one bin 2x (a line of the excitation: EMPS' reference gave a '2.44 Hz
+    mode' of zeta 1e-4 and 0.05 % of the mass) ends at a bound and is not located."""
+    from experiment_runner.diagnosis.frf import _fit_mode
+    f = np.linspace(250, 1000, 200)
+    fit = _fit_mode(f, mode_ratio(f, F_B, ZETA, FRACTION), 560.0, "resonance")
+    assert fit["at_bound"] == [] and abs(fit["f_hz"] / F_B - 1) < 0.01, fit
+    R = np.ones(len(f), complex)
+    R[100] = 2.0
+    assert _fit_mode(f, R, float(f[100]), "resonance")["at_bound"], "a one-bin line fitted as a mode"

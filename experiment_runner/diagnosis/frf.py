@@ -171,8 +171,8 @@ def locate_modes(spec: ModelSpec, data: DiagData, min_coherence: float = 0.8, ma
     """Narrow features of ``|R|`` (:func:`transfer_ratio`: measured over model transfer, by
     instrument variables; coherent bins, ratio detrended by a running median over an octave) at
     least 4 robust standard deviations out, each fitted by :func:`mode_ratio` times a complex gain
-    over an octave each side; kept if lightly damped (zeta < 0.2), of a fraction of the mass (< 0.8)
-    and fitting to 15 % RMS. Returns the fitted modes ``{f_hz, zeta, fraction, feature_hz, kind,
+    over an octave each side; kept if lightly damped (zeta < 0.2), of a fraction of the mass (< 0.8),
+    fitting to 15 % RMS and with no parameter at its bound. Returns the fitted modes ``{f_hz, zeta, fraction, feature_hz, kind,
     depth_db, fit_rms, source}``, deepest first. ``est``: :func:`transfer_ratio`'s result, if at hand."""
     est = transfer_ratio(spec, data) if est is None else est
     if est is None:
@@ -197,9 +197,11 @@ def locate_modes(spec: ModelSpec, data: DiagData, min_coherence: float = 0.8, ma
         used |= (fo >= fk / 1.3) & (fo <= fk * 1.3)
         kind = "antiresonance" if dev[i] < 0 else "resonance"
         fit = _fit_mode(fo[band], R[band], fk, kind)
-        # a lightly damped mode of a fraction of the mass, fitting the ratio to 15 % (log units): else a
-        # broad misfit of the model (friction, the loop through which a closed-loop transfer is seen)
-        if fit is not None and fit["zeta"] < 0.2 and fit["fraction"] < 0.8 and fit["fit_rms"] < 0.15:
+        # a lightly damped mode of a fraction of the mass, fitting the ratio to 15 % (log units), no
+        # parameter at its bound: else a broad misfit of the model (friction, the loop through which a
+        # closed-loop transfer is seen) or a line of the excitation (a mode of zeta 1e-4, 0.05 % of the mass)
+        if (fit is not None and fit["zeta"] < 0.2 and fit["fraction"] < 0.8 and fit["fit_rms"] < 0.15
+                and not fit.pop("at_bound")):
             fit.update(feature_hz=float(fk), kind=kind, depth_db=float(20 * dev[i] / math.log(10)),
                        source=f"transfer ({which[ok][i]} as instrument)")
             out.append(fit)
@@ -407,12 +409,13 @@ def _fit_mode(f, R, fk, kind):
         return np.concatenate([e.real, e.imag])
 
     best = None
+    lo, hi = [math.log(fk / 3), math.log(1e-4), -8], [math.log(fk * 3), 0.0, 8]
     for phi0 in (0.05, 0.2, 0.5):
         fb0 = fk if kind == "antiresonance" else fk * math.sqrt(1 - phi0)
         for z0 in (0.01, 0.05):
             try:
                 r = optimize.least_squares(res, [math.log(fb0), math.log(z0), math.log(phi0 / (1 - phi0))],
-                                           bounds=([math.log(fk / 3), math.log(1e-4), -8], [math.log(fk * 3), 0.0, 8]))
+                                           bounds=(lo, hi))
             except (ValueError, np.linalg.LinAlgError):
                 continue
             if best is None or r.cost < best.cost:
@@ -420,4 +423,5 @@ def _fit_mode(f, R, fk, kind):
     if best is None:
         return None
     fb, ze, ph = math.exp(best.x[0]), math.exp(best.x[1]), 1 / (1 + math.exp(-best.x[2]))
-    return {"f_hz": fb, "zeta": ze, "fraction": ph, "fit_rms": float(np.sqrt(2 * best.cost / len(best.fun)))}
+    at = [n for k, n in enumerate(("f", "zeta", "fraction")) if min(best.x[k] - lo[k], hi[k] - best.x[k]) < 1e-3 * (hi[k] - lo[k])]
+    return {"f_hz": fb, "zeta": ze, "fraction": ph, "fit_rms": float(np.sqrt(2 * best.cost / len(best.fun))), "at_bound": at}
