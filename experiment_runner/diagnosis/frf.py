@@ -19,8 +19,7 @@ then decides on the held-out data like any other.
 
 **Closed loop.** In a loop ``u = K (r - y)`` driven by drive noise ``w`` (``y = G (D u + w)``),
 the command -> measurement estimate ``P_uy / P_uu`` is ``-1 / K`` wherever the noise excites the
-loop more than the reference: the controller, not the plant (the corpus' 501 Hz payload mode was
-never located so). :func:`transfer_ratio` therefore uses an *instrument* the noise does not
+loop more than the reference: the controller, not the plant. :func:`transfer_ratio` therefore uses an *instrument* the noise does not
 reach -- the recorded reference or the known external force on a closed-loop record, the command
 on an open-loop one: ``G D = P_zy / (P_zu + P_zf / D)`` is unbiased for any such ``z`` (per bin
 the instrument of the larger coherence with the measurement). Where neither excites the loop

@@ -211,8 +211,9 @@ def predict(setup: Setup, base: ModelSpec, opt: Options, timing: dict) -> Predic
 
 
 def locate(setup: Setup, base: ModelSpec, pred: Prediction, opt: Options, timing: dict) -> Location:
-    """Where and what the nominal's residual holds (regimes, spectra, bins; modes on the command ->
-    measurement transfer, anywhere up to Nyquist); the library bound to the recording."""
+    """Where and what the nominal's residual holds (regimes, spectra, bins; modes on the measured
+    transfer and, on a closed-loop record, in the command's noise spectrum, anywhere up to Nyquist:
+    :func:`.locate.transfer_modes`); the library bound to the recording."""
     data, obs = setup.data, setup.observer
     t = time.perf_counter()
     summary, arrays, ctx = locate_residual(data, pred.residual, pred.floor.res_a, pred.floor.sim_a, obs.f_o,
