@@ -3,6 +3,8 @@ closed loop was never located, the command -> measurement transfer there being t
 ``-1/K``): by instrument variables (:func:`.frf.transfer_ratio`) where a known force or the
 reference excites the loop, by the level of the loop's noise response against the model's own
 simulated recordings (:func:`.locate.noise_spectrum_modes`) where only the noise does."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -97,7 +99,8 @@ def test_remaining_names_a_line_and_a_position_period_with_their_shares():
     """A residual of a 0.3 N line at 120 Hz, a 0.2 N sinusoid of period 0.5 mm in position and
     0.01 N white noise: the line (frequency within 1 Hz, amplitude within 10 %) and the period
     (within 5 %, amplitude within 15 %) are listed, with shares adding to about the whole
-    (0.045 / 0.02 of 0.065 N^2: 69 % and 31 % within 8 points)."""
+    (0.045 / 0.02 of 0.065 N^2: 69 % and 31 % within 8 points), in N and m on a linear axis, N·m
+    and rad on a rotary one."""
     from experiment_runner.diagnosis.signatures import remaining
     d, t, x = _moving()
     rng = np.random.default_rng(0)
@@ -113,6 +116,10 @@ def test_remaining_names_a_line_and_a_position_period_with_their_shares():
     kinds = [s["kind"] for s in out["signatures"]]
     assert kinds[:2] == ["line in time", "periodic in position"], out["signatures"]
     assert out["ratio"] > 10
+    assert out["signatures"][0]["text"].endswith(" N") or " N," in out["signatures"][0]["text"]
+    # on a rotary axis the same numbers are said in N·m and rad
+    rot = remaining(dataclasses.replace(d, axis="rotary"), r, d.valid, 1000.0, floor_rms=0.01)["signatures"]
+    assert "N·m" in rot[0]["text"] and "rad" in rot[1]["text"], rot
 
 
 def test_remaining_lists_nothing_in_white_noise():

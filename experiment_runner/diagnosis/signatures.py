@@ -27,6 +27,7 @@ from scipy import signal
 
 from .frf import psd_trials
 from .locate import REGIMES, lowpass, regimes
+from .units import axis_units
 
 __all__ = ["remaining", "LINE_PROMINENCE_DB", "MIN_SHARE"]
 
@@ -126,7 +127,8 @@ def remaining(data, r: np.ndarray, held: np.ndarray, f_band: float, floor_rms: f
 
     Returns ``{rms_N, floor_rms_N, ratio, lines, position_periodic, stroke_level, regimes,
     signatures, arrays}``: ``signatures`` the listed ones ordered by share, each ``{kind, text,
-    share}``; ``arrays`` what the report plots (not written to report.json).
+    share}`` (the text in the axis' units, :func:`.units.axis_units`; the keys say the linear
+    ones); ``arrays`` what the report plots (not written to report.json).
 
     Examples
     --------
@@ -140,6 +142,8 @@ def remaining(data, r: np.ndarray, held: np.ndarray, f_band: float, floor_rms: f
     >>> round(out["lines"][0]["f_hz"]), round(out["lines"][0]["amplitude_N"], 1)
     (120, 0.3)
     """
+    U = axis_units(getattr(data, "axis", "linear") or "linear")
+    fu, pu = U["force"], U["position"]
     r = np.where(held, np.nan_to_num(r), 0.0)
     rms = float(np.sqrt(np.mean(r[held] ** 2))) if held.any() else 0.0
     out: dict = {"rms_N": rms, "floor_rms_N": floor_rms,
@@ -162,21 +166,21 @@ def remaining(data, r: np.ndarray, held: np.ndarray, f_band: float, floor_rms: f
                         "energy_share": float(np.sum(rl[m] ** 2) / np.sum(rl[held] ** 2))})
     out["regimes"] = reg
     sig = [{"kind": "line in time", "share": ln["share"],
-            "text": f"line at {ln['f_hz']:.4g} Hz, amplitude {ln['amplitude_N']:.3g} N"
+            "text": f"line at {ln['f_hz']:.4g} Hz, amplitude {ln['amplitude_N']:.3g} {fu}"
                     + (f", strongest in {ln['regime']}" if "regime" in ln else "")} for ln in lines]
     if periodic and periodic["share"] >= MIN_SHARE:
         sig.append({"kind": "periodic in position", "share": periodic["share"],
-                    "text": f"period {periodic['period_m']:.4g} m, amplitude {periodic['amplitude_N']:.3g} N "
+                    "text": f"period {periodic['period_m']:.4g} {pu}, amplitude {periodic['amplitude_N']:.3g} {fu} "
                             f"({periodic['periods_on_stroke']:.3g} periods on the stroke)"})
     if level and level["share"] >= MIN_SHARE:
         sig.append({"kind": "level along the stroke", "share": level["share"],
-                    "text": f"{level['change_over_stroke_N']:+.3g} N over the {level['stroke_m']:.3g} m stroke"})
+                    "text": f"{level['change_over_stroke_N']:+.3g} {fu} over the {level['stroke_m']:.3g} {pu} stroke"})
     if reg:
         top = max(reg, key=lambda g: g["energy_share"] - g["time_share"])
         if top["energy_share"] - top["time_share"] >= MIN_SHARE:
             sig.append({"kind": "regime", "share": top["energy_share"],
                         "text": f"{top['regime']}: {100 * top['energy_share']:.0f} % of the residual in "
-                                f"{100 * top['time_share']:.0f} % of the time (RMS {top['rms_N']:.3g} N)"})
+                                f"{100 * top['time_share']:.0f} % of the time (RMS {top['rms_N']:.3g} {fu})"})
     out["signatures"] = sorted(sig, key=lambda s: -s["share"])
     out["arrays"] = {"spectrum": spec, "position_scan": scan}
     return out
