@@ -161,6 +161,8 @@ def test_diagnosis_reports_what_it_could_not_explain(tmp_path):
     assert abs(pp["period_m"] / 0.5e-3 - 1) < 0.02 and abs(pp["amplitude_N"] / 0.3 - 1) < 0.1, pp
     assert left["signatures"][0]["kind"] == "periodic in position" and left["signatures"][0]["share"] > 0.7
     assert "What the improved model leaves" in (tmp_path / "out" / "report.md").read_text()
+    from experiment_runner.diagnosis.cli import remaining_line
+    assert remaining_line(rep).startswith("left, located but not explained: period 0.000"), remaining_line(rep)
     assert (tmp_path / "out" / "remaining.png").stat().st_size > 0
 
 
