@@ -181,6 +181,8 @@ def main_diagnose(args) -> int:
     if v["fall"] is not None:
         print(f"held-out force residual RMS: {v['nominal']:.4g} {fu} -> {v['improved']:.4g} {fu} "
               f"({100 * v['fall']:.1f} % lower; floor {v['floor']:.3g} {fu})")
+    if remaining_line(rep):
+        print(remaining_line(rep))
     print(f"report: {out / 'report.md'}   improved preset: {out / 'improved_preset.yaml'}   "
           f"({rep['timing_s']['total_s']:.1f} s)")
     return 0
@@ -195,6 +197,26 @@ def _interrupted_report(path, since: float) -> bool:
     except (OSError, ValueError):
         return False
     return str(b.get("stopped") or "").startswith("interrupted")
+
+
+def remaining_line(rep: dict) -> str | None:
+    """The stdout line of what the improved model leaves (the report's ``remaining``, its three
+    largest signatures), or None when it left nothing beyond its floor.
+
+    Examples
+    --------
+    >>> remaining_line({"remaining": {"signatures": [{"text": "line at 50 Hz", "share": 0.4}]}})
+    'left, located but not explained: line at 50 Hz (40 %)'
+    >>> remaining_line({}) is None
+    True
+    """
+    left = rep.get("remaining")
+    if not left:
+        return None
+    sigs = left.get("signatures") or []
+    return "left, located but not explained: " + ("; ".join(
+        f"{sg['text']} ({100 * sg['share']:.0f} %)" for sg in sigs[:3]) or "spread, no line, position signature "
+        "or regime concentration (remaining.png)")
 
 
 def _main_power(args) -> int:

@@ -19,15 +19,19 @@ leaves), low-passed at ``f_band`` (zero phase) unless said otherwise:
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 from scipy import signal
 
 from .context import Context
+from .frf import drive_frf, locate_modes, loop_from_excitation, noise_band_modes, psd_trials, transfer_ratio
+from .judge import ReplayJudge, noise_free
 from .predict import taper
 
-__all__ = ["REGIMES", "regimes", "locate", "lowpass", "proposals", "PROPOSAL_KEYS"]
+__all__ = ["REGIMES", "regimes", "locate", "lowpass", "proposals", "PROPOSAL_KEYS", "transfer_modes",
+           "noise_spectrum_modes"]
 
 REGIMES = ("in_position", "settling", "reversal", "acceleration", "constant_velocity")
 
@@ -367,3 +371,72 @@ def proposals(data, res, res_floor, floor_data, f_obs: float, f_band: float, ctx
         old = [v for v in getattr(ctx, k) if all(abs(math.log(v / w)) > 0.15 for w in new if v > 0 and w > 0)]
         out[k] = tuple((new + old)[:3] if k == "ripple_period" else new + old)
     return out
+
+
+EXCITATION_RUNS = 4
+"""Noise-free runs of the model under a known white table force that measure its closed loop
+(:func:`.frf.loop_from_excitation`)."""
+
+
+def noise_spectrum_modes(spec, data) -> tuple[list, dict]:
+    """Modes located in the noise response of a closed-loop record (:func:`.frf.noise_band_modes`):
+    the recorded command's departure from ``spec``'s noise-free replay against the same of
+    ``spec``'s simulated recordings (the replay judge's fixed seeds, every trial), through the
+    model's closed loop measured under a known white force of the drive noise's RMS. Returns
+    ``(modes, info)``; nothing on an open-loop record or a model without drive noise (its
+    simulated recordings would have no spread to compare with)."""
+    if data.open_loop:
+        return [], {"why": "open-loop record (the transfer is measured directly)"}
+    sig = float(spec.compiled().pm_full.noise_std)
+    if not sig > 0:
+        return [], {"why": "the model has no drive noise: its simulated recordings give no noise spectrum"}
+    allv = dataclasses.replace(data, held=data.valid.copy())
+    j = ReplayJudge(allv)
+    rp = j.replay(spec)
+    if not rp.ok:
+        return [], {"why": f"the model's replay is unstable ({rp.why})"}
+    rate = data.rate
+    n_min = int(min(data.lengths[c] for c in j.cols))
+    nps = int(2 ** max(6, math.floor(math.log2(max(64, min(n_min // 12, rate / 5))))))
+    u_k, _, status, _ = j.simulate_recordings(spec, j.seeds)
+    good = np.all(status == 0, axis=1)
+    if good.sum() < 4:
+        return [], {"why": "the model's simulated recordings diverged"}
+    B = len(j.cols)
+    cols = np.tile(j.cols, EXCITATION_RUNS)
+    dx = allv.subset(cols)
+    rng = np.random.default_rng(20251)
+    exc = rng.normal(0.0, sig, dx.shape) * dx.valid
+    dx.f_ext = dx.known_force() + exc
+    jx = ReplayJudge(dx)
+    ux, _, sx, _ = jx.simulate_recordings(noise_free(spec), [0])
+    mask = j.mask
+    du = ux[0] - np.tile(rp.u, (1, EXCITATION_RUNS))
+    mx = np.tile(mask, (1, EXCITATION_RUNS)) & (sx[0] == 0)[None, :]
+    f = np.fft.rfftfreq(nps, 1.0 / rate)
+    D = drive_frf(spec, f)
+    X = loop_from_excitation(exc[:, jx.cols], du, mx, rate, nps, D)
+    S_d = psd_trials(j.u - rp.u, mask, rate, nps)
+    S_k = np.array([psd_trials(u_k[k] - rp.u, mask, rate, nps) for k in range(len(u_k)) if good[k]])
+    S_det = psd_trials(rp.u, mask, rate, nps)
+    modes, info = noise_band_modes(f, S_d, S_k, S_det, X, D, rate)
+    info["nperseg"] = nps
+    return modes, info
+
+
+def transfer_modes(spec, data) -> tuple[list, dict]:
+    """Modes of ``data`` against model ``spec``: narrow features of the measured transfer
+    (:func:`.frf.locate_modes`, by instrument variables) and, on a closed-loop record, of the noise
+    response (:func:`noise_spectrum_modes`) not within 15 % of one of them. Returns ``(modes,
+    info)``: ``info`` holds the transfer's instruments and the noise spectrum's examined bands."""
+    est = transfer_ratio(spec, data)
+    modes = list(locate_modes(spec, data, est=est)) if est is not None else []
+    info: dict = {}
+    if est is not None:
+        info["instruments"] = sorted(set(est[3].tolist()))
+    nb, nb_info = noise_spectrum_modes(spec, data)
+    info["noise_spectrum"] = nb_info
+    for m in nb:
+        if all(abs(math.log(m["f_hz"] / o["f_hz"])) > 0.15 for o in modes):
+            modes.append(m)
+    return modes, info

@@ -32,7 +32,7 @@ from threadpoolctl import threadpool_limits
 
 from experiment_runner.executor import make_executor
 
-from . import closing, stages, uncertainty
+from . import closing, signatures, stages, uncertainty
 from .budget import Budget
 from .data import DiagData
 from .forward import ForwardSelection
@@ -129,6 +129,12 @@ def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex, budge
         t = time.perf_counter()
         sparse = sparse_terms(setup.data, val.residual, path.context, setup.band_hz)
         timing["sparse_s"] = time.perf_counter() - t
+    left = None
+    if not val.adequate:      # keep looking: what the improved model leaves, as numbers (signatures.py)
+        t = time.perf_counter()
+        left = signatures.remaining(setup.data, val.residual.r, val.held, setup.band_hz,
+                                    val.figures["force_residual_rms_N"]["floor"])
+        timing["remaining_s"] = time.perf_counter() - t
     run = Run(nominal_source=nominal, setup=setup, stochastic=lattice.stochastic, prediction=pred,
               locate_summary=loc.summary, problem=problem, path=path, found=found, joint=joint,
               J_fit_nominal=J_fit_nominal, J_held_nominal=J_held_nominal, adequacy_tolerance=tol_ad, validation=val)
@@ -138,9 +144,12 @@ def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex, budge
     if budget.stopped is not None:         # never a confident answer from an unfinished search
         report["verdict"] += (" (partial: the time budget was reached)" if budget.stopped == "time budget"
                               else f" (partial: {budget.stopped})")
+    arrays = plot_arrays(run, loc.arrays)
+    if left is not None:
+        arrays["remaining"] = left.pop("arrays")
+        report["remaining"] = left
     if out is not None:
-        write_report(out, report, path.current, setup.nominal, setup.data, plot_arrays(run, loc.arrays),
-                     plots=opt.plots)
+        write_report(out, report, path.current, setup.nominal, setup.data, arrays, plots=opt.plots)
         report["timing_s"]["total_s"] = time.perf_counter() - T0
         budget.done("report", str(out))
     report["_improved_spec"] = path.current

@@ -63,6 +63,11 @@ Files written to the output folder ``DIR``
                         J_held {nominal, improved, fall}, replay_command_rms_N and
                         replay_position_rms_m {nominal, improved, run_to_run, fall},
                         open_loop_drift_rms_m {nominal, improved, window_s}
+``remaining``           only when the improved model is not adequate: what it leaves, located but not
+                        explained (:func:`.signatures.remaining`): rms_N, floor_rms_N, ratio, lines
+                        [{f_hz, amplitude_N, share, prominence_db, regime}], position_periodic
+                        {period_m, amplitude_N, share}, stroke_level, regimes, signatures [{kind,
+                        text, share}] (plot ``remaining.png``)
 ``improved_model``      name, preset_yaml (file name)
 ``timing_s``            wall time per stage
 ``budget``              the wall-clock budget (:mod:`.budget`): max_seconds, spent_s, reached,
@@ -285,6 +290,18 @@ def _md_noise(rep: dict) -> list[str]:
              f"{' — differs' if q.get('found') else ''}")
     L.append(f"- drive noise: estimate {_fmt(n.get('sigma'), 'A')} (model {_fmt(n.get('nominal_A'), 'A')})"
              f"{' — differs' if n.get('found') else ''}")
+    left = rep.get("remaining")
+    if left:
+        L.append("\n## What the improved model leaves (located, not explained)\n")
+        ratio = f" ({left['ratio']:.3g}x its floor {_fmt(left['floor_rms_N'], fu)})" if left.get("ratio") else ""
+        L.append(f"The improved model's replay is beyond its run-to-run floor; its held-out force residual is "
+                 f"{_fmt(left['rms_N'], fu)} RMS{ratio}. No library effect was adopted for the signatures "
+                 "below (each with its share of the residual's mean square):\n")
+        for sg in left.get("signatures", []):
+            L.append(f"- {sg['kind']}: {sg['text']} — {100 * sg['share']:.0f} %")
+        if not left.get("signatures"):
+            L.append("- no line, position signature or regime concentration stands out: the residual is "
+                     "spread (see `remaining.png`)")
     sp = rep.get("sparse_regression")
     if sp:
         L.append("\n## Sparse regression of the remaining residual\n")
@@ -407,6 +424,27 @@ def _plots(out: Path, rep: dict, data, arr: dict) -> list[str]:
         outputs.savefig(fig, out / "heldout_replay.png", dpi=90)
         plt.close(fig)
         files.append("heldout_replay.png")
+    left = arr.get("remaining")
+    if left and left.get("spectrum"):
+        sp, sc = left["spectrum"], left.get("position_scan") or {}
+        fig, ax = plt.subplots(1, 2 if len(sc.get("periods_m", [])) else 1, figsize=(11, 3.6), squeeze=False)
+        a = ax[0, 0]
+        a.loglog(sp["f_hz"][1:], sp["psd"][1:], lw=0.8)
+        for fl in sp.get("lines_hz", []):
+            a.axvline(fl, color="C3", lw=0.8, ls="--")
+        a.set_xlabel("frequency [Hz]")
+        a.set_ylabel("force residual PSD [N²/Hz]")
+        a.set_title("what the improved model leaves: lines in time", fontsize=9)
+        if ax.shape[1] > 1:
+            b = ax[0, 1]
+            b.semilogx(sc["periods_m"], 100 * sc["share"], lw=0.8)
+            b.set_xlabel("period in position [m]")
+            b.set_ylabel("explained share [%]")
+            b.set_title("what the improved model leaves: periodic in position", fontsize=9)
+        fig.tight_layout()
+        outputs.savefig(fig, out / "remaining.png", dpi=90)
+        plt.close(fig)
+        files.append("remaining.png")
     return files
 
 

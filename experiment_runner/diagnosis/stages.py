@@ -23,9 +23,9 @@ from .effects import Library
 from .effects.stochastic import Quantization
 from .fit import Evaluator, estimate_lattice
 from .floors import ForceFloor
-from .frf import locate_modes
 from .judge import Floor, ReplayJudge, controller_check, equivalent_reference
 from .locate import locate as locate_residual
+from .locate import transfer_modes
 from .model import ModelSpec, load_model
 from .observer import ObsResult, Observer, smoothing_hz
 from .openloop import OpenLoopJudge
@@ -211,18 +211,20 @@ def predict(setup: Setup, base: ModelSpec, opt: Options, timing: dict) -> Predic
 
 
 def locate(setup: Setup, base: ModelSpec, pred: Prediction, opt: Options, timing: dict) -> Location:
-    """Where and what the nominal's residual holds (regimes, spectra, bins; modes on the command ->
-    measurement transfer, anywhere up to Nyquist); the library bound to the recording."""
+    """Where and what the nominal's residual holds (regimes, spectra, bins; modes on the measured
+    transfer and, on a closed-loop record, in the command's noise spectrum, anywhere up to Nyquist:
+    :func:`.locate.transfer_modes`); the library bound to the recording."""
     data, obs = setup.data, setup.observer
     t = time.perf_counter()
     summary, arrays, ctx = locate_residual(data, pred.residual, pred.floor.res_a, pred.floor.sim_a, obs.f_o,
                                            setup.band_hz)
     try:
-        frf_modes = locate_modes(setup.nominal, data)
+        frf_modes, frf_info = transfer_modes(base, data)
     except (ValueError, np.linalg.LinAlgError) as err:
-        frf_modes = []
+        frf_modes, frf_info = [], {"why": f"failed: {err!r}"}
         opt.log(f"frf mode location failed: {err!r}")
     summary["frf_modes"] = frf_modes
+    summary["transfer"] = frf_info
     ctx = dataclasses.replace(ctx, frf_modes=tuple(frf_modes), smoothing_hz=data.smooth_hz,
                               resolution=base.preset.stage.encoder.resolution)
     timing["locate_s"] = time.perf_counter() - t
