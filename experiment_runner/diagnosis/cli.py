@@ -159,7 +159,7 @@ def main_diagnose(args) -> int:
                        + f" {p['unit']}" + (f" (nominal {p['nominal']:.4g})" if isinstance(p.get("nominal"), (int, float)) else "")
                        for p in f["params"])
         st = f.get("status", "identified")
-        print(f"  {i}. {f['title']}: {ps}  [{st}" + (f"; chosen by {f['chosen_by']}" if st != "identified" else "")
+        print(f"  {i}. {f['title']}: {ps}  [{st}" + (f"; chosen by {f['chosen_by']}" if st != "identified" and f.get("chosen_by") else "")
               + "]")
     for w in rep.get("withdrawn") or []:
         print(f"  not identified, withdrawn: {w['title']} ({w['why']})")
