@@ -145,7 +145,6 @@ def test_own_resolution_reads_a_quantization_step_and_is_zero_for_a_smooth_signa
     assert 0.2 * q < r < 2 * q
 
 
-@pytest.mark.slow
 def test_a_noise_free_nominal_with_an_ideal_encoder_has_the_datas_floor():
     case = power.PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
                            quantiles=(), seed=4242, profile={"kind": "point_to_point", "distance": 1e-4,
@@ -241,3 +240,47 @@ def test_a_force_residual_that_rises_while_the_replay_improves_is_stated():
     assert "The replay decides" in out[1]
     agree = dict(figures, force_residual_rms_N={"fall": 0.2})
     assert verdict.explain_figures(data, r_nom, r_new, valid, 200.0, agree) == []
+
+
+def test_a_nominal_stating_no_drive_noise_takes_the_datas_level_before_judging():
+    from experiment_runner.diagnosis import stages
+    from experiment_runner.diagnosis.options import Options
+    case = power.PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
+                           quantiles=(), seed=4242, profile={"kind": "point_to_point", "distance": 1e-4,
+                                                             "dwell": 0.06}, trials=4)
+    nominal, truth, _, data, _ = power.build_case(case)
+    s_true = ModelSpec(truth).preset.stage.drive.noise_current_rms
+    assert s_true > 0
+    quiet = noise_free(ModelSpec(nominal))
+    opt, timing = Options(plots=False, n_jobs=1), {}
+    setup = stages.read(None, quiet, opt, data, timing)
+    lattice = stages.quantization(setup, opt)
+    pred = stages.predict(setup, lattice.base, opt, timing)
+    sigma_before = pred.replay_floor.sigma_u
+    pred = stages.drive_noise_prior(setup, lattice, pred, opt, timing)
+    got = lattice.base.preset.stage.drive.noise_current_rms
+    assert 0.6 * s_true < got < 1.6 * s_true
+    assert [f["effect"] for f in lattice.found if f["effect"] == "noise_level"] == ["noise_level"]
+    assert pred.replay_floor.sigma_u > 3 * sigma_before          # the floor is the data's, not a numerical nothing
+
+
+def test_a_candidate_replaying_closer_than_its_own_recordings_replays_the_noise():
+    from experiment_runner.diagnosis.selection import JudgedRow, _consistent_from_below
+    z = {"mass": -5.0, "coulomb": 0.4, "delay": -1.0}
+
+    def rows():
+        return [JudgedRow(fit=SimpleNamespace(key=k, spec=k), replay=k, comparison=None, on_bound=[], ok=True, why="")
+                for k in z]
+    judge = SimpleNamespace(t_q=3.0, floor=lambda spec: SimpleNamespace(spec=spec, replay=SimpleNamespace(ok=True)),
+                            consistency=lambda rp, fl: z[fl.spec])
+    # data as noisy as the model: a lighter mass whose replay is closer to the data than its own
+    # recordings are (z far below 0) replays this realisation's noise, not a physics
+    kept, floors = _consistent_from_below(SimpleNamespace(judge=judge, noise_ratio=1.0), rows())
+    assert [j.fit.key for j in kept] == ["coulomb", "delay"] and len(floors) == 3
+    gone = [j for j in rows() if j.fit.key == "mass"]
+    _consistent_from_below(SimpleNamespace(judge=judge, noise_ratio=1.0), gone)
+    assert not gone[0].ok and gone[0].why.startswith("replays the noise")
+    # data quieter than the model (or the level not read): every candidate, the truth too, replays closer
+    for ratio in (0.5, None):
+        kept, _ = _consistent_from_below(SimpleNamespace(judge=judge, noise_ratio=ratio), rows())
+        assert len(kept) == 3
