@@ -181,6 +181,14 @@ def test_scaling_coulomb_shows_the_static_force_it_moves_and_the_model_is_rename
     other = new.with_changes({"stage.force_offset": 0.1})
     off = [c for c in verdict.model_changes(spec, other, [(co, [2 * fc0])]) if c["field"] == "stage.force_offset"]
     assert off and off[0]["by"] == []
+    # a mode added to a model with none: its fields, not an empty list against nothing
+    sm = LIBRARY["structural_mode"]
+    bare = _nominal("dahl", lambda d: d["stage"].update(modes=[]))
+    with_mode = sm.apply(bare, [150.0, 0.03, 0.1])
+    rows = verdict.model_changes(bare, with_mode, [(sm, [150.0, 0.03, 0.1])])
+    assert rows and all(r["field"].startswith("stage.modes.0.") and r["nominal"] is None
+                        and r["by"] == ["structural_mode"] for r in rows if "modes" in r["field"])
+    assert any(r["field"] == "stage.modes.0.frequency" and r["improved"] == pytest.approx(150.0) for r in rows)
     named = verdict.improved_name(new, spec, [{"effect": "coulomb"}])
     assert named.preset.name == spec.preset.name + "+coulomb"
     assert verdict.improved_name(spec, spec, []).preset.name == spec.preset.name

@@ -227,7 +227,7 @@ def model_changes(nominal, improved, applied: list) -> list:
         if isinstance(d, dict):
             for k, v in d.items():
                 out.update(flat(v, f"{pre}{k}."))
-        elif isinstance(d, list) and d and all(isinstance(v, dict) for v in d):
+        elif isinstance(d, list) and all(isinstance(v, dict) for v in d):     # [] of a list of dicts: none
             for i, v in enumerate(d):
                 out.update(flat(v, f"{pre}{i}."))
         else:
