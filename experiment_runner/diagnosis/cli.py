@@ -181,8 +181,9 @@ def main_diagnose(args) -> int:
     if v["fall"] is not None:
         print(f"held-out force residual RMS: {v['nominal']:.4g} {fu} -> {v['improved']:.4g} {fu} "
               f"({100 * abs(v['fall']):.1f} % {'lower' if v['fall'] >= 0 else 'higher'}; floor {v['floor']:.3g} {fu})")
-    for line in rep["validation"].get("disagreements") or []:
-        print(f"  {line}")
+    dis = rep["validation"].get("disagreements") or []
+    if dis:
+        print(f"  {dis[0]} (why: report.md, Findings)")
     print(f"report: {out / 'report.md'}   improved preset: {out / 'improved_preset.yaml'}   "
           f"({rep['timing_s']['total_s']:.1f} s)")
     return 0
