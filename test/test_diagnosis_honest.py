@@ -58,6 +58,11 @@ def test_identification_names_a_bound_a_sigma_and_an_implausible_value():
     assert identification(["F"], [0.01], [0.001], f)[0] is None
     assert identification(["F"], [0.01], [0.001], [dataclasses.replace(f[0], physical_lo=False)])[0] == \
         "F at its bound 0"
+    # a log parameter over decades: 0.1 % of its range is taken in its logarithm (a Dahl stiffness
+    # 4e2 times its lower bound is not at it)
+    k = [Param("k_sigma", "N/m", 2190.0, 2.19e9, 2.19e6, log=True)]
+    assert identification(["k_sigma"], [8.77e5], [200.0], k)[0] is None
+    assert identification(["k_sigma"], [2195.0], [1.0], k)[0] == "k_sigma at its bound 2190"
     # a viscous term of 16 ± 293 N·s/m determines nothing
     c = [Param("c", "N·s/m", 0.0, 1e4, 10.0)]
     why, weak = identification(["c"], [16.0], [293.0], c)

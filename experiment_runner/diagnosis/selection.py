@@ -214,12 +214,21 @@ def identification(names, theta, sigma, params=None, documented=None, axis: str 
     for i, (n, v, s) in enumerate(zip(names, th, sig)):
         p = params[i] if params is not None and i < len(params) else None
         if p is not None and p.hi > p.lo:
-            tol = 1e-3 * (p.hi - p.lo)
-            if np.isfinite(s) and s <= abs(v):
-                tol = max(tol, s)
-            if abs(p.hi - v) <= tol:
+            # 0.1 % of the range in the optimiser's variable (log for a log parameter: a stiffness
+            # ranging over decades is not at its lower bound 1e-3 of the way up in value), or its own
+            # standard error where that determines it
+            s_ok = np.isfinite(s) and s <= abs(v)
+            if p.log and p.lo > 0 and v > 0:
+                lt = 1e-3 * np.log(p.hi / p.lo)
+                hi_b, lo_b = np.log(p.hi / v) <= lt, np.log(v / p.lo) <= lt
+            else:
+                t = 1e-3 * (p.hi - p.lo)
+                hi_b, lo_b = abs(p.hi - v) <= t, abs(v - p.lo) <= t
+            hi_b = hi_b or (s_ok and abs(p.hi - v) <= s)
+            lo_b = lo_b or (s_ok and abs(v - p.lo) <= s)
+            if hi_b:
                 return f"{n} at its bound {p.hi:.4g}", weak
-            if abs(v - p.lo) <= tol and not p.physical_lo:
+            if lo_b and not p.physical_lo:
                 return f"{n} at its bound {p.lo:.4g}", weak
         d = documented.get(n)
         rng = d.plausible_on(axis) if d is not None else None
