@@ -232,11 +232,13 @@ def adopt_best(problem: Problem, path: Path, step: int, best: JudgedRow, conf: l
     path.found.append({"effect": bf.key, "title": bf.title, "kind": bf.effect.kind, "step": step,
                        "params": bf.params(), "derived": bf.derived, "expressible": bf.expressible,
                        "confounded_with": [j.fit.key for j in conf], "alternatives": alts,
+                       "chosen_by": best.rule or "the best replay",
                        "J_held": bf.J_held, "replay": best.comparison.row(),
                        "refined_by_replay": bool(bf.refined),
                        "replaces": None if gone is None else {"effect": gone["effect"], "step": gone["step"],
                                                               "params": gone["params"]}})
     path.current = new_spec
+    path.continued = set()                       # a new model: its continuations are tried again
     renew_floor(problem, path, new_spec)         # the run-to-run floor re-estimated after every adoption
     if backward(problem, path, bf):
         renew_floor(problem, path, path.current)

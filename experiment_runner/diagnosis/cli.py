@@ -174,13 +174,32 @@ def main_diagnose(args) -> int:
         ps = ", ".join(f"{p['name']} = {p['value']:.4g}" + (f" ± {p['sigma']:.2g}" if p.get("sigma") else "")
                        + f" {p['unit']}" + (f" (nominal {p['nominal']:.4g})" if isinstance(p.get("nominal"), (int, float)) else "")
                        for p in f["params"])
-        conf = f"  [confounded with {', '.join(f['confounded_with'])}]" if f.get("confounded_with") else ""
-        print(f"  {i}. {f['title']}: {ps}{conf}")
+        st = f.get("status", "identified")
+        print(f"  {i}. {f['title']}: {ps}  [{st}" + (f"; chosen by {f['chosen_by']}" if st != "identified" and f.get("chosen_by") else "")
+              + "]")
+    for w in rep.get("withdrawn") or []:
+        print(f"  not identified, withdrawn: {w['title']} ({w['why']})")
+    for fnd in rep.get("findings") or []:
+        if fnd["status"] == "located, not explained":
+            w = fnd.get("where") or {}
+            print(f"  {fnd['finding']}: located, not explained"
+                  + (f" (most in {w['regime']['regime']})" if w.get("regime") else ""))
+    dl = rep.get("detection_limits")
+    if dl and not rep["found"]:
+        print("  the record would have shown (smallest change, half the recordings): " + ", ".join(
+            f"{d['parameter']} {d['smallest_change']:.3g} {d['unit']}" for d in dl[:6])
+            + (f" ... ({len(dl)} effects: report.md)" if len(dl) > 6 else ""))
+    cmd = rep["recording"].get("command")
+    if cmd and cmd["kind"] != "drive":
+        print(f"  command: {cmd['kind']} ({cmd['meaning']})")
     v = rep["validation"]["force_residual_rms_N"]
     fu = (rep.get("units") or {}).get("force", "N")
     if v["fall"] is not None:
         print(f"held-out force residual RMS: {v['nominal']:.4g} {fu} -> {v['improved']:.4g} {fu} "
-              f"({100 * v['fall']:.1f} % lower; floor {v['floor']:.3g} {fu})")
+              f"({100 * abs(v['fall']):.1f} % {'lower' if v['fall'] >= 0 else 'higher'}; floor {v['floor']:.3g} {fu})")
+    dis = rep["validation"].get("disagreements") or []
+    if dis:
+        print(f"  {dis[0]} (why: report.md, Findings)")
     if remaining_line(rep):
         print(remaining_line(rep))
     print(f"report: {out / 'report.md'}   improved preset: {out / 'improved_preset.yaml'}   "

@@ -60,6 +60,7 @@ class DiagData:
     f_ext: np.ndarray = None      # (T, B) known external force on the table [N] (/stage/external_force; None: none)
     open_loop: bool = False       # no reference: the recorded command drove the plant (x_ref = measured position)
     axis: str = "linear"          # linear (m, N) or rotary (rad, N·m): the recording's run.axis / preset stage.kind
+    command_kind: str = "drive"   # what /stage/command holds: "drive" (a drive's command) or "measured" (the force applied)
     excluded: list = field(default_factory=list)   # trials left out as damaged: "trial N: why" (also in notes)
     incomplete: list = field(default_factory=list)  # trials kept though incomplete (aborted, cut short): "trial N: why"
 
@@ -89,7 +90,7 @@ class DiagData:
         return DiagData(rate=self.rate, t0=self.t0[cols], lengths=self.lengths[cols],
                         trial_ids=[self.trial_ids[c] for c in cols], source=self.source, split=self.split,
                         smooth_hz=self.smooth_hz, notes=list(self.notes), open_loop=self.open_loop, axis=self.axis,
-                        **kw)
+                        command_kind=self.command_kind, **kw)
 
 
 def smooth(y: np.ndarray, rate: float, cutoff: float, lengths=None):
@@ -179,6 +180,7 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
                       trial_ids=[s[0] for s in slices], source=str(rec.path), notes=notes, burn_in=burn_in,
                       d0=cut(d0), d1=cut(d1), mode=cut(mode), f_ext=cut(f_ext), open_loop=rec.open_loop)
     out.axis = axis
+    out.command_kind = rec.command_kind
     out.excluded, out.incomplete = excluded, incomplete
     return out
 

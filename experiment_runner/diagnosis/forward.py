@@ -134,11 +134,20 @@ class ForwardSelection:
                     key=lambda j: rank(j, self.problem.options.complexity))
         return ok[0] if ok else None
 
-    def candidates(self) -> list[Candidate]:
-        """Every candidate of this step. A member of an exclusive group (alternative friction laws)
-        whose one adopted member is the only conflict is a *replacement*: fitted on the model without
-        that member (the more flexible member the data preferred first may not be the physics: Dahl
-        for a GMS, Dahl for a Stribeck curve)."""
+    def continuations(self) -> list[str]:
+        """Keys of the effects that continue an adopted integer effect below its grid step
+        (:attr:`.effects.base.Effect.continues`: a fractional delay after a whole-sample one) and have
+        not been tried on the current model: tried before the selection stops within the floor."""
+        p, path = self.problem, self.path
+        taken = {f.key for f in path.selected}
+        return [k for k in p.keys if k not in taken and k not in path.banned and k not in path.continued
+                and set(p.library[k].continues) & taken]
+
+    def candidates(self, only=None) -> list[Candidate]:
+        """Every candidate of this step (``only``: those keys alone). A member of an exclusive group
+        (alternative friction laws) whose one adopted member is the only conflict is a *replacement*:
+        fitted on the model without that member (the more flexible member the data preferred first
+        may not be the physics: Dahl for a GMS, Dahl for a Stribeck curve)."""
         p, path = self.problem, self.path
         taken = {f.key for f in path.selected}
         todo = []
@@ -146,6 +155,10 @@ class ForwardSelection:
             e = p.library[k]      # bound to this recording: its applicability may depend on it
             if k in taken or k in path.banned or e.kind not in ("deterministic", "integer"):
                 continue
+            if only is not None and k not in only:
+                continue
+            if e.in_drive and p.data.command_kind == "measured":
+                continue                 # the recorded command is the force applied: no drive between
             clash = p.library.exclusive_of(k) & taken
             if taken & set(e.not_after):
                 continue                 # a part of an adopted effect (the Coulomb level of position friction)
@@ -181,17 +194,26 @@ class ForwardSelection:
         if first is not None:
             path.steps.append(dict(self.first_step.record, accepted=first.fit.key, confounded_with=[],
                                    second_start=True))
+            first.rule = ("second start: step 1's runner-up, walked from because the greedy path left a replay "
+                          "beyond its floor")
             adopt_best(p, path, step, first, [], [])
             return True
         refit_selected(p, path, step)
         J_held, floor = path.J_held, path.replay_floor
         z_cur = judge.consistency(floor.replay, floor)
+        only = None
         if z_cur <= judge.t_q:
-            # the current model's replay is within its run-to-run floor (calibrated z): nothing to explain
-            path.steps.append(self._stop_record(step, z_cur))
-            opt.log(f"step {step}: replay z {z_cur:.3g} <= {judge.t_q:.3g}: within the floor, stop")
-            return False
-        fits, failed = fit_candidates(p, self.candidates(), path.current, path.selected, path.J_fit, path.context)
+            # the current model's replay is within its run-to-run floor (calibrated z): nothing to explain,
+            # once the fraction below an adopted integer effect's grid step has been tried
+            only = self.continuations()
+            if not only:
+                path.steps.append(self._stop_record(step, z_cur))
+                opt.log(f"step {step}: replay z {z_cur:.3g} <= {judge.t_q:.3g}: within the floor, stop")
+                return False
+            opt.log(f"step {step}: replay z {z_cur:.3g} <= {judge.t_q:.3g}: within the floor; "
+                    f"{', '.join(only)} tried before stopping")
+        path.continued |= set(self.continuations())      # tried on this model (with the others, or alone)
+        fits, failed = fit_candidates(p, self.candidates(only), path.current, path.selected, path.J_fit, path.context)
         if not fits:
             return False
         sim_blocks = judge.sim_blocks(floor.replay, floor)
@@ -207,7 +229,8 @@ class ForwardSelection:
                            "threshold": min((r["threshold"] for r in rows), default=None),
                            "accepted": best.fit.key if best else None,
                            "confounded_with": [j.fit.key for j in conf or []], "candidates": rows,
-                           "refit_kept": kept, "failed": dict(failed)})
+                           "refit_kept": kept, "failed": dict(failed),
+                           **({"within_floor_tried": list(only)} if only else {})})
         if step == 1:
             self.first_step = FirstStep(judged=judged, record=path.steps[-1])
         opt.log(f"step {step}: replay D {D_cur:.4g} -> " + ", ".join(

@@ -62,6 +62,31 @@ FLOOR_SEEDS = tuple(70001 + 1000 * i for i in range(16))
 """Noise seeds of the simulated recordings of the run-to-run floor (fixed: same data, same decision)."""
 
 
+def own_resolution(a: np.ndarray, mask: np.ndarray) -> float:
+    """The finest difference a recorded signal ``a`` (T, B) resolves on the samples ``mask``: the
+    white part of its sample-to-sample roughness (robust SD of its fourth differences / sqrt(70):
+    a smooth motion's part of them is its fourth derivative times the sample time to the fourth,
+    nothing), 0 where it is smooth to the last digit. A floor below it carries no information.
+    Quantization on a lattice is the encoder's step (:func:`.fit.estimate_lattice`, taken into
+    the model before judging): a signal at rest on its lattice reads 0 here.
+
+    >>> rng = np.random.default_rng(0)
+    >>> t = np.linspace(0.0, 1.0, 4000)[:, None]
+    >>> x = 1e-3 * np.sin(2 * np.pi * t) + 1e-8 * rng.normal(size=t.shape)
+    >>> bool(abs(own_resolution(x, np.ones_like(x, bool)) / 1e-8 - 1) < 0.1)
+    True
+    """
+    d = []
+    for b in range(a.shape[1]):
+        col = a[mask[:, b], b]
+        if len(col) > 5:
+            d.append(np.diff(col, 4))
+    if not d:
+        return 0.0
+    d = np.concatenate(d)
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(70.0))
+
+
 def noise_free(spec: ModelSpec) -> ModelSpec:
     """``spec`` without its random parts (drive current noise, random bearing friction)."""
     p = spec.preset
@@ -147,6 +172,8 @@ class ReplayJudge:
         self.f_ext = None if fe is None or not np.any(fe[:, c]) else np.ascontiguousarray(fe[:, c])
         self.u = np.ascontiguousarray(data.u[:, c])
         self.y = np.ascontiguousarray(data.y[:, c])
+        self.u_resolution = own_resolution(self.u, self.mask)
+        self.y_resolution = own_resolution(self.y, self.mask)
         self.seeds = tuple(int(s) for s in seeds)
         self.K = len(self.seeds)
         self.t_q = float(stats.t.ppf(1 - alpha, self.K - 1)) * math.sqrt(1 + 1 / self.K)
@@ -227,10 +254,13 @@ class ReplayJudge:
         sy = float(np.sqrt(np.mean(dy ** 2))) if dy.size else 1.0
         # a model without noise (e.g. drive noise "unknown: 0") has a degenerate floor: its simulated
         # recordings are its replay. The channels are then weighted by the least a rig resolves:
-        # the encoder step (uniform quantization error) and 1e-4 of the recorded command's RMS
+        # the encoder step (uniform quantization error), 1e-4 of the recorded command's RMS, and what
+        # the recorded signals themselves resolve (their sample-to-sample roughness): never a floor
+        # below the measurement's own resolution
         q = spec.preset.stage.encoder.resolution
-        tiny_u = 1e-4 * (float(np.sqrt(np.mean(self.u[self.mask] ** 2))) if self.n else 1.0) or 1e-12
-        tiny_y = max(q / math.sqrt(12.0), 1e-12)
+        tiny_u = max(1e-4 * (float(np.sqrt(np.mean(self.u[self.mask] ** 2))) if self.n else 1.0),
+                     self.u_resolution) or 1e-12
+        tiny_y = max(q / math.sqrt(12.0), self.y_resolution, 1e-12)
         return Floor(spec=spec, replay=rp, u=u, y=y, sigma_u=max(su, tiny_u), sigma_y=max(sy, tiny_y))
 
     # ------------------------------------------------------------------ distances
@@ -251,6 +281,11 @@ class ReplayJudge:
         vector (channel after channel): its sum of squares is ``n D``. What an output-error fit
         minimises."""
         return np.concatenate([e[self.mask] for e in self._errors(self.u, self.y, rp, fl)])
+
+    def difference(self, rp_a: Replay, rp_b: Replay, fl: Floor) -> np.ndarray:
+        """``rp_a`` - ``rp_b`` on the judged samples in ``fl``'s floor units, as :meth:`residual`'s
+        vector (a replay in place of the data)."""
+        return np.concatenate([e[self.mask] for e in self._errors(rp_a.u, rp_a.y, rp_b, fl)])
 
     def sim_residuals(self, rp: Replay, fl: Floor) -> np.ndarray:
         """(K, n): :meth:`residual` of each of ``fl``'s simulated recordings against ``rp`` (what
@@ -286,20 +321,55 @@ class ReplayJudge:
         dev = tb - self.block_n * T
         return float(np.sqrt(nb / (nb - 1) * np.sum(dev ** 2)) / max(self.n, 1))
 
-    def _score_se(self, rp0: Replay, rp1: Replay, fl: Floor) -> float:
+    def _score_se(self, rp0: Replay, rp1: Replay, fl: Floor, of: Floor | None = None) -> float:
         """Standard error of ``T = D(rp0) - D(rp1)`` under "no improvement" with the noise taken
         from the data: with ``e = data - rp1`` and ``d = rp1 - rp0`` (floor units),
         ``T = sum(d^2 + 2 e d) / n`` and its noise part ``2 sum(e d) / n`` has, over blocks
         that may be correlated inside, the variance ``4 sum_b (sum_{t in b} e d)^2 / n^2``. A
         likelihood-ratio test whose noise model is the data's own residual: a concentrated
         deterministic improvement (at reversals) passes, a change that only trades one misfit
-        for another (large ``e`` where it acts) does not."""
+        for another (large ``e`` where it acts) does not. The blocks span the noise's correlation
+        time in the replay error (:meth:`_score_span`, from the recordings ``of``, default ``fl``'s)."""
         if not self.n:
             return 0.0
         d = self._errors(rp1.u, rp1.y, rp0, fl)
         e = self._errors(self.u, self.y, rp1, fl)
         sb = self._blocks(sum(ei * di for ei, di in zip(e, d)))
-        return float(2.0 * np.sqrt(np.sum(sb ** 2)) / self.n)
+        m = self._score_span(rp0, d, fl, of)
+        return float(2.0 * np.sqrt(np.sum(self._merged(sb, m) ** 2)) / self.n)
+
+    @staticmethod
+    def _merged(sb: np.ndarray, m: int) -> np.ndarray:
+        """Sums over ``m`` consecutive blocks (..., n_blocks) -> (..., ceil(n_blocks / m))."""
+        if m <= 1:
+            return sb
+        nb = sb.shape[-1]
+        pad = (-nb) % m
+        z = np.concatenate([sb, np.zeros(sb.shape[:-1] + (pad,))], axis=-1)
+        return z.reshape(sb.shape[:-1] + (-1, m)).sum(axis=-1)
+
+    def _score_span(self, rp0: Replay, d: list, fl: Floor, of: Floor | None = None) -> int:
+        """How many consecutive held-out blocks the score test's blocks must span for its noise part
+        to be independent from block to block: the smallest number (1, 2, 4, ...) at which the sum of
+        the per-block variances of ``sum e_k d`` over the simulated recordings ``of`` (default
+        ``fl``'s; errors against ``rp0``) reaches 70 % of the variance of the whole sum. Drive noise
+        moves a friction contact's hold force for a whole hold and the loop integrates it: blocks of
+        20 ms are then far from independent, and the score test took a wrong effect that trades one
+        realisation's misfit for another (a delay for a mode) as beyond the data's noise."""
+        of = of or fl
+        if of.u.ndim != 3 or of.u.shape[0] < 3 or self.n_blocks < 6:
+            return 1
+        S = np.stack([self._blocks(sum(ei * di for ei, di in zip(self._errors(of.u[k], of.y[k], rp0, fl), d)))
+                      for k in range(of.u.shape[0])])
+        whole = float(np.var(S.sum(axis=1), ddof=1))
+        if not whole > 0:
+            return 1
+        m = 1
+        while self.n_blocks // m >= 3:
+            if float(np.sum(np.var(self._merged(S, m), axis=0, ddof=1))) >= 0.7 * whole:
+                return m
+            m *= 2
+        return max(1, m // 2)
 
     # ------------------------------------------------------------------ tests
     def compare(self, fl: Floor, rp_new: Replay, fl_blocks=None, rp_base: Replay | None = None,
@@ -317,7 +387,7 @@ class ReplayJudge:
         s1 = self.sim_blocks(rp_new, fl, of=of_base)
         Tk = (s0.sum(axis=1) - s1.sum(axis=1)) / n
         thr = float(np.mean(Tk) + self.t_q * np.std(Tk, ddof=1))
-        se = self._score_se(rp0, rp_new, fl)
+        se = self._score_se(rp0, rp_new, fl, of=of_base)
         if not rp_new.ok:
             return Comparison(D0, D1, T, thr, se, False, False, f"unstable: {rp_new.why}")
         if T <= 0:

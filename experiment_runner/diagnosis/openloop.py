@@ -195,7 +195,7 @@ class OpenLoopJudge(ReplayJudge):
         y = rp.y[None] + eps
         de = eps[:, self.mask]
         q = spec.preset.stage.encoder.resolution
-        sy = max(float(np.sqrt(np.mean(de ** 2))) if de.size else 1.0, q / math.sqrt(12.0), 1e-15)
+        sy = max(float(np.sqrt(np.mean(de ** 2))) if de.size else 1.0, q / math.sqrt(12.0), self.y_resolution, 1e-15)
         tiny_u = 1e-4 * (float(np.sqrt(np.mean(self.u[self.mask] ** 2))) if self.n else 1.0) or 1e-12
         return Floor(spec=spec, replay=rp, u=np.broadcast_to(self.u, y.shape), y=y, sigma_u=tiny_u,
                      sigma_y=sy, white=self._whitening(eps, sy))

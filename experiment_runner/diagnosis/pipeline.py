@@ -6,11 +6,11 @@ writes ``report.json``, ``report.md``, plots and the improved model (``improved_
 
 The stages, in order, each a function returning a typed result the later ones read:
 :func:`.stages.read` -> :func:`.stages.quantization` -> :func:`.stages.predict` ->
-:func:`.stages.locate` -> :func:`.stages.prepare` -> the forward selection
+:func:`.stages.drive_noise_prior` -> :func:`.stages.locate` -> :func:`.stages.prepare` -> the forward selection
 (:class:`.forward.ForwardSelection`: candidates fitted by :mod:`.tasks`, judged and chosen by
 :mod:`.selection`, refined by :mod:`.refining` / :mod:`.refinement`, adopted by :mod:`.adoption`)
 -> :func:`.closing.refit_jointly` -> :func:`.closing.drive_noise` -> :func:`.uncertainty.widen` ->
-:func:`.verdict.validate` -> :func:`.verdict.assemble`. Same data, same decision: no random draw;
+:func:`.verdict.withdraw_unidentified` -> :func:`.verdict.validate` -> :func:`.verdict.assemble`. Same data, same decision: no random draw;
 the candidate fits give the same report on threads, local processes or a Dask cluster
 (:mod:`.tasks`).
 
@@ -39,7 +39,9 @@ from .forward import ForwardSelection
 from .options import Options
 from .report import write_report
 from .tasks import forget, shared_state, warm_up
-from .verdict import Run, assemble, plot_arrays, sparse_terms, validate
+from .locate import locate as locate_residual
+from .verdict import (Run, assemble, detection_limits, improved_name, plot_arrays, sparse_terms, validate,
+                      withdraw_unidentified)
 
 __all__ = ["diagnose", "diagnose_stages"]
 
@@ -92,11 +94,14 @@ def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex, budge
     budget.done("read", "the nominal replayed")
     lattice = stages.quantization(setup, opt)
     pred = stages.predict(setup, lattice.base, opt, timing)
+    pred = stages.drive_noise_prior(setup, lattice, pred, opt, timing)
     budget.done("predict", "force residual, floors")
     loc = stages.locate(setup, lattice.base, pred, opt, timing)
     budget.done("locate")
     t = time.perf_counter()
     problem, J_fit_nominal, J_held_nominal, tol_ad = stages.prepare(setup, lattice.base, pred, loc, opt, ex)
+    prior = lattice.stochastic.get("noise_prior", {})
+    problem.noise_ratio = 1.0 if "adopted" in prior else prior.get("ratio")
     if ex is not None:        # the candidate-fit tasks' shared state, once
         problem.token, problem.blob = shared_state(problem)
     budget.done("prepare")
@@ -119,9 +124,20 @@ def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex, budge
     if (path.selected and budget.allows("uncertainty widening (the ± given are the fits' own: lower bounds)")
             and uncertainty.widen(pred.fit_judge, found, path.selected, problem.base, path.current, opt)):
         timing["uncertainty_s"] = time.perf_counter() - t
+    withdrawn = withdraw_unidentified(problem, path, found)
+    if withdrawn and budget.allows("uncertainty widening after a withdrawal"):   # the others' errors without it
+        uncertainty.widen(pred.fit_judge, found, path.selected, problem.base, path.current, opt)
+        withdrawn += withdraw_unidentified(problem, path, found)
     budget.done("selection", ", ".join(fe["effect"] for fe in found) or "nothing adopted")
     t = time.perf_counter()
     val = validate(setup, pred, problem, path, opt)
+    detection = located = None
+    if val.adequate:
+        if budget.allows("detection limits (what the record could have revealed)"):
+            detection = detection_limits(problem, path)
+    else:
+        located = locate_residual(setup.data, val.residual, path.floor.res_a, path.floor.sim_a,
+                                    setup.observer.f_o, setup.band_hz)[0]
     timing["validate_s"] = time.perf_counter() - t
     budget.done("validate")
     sparse = None
@@ -137,8 +153,10 @@ def _run(recording, nominal, out, opt: Options, data: DiagData | None, ex, budge
         timing["remaining_s"] = time.perf_counter() - t
     run = Run(nominal_source=nominal, setup=setup, stochastic=lattice.stochastic, prediction=pred,
               locate_summary=loc.summary, problem=problem, path=path, found=found, joint=joint,
-              J_fit_nominal=J_fit_nominal, J_held_nominal=J_held_nominal, adequacy_tolerance=tol_ad, validation=val)
+              J_fit_nominal=J_fit_nominal, J_held_nominal=J_held_nominal, adequacy_tolerance=tol_ad, validation=val,
+              withdrawn=withdrawn, detection=detection, remaining=located)
     timing["total_s"] = time.perf_counter() - T0
+    path.current = improved_name(path.current, setup.nominal, found)
     report = assemble(run, timing, sparse)
     report["budget"] = budget.summary()
     if budget.stopped is not None:         # never a confident answer from an unfinished search

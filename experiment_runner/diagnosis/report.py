@@ -178,6 +178,65 @@ def _md_found(rep: dict) -> list[str]:
     return L
 
 
+def _md_findings(rep: dict) -> list[str]:
+    """Every finding with its status, what was withdrawn, what the model change is, what the record
+    could have revealed, and the figures that disagree."""
+    L = []
+    cmd = rep.get("recording", {}).get("command")
+    if cmd:
+        L.append(f"Command: **{cmd['kind']}** ({cmd['meaning']})"
+                 + (f"; not proposed: {', '.join(cmd['not_proposed'])}" if cmd.get("not_proposed") else "") + ".\n")
+    L.append("## Findings\n")
+    L.append("| finding | status | detail |")
+    L.append("|---|---|---|")
+    for f in rep.get("findings") or []:
+        det = []
+        if f.get("not_determined"):
+            det.append("not determined: " + ", ".join(f["not_determined"]))
+        if f.get("chosen_by"):
+            det.append("chosen by " + f["chosen_by"])
+        if f.get("why"):
+            det.append(f["why"])
+        w = f.get("where") or {}
+        if w.get("regime"):
+            det.append(f"most excess in {w['regime']['regime']} ({100 * w['regime']['excess_share']:.0f} %)")
+        if w.get("band_hz"):
+            det.append(f"band {w['band_hz'][0]:.4g}–{w['band_hz'][1]:.4g} Hz "
+                       f"({100 * w.get('band_excess_share', 0):.0f} %)")
+        if w.get("peaks_hz"):
+            det.append("peaks " + ", ".join(f"{x:.4g} Hz" for x in w["peaks_hz"]))
+        L.append(f"| {f['finding']} | {f['status']} | {'; '.join(det)} |")
+    for fe in rep.get("found") or []:
+        for a in fe.get("alternatives") or []:
+            L.append(f"\n- {fe['title']} and {a['title']} replay the held-out data alike (replay D "
+                     f"{_fmt(a.get('replay_D'))}): " + ", ".join(f"{p['name']} = {_fmt(p['value'])}" for p in a["params"])
+                     + ("" if a.get("adoptable", True) else f" (not adoptable: {a.get('why')})")
+                     + f"; chosen by {fe.get('chosen_by')}.")
+    dl = rep.get("detection_limits")
+    if dl:
+        L.append("\n**What this record could have revealed** on top of the final model (the smallest change the "
+                 "adoption test passes in half the recordings, linearised; smaller ones would not show):\n")
+        L.append("| effect | parameter | model value | smallest change | relative |")
+        L.append("|---|---|---|---|---|")
+        for d in dl:
+            rel = "–" if d.get("relative") is None else f"{100 * d['relative']:.3g} %"
+            L.append(f"| {d['title']} | {d['parameter']} [{d['unit']}] | {_fmt(d['model_value'])} | "
+                     f"{_fmt(d['smallest_change'])} | {rel} |")
+    ch = (rep.get("improved_model") or {}).get("changes")
+    if ch:
+        L.append(f"\n**The model change** (`{rep['improved_model']['name']}` against `{rep['nominal']['name']}`; "
+                 "every field that moved, and the finding that moved it):\n")
+        L.append("| field | nominal | improved | by |")
+        L.append("|---|---|---|---|")
+        for c in ch:
+            L.append(f"| {c['field']} | {c['nominal']} | {c['improved']} | {', '.join(c['by']) or '–'} |")
+    dis = (rep.get("validation") or {}).get("disagreements")
+    if dis:
+        L.append("\n**Figures that disagree:** " + " ".join(dis))
+    L.append("")
+    return L
+
+
 def _md_proof(rep: dict) -> list[str]:
     """The held-out figures of both models."""
     L = []
@@ -317,7 +376,7 @@ def _md_noise(rep: dict) -> list[str]:
 def to_markdown(rep: dict) -> str:
     """``report.md`` from the report dict."""
     L = []
-    for section in (_md_headline, _md_found, _md_proof, _md_locate, _md_candidates, _md_noise):
+    for section in (_md_headline, _md_found, _md_findings, _md_proof, _md_locate, _md_candidates, _md_noise):
         L += section(rep)
     b = rep.get("budget") or {}
     if b.get("reached"):       # what was not examined leads, under the title

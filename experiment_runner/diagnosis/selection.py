@@ -26,7 +26,12 @@ from .observer import Observer
 from .options import Options
 
 __all__ = ["Problem", "Candidate", "JudgedRow", "Path", "FirstStep", "judge_rows", "rank", "choose", "step_rows",
-           "for_fits_on", "NOMINAL_Z"]
+           "for_fits_on", "identification", "NOMINAL_Z"]
+
+NOISE_QUIETER = 0.8
+"""Data whose drive-noise level (read from the residual spectrum) is below this fraction of the
+model's are quieter than the model: no candidate is refused for replaying closer to them than its
+own recordings (:func:`_consistent_from_below`)."""
 
 NOMINAL_Z = 2.0
 """An effect whose every parameter is within this many standard errors of the current model's value
@@ -62,6 +67,9 @@ class Problem:
     executor: object = None
     token: str | None = None
     blob: bytes | None = None
+    noise_ratio: float | None = None
+    """The data's drive-noise level over the base model's, read from the residual spectrum before
+    judging (:func:`.stages.drive_noise_prior`; None: not read)."""
 
     @property
     def refines(self) -> bool:
@@ -80,12 +88,27 @@ class Problem:
         rp = self.fit_judge.replay(spec)
         return self.fit_judge.D(rp, floor) if rp.ok else float("inf")
 
-    def spans(self, f: FitResult, ctx: Context):
-        """The ranges (hi - lo) of candidate ``f``'s parameters on the base model, or None."""
+    def params_of(self, f: FitResult, ctx: Context, spec: ModelSpec | None = None):
+        """Candidate ``f``'s fitted parameters (:class:`.effects.base.Param`: bounds) on ``spec``
+        (default: the base model), or None."""
         try:
-            return [p.hi - p.lo for p in f.effect.params(self.base, ctx)]
+            ps = f.effect.params(self.base if spec is None else spec, ctx)
         except Exception:     # noqa: BLE001 - no ranges: the standard errors alone decide
             return None
+        return ps if len(ps) == len(f.theta) else None
+
+    def spans(self, f: FitResult, ctx: Context):
+        """The ranges (hi - lo) of candidate ``f``'s parameters on the base model, or None."""
+        ps = self.params_of(f, ctx)
+        return None if ps is None else [p.hi - p.lo for p in ps]
+
+    def identification(self, f: FitResult, ctx: Context, spec: ModelSpec | None = None) -> tuple:
+        """:func:`identification` of fit ``f`` (its bounds on ``spec``, default the base model; the
+        plausible ranges the library documents, on the recording's axis)."""
+        if f.effect is None or f.effect.kind == "integer":
+            return None, []
+        doc = {p.name: p for p in f.effect.parameters}
+        return identification(f.names, f.theta, f.sigma, self.params_of(f, ctx, spec), doc, self.data.axis)
 
 
 @dataclass
@@ -107,6 +130,8 @@ class JudgedRow:
     ok: bool
     """Adoptable: beyond the floor, identified, moved by the data."""
     why: str
+    rule: str = ""
+    """Chosen (:func:`choose`): the rule that chose it among the candidates the replay cannot tell apart."""
 
 
 @dataclass
@@ -130,6 +155,9 @@ class Path:
     """The report's rows of the adopted effects (one per selected fit)."""
     banned: set = field(default_factory=set)
     """Keys not proposed again (withdrawn, replaced, a known quantity's confounded alternative)."""
+    continued: set = field(default_factory=set)
+    """Continuations (:meth:`.forward.ForwardSelection.continuations`) tried on the current model
+    (emptied by every adoption)."""
     refit: tuple | None = None
     """(model, joint fit): the best re-fit of the adopted effects alone a step's joint refinements reached."""
     second_start: dict | None = None
@@ -149,11 +177,67 @@ def for_fits_on(ctx: Context, selected: list) -> Context:
     return dataclasses.replace(ctx, level_fitted=any(f.effect.sets_friction_level for f in selected))
 
 
-def _unidentified(f: FitResult) -> bool:
-    """Every parameter of ``f`` has a standard error above its magnitude (nothing determined)."""
-    sig, th = np.asarray(f.sigma, float), np.asarray(f.theta, float)
-    ok = np.isfinite(sig)
-    return bool(ok.all() and np.all(sig > np.abs(th)))
+def identification(names, theta, sigma, params=None, documented=None, axis: str = "linear") -> tuple:
+    """Whether an effect's fitted values are identified: ``(why not, weak)``; ``why`` None when they are.
+
+    Not identified (the effect is not adopted): a parameter at a bound of its fit (``params``, the
+    :class:`.effects.base.Param` s it was fitted with, a physical lower bound excepted), or within
+    its own standard error of one while determined (standard error below its magnitude; every
+    parameter of a one-parameter effect); a value outside the plausible range the library documents
+    for the axis (``documented``: name -> :class:`.effects.base.Parameter`; a signed parameter by
+    its magnitude's upper end); or every parameter with a standard error above its magnitude.
+    ``weak``: the names of the parameters whose standard error exceeds their magnitude (in an
+    effect identified by its others: reported as not determined, never as a finding).
+
+    >>> from experiment_runner.diagnosis.effects.base import Param, Parameter
+    >>> ratio = [Param("ratio", "-", 0.3, 3.0, 1.0)]
+    >>> identification(["ratio"], [0.3004], [0.01], ratio)[0]
+    'ratio at its bound 0.3'
+    >>> identification(["ratio"], [0.33], [0.05], ratio)[0]       # within its own sigma of the bound
+    'ratio at its bound 0.3'
+    >>> identification(["ratio"], [0.8], [0.01], ratio) == (None, [])
+    True
+    >>> c = [Param("c", "N·s/m", 0.0, 1e4, 10.0)]
+    >>> print(identification(["c"], [16.0], [293.0], c)[0])
+    every parameter's standard error exceeds its value (c 16 ± 293)
+    >>> doc = {"c": Parameter("c", "N·s/m", "viscous", (1e-3, 1e5), (1e-7, 1e2))}
+    >>> identification(["c"], [500.0], [1.0], c, doc, axis="rotary")[0]
+    'c 500 outside the plausible range 1e-07 ... 100 on a rotary axis'
+    """
+    th = np.asarray(theta, float)
+    sig = np.asarray(sigma, float) if sigma is not None else np.full(len(th), np.nan)
+    documented = documented or {}
+    weak = [n for n, v, s in zip(names, th, sig) if np.isfinite(s) and s > abs(v)]
+    if len(th) and np.all(np.isfinite(sig)) and len(weak) == len(th):
+        return ("every parameter's standard error exceeds its value ("
+                + ", ".join(f"{n} {v:.3g} ± {s:.3g}" for n, v, s in zip(names, th, sig)) + ")"), weak
+    for i, (n, v, s) in enumerate(zip(names, th, sig)):
+        p = params[i] if params is not None and i < len(params) else None
+        if p is not None and p.hi > p.lo:
+            # 0.1 % of the range in the optimiser's variable (log for a log parameter: a stiffness
+            # ranging over decades is not at its lower bound 1e-3 of the way up in value), or its own
+            # standard error where that determines it
+            s_ok = np.isfinite(s) and s <= abs(v)
+            if p.log and p.lo > 0 and v > 0:
+                lt = 1e-3 * np.log(p.hi / p.lo)
+                hi_b, lo_b = np.log(p.hi / v) <= lt, np.log(v / p.lo) <= lt
+            else:
+                t = 1e-3 * (p.hi - p.lo)
+                hi_b, lo_b = abs(p.hi - v) <= t, abs(v - p.lo) <= t
+            hi_b = hi_b or (s_ok and abs(p.hi - v) <= s)
+            lo_b = lo_b or (s_ok and abs(v - p.lo) <= s)
+            if hi_b:
+                return f"{n} at its bound {p.hi:.4g}", weak
+            if lo_b and not p.physical_lo:
+                return f"{n} at its bound {p.lo:.4g}", weak
+        d = documented.get(n)
+        rng = d.plausible_on(axis) if d is not None else None
+        if rng is not None:
+            lo, hi = rng
+            signed = p is not None and p.lo < 0
+            if (abs(v) > hi) if signed else not (lo <= v <= hi):
+                return f"{n} {v:.4g} outside the plausible range {lo:.4g} ... {hi:.4g} on a {axis} axis", weak
+    return None, weak
 
 
 def _at_nominal(f: FitResult, spans=None) -> bool:
@@ -191,10 +275,11 @@ def judge_rows(problem: Problem, fits: list, floor: Floor, sim_blocks, first: bo
         bound = list(f.on_bound) + ([n for n in f.joint.on_bound if not n.startswith(f.key + ".")]
                                     if f.joint is not None else [])
         why = c.why
+        unid = problem.identification(f, ctx)[0] if c.accepted and not bound else None
         if c.accepted and bound:
             why = f"not identified: {', '.join(bound)} at its bound"
-        elif c.accepted and _unidentified(f):
-            why = "not identified: every parameter's standard error exceeds its value"
+        elif unid is not None:
+            why = f"not identified: {unid}"
         elif c.accepted and _at_nominal(f, problem.spans(f, ctx)):
             why = (f"the data do not move it: every parameter within {NOMINAL_Z:g} standard errors of "
                    "the current model's value")
@@ -220,13 +305,23 @@ def choose(problem: Problem, judged: list, floor: Floor) -> tuple:
     improves on it beyond the floor."""
     judge, known = problem.judge, problem.library.known
     ok = sorted([j for j in judged if j.ok], key=lambda j: rank(j, problem.options.complexity))
+    ok, floors = _consistent_from_below(problem, ok)
     best = conf = None
     alts = []
     if ok:
         top = ok[0]
-        tfl = judge.floor(top.fit.spec) if len(ok) > 1 else None     # recordings of the best's model
+        tfl = floors.get(id(top)) if len(ok) > 1 else None     # recordings of the best's model
         equiv = [top] + [j for j in ok[1:] if judge.equivalent(floor, j.replay, top.replay, of_b=tfl)[0]]
         best = min(equiv, key=lambda j: (j.fit.key in known, len(j.fit.theta), j.comparison.D_after))
+        if best is top:
+            rule = ("the best replay" + (": no other adoptable candidate replays the held-out data as well"
+                                         if len(equiv) == 1 else ", and no fewer parameters among those "
+                                         "that replay as well"))
+        elif top.fit.key in known and best.fit.key not in known:
+            rule = (f"a quantity the nominal states as known ({top.fit.key}) moves last: {best.fit.key} replays "
+                    "the held-out data as well")
+        else:
+            rule = "parsimony: the fewest parameters among the candidates that replay the held-out data as well"
         for j in sorted(ok, key=lambda j: (len(j.fit.theta), j.comparison.D_after)):
             if len(j.fit.theta) >= len(best.fit.theta) or j.fit.key in known:
                 continue
@@ -234,12 +329,61 @@ def choose(problem: Problem, judged: list, floor: Floor) -> tuple:
             # the distance from it: a candidate at the floor is "within the floor" of one far above)
             if not judge.compare(floor, best.replay, rp_base=j.replay, of_base=judge.floor(j.fit.spec)).accepted:
                 conf = [best] + [x for x in equiv if x is not best]
+                rule = (f"parsimony: {j.fit.key} ({len(j.fit.theta)} parameter(s)) replays within the floor of "
+                        f"{best.fit.key} ({len(best.fit.theta)}), which does not improve on it beyond the floor")
                 best = j
                 break
         conf = [j for j in (conf or equiv) if j is not best]
+        best.rule = rule
         alts = [{"effect": j.fit.key, "title": j.fit.title, "params": j.fit.params(),
-                 "derived": j.fit.derived, "replay_D": j.comparison.D_after} for j in conf]
+                 "derived": j.fit.derived, "replay_D": j.comparison.D_after, "adoptable": True} for j in conf]
+        alts += _equivalent_rejects(problem, judged, best, conf, floor)
     return best, conf, alts
+
+
+def _consistent_from_below(problem: Problem, ok: list) -> tuple:
+    """The adoptable rows whose held-out data could be a recording of their own model: a candidate
+    whose noise-free replay is closer to the data than its own simulated recordings are to that replay
+    (consistency z below minus the critical value, each against its own run-to-run floor) replays the
+    noise, not a physics: the one realisation's hold forces that drive noise left on a friction
+    contact, or a floor its own change inflated (a lighter mass whose loop amplifies the drive noise).
+    A model right up to noise sits near z = 0. Returns ``(the consistent rows, {id(row): its floor})``;
+    the others are marked not adoptable (why)."""
+    judge = problem.judge
+    kept, floors = [], {}
+    # data quieter than the model (its noise level read from the residual spectrum): every candidate,
+    # the truth too, replays closer than the model's recordings; then this says nothing
+    applies = problem.noise_ratio is not None and problem.noise_ratio >= NOISE_QUIETER
+    for j in ok:
+        fl = judge.floor(j.fit.spec)
+        floors[id(j)] = fl
+        z = judge.consistency(j.replay, fl) if fl.replay.ok else 0.0
+        if applies and z < -judge.t_q:
+            j.ok = False
+            j.why = (f"replays the noise: the held-out data are closer to its replay than its own recordings are "
+                     f"(consistency z {z:.3g} < -{judge.t_q:.3g}; a model right up to noise sits near 0)")
+            continue
+        kept.append(j)
+    return kept, floors
+
+
+def _equivalent_rejects(problem: Problem, judged: list, best: JudgedRow, conf: list, floor: Floor) -> list:
+    """The report's alternatives among the candidates that were not adoptable (not identified, not
+    moved by the data, ...) but whose held-out replay cannot be told from the chosen one's: listed
+    with why they were not adopted (the user sees the confound, not only the choice)."""
+    judge = problem.judge
+    rest = [j for j in judged if not j.ok and j is not best and all(j is not c for c in conf)
+            and j.comparison.stable and j.replay.ok and j.comparison.T > 0
+            and j.comparison.D_after <= 1.5 * best.comparison.D_after]
+    if not rest:
+        return []
+    bfl = judge.floor(best.fit.spec)       # recordings of the chosen model
+    out = []
+    for j in rest:
+        if judge.equivalent(floor, j.replay, best.replay, of_b=bfl)[0]:
+            out.append({"effect": j.fit.key, "title": j.fit.title, "params": j.fit.params(), "derived": j.fit.derived,
+                        "replay_D": j.comparison.D_after, "adoptable": False, "why": j.why})
+    return out
 
 
 def _threshold(J: float, n_eff: float) -> float:

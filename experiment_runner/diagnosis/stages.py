@@ -20,21 +20,21 @@ from stage_sim.config import ConfigError
 from .context import Context
 from .data import DiagData, load_data
 from .effects import Library
-from .effects.stochastic import Quantization
-from .fit import Evaluator, estimate_lattice
+from .effects.stochastic import NoiseLevel, Quantization
+from .fit import Evaluator, estimate_lattice, fit_noise_level, noise_components
 from .floors import ForceFloor
 from .judge import Floor, ReplayJudge, controller_check, equivalent_reference
 from .locate import locate as locate_residual
 from .locate import transfer_modes
 from .model import ModelSpec, load_model
 from .observer import ObsResult, Observer, smoothing_hz
-from .openloop import OpenLoopJudge
+from .openloop import MISSING_LP, OpenLoopJudge
 from .options import CONTROLLER_TOL, Options
 from .predict import open_loop_windows, replay
 from .selection import Problem
 
-__all__ = ["Setup", "Lattice", "Prediction", "Location", "read", "quantization", "predict", "locate", "prepare",
-           "fill_plant_inputs"]
+__all__ = ["Setup", "Lattice", "Prediction", "Location", "read", "quantization", "predict", "drive_noise_prior",
+           "locate", "prepare", "fill_plant_inputs", "noise_states"]
 
 
 @dataclass
@@ -208,6 +208,79 @@ def predict(setup: Setup, base: ModelSpec, opt: Options, timing: dict) -> Predic
             f"{replay_floor.sigma_y:.3g} m (controller check {ctl_err:.3g})")
     return Prediction(residual=res_nom, windows=windows, floor=fl, controller_error=ctl_err, reference=x_eq,
                       judge=judge, fit_judge=fit_judge, replay_floor=replay_floor)
+
+
+def noise_states(spec: ModelSpec) -> bool:
+    """The model states a random force (drive current noise or bearing friction noise)."""
+    st = spec.preset.stage
+    return st.drive.noise_current_rms > 0 or any(b.force_noise_rms > 0 for b in st.bearings)
+
+
+def drive_noise_prior(setup: Setup, lattice: Lattice, pred: Prediction, opt: Options, timing: dict) -> Prediction:
+    """The data's drive-noise level read from the nominal's force residual spectrum where drive noise
+    dominates (:func:`.fit.fit_noise_level`), before anything is judged. A nominal that states no
+    random force (noise-free, the floor a numerical nothing) takes that level into the base model
+    (a stochastic finding, said in the report) and the floors are estimated again; otherwise the
+    ratio of the data's level to the model's is kept (``stochastic['noise_prior']``): where the data
+    are not quieter than the model, a candidate whose replay is closer to the data than its own
+    recordings are replays the noise (:func:`.selection.choose`). Returns the prediction (renewed
+    floors when the base changed); ``lattice`` gets the base and the finding."""
+    data, obs = setup.data, setup.observer
+    t = time.perf_counter()
+    base = lattice.base
+    states = noise_states(base)
+    info = {"nominal_A": base.preset.stage.drive.noise_current_rms, "stated": states}
+    lattice.stochastic["noise_prior"] = info
+    try:
+        comps = noise_components(base, data, lambda d: Observer(d, bandwidth=obs.f_o, smooth_hz=data.smooth_hz),
+                                 seeds=tuple(opt.floor_seeds[0] + 31 + i for i in range(2)))
+        f_min = 2.0 * MISSING_LP * obs.f_o if data.open_loop else 0.0
+        est = fit_noise_level(pred.residual.r, data.fit | data.held, data.rate, comps, f_max=0.75 * obs.f_o,
+                              f_min=f_min)
+    except (ValueError, FloatingPointError) as err:
+        est = {"ok": False, "why": str(err)}
+    info.update({k: v for k, v in est.items() if k != "ok"})
+    timing["noise_prior_s"] = time.perf_counter() - t
+    if not est.get("ok"):
+        return pred
+    sig = float(est["sigma"])
+    s0 = base.preset.stage.drive.noise_current_rms
+    eff = NoiseLevel()
+    held_out = None
+    if states:
+        if not s0 > 0:
+            return pred
+        info["ratio"] = sig / s0
+        judge, fl0 = pred.judge, pred.replay_floor
+        if 0.8 <= sig / s0 <= 1.25 or est.get("spread", 1.0) >= 0.35 or not fl0.replay.ok:
+            return pred
+        # the data's level is another, read alike in every band: taken before judging if it alone makes
+        # the nominal's replay consistent with its recordings (the record holds noise and nothing else)
+        fl1 = judge.floor(eff.apply(base, [sig]))
+        z_old, z_new = judge.consistency(fl0.replay, fl0), judge.consistency(fl0.replay, fl1, norm=fl0)
+        info.update(replay_z_before=z_old, replay_z_after=z_new)
+        if not (abs(z_old) > judge.t_q and abs(z_new) <= judge.t_q):
+            return pred
+        held_out = {"metric": "|z| of the replay error among the model's simulated recordings (run-to-run "
+                              "consistency); the level read from the residual spectrum before judging",
+                    "nominal": abs(z_old), "improved": abs(z_new)}
+    elif not sig > 0:
+        return pred
+    lattice.base = eff.apply(base, [sig])
+    info["adopted"] = sig
+    lattice.found.append({"effect": "noise_level", "title": eff.title, "kind": "stochastic", "step": 0,
+                          "params": [{"name": "noise_current_rms", "unit": "A", "value": sig,
+                                      "sigma": est.get("sigma_unc"), "nominal": s0}],
+                          "derived": {}, "expressible": True, "confounded_with": [],
+                          "held_out": held_out or {
+                              "metric": "the nominal states no drive noise: its level read from the force residual "
+                                        "spectrum before judging (the floor is the data's)"}})
+    opt.log(f"noise prior: {sig:.3g} A from the residual spectrum (the nominal's {s0:.3g} A)")
+    t = time.perf_counter()
+    fl = ForceFloor(lattice.base, data, obs.f_o, opt.floor_seeds, data.smooth_hz)
+    pred = dataclasses.replace(pred, floor=fl, replay_floor=pred.judge.floor(lattice.base))
+    timing["floor_s"] = timing.get("floor_s", 0.0) + time.perf_counter() - t
+    return pred
 
 
 def locate(setup: Setup, base: ModelSpec, pred: Prediction, opt: Options, timing: dict) -> Location:

@@ -7,20 +7,76 @@ SINDy-style regression of what an inadequate final model leaves (:func:`sparse_t
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from msg_defs.topics import COMMAND_KINDS
+
+from .adoption import renew_floor
 from .context import Context
-from .fit import sparse_regression
-from .locate import lowpass
+from .effects.stochastic import NoiseLevel
+from .fit import sparse_regression, spec_with
+from .locate import REGIMES, lowpass, regimes
 from .observer import ObsResult
 from .predict import band_rms, compare_replay, open_loop_windows, replay
-from .selection import Path, Problem
+from .selection import Path, Problem, for_fits_on, identification
 from .stages import Prediction, Setup
 from .units import axis_units, convert_units
 
-__all__ = ["Validation", "Run", "validate", "assemble", "sparse_terms", "plot_arrays"]
+__all__ = ["Validation", "Run", "validate", "assemble", "sparse_terms", "plot_arrays", "withdraw_unidentified"]
+
+
+def withdraw_unidentified(problem: Problem, path: Path, found: list) -> list:
+    """The adopted deterministic effects checked with their final values and standard errors (after
+    the joint fit and :func:`.uncertainty.widen`): one not identified (:func:`.selection.identification`:
+    at or within its own standard error of a bound, outside its plausible range, or every standard
+    error above its value) is withdrawn from the final model, which is rebuilt without it (the
+    drive-noise level kept) and its floors renewed. A parameter whose standard error exceeds its
+    value in an effect identified by its others is marked ``identified: false``. Returns the report's
+    rows of the withdrawn effects (``why``)."""
+    gone = []
+    axis = problem.data.axis
+    for f in [s for s in path.selected if s.effect.kind == "deterministic"]:
+        row = next((fe for fe in path.found if fe["effect"] == f.key and fe.get("kind") == "deterministic"), None)
+        if row is None:
+            continue
+        names = [p["name"] for p in row["params"]]
+        vals = [p["value"] for p in row["params"]]
+        sig = [np.nan if p.get("sigma") is None else p["sigma"] for p in row["params"]]
+        others = [s for s in path.selected if s is not f]
+        try:
+            ps = f.effect.params(spec_with(others, problem.base), for_fits_on(path.context, others))
+        except Exception:     # noqa: BLE001 - no bounds: the plausible ranges and standard errors decide
+            ps = None
+        if ps is not None and len(ps) != len(names):
+            ps = None
+        why, weak = identification(names, vals, sig, ps, {p.name: p for p in f.effect.parameters}, axis)
+        for p in row["params"]:
+            p["identified"] = p["name"] not in weak
+        if why is None:
+            continue
+        path.selected.remove(f)
+        path.found.remove(row)
+        if row in found:
+            found.remove(row)
+        gone.append({"effect": row["effect"], "title": row["title"], "step": row["step"], "params": row["params"],
+                     "why": f"not identified with its final standard errors: {why}"})
+        problem.options.log(f"withdrawn: {row['effect']} ({why})")
+    if gone:
+        # the others at their final values (the report's rows: the joint fit's where it was used)
+        final = {fe["effect"]: [p["value"] for p in fe["params"]] for fe in path.found}
+        path.selected = [dataclasses.replace(f, theta=np.asarray(final[f.key], float))
+                         if f.effect.kind == "deterministic" and len(final.get(f.key, ())) == len(f.theta) else f
+                         for f in path.selected]
+        spec = spec_with(path.selected, problem.base)
+        for fe in found:
+            if fe["effect"] == "noise_level":
+                spec = NoiseLevel().apply(spec, [fe["params"][0]["value"]])
+        path.current = spec
+        renew_floor(problem, path, spec)
+    return gone
 
 
 @dataclass
@@ -91,6 +147,7 @@ def validate(setup: Setup, pred: Prediction, problem: Problem, path: Path, opt) 
         "controller_check_rel": pred.controller_error,
         "how": _how(data, judge)}
     windows_new = open_loop_windows(current, obs, res_new, setup.window)
+    figures_explained = []
 
     def drift_rms(o):
         if o is None:
@@ -110,9 +167,203 @@ def validate(setup: Setup, pred: Prediction, problem: Problem, path: Path, opt) 
         "open_loop_drift_rms_m": {"nominal": drift_rms(pred.windows), "improved": drift_rms(windows_new),
                                   "window_s": setup.window / data.rate},
     }
+    figures_explained += explain_figures(data, pred.residual, res_new, held, setup.band_hz, figures)
+    figures["disagreements"] = figures_explained
     return Validation(held=held, residual=res_new, improved_replay=rp_improved,
                       adequate_nominal=bool(replay_nom.ok and z_nom <= judge.t_q),
                       adequate=bool(replay_new.ok and z_new <= judge.t_q), headline=headline, figures=figures)
+
+
+def explain_figures(data, res_nom: ObsResult, res_new: ObsResult, held: np.ndarray, f_band: float,
+                    figures: dict) -> list:
+    """Sentences explaining held-out figures that disagree (one better by more than 5 %, another worse
+    by more than 5 %): where the force residual rose -- by regime of the reference and below/above a
+    tenth of its band -- beside the replay's change, and which figure decides."""
+    falls = {k: figures[k]["fall"] for k in ("force_residual_rms_N", "replay_command_rms_N", "replay_position_rms_m")
+             if figures.get(k) and figures[k].get("fall") is not None}
+    better = [k for k, f in falls.items() if f > 0.05]
+    worse = [k for k, f in falls.items() if f < -0.05]
+    if not better or not worse:
+        return []
+    name = {"force_residual_rms_N": "the held-out force residual", "replay_command_rms_N": "the replay's command error",
+            "replay_position_rms_m": "the replay's position error"}
+    lab = regimes(data.x_ref, data.v_ref, data.valid, data.rate)
+    rn, ri = lowpass(res_nom.r, held, data.rate, f_band), lowpass(res_new.r, held, data.rate, f_band)
+    low_n, low_i = lowpass(res_nom.r, held, data.rate, f_band / 10), lowpass(res_new.r, held, data.rate, f_band / 10)
+    parts = []
+    for i, reg in enumerate(REGIMES):
+        m = held & (lab == i)
+        if m.sum() >= 10:
+            a, b = float(np.sqrt(np.mean(rn[m] ** 2))), float(np.sqrt(np.mean(ri[m] ** 2)))
+            parts.append((b - a, f"{reg} {a:.3g} -> {b:.3g} N"))
+    parts.sort(key=lambda t: -t[0])
+    lo = (float(np.sqrt(np.mean(low_n[held] ** 2))), float(np.sqrt(np.mean(low_i[held] ** 2))))
+    hi = (float(np.sqrt(np.mean((rn - low_n)[held] ** 2))), float(np.sqrt(np.mean((ri - low_i)[held] ** 2))))
+    out = [(", ".join(f"{name[k]} {100 * falls[k]:+.0f} % better" for k in better) + "; "
+            + ", ".join(f"{name[k]} {-100 * falls[k]:.0f} % worse" for k in worse) + ".")]
+    if "force_residual_rms_N" in worse:
+        out.append("The force residual is the force the force observer adds for the model to follow the measured "
+                   f"position (band-limited to {f_band:.4g} Hz); it rose by regime: "
+                   + "; ".join(t for _, t in parts[:3])
+                   + f"; below {f_band / 10:.3g} Hz {lo[0]:.3g} -> {lo[1]:.3g} N, above {hi[0]:.3g} -> {hi[1]:.3g} N. "
+                   "The replay is the closed loop's answer to the recorded reference: an effect that brings the "
+                   "loop's response to the data can leave or add force the loop does not pass to the command and "
+                   "position (above its bandwidth, or where friction holds the stage). The replay decides what is "
+                   "adopted; where the force residual rose is what the improved model still misses there.")
+    else:
+        out.append("The replay rose where the force residual fell: the adopted effects explain force the observer "
+                   "sees but the closed loop does not reproduce it as recorded; the replay decides.")
+    return out
+
+
+def model_changes(nominal, improved, applied: list) -> list:
+    """Every preset field the improved model changes from the nominal ``{field, nominal, improved, by}``
+    (``by``: the keys of the adopted effects whose model change moves it, ``applied`` = [(effect,
+    values)] applied in turn on ``nominal`` with their final values; ``[]`` for a change none makes).
+    Nothing moves silently: a field an effect moves besides the parameter it names (a static force
+    scaled with the Coulomb level) is listed with it."""
+    def flat(d, pre=""):
+        out = {}
+        if isinstance(d, dict):
+            for k, v in d.items():
+                out.update(flat(v, f"{pre}{k}."))
+        elif isinstance(d, list) and all(isinstance(v, dict) for v in d):     # [] of a list of dicts: none
+            for i, v in enumerate(d):
+                out.update(flat(v, f"{pre}{i}."))
+        else:
+            out[pre[:-1]] = d
+        return out
+    a, b = flat(nominal.preset.model_dump(mode="json")), flat(improved.preset.model_dump(mode="json"))
+    by: dict = {}
+    spec = nominal
+    for eff, values in applied:
+        try:
+            nxt = eff.apply(spec, values)
+        except Exception:     # noqa: BLE001 - not attributable
+            continue
+        fa, fb = flat(spec.preset.model_dump(mode="json")), flat(nxt.preset.model_dump(mode="json"))
+        for k in set(fa) | set(fb):
+            if fa.get(k) != fb.get(k):
+                by.setdefault(k, []).append(eff.key)
+        spec = nxt
+    out = []
+    for k in sorted(set(a) | set(b)):
+        if k == "name" or a.get(k) == b.get(k):
+            continue
+        if isinstance(a.get(k), float) and isinstance(b.get(k), float) and \
+                abs(a[k] - b[k]) <= 1e-12 * max(abs(a[k]), abs(b[k])):
+            continue
+        out.append({"field": k, "nominal": a.get(k), "improved": b.get(k), "by": by.get(k, [])})
+    return out
+
+
+def detection_limits(problem: Problem, path: Path) -> list:
+    """What the record could have revealed on top of the final model: for every candidate effect not
+    adopted, the smallest change of its size parameter the adoption test would pass in half the
+    recordings (a truth of that size replayed exactly, its noise as the final model's).
+
+    From one small instance of the effect (:meth:`.effects.base.Effect.probe`; one sample more for
+    the whole-sample delay): its replay change ``d`` from the final model's, in floor units over the
+    held-out samples, and the final model's simulated recordings' errors ``e_k``. A truth of size
+    ``delta`` moves the replay by ``(delta / h) d`` (linearised) and passes the test when its
+    squared norm exceeds the Student quantile ``t`` times the spread of ``e_k . d`` over the
+    recordings: ``delta_50 = |h| t sd_k(e_k . d) / |d|^2``. Rows: effect, parameter, unit, the
+    model's value, ``smallest_change`` (absolute; ``relative`` to the value where it is not 0)."""
+    judge, lib = problem.judge, problem.library
+    fl = path.replay_floor
+    rp0 = fl.replay
+    if not rp0.ok or not judge.n:
+        return []
+    E = judge.sim_residuals(rp0, fl)
+    spec = path.current
+    taken = {f.key for f in path.selected}
+    ctx = for_fits_on(path.context, path.selected)
+    out = []
+    for k in problem.keys:
+        e = lib[k]
+        if k in taken or e.kind not in ("deterministic", "integer") or e.applicable(spec) is not None or (
+                e.in_drive and problem.data.command_kind == "measured"):
+            continue
+        try:
+            ps = e.params(spec, ctx)
+            if e.kind == "integer":
+                v0 = e.nominal(spec).get(ps[0].name)
+                pr = None if v0 is None else ([v0 + 1 if v0 + 1 <= ps[0].hi else v0 - 1], 0)
+            else:
+                pr = e.probe(spec, ctx)
+            if pr is None:
+                continue
+            theta, i = pr
+            v0 = e.nominal(spec).get(ps[i].name, 0.0)
+            h = float(theta[i]) - float(v0)
+            rp = judge.replay(e.apply(spec, theta))
+        except Exception:     # noqa: BLE001 - no limit for this one
+            continue
+        if not rp.ok or h == 0:
+            continue
+        d = judge.difference(rp, rp0, fl)
+        n2 = float(d @ d)
+        if not n2 > 0:
+            continue
+        sd = float(np.std(E @ d, ddof=1))
+        lim = abs(h) * judge.t_q * sd / n2
+        out.append({"effect": k, "title": e.title, "parameter": ps[i].name, "unit": ps[i].unit, "model_value": v0,
+                    "smallest_change": lim, "relative": lim / abs(v0) if v0 else None,
+                    "probe_change": h, "probe_replay_D": n2 / judge.n})
+    return out
+
+
+def findings(run: Run, verdict: str) -> list:
+    """Every finding with its status: ``identified``, ``confounded with X`` (the rule that chose in
+    ``chosen_by``), ``not identified`` (withdrawn, why), ``located, not explained`` (what the final
+    model leaves beyond its floor, where), or ``nothing found`` with what the record could have
+    revealed (:func:`detection_limits`)."""
+    out = []
+    for fe in run.found:
+        row = {"finding": fe["title"], "effect": fe["effect"], "status": fe["status"]}
+        weak = [p["name"] for p in fe["params"] if p.get("identified") is False]
+        if weak:
+            row["not_determined"] = weak
+        if fe.get("chosen_by") and fe.get("alternatives"):
+            row["chosen_by"] = fe["chosen_by"]
+        out.append(row)
+    for w in run.withdrawn:
+        out.append({"finding": w["title"], "effect": w["effect"], "status": "not identified", "why": w["why"]})
+    val = run.validation
+    if not val.adequate:
+        rem = run.remaining or {}
+        where = {}
+        regs = sorted(rem.get("regimes") or [], key=lambda r: -r["excess_share"])
+        if regs:
+            where["regime"] = {k: regs[0][k] for k in ("regime", "excess_share", "rms_N", "floor_rms_N")}
+        bands = sorted(rem.get("bands") or [], key=lambda b: -b["excess_share"])
+        if bands:
+            where["band_hz"] = [bands[0]["f_lo_hz"], bands[0]["f_hi_hz"]]
+            where["band_excess_share"] = bands[0]["excess_share"]
+        if rem.get("peaks"):
+            where["peaks_hz"] = [p["f_hz"] for p in rem["peaks"][:3]]
+        out.append({"finding": "residual beyond the run-to-run floor "
+                               f"({val.headline['floor_ratio']['improved']:.3g}x)",
+                    "status": "located, not explained", "where": where})
+    elif not run.found:
+        out.append({"finding": "nothing beyond the run-to-run floor", "status": "model adequate",
+                    "could_have_revealed": run.detection or []})
+    return out
+
+
+def improved_name(spec, nominal, found: list):
+    """``spec`` named for what it is: the nominal's name ``+`` the keys of the effects found (the
+    nominal's own name where none was)."""
+    if not found:
+        return spec
+    return spec.with_changes({"name": nominal.preset.name + "+" + "+".join(fe["effect"] for fe in found)})
+
+
+def status_of(row: dict) -> str:
+    """A finding's status: ``identified``, or ``confounded with X`` when candidates the held-out replay
+    cannot tell from it exist (listed with the rule that chose, ``chosen_by``)."""
+    alts = [a["effect"] for a in row.get("alternatives") or []] or list(row.get("confounded_with") or [])
+    return f"confounded with {', '.join(alts)}" if alts else "identified"
 
 
 def sparse_terms(data, res: ObsResult, ctx: Context, f_band: float) -> dict:
@@ -156,6 +407,13 @@ class Run:
     J_held_nominal: float
     adequacy_tolerance: float
     validation: Validation
+    withdrawn: list = field(default_factory=list)
+    """The report's rows of the adopted effects withdrawn as not identified (:func:`withdraw_unidentified`)."""
+    detection: list | None = None
+    """What the record could have revealed on top of the final model (:func:`detection_limits`), when
+    that model is consistent with its floor."""
+    remaining: dict | None = None
+    """Where the final model's force residual lies (:func:`.locate.locate`'s summary), when it is not."""
 
 
 def assemble(run: Run, timing: dict, sparse: dict | None) -> dict:
@@ -168,6 +426,21 @@ def assemble(run: Run, timing: dict, sparse: dict | None) -> dict:
         verdict = "effects found" if val.adequate else "effects found, residual remains"
     olw = pred.windows
     kind = spec0.preset.stage.kind
+    for fe in run.found:
+        fe["status"] = status_of(fe)
+    lib = problem.library
+    applied = []
+    for fe in run.found:
+        eff = next((f.effect for f in path.selected if f.key == fe["effect"]), None) or (
+            lib[fe["effect"]] if fe["effect"] in lib else None)
+        if eff is not None:
+            applied.append((eff, [p["value"] for p in fe["params"]]))
+    applied = [a for a in applied if a[0].kind != "deterministic"] + [a for a in applied if a[0].kind == "deterministic"]
+    changes = model_changes(spec0, path.current, applied)
+    moved = {k for c in changes for k in c["by"]}
+    for fe in run.found:
+        if fe["effect"] not in moved:
+            fe["status"] += " (its final value is the nominal's: the model is unchanged by it)"
     report = {
         "nanostage_diagnosis": 1,
         "verdict": verdict,
@@ -176,6 +449,9 @@ def assemble(run: Run, timing: dict, sparse: dict | None) -> dict:
         "found": run.found,
         "recording": {"source": data.source, "rate_hz": data.rate, "trials": int(data.shape[1]),
                       "open_loop": data.open_loop, "axis": data.axis,
+                      "command": {"kind": data.command_kind, "meaning": COMMAND_KINDS.get(data.command_kind, ""),
+                                  "not_proposed": [k for k in problem.keys if k in lib and lib[k].in_drive]
+                                  if data.command_kind == "measured" else []},
                       "samples": int(data.valid.sum()), "duration_s": float(data.valid.sum() / data.rate),
                       "split": data.split, "fit_trials": [int(data.trial_ids[c]) for c in ev.fit_cols],
                       "held_out_trials": [int(data.trial_ids[c]) for c in ev.held_cols], "notes": setup.notes},
@@ -202,7 +478,10 @@ def assemble(run: Run, timing: dict, sparse: dict | None) -> dict:
         "stochastic": run.stochastic,
         "sparse_regression": sparse,
         "validation": val.figures,
-        "improved_model": {"name": path.current.preset.name},
+        "improved_model": {"name": path.current.preset.name, "changes": changes},
+        "withdrawn": run.withdrawn,
+        "findings": findings(run, verdict),
+        "detection_limits": run.detection,
         "timing_s": timing,
     }
     convert_units(report, kind)       # every parameter unit on the axis of the stage (rotary: rad, N·m, kg·m²)

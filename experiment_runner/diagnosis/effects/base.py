@@ -231,6 +231,14 @@ class Effect:
     """Keys of adopted effects after which this one is not proposed (it is part of them)."""
     sets_friction_level: ClassVar[bool] = False
     """Adopted, it is the Coulomb level (:attr:`..context.Context.level_fitted`)."""
+    continues: ClassVar[tuple] = ()
+    """Keys of integer effects whose value this one continues below their grid step (a fraction of a
+    sample after a whole-sample delay): once one of them is adopted, this one is tried before the
+    forward selection stops (a whole sample away from the truth can be within the floor)."""
+    in_drive: ClassVar[bool] = False
+    """A property of the drive between a recorded command and the force it applies (force constant,
+    drive delay): no candidate where the recorded command is the force applied, measured
+    (``command.kind: measured``)."""
     deal: ClassVar[int | None] = None
     """Place in the power study's deal of single-effect cases (the study is fixed by it; a new
     effect takes the next number); None: not dealt (``truth_of``)."""
@@ -269,6 +277,23 @@ class Effect:
         """Physical quantities derived from the fit (compared with a truth in the self-test)."""
         return {}
 
+    def probe(self, spec: ModelSpec, ctx: Context):
+        """A small instance of the effect on ``spec`` for its detection limit: ``(theta, i)``, the
+        parameters and the index of the one whose change from the model's value is the effect's size;
+        None where the effect has no size alone (a period or frequency first to be located). Default:
+        a one-parameter deterministic effect moved from its model value by 5 % of it (2 % of its range
+        where it is 0)."""
+        if self.kind != "deterministic":
+            return None
+        ps = self.params(spec, ctx)
+        if len(ps) != 1:
+            return None
+        p, v0 = ps[0], self.nominal(spec).get(ps[0].name)
+        if v0 is None:
+            return None
+        h = 0.05 * abs(v0) if v0 != 0 else 0.02 * (p.hi - p.lo)
+        return ([v0 + h] if v0 + h <= p.hi else [v0 - h]), 0
+
     def starts(self, spec: ModelSpec, ctx: Context) -> list:
         """Initial parameter vectors (multi-start); default: the x0 of :meth:`params`."""
         return [[p.x0 for p in self.params(spec, ctx)]]
@@ -294,4 +319,4 @@ class Effect:
         return {"key": self.key, "title": self.title, "kind": self.kind, "physics": self.physics,
                 "signature": self.signature, "parameters": [p.row() for p in self.parameters],
                 "in_preset": self.expressible, "needs": self.needs, "exclusive": list(self.exclusive),
-                "known_quantity": self.known_quantity}
+                "known_quantity": self.known_quantity, "in_drive": self.in_drive}

@@ -15,6 +15,7 @@ class ForceConstant(Effect):
     signature = "residual proportional to the command itself (residual vs command is a straight line)"
     parameters = (Parameter("ratio", "-", "true/nominal force constant", (0.3, 3.0)),)
     known_quantity = True
+    in_drive = True
     deal = 4
 
     def params(self, spec, ctx):
@@ -47,6 +48,7 @@ class Delay(Effect):
                  "fast: reversals, starts of moves); phase lag growing with frequency")
     parameters = (Parameter("delay_samples", "samples", "delay", (0, MAX)),)
     never_paired_with = ("fractional_delay",)
+    in_drive = True
     deal = 5
 
     def params(self, spec, ctx):
@@ -84,6 +86,8 @@ class FractionalDelay(Effect):
                  "linearly with frequency, by 360 deg x delay x f / rate")
     parameters = (Parameter("shift", "samples", "delay added to the model's (-1 ... 1)", (-1.0, 1.0)),)
     never_paired_with = ("delay",)
+    continues = ("delay",)
+    in_drive = True
     deal = 21
 
     @staticmethod

@@ -282,6 +282,14 @@ class PositionFriction(Effect):
         e._c = float(ctx.x_center)
         return e
 
+    def probe(self, spec, ctx):
+        """A slope of 5 % of the Coulomb force over the recorded half span."""
+        ps = self.params(spec, ctx)
+        th = [0.0] * len(ps)
+        i = len(ps) - 2
+        th[i] = 0.05 * max(coulomb_total(spec.preset), 1e-12) / max(ctx.x_half_span, 1e-9)
+        return th, i
+
     def conceal(self, d, draw):
         nb = len(d["stage"]["bearings"])
         g1 = draw.sign * draw.size(0.01, 0.8) * bearing_f_c(d) / draw.half_span
@@ -316,6 +324,10 @@ class Asymmetry(Effect):
 
     def nominal(self, spec):
         return {"dF_C": 0.0, "dc": 0.0}
+
+    def probe(self, spec, ctx):
+        """A Coulomb difference of 5 % of the Coulomb force."""
+        return [0.05 * coulomb_total(spec.preset), 0.0], 0
 
     def apply(self, spec, theta):
         dfc, dc = float(theta[0]), float(theta[1])
