@@ -24,7 +24,7 @@ from experiment_runner.diagnosis.synth import synth
 from stage_sim.config import ConfigError
 
 EFFECTS = ["coulomb", "viscous", "offset"]
-TIMES = {"timing_s", "seconds", "evaluation_s"}      # wall times: the only fields allowed to differ
+TIMES = {"timing_s", "seconds", "evaluation_s", "spent_s"}   # wall times: the only fields allowed to differ
 
 
 def _canon(rep: dict) -> str:

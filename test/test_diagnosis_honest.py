@@ -277,6 +277,31 @@ def test_a_nominal_stating_no_drive_noise_takes_the_datas_level_before_judging()
     assert pred.replay_floor.sigma_u > 3 * sigma_before          # the floor is the data's, not a numerical nothing
 
 
+def test_a_deterministic_residual_is_not_taken_for_the_drive_noise_level():
+    """A noise-free nominal that also misses half its Coulomb friction: the level read from its residual
+    does not make its replay consistent with its recordings (the residual holds more than noise), so
+    no drive-noise level is taken before judging (taken, it would put the floor above the missing
+    friction: the EMPS nominal read 1.5 A and named a 0.16 Hz 'periodic force' instead of friction)."""
+    from experiment_runner.diagnosis import stages
+    from experiment_runner.diagnosis.options import Options
+    case = power.PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
+                           quantiles=(), seed=4242, profile={"kind": "point_to_point", "distance": 1e-4,
+                                                             "dwell": 0.06}, trials=4)
+    nominal, truth, _, data, _ = power.build_case(case)
+    f_c = nominal.stage.bearings[0].friction.f_c
+    quiet = noise_free(ModelSpec(nominal)).with_changes({f"stage.bearings.{i}.friction.f_c": 0.5 * f_c
+                                                         for i in range(len(nominal.stage.bearings))})
+    opt, timing = Options(plots=False, n_jobs=1), {}
+    setup = stages.read(None, quiet, opt, data, timing)
+    lattice = stages.quantization(setup, opt)
+    pred = stages.predict(setup, lattice.base, opt, timing)
+    pred = stages.drive_noise_prior(setup, lattice, pred, opt, timing)
+    info = lattice.stochastic["noise_prior"]
+    assert "not_taken" in info and abs(info["replay_z_after"]) > pred.judge.t_q, info
+    assert lattice.base.preset.stage.drive.noise_current_rms == 0.0
+    assert not [f for f in lattice.found if f["effect"] == "noise_level"]
+
+
 def test_a_candidate_replaying_closer_than_its_own_recordings_replays_the_noise():
     from experiment_runner.diagnosis.selection import JudgedRow, _consistent_from_below
     z = {"mass": -5.0, "coulomb": 0.4, "delay": -1.0}

@@ -220,7 +220,9 @@ def drive_noise_prior(setup: Setup, lattice: Lattice, pred: Prediction, opt: Opt
     """The data's drive-noise level read from the nominal's force residual spectrum where drive noise
     dominates (:func:`.fit.fit_noise_level`), before anything is judged. A nominal that states no
     random force (noise-free, the floor a numerical nothing) takes that level into the base model
-    (a stochastic finding, said in the report) and the floors are estimated again; otherwise the
+    (a stochastic finding, said in the report; the floors are estimated again) when that level alone
+    makes its replay consistent with its own simulated recordings -- the record holds noise and
+    nothing else; otherwise the level is fitted after the deterministic effects; otherwise the
     ratio of the data's level to the model's is kept (``stochastic['noise_prior']``): where the data
     are not quieter than the model, a candidate whose replay is closer to the data than its own
     recordings are replays the noise (:func:`.selection.choose`). Returns the prediction (renewed
@@ -246,26 +248,30 @@ def drive_noise_prior(setup: Setup, lattice: Lattice, pred: Prediction, opt: Opt
     sig = float(est["sigma"])
     s0 = base.preset.stage.drive.noise_current_rms
     eff = NoiseLevel()
-    held_out = None
+    judge, fl0 = pred.judge, pred.replay_floor
     if states:
         if not s0 > 0:
             return pred
         info["ratio"] = sig / s0
-        judge, fl0 = pred.judge, pred.replay_floor
         if 0.8 <= sig / s0 <= 1.25 or est.get("spread", 1.0) >= 0.35 or not fl0.replay.ok:
             return pred
-        # the data's level is another, read alike in every band: taken before judging if it alone makes
-        # the nominal's replay consistent with its recordings (the record holds noise and nothing else)
-        fl1 = judge.floor(eff.apply(base, [sig]))
-        z_old, z_new = judge.consistency(fl0.replay, fl0), judge.consistency(fl0.replay, fl1, norm=fl0)
-        info.update(replay_z_before=z_old, replay_z_after=z_new)
-        if not (abs(z_old) > judge.t_q and abs(z_new) <= judge.t_q):
-            return pred
-        held_out = {"metric": "|z| of the replay error among the model's simulated recordings (run-to-run "
-                              "consistency); the level read from the residual spectrum before judging",
-                    "nominal": abs(z_old), "improved": abs(z_new)}
-    elif not sig > 0:
+    elif not (sig > 0 and fl0.replay.ok):
         return pred
+    # taken before judging only if that level alone makes the nominal's replay consistent with its own
+    # simulated recordings: the record holds noise and nothing else. Otherwise the residual holds
+    # deterministic physics too (read in the motion's own band, the level would put the floor above it:
+    # a noise-free nominal missing its friction reads amperes); the level is then fitted after the
+    # deterministic effects (:func:`.closing.drive_noise`)
+    fl1 = judge.floor(eff.apply(base, [sig]))
+    z_old, z_new = judge.consistency(fl0.replay, fl0), judge.consistency(fl0.replay, fl1, norm=fl0)
+    info.update(replay_z_before=z_old, replay_z_after=z_new)
+    if not (abs(z_old) > judge.t_q and abs(z_new) <= judge.t_q):
+        info["not_taken"] = ("that level alone does not make the nominal's replay consistent with its own "
+                             "recordings: the residual holds more than noise (level fitted after the effects)")
+        return pred
+    held_out = {"metric": "|z| of the replay error among the model's simulated recordings (run-to-run "
+                          "consistency); the level read from the residual spectrum before judging",
+                "nominal": abs(z_old), "improved": abs(z_new)}
     lattice.base = eff.apply(base, [sig])
     info["adopted"] = sig
     lattice.found.append({"effect": "noise_level", "title": eff.title, "kind": "stochastic", "step": 0,
