@@ -203,6 +203,11 @@ def identification(names, theta, sigma, params=None, documented=None, axis: str 
     >>> doc = {"c": Parameter("c", "N·s/m", "viscous", (1e-3, 1e5), (1e-7, 1e2))}
     >>> identification(["c"], [500.0], [1.0], c, doc, axis="rotary")[0]
     'c 500 outside the plausible range 1e-07 ... 100 on a rotary axis'
+    >>> dc = {"dc": Parameter("dc", "N·s/m", "c+ - c-", (1e-3, 1e5), signed=True)}
+    >>> identification(["dc"], [-75.6], [1.5], None, dc)      # a difference of either sign: by its magnitude
+    (None, [])
+    >>> identification(["dc"], [-2e5], [1.5], None, dc)[0]
+    'dc -2e+05 outside the plausible range 0.001 ... 1e+05 on a linear axis'
     """
     th = np.asarray(theta, float)
     sig = np.asarray(sigma, float) if sigma is not None else np.full(len(th), np.nan)
@@ -234,7 +239,7 @@ def identification(names, theta, sigma, params=None, documented=None, axis: str 
         rng = d.plausible_on(axis) if d is not None else None
         if rng is not None:
             lo, hi = rng
-            signed = p is not None and p.lo < 0
+            signed = d.signed or (p is not None and p.lo < 0)
             if (abs(v) > hi) if signed else not (lo <= v <= hi):
                 return f"{n} {v:.4g} outside the plausible range {lo:.4g} ... {hi:.4g} on a {axis} axis", weak
     return None, weak

@@ -61,13 +61,15 @@ class Parameter:
 
     ``plausible`` is the range of physically plausible values on a linear axis, in ``unit``;
     ``plausible_rotary`` the range on a rotary axis, in ``unit_for(unit, "rotary")`` (None where the
-    unit is the same on both axes: ``plausible`` holds for both).
+    unit is the same on both axes: ``plausible`` holds for both). ``signed``: a difference, offset or
+    slope of either sign, whose *magnitude* the range bounds.
     """
     name: str
     unit: str
     meaning: str
     plausible: tuple | None = None
     plausible_rotary: tuple | None = None
+    signed: bool = False
 
     def plausible_on(self, axis: str = "linear") -> tuple | None:
         """The plausible range on an axis of ``axis`` (``linear`` or ``rotary``), in that axis' unit.

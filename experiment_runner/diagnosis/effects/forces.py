@@ -23,7 +23,7 @@ class Ripple(Effect):
                "(stage.force_ripple).")
     signature = ("residual periodic in position (peak in the periodogram of residual vs position), independent "
                  "of velocity sign")
-    parameters = (Parameter("a_sin, a_cos", "N", "amplitudes", FORCE, TORQUE),
+    parameters = (Parameter("a_sin, a_cos", "N", "amplitudes", FORCE, TORQUE, signed=True),
                   Parameter("period", "m", "spatial period", (1e-7, 1.0), (1e-4, 2 * math.pi)))
     deal = 11
 
@@ -70,7 +70,7 @@ class Offset(Effect):
     physics = ("A constant force on the table (cable drag, gravity on a tilted axis, amplifier offset): "
                "stage.force_offset.")
     signature = "a constant residual, independent of state"
-    parameters = (Parameter("F_0", "N", "force", FORCE, TORQUE),)
+    parameters = (Parameter("F_0", "N", "force", FORCE, TORQUE, signed=True),)
     deal = 14
 
     def params(self, spec, ctx):
@@ -101,7 +101,7 @@ class PeriodicForce(Effect):
                "(VAN, Ch. 3) or a periodic disturbance: stage.periodic_force, A sin(2 pi f t + phase).")
     signature = ("a spectral line of the residual far above the floor at one frequency (the dither "
                  "frequency), present in every regime")
-    parameters = (Parameter("a_sin, a_cos", "N", "amplitudes", FORCE, TORQUE),
+    parameters = (Parameter("a_sin, a_cos", "N", "amplitudes", FORCE, TORQUE, signed=True),
                   Parameter("f", "Hz", "frequency", (0.1, 1e6)))
     deal = 15
 

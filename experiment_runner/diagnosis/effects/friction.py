@@ -227,9 +227,9 @@ class PositionFriction(Effect):
                "whole force scales with F_C(x), pre-motion stiffness included.")
     signature = ("residual with the sign of velocity whose size depends on position (residual vs "
                  "position, split by direction of motion)")
-    parameters = (Parameter("dF_0", "N", "level change", FORCE, TORQUE),
-                  Parameter("g_1", "N/m", "slope", (1e-2, 1e7), (1e-4, 1e4)),
-                  Parameter("g_2", "N/m^2", "curvature", (1.0, 1e10), (1e-4, 1e4)))
+    parameters = (Parameter("dF_0", "N", "level change", FORCE, TORQUE, signed=True),
+                  Parameter("g_1", "N/m", "slope", (1e-2, 1e7), (1e-4, 1e4), signed=True),
+                  Parameter("g_2", "N/m^2", "curvature", (1.0, 1e10), (1e-4, 1e4), signed=True))
     deal = 10
     _c = 0.0
 
@@ -309,8 +309,8 @@ class Asymmetry(Effect):
                "Fc+ != Fc-, Fv+ != Fv-): friction fields f_c_difference, viscous_difference.")
     signature = ("a residual of the same sign in both directions while moving (not flipping at reversals), "
                  "zero at rest; residual vs velocity is V-shaped / offset between the branches")
-    parameters = (Parameter("dF_C", "N", "F_C+ - F_C-", FORCE, TORQUE),
-                  Parameter("dc", "N·s/m", "c+ - c-", (1e-3, 1e5), (1e-7, 1e2)))
+    parameters = (Parameter("dF_C", "N", "F_C+ - F_C-", FORCE, TORQUE, signed=True),
+                  Parameter("dc", "N·s/m", "c+ - c-", (1e-3, 1e5), (1e-7, 1e2), signed=True))
     deal = 13
 
     def applicable(self, spec):
