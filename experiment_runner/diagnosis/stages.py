@@ -82,6 +82,9 @@ class Prediction:
     fit_judge: ReplayJudge | None
     replay_floor: Floor
     """The base model's run-to-run replay floor."""
+    nominal_replay_floor: Floor | None = None
+    """The nominal's own replay floor where the base took a drive-noise level before judging
+    (:func:`drive_noise_prior`; None: ``replay_floor`` is the nominal's): the report's nominal column."""
 
 
 @dataclass
@@ -284,7 +287,8 @@ def drive_noise_prior(setup: Setup, lattice: Lattice, pred: Prediction, opt: Opt
     opt.log(f"noise prior: {sig:.3g} A from the residual spectrum (the nominal's {s0:.3g} A)")
     t = time.perf_counter()
     fl = ForceFloor(lattice.base, data, obs.f_o, opt.floor_seeds, data.smooth_hz)
-    pred = dataclasses.replace(pred, floor=fl, replay_floor=pred.judge.floor(lattice.base))
+    pred = dataclasses.replace(pred, floor=fl, replay_floor=pred.judge.floor(lattice.base),
+                               nominal_replay_floor=pred.nominal_replay_floor or pred.replay_floor)
     timing["floor_s"] = timing.get("floor_s", 0.0) + time.perf_counter() - t
     return pred
 

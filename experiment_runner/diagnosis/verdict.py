@@ -117,7 +117,8 @@ def validate(setup: Setup, pred: Prediction, problem: Problem, path: Path, opt) 
     model against its own run-to-run floor), force residual (each against its own floor), open-loop
     windows."""
     data, obs, judge = setup.data, setup.observer, pred.judge
-    current, force_floor, floor_new, floor_nom = path.current, path.floor, path.replay_floor, pred.replay_floor
+    current, force_floor, floor_new = path.current, path.floor, path.replay_floor
+    floor_nom = pred.nominal_replay_floor or pred.replay_floor      # the nominal's own, before any prior
     held = data.held if data.held.any() else data.fit
     res_new = obs.run(current, snap_every=setup.window)
     r_nom_band = band_rms(pred.residual.r, held, data.rate, setup.band_hz)
