@@ -138,11 +138,6 @@ class Comparison:
                 "beyond_floor": self.accepted, "why": self.why}
 
 
-SCORE_MIN_BLOCKS = 6
-"""Fewest (merged) held-out blocks the score test estimates its standard error from
-(:meth:`ReplayJudge._score_span`)."""
-
-
 class ReplayJudge:
     """Closed-loop replay of the held-out trials of ``data`` and the tests above.
 
@@ -360,11 +355,9 @@ class ReplayJudge:
         ``fl``'s; errors against ``rp0``) reaches 70 % of the variance of the whole sum. Drive noise
         moves a friction contact's hold force for a whole hold and the loop integrates it: blocks of
         20 ms are then far from independent, and the score test took a wrong effect that trades one
-        realisation's misfit for another (a delay for a mode) as beyond the data's noise. At least
-        :data:`SCORE_MIN_BLOCKS` merged blocks remain: a standard error from fewer is itself too
-        uncertain to test with (with 3 of 13 blocks a ripple 2.7x beyond the floor was lost)."""
+        realisation's misfit for another (a delay for a mode) as beyond the data's noise."""
         of = of or fl
-        if of.u.ndim != 3 or of.u.shape[0] < 3 or self.n_blocks < 2 * SCORE_MIN_BLOCKS:
+        if of.u.ndim != 3 or of.u.shape[0] < 3 or self.n_blocks < 6:
             return 1
         S = np.stack([self._blocks(sum(ei * di for ei, di in zip(self._errors(of.u[k], of.y[k], rp0, fl), d)))
                       for k in range(of.u.shape[0])])
@@ -372,7 +365,7 @@ class ReplayJudge:
         if not whole > 0:
             return 1
         m = 1
-        while self.n_blocks // m >= SCORE_MIN_BLOCKS:
+        while self.n_blocks // m >= 3:
             if float(np.sum(np.var(self._merged(S, m), axis=0, ddof=1))) >= 0.7 * whole:
                 return m
             m *= 2
