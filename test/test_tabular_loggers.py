@@ -352,7 +352,7 @@ def test_a_small_rotary_servo_record_converts_in_rotary_units(tmp_path, capsys):
 # --------------------------------------------------------------------------- EMPS with force pulses
 @pytest.fixture(scope="module")
 def pulses_file():
-    from experiment_runner.diagnosis.realdata import DataMissing, data_root
+    from experiment_runner.diagnosis.datasets import DataMissing, data_root
     try:
         path = data_root() / "emps" / "DATA_EMPS_PULSES.mat"
     except DataMissing as err:
