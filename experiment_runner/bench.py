@@ -26,6 +26,11 @@ included) on a 10 s, 10 kHz synthetic recording with one concealed effect
 (:func:`experiment_runner.diagnosis.selftest.diagnose_seconds`), after the same on a 1 s
 recording (so a compile or cache load of the kernels is not in the figure: it was, 25-40 s
 instead of 12-13 s, whenever a source file had changed since the kernels were cached).
+``diagnose_seconds_emps``: wall time of ``nanostage diagnose REC emps_nominal.yaml`` with the CLI's
+defaults (its wall-clock budget included) on the EMPS main record (``nanostage convert emps
+DATA_EMPS.mat``, conversion not timed), after the 10 s figure (kernels warm); left out with
+``quick``, and, with the reason on stderr, when the EMPS data are not under the shared data folder
+(:func:`diagnose_seconds_emps`).
 
 With ``graph=True`` (``nanostage bench --graph``, the default) it also runs the ROS 2
 node graph on an FI-stage point-to-point experiment, once in one process and once
@@ -202,6 +207,36 @@ def main_job_seconds() -> float:
         return time.perf_counter() - t0
 
 
+def diagnose_seconds_emps() -> float | None:
+    """Wall time [s] of ``nanostage diagnose`` with the CLI's defaults (``--out`` a temporary
+    folder, progress off) on the EMPS main record and the shipped nominal; None, saying why on
+    stderr, when ``DATA_EMPS.mat`` is not under the shared data folder
+    (:func:`experiment_runner.diagnosis.datasets.data_root`)."""
+    import argparse
+    import contextlib
+    import io
+    import sys
+
+    from experiment_runner.diagnosis import add_diagnose_arguments, main_diagnose
+    from experiment_runner.diagnosis.datasets import DataMissing, data_root, need_file
+    from experiment_runner.diagnosis.realdata import EMPS_NOMINAL
+    from experiment_runner.tabular import convert_emps
+    try:
+        mat = need_file(data_root() / "emps" / "DATA_EMPS.mat", "EMPS main record")
+    except DataMissing as err:
+        print(f"bench: diagnose_seconds_emps skipped: {err}", file=sys.stderr)
+        return None
+    with tempfile.TemporaryDirectory(prefix="nanostage_bench_emps_") as tmp:
+        rec = convert_emps(mat, Path(tmp) / "rec")
+        p = argparse.ArgumentParser()
+        add_diagnose_arguments(p)
+        args = p.parse_args([str(rec), str(EMPS_NOMINAL), "--out", str(Path(tmp) / "diagnosis"), "--quiet"])
+        t0 = time.perf_counter()
+        with contextlib.redirect_stdout(io.StringIO()):
+            main_diagnose(args)
+        return time.perf_counter() - t0
+
+
 def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, main_job: bool = False) -> int:
     result = core_figures(quick)
     result["peak_memory_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
@@ -222,6 +257,9 @@ def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, ma
     from experiment_runner.diagnosis.selftest import diagnose_seconds
     diagnose_seconds(1.0)         # warm-up: numba's compile / cache load is not timed (as for the core figures)
     result["diagnose_seconds_10s"] = round(diagnose_seconds(10.0), 1)
+    emps = None if quick else diagnose_seconds_emps()
+    if emps is not None:
+        result["diagnose_seconds_emps"] = round(emps, 1)
     if graph:
         result.update(run_graph_bench(quick))
     if main_job:

@@ -36,7 +36,7 @@ import threading
 import time
 from contextlib import contextmanager
 
-__all__ = ["Budget", "BudgetReached", "checkpoint", "halt_search", "progress", "DEFAULT_MAX_SECONDS"]
+__all__ = ["Budget", "BudgetReached", "checkpoint", "halt_search", "progress", "parallel_map", "DEFAULT_MAX_SECONDS"]
 
 DEFAULT_MAX_SECONDS = 240.0
 """Default wall-clock budget of a diagnosis [s] (``nanostage diagnose --max-seconds``): the search
@@ -176,3 +176,24 @@ def progress(text: str) -> None:
     b = _ACTIVE
     if b is not None:
         b.say(text)
+
+
+def parallel_map(fn, items, n_jobs: int) -> list:
+    """``[fn(x) for x in items]`` on ``n_jobs`` threads, in the items' order (the search's independent
+    model evaluations: the compiled kernels release the GIL). An interruption (SIGINT / SIGTERM)
+    halts the running search, so that the evaluations still running stop at their next
+    :func:`checkpoint`, and is raised again; an exception of ``fn`` is raised as from the loop.
+
+    >>> parallel_map(lambda x: x * x, [1, 2, 3], n_jobs=2)
+    [1, 4, 9]
+    """
+    items = list(items)
+    if n_jobs <= 1 or len(items) <= 1:
+        return [fn(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(min(n_jobs, len(items))) as pool:
+        try:
+            return list(pool.map(fn, items))
+        except KeyboardInterrupt as err:
+            halt_search(f"interrupted ({err or 'SIGINT'})")
+            raise

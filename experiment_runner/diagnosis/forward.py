@@ -7,7 +7,9 @@ current model is adopted (:func:`.adoption.adopt_best`), its statistically equiv
 are reported, never adopted too. The walk stops when the current model's replay is within its own
 floor or nothing is adoptable. When the greedy walk ends beyond its floor, a second walk starts from
 step 1's runner-up (:meth:`ForwardSelection.second_start`) and is kept only if its held-out replay is
-better beyond the first walk's floor (the adoption test).
+better beyond the first walk's floor (the adoption test). A second walk whose adopted effects become
+those of the greedy walk after one of its steps has joined it: from there it would walk the greedy
+path again, so it stops, and the greedy walk is kept.
 
 With a :class:`.budget.Budget`, a step stopped by it (time spent, or an interruption) is dropped
 whole: the walk keeps the model of its last completed step, and an unfinished second walk is not
@@ -47,6 +49,10 @@ class ForwardSelection:
         self.budget = budget if budget is not None else Budget(None, progress=False)
         self.first_step: FirstStep | None = None
         self.path: Path | None = None
+        self.greedy_sets: list[frozenset] = []
+        """The adopted effects of the greedy walk after each of its steps."""
+        self.joined: dict | None = None
+        """Where the second walk joined the greedy one (``step``, ``greedy_step``, ``effects``), or None."""
 
     def run(self) -> Path:
         """The greedy walk, and the walk from step 1's runner-up when the greedy one ends beyond its
@@ -62,6 +68,19 @@ class ForwardSelection:
         problem.options.log(f"second start: {second.fit.key} first (the path from {a.steps[0]['accepted']} "
                             "left a residual beyond its floor)")
         b = self.walk(first=second)
+        if self.joined is not None:
+            j = self.joined
+            why = (f"joined the greedy path: after its step {j['step']} it had adopted the greedy path's effects "
+                   f"of step {j['greedy_step']} ({', '.join(j['effects'])}); walked no further")
+            a.second_start = {
+                "first": second.fit.key, "chosen": False, "joined": dict(j),
+                "effects": [fe["effect"] for fe in b.found], "greedy_effects": [fe["effect"] for fe in a.found],
+                "replay_D": judge.D(b.replay_floor.replay, a.replay_floor) if b.replay_floor.replay.ok else None,
+                "replay_D_greedy": judge.D(a.replay_floor.replay, a.replay_floor), "why": why}
+            self.path = a
+            problem.evaluator.floor = a.floor.noise
+            problem.options.log(f"second start: {why}")
+            return a
         if self.budget.stopped is not None:        # an unfinished walk is not compared
             self.budget.skip(f"second start from {second.fit.key} (unfinished, not compared)")
             self.path = a
@@ -111,6 +130,12 @@ class ForwardSelection:
             last = self.path.steps[-1] if self.path.steps and self.path.steps[-1]["step"] == step else {}
             self.budget.done(f"forward step {step}" + (" of the second start" if first is not None else ""),
                              f"adopted {last['accepted']}" if last.get("accepted") else "nothing adopted")
+            now = frozenset(f.key for f in self.path.selected)
+            if first is None:
+                self.greedy_sets.append(now)
+            elif going and now in self.greedy_sets:     # the greedy path from here on: not walked again
+                self.joined = {"step": step, "greedy_step": self.greedy_sets.index(now) + 1, "effects": sorted(now)}
+                break
             if not going:
                 break
         return self.path

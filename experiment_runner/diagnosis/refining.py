@@ -13,7 +13,7 @@ import dataclasses
 
 import numpy as np
 
-from .budget import progress
+from .budget import parallel_map, progress
 from .effects.body import Mode
 from .fit import spec_moved, spec_with
 from .judge import Floor
@@ -143,33 +143,45 @@ def refine_rows(problem: Problem, path: Path, judged: list, sim_blocks) -> list:
     judged = [_refine_located(problem, path, j, sim_blocks) if j.fit.key == "located_mode" and j.comparison.stable
               else j for j in judged]
     todo, lost = _worth_refining(judged)
+
+    def refine(j: JudgedRow):
+        """``(refinement, observer figures)`` of row ``j`` (refinement None: the row stays)."""
+        f = j.fit
+        sel = [s for s in path.selected if s.key != f.replaces]
+        n_sel = sum(len(s.theta) for s in sel if s.effect.kind == "deterministic")
+        blind = any(j is x for x in lost)
+        ref = refine_by_replay(f, sel, problem.base, for_fits_on(path.context, sel), problem.fit_judge,
+                               path.replay_floor,
+                               start=_own_start(problem, path, f, sel) if f.on_bound or blind else None,
+                               grid=blind, max_nfev=8 if len(f.theta) <= REFINE_MAX_PARAMS else 3,
+                               with_selected=0 < n_sel and n_sel + len(f.theta) <= REFINE_JOINT_MAX)
+        # the observer's figures of the refined model (the table shows them; they only rank)
+        return (ref, problem.evaluator.both(ref.spec)) if ref is not None else (None, None)
+
+    # the refinements are independent (each its own model and least squares): on parallel threads
+    # (the compiled kernels release the GIL), collected in the rows' order, so that the result does
+    # not depend on the thread count
+    rows = [j for j in judged if any(j is x for x in todo)]
+    done = dict(zip(map(id, rows), parallel_map(refine, rows, problem.options.n_jobs)))
     out = []
     refits = []          # (row, the adopted effects alone at the row's joint values, the joint fit)
     for j in judged:
         f = j.fit
-        if any(j is x for x in todo):
+        ref, figures = done.get(id(j), (None, None))
+        if ref is not None:
+            J_fit, J_held, ne = figures
             sel = [s for s in path.selected if s.key != f.replaces]
-            n_sel = sum(len(s.theta) for s in sel if s.effect.kind == "deterministic")
-            blind = any(j is x for x in lost)
-            ref = refine_by_replay(f, sel, problem.base, for_fits_on(path.context, sel), problem.fit_judge,
-                                   path.replay_floor,
-                                   start=_own_start(problem, path, f, sel) if f.on_bound or blind else None,
-                                   grid=blind, max_nfev=8 if len(f.theta) <= REFINE_MAX_PARAMS else 3,
-                                   with_selected=0 < n_sel and n_sel + len(f.theta) <= REFINE_JOINT_MAX)
-            if ref is not None:
-                # the observer's figures of the refined model (the table shows them; they only rank)
-                J_fit, J_held, ne = problem.evaluator.both(ref.spec)
-                f2 = dataclasses.replace(f, spec=ref.spec, theta=ref.theta, sigma=ref.sigma, on_bound=ref.at_bound,
-                                         derived=f.effect.derived(problem.base, ref.theta), joint=ref.joint,
-                                         refined=True, J_fit=J_fit, J_held=J_held, n_eff_held=ne)
-                j2 = judge_rows(problem, [f2], path.replay_floor, sim_blocks, first=not path.selected,
-                                ctx=path.context)[0]
-                if ref.joint is not None and f.replaces is None:
-                    refits.append((j2, spec_moved(sel, ref.joint.theta, problem.base), ref.joint))
-                j2.why += " (refined by the replay)"
-                progress(f"  refined {f.key} by the replay")
-                out.append(j2)
-                continue
+            f2 = dataclasses.replace(f, spec=ref.spec, theta=ref.theta, sigma=ref.sigma, on_bound=ref.at_bound,
+                                     derived=f.effect.derived(problem.base, ref.theta), joint=ref.joint,
+                                     refined=True, J_fit=J_fit, J_held=J_held, n_eff_held=ne)
+            j2 = judge_rows(problem, [f2], path.replay_floor, sim_blocks, first=not path.selected,
+                            ctx=path.context)[0]
+            if ref.joint is not None and f.replaces is None:
+                refits.append((j2, spec_moved(sel, ref.joint.theta, problem.base), ref.joint))
+            j2.why += " (refined by the replay)"
+            progress(f"  refined {f.key} by the replay")
+            out.append(j2)
+            continue
         out.append(j)
     own_share(problem, path, refits, path.replay_floor)
     return out

@@ -14,11 +14,10 @@ import os
 import pickle
 import threading
 import uuid
-from concurrent.futures import ThreadPoolExecutor
 
 from threadpoolctl import threadpool_limits
 
-from .budget import checkpoint, halt_search, progress
+from .budget import checkpoint, parallel_map, progress
 from .context import Context
 from .fit import Evaluator, FitResult, fit_effect, fit_with, spec_with
 from .floors import light_floor
@@ -156,15 +155,7 @@ def fit_candidates(problem: Problem, todo: list[Candidate], current: ModelSpec, 
             return f
         # the compiled kernels release the GIL: candidates are fitted on parallel threads
         current.compiled()
-        if opt.n_jobs > 1 and len(todo) > 1:
-            with ThreadPoolExecutor(opt.n_jobs) as pool:
-                try:
-                    fits = [f for f in pool.map(one, todo) if f is not None]
-                except KeyboardInterrupt as err:   # SIGINT / SIGTERM: the fits running stop at their next evaluation
-                    halt_search(f"interrupted ({err or 'SIGINT'})")
-                    raise
-        else:
-            fits = [f for f in map(one, todo) if f is not None]
+        fits = [f for f in parallel_map(one, todo, opt.n_jobs) if f is not None]
     fits.sort(key=lambda f: f.J_held * (1 + opt.complexity * len(f.theta)))
     return fits, failed
 

@@ -1,0 +1,112 @@
+"""Speed mechanisms of the diagnosis that must not change its answer (issue 27 item 1).
+
+- A second forward walk that adopts the greedy walk's effects has joined it and stops there
+  (:class:`experiment_runner.diagnosis.forward.ForwardSelection`): scripted steps, no simulation.
+- The replay refinements of a step run on parallel threads (:func:`.refining.refine_rows`): one
+  thread and two give the same report, bit for bit.
+- ``nanostage bench``'s EMPS figure is left out, saying why, when the EMPS data are missing.
+"""
+import json
+from types import SimpleNamespace
+
+import pytest
+import yaml
+
+from experiment_runner.diagnosis.budget import Budget
+from experiment_runner.diagnosis.forward import ForwardSelection
+
+
+def _canon(rep: dict) -> str:
+    """Exact comparison form of a report without its wall times."""
+    from experiment_runner.diagnosis.report import jsonable
+
+    def strip(o):
+        if isinstance(o, dict):
+            return {k: strip(v) for k, v in o.items() if k not in {"timing_s", "seconds", "evaluation_s", "spent_s"}}
+        if isinstance(o, list):
+            return [strip(v) for v in o]
+        return o
+    return json.dumps(strip(jsonable(rep)), sort_keys=True)
+
+
+class _Scripted(ForwardSelection):
+    """A forward selection whose steps adopt (``+key``) or withdraw (``-key``) what a script says."""
+
+    def __init__(self, greedy, second):
+        opt = SimpleNamespace(max_steps=10, log=lambda *_: None)
+        problem = SimpleNamespace(base=None, J_held_base=1.0, J_fit_base=1.0,
+                                  base_floor=SimpleNamespace(noise=None), base_replay_floor=None,
+                                  options=opt, evaluator=SimpleNamespace(floor=None))
+        super().__init__(problem, context=None, budget=Budget(None, progress=False))
+        self.scripts = {None: greedy, "second": second}
+        self.steps_run = []
+
+    def step(self, step, first=None):
+        script = self.scripts[self.walking]
+        if step > len(script):
+            return False
+        self.steps_run.append((self.walking, step))
+        for op in script[step - 1].split():
+            if op.startswith("-"):
+                self.path.selected = [f for f in self.path.selected if f.key != op[1:]]
+            else:
+                self.path.selected.append(SimpleNamespace(key=op, theta=None, sigma=None, derived=None))
+        self.path.steps.append({"step": step, "accepted": script[step - 1]})
+        return True
+
+    def candidates(self, only=None):
+        return []
+
+    def walk(self, first=None):
+        self.walking = None if first is None else "second"
+        return super().walk(first)
+
+
+def test_a_second_walk_stops_where_it_joins_the_greedy_path():
+    # EMPS: greedy viscous, mass, coulomb, friction_asymmetry; the second start from dither_imbalance
+    # took coulomb, mass, withdrew dither_imbalance and took viscous: the greedy step-3 effects
+    fs = _Scripted(["viscous", "mass", "coulomb", "friction_asymmetry"],
+                   ["dither_imbalance", "coulomb", "mass -dither_imbalance", "viscous", "friction_asymmetry"])
+    fs.walk()
+    # the greedy walk's step 5 adopts nothing and ends it: five sets, the last two the same
+    assert fs.joined is None and len(fs.greedy_sets) == 5 and fs.greedy_sets[3] == fs.greedy_sets[4]
+    fs.walk(first=object())
+    assert fs.joined == {"step": 4, "greedy_step": 3, "effects": ["coulomb", "mass", "viscous"]}
+    assert ("second", 5) not in fs.steps_run and ("second", 4) in fs.steps_run
+
+
+def test_a_second_walk_that_never_joins_walks_to_its_end():
+    fs = _Scripted(["gms", "mass"], ["fi_compliance", "stribeck"])
+    fs.walk()
+    fs.walk(first=object())
+    assert fs.joined is None and ("second", 2) in fs.steps_run
+
+
+@pytest.mark.slow
+def test_parallel_refinement_gives_the_same_report(tmp_path):
+    from experiment_runner.diagnosis.options import Options
+    from experiment_runner.diagnosis.pipeline import diagnose
+    from experiment_runner.diagnosis.selftest import CASES, EXPERIMENTS
+    from experiment_runner.diagnosis.synth import synth
+    c = next(c for c in CASES if c.name == "coulomb+viscous")
+    exp = dict(EXPERIMENTS[c.experiment], preset=c.nominal)
+    (tmp_path / "truth.yaml").write_text(yaml.safe_dump(c.truth_doc(), sort_keys=False))
+    (tmp_path / "exp.yaml").write_text(yaml.safe_dump(exp, sort_keys=False))
+    (tmp_path / "nominal.yaml").write_text(yaml.safe_dump(c.nominal_doc(), sort_keys=False))
+    rec = synth(tmp_path / "truth.yaml", tmp_path / "exp.yaml", tmp_path / "rec.mcap")
+    eff = ["coulomb", "viscous", "offset", "mass"]
+    one = diagnose(rec, tmp_path / "nominal.yaml", options=Options(plots=False, effects=eff, n_jobs=1,
+                                                                   max_seconds=None))
+    two = diagnose(rec, tmp_path / "nominal.yaml", options=Options(plots=False, effects=eff, n_jobs=2,
+                                                                   max_seconds=None))
+    assert [f["effect"] for f in one["found"]][:2] == ["coulomb", "viscous"]
+    assert any("refined by the replay" in r["why"] for st in one["selection"]["steps"] for r in st["candidates"])
+    assert _canon(one) == _canon(two)
+
+
+def test_bench_emps_figure_skipped_without_the_data(tmp_path, monkeypatch, capsys):
+    from experiment_runner.bench import diagnose_seconds_emps
+    monkeypatch.setenv("NANOSTAGE_DATA", str(tmp_path))
+    assert diagnose_seconds_emps() is None
+    err = capsys.readouterr().err
+    assert "diagnose_seconds_emps skipped" in err and str(tmp_path) in err
