@@ -33,7 +33,7 @@ class _Scripted(ForwardSelection):
     """A forward selection whose steps adopt (``+key``) or withdraw (``-key``) what a script says."""
 
     def __init__(self, greedy, second):
-        opt = SimpleNamespace(max_steps=10, log=lambda *_: None)
+        opt = SimpleNamespace(max_steps=10, n_jobs=1, log=lambda *_: None)
         problem = SimpleNamespace(base=None, J_held_base=1.0, J_fit_base=1.0,
                                   base_floor=SimpleNamespace(noise=None), base_replay_floor=None,
                                   options=opt, evaluator=SimpleNamespace(floor=None))

@@ -81,6 +81,8 @@ class Budget:
         self.interrupt: BaseException | None = None
         """The interruption (SIGINT / SIGTERM) to raise again once the partial report is written."""
         self._armed = False
+        self.jobs = 1
+        """Threads of the search's independent model evaluations (:func:`parallel_map`)."""
 
     def elapsed(self) -> float:
         """Seconds since the start."""
@@ -178,22 +180,39 @@ def progress(text: str) -> None:
         b.say(text)
 
 
-def parallel_map(fn, items, n_jobs: int) -> list:
-    """``[fn(x) for x in items]`` on ``n_jobs`` threads, in the items' order (the search's independent
-    model evaluations: the compiled kernels release the GIL). An interruption (SIGINT / SIGTERM)
-    halts the running search, so that the evaluations still running stop at their next
-    :func:`checkpoint`, and is raised again; an exception of ``fn`` is raised as from the loop.
+_WORKER = threading.local()
+"""``on`` in the threads of a :func:`parallel_map` (a nested one runs in its caller's thread)."""
+
+
+def parallel_map(fn, items, n_jobs: int | None = None) -> list:
+    """``[fn(x) for x in items]`` on ``n_jobs`` threads (None: the running search's
+    :attr:`Budget.jobs`, 1 when none runs), in the items' order: the search's independent model
+    evaluations (the compiled kernels release the GIL), so that the result does not depend on the
+    thread count. Called from a thread of another ``parallel_map``, it runs in that thread (the
+    cores are busy already). An interruption (SIGINT / SIGTERM) halts the running search, so that
+    the evaluations still running stop at their next :func:`checkpoint`, and is raised again; an
+    exception of ``fn`` is raised as from the loop.
 
     >>> parallel_map(lambda x: x * x, [1, 2, 3], n_jobs=2)
     [1, 4, 9]
     """
     items = list(items)
-    if n_jobs <= 1 or len(items) <= 1:
+    if n_jobs is None:
+        b = _ACTIVE
+        n_jobs = b.jobs if b is not None else 1
+    if n_jobs <= 1 or len(items) <= 1 or getattr(_WORKER, "on", False):
         return [fn(x) for x in items]
     from concurrent.futures import ThreadPoolExecutor
+
+    def run(x):
+        _WORKER.on = True
+        try:
+            return fn(x)
+        finally:
+            _WORKER.on = False
     with ThreadPoolExecutor(min(n_jobs, len(items))) as pool:
         try:
-            return list(pool.map(fn, items))
+            return list(pool.map(run, items))
         except KeyboardInterrupt as err:
             halt_search(f"interrupted ({err or 'SIGINT'})")
             raise

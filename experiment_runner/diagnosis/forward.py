@@ -47,6 +47,7 @@ class ForwardSelection:
         self.problem = problem
         self.context = context
         self.budget = budget if budget is not None else Budget(None, progress=False)
+        self.budget.jobs = problem.options.n_jobs
         self.first_step: FirstStep | None = None
         self.path: Path | None = None
         self.greedy_sets: list[frozenset] = []

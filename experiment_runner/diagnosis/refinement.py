@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from .budget import checkpoint
+from .budget import checkpoint, parallel_map
 from .context import Context
 from .fit import FitResult, JointEffect, Transform, bad_point
 from .model import ModelSpec
@@ -123,12 +123,16 @@ class _OutputError:
         r = self.judge.residual(rp, self.floor)
         return r if np.all(np.isfinite(r)) else self.bad
 
+    def residuals(self, fun, zs) -> list:
+        """``[fun(z) for z in zs]``, the replays on the search's threads (:func:`.budget.parallel_map`):
+        the least-squares solver's finite-difference columns (its ``workers``), a start grid's points."""
+        return parallel_map(fun, zs)
+
     def best_start(self, starts):
         """``(z, residual)`` of the best of the parameter vectors ``starts`` that runs; ``(None, None)``."""
         z0, r0 = None, None
-        for theta0 in starts:
-            z = self.clip(self.tr.to_z(theta0))
-            r = self.residual(z)
+        zs = [self.clip(self.tr.to_z(theta0)) for theta0 in starts]
+        for z, r in zip(zs, self.residuals(self.residual, zs)):
             if r is not None and (r0 is None or float(r @ r) < float(r0 @ r0)):
                 z0, r0 = z, r
         return z0, r0
@@ -139,11 +143,12 @@ class _OutputError:
         z1, c1 = z0, cost
         for i in range(len(z0) - n_own, len(z0)):
             zi = z1
+            zs = []
             for d in GRID_1D:
                 z = zi.copy()
                 z[i] += d * max(1.0, abs(float(zi[i])) if not self.params[i].log else 1.0)
-                z = self.clip(z)
-                r = self.residual(z)
+                zs.append(self.clip(z))
+            for z, r in zip(zs, self.residuals(self.residual, zs)):
                 if r is not self.bad and float(r @ r) < c1:
                     z1, c1 = z, float(r @ r)
         return z1
@@ -240,7 +245,7 @@ def refine_by_replay(candidate: FitResult, selected: list, base: ModelSpec, ctx:
             # (a stick-slip event or an encoder step moves with it) and may be flat at the start (a
             # stage held by friction): start from the best of a coarse grid around it
             z0 = oe.grid(z0, cost0, len(own0))
-        ls_kw = dict(max_nfev=max_nfev, x_scale="jac", diff_step=diff_step)
+        ls_kw = dict(max_nfev=max_nfev, x_scale="jac", diff_step=diff_step, workers=oe.residuals)
         out = least_squares(oe.residual, z0, bounds=(oe.lo, oe.hi), **ls_kw)
         out = oe.back_to_no_change(out, candidate.effect.nominal(prev), len(out.x) - len(own0), ls_kw)
         if not out.success and out.status < 0 or out.cost >= 0.5 * cost0:

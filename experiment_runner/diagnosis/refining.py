@@ -37,9 +37,9 @@ def _refine_integer(problem: Problem, path: Path, row: JudgedRow, sim_blocks, re
     p = e.params(prev, for_fits_on(path.context, selected))[0]
     v0 = int(round(f.theta[0]))
     best = (float("inf"), v0, f.spec)
-    for v in range(max(int(p.lo), v0 - reach), min(int(p.hi), v0 + reach) + 1):
-        sp = f.spec if v == v0 else e.apply(prev, [v])
-        rp = fj.replay(sp)
+    vs = range(max(int(p.lo), v0 - reach), min(int(p.hi), v0 + reach) + 1)
+    specs = [f.spec if v == v0 else e.apply(prev, [v]) for v in vs]
+    for v, sp, rp in zip(vs, specs, parallel_map(fj.replay, specs)):
         d = fj.D(rp, floor) if rp.ok else float("inf")
         if d < best[0]:
             best = (d, v, sp)
@@ -195,11 +195,16 @@ def own_share(problem: Problem, path: Path, refits: list, floor: Floor) -> None:
     must beat beyond the floor to stay adoptable, and is kept as :attr:`.selection.Path.refit`
     (:func:`.adoption.keep_refit`). Each candidate's joint refinement reaches a different re-fit."""
     path.refit = None
-    best, d_best = None, problem.fit_D(path.current, path.replay_floor)
-    for _, spec, jf in refits:
+
+    def fit_D(spec):
+        """The replay of the fit samples' D of ``spec``, or None when it is not a model."""
         try:
-            d = problem.fit_D(spec, path.replay_floor)
+            return problem.fit_D(spec, path.replay_floor)
         except Exception:     # noqa: BLE001 - not a model: no baseline
+            return None
+    best, d_best = None, problem.fit_D(path.current, path.replay_floor)
+    for (_, spec, jf), d in zip(refits, parallel_map(fit_D, [spec for _, spec, _ in refits])):
+        if d is None:
             continue
         if d < d_best:
             best, d_best = (spec, jf), d
