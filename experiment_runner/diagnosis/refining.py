@@ -155,8 +155,12 @@ def refine_rows(problem: Problem, path: Path, judged: list, sim_blocks) -> list:
                                start=_own_start(problem, path, f, sel) if f.on_bound or blind else None,
                                grid=blind, max_nfev=8 if len(f.theta) <= REFINE_MAX_PARAMS else 3,
                                with_selected=0 < n_sel and n_sel + len(f.theta) <= REFINE_JOINT_MAX)
+        if ref is None:
+            return None, None
         # the observer's figures of the refined model (the table shows them; they only rank)
-        return (ref, problem.evaluator.both(ref.spec)) if ref is not None else (None, None)
+        figures = problem.evaluator.both(ref.spec)
+        progress(f"  refined {f.key} by the replay")
+        return ref, figures
 
     # the refinements are independent (each its own model and least squares): on parallel threads
     # (the compiled kernels release the GIL), collected in the rows' order, so that the result does
@@ -179,7 +183,6 @@ def refine_rows(problem: Problem, path: Path, judged: list, sim_blocks) -> list:
             if ref.joint is not None and f.replaces is None:
                 refits.append((j2, spec_moved(sel, ref.joint.theta, problem.base), ref.joint))
             j2.why += " (refined by the replay)"
-            progress(f"  refined {f.key} by the replay")
             out.append(j2)
             continue
         out.append(j)
