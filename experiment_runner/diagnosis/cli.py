@@ -248,7 +248,7 @@ def _main_power(args) -> int:
                          files=("power.json", "report.md"), option="--out")
     if args.keep:
         prepare_folder(args.keep, args.overwrite, option="--keep")
-    s = run_power(args.cases or DEFAULT_CASES, workers=args.workers if args.workers is not None else 2,
+    s = run_power(args.cases or DEFAULT_CASES, workers=args.workers,
                   cluster=args.cluster, out=out, keep=args.keep, verbose=args.verbose and not args.json,
                   only=args.only)
     if args.json:

@@ -58,7 +58,7 @@ import numpy as np
 
 from experiment_runner import outputs
 from experiment_runner.batch import simulate
-from experiment_runner.executor import make_executor
+from experiment_runner.executor import default_workers, make_executor
 from experiment_runner.experiment import Experiment, build_trials
 from stage_control.tuning import loop_shape_pid
 from stage_sim import friction
@@ -508,10 +508,13 @@ def summarize(results: list[dict], threshold: float = 3.0) -> dict:
     }
 
 
-def run_power(n_cases: int = DEFAULT_CASES, workers: int | None = 2, cluster=None, out=None, keep=None,
+def run_power(n_cases: int = DEFAULT_CASES, workers: int | None = None, cluster=None, out=None, keep=None,
               verbose: bool = False, only=None) -> dict:
-    """Run the study (cases on ``workers`` local processes or a Dask ``cluster``); returns the
+    """Run the study (cases on ``workers`` local processes, default one per core this process may use
+    (:func:`~experiment_runner.executor.default_workers`), or a Dask ``cluster``); returns the
     summary with ``results``; with ``out`` writes ``power.json``, ``report.md`` and the plot."""
+    if workers is None and cluster is None:
+        workers = default_workers()
     cases = make_cases(n_cases)
     if only:
         cases = [c for c in cases if any(o in c.name for o in only)]
