@@ -46,11 +46,14 @@ class _Scripted(ForwardSelection):
         if step > len(script):
             return False
         self.steps_run.append((self.walking, step))
-        for op in script[step - 1].split():
+        for op in script[step - 1].split():          # key~alternative: reported confounded with it
             if op.startswith("-"):
                 self.path.selected = [f for f in self.path.selected if f.key != op[1:]]
+                self.path.found = [fe for fe in self.path.found if fe["effect"] != op[1:]]
             else:
-                self.path.selected.append(SimpleNamespace(key=op, theta=None, sigma=None, derived=None))
+                key, *conf = op.split("~")
+                self.path.selected.append(SimpleNamespace(key=key, theta=None, sigma=None, derived=None))
+                self.path.found.append({"effect": key, "confounded_with": conf})
         self.path.steps.append({"step": step, "accepted": script[step - 1]})
         return True
 
@@ -71,8 +74,21 @@ def test_a_second_walk_stops_where_it_joins_the_greedy_path():
     # the greedy walk's step 5 adopts nothing and ends it: five sets, the last two the same
     assert fs.joined is None and len(fs.greedy_sets) == 5 and fs.greedy_sets[3] == fs.greedy_sets[4]
     fs.walk(first=object())
-    assert fs.joined == {"step": 4, "greedy_step": 3, "effects": ["coulomb", "mass", "viscous"]}
+    assert fs.joined == {"step": 4, "greedy_step": 3, "effects": ["coulomb", "mass", "viscous"],
+                         "greedy_effects": ["coulomb", "mass", "viscous"]}
     assert ("second", 5) not in fs.steps_run and ("second", 4) in fs.steps_run
+
+
+def test_a_confounded_alternative_counts_as_the_effect_it_stands_for():
+    # EMPS on main e2d4ff4: the greedy path adopted the mass (the force constant confounded with it);
+    # the second start took the force constant in its place
+    fs = _Scripted(["viscous", "mass~force_constant", "coulomb", "friction_asymmetry"],
+                   ["dither_imbalance", "coulomb", "force_constant -dither_imbalance", "viscous", "friction_asymmetry"])
+    fs.walk()
+    fs.walk(first=object())
+    assert fs.joined is not None and fs.joined["step"] == 4 and fs.joined["greedy_step"] == 3
+    assert fs.joined["effects"] == ["coulomb", "force_constant", "viscous"]
+    assert ("second", 5) not in fs.steps_run
 
 
 def test_a_second_walk_that_never_joins_walks_to_its_end():

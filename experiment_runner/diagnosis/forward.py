@@ -8,8 +8,9 @@ are reported, never adopted too. The walk stops when the current model's replay 
 floor or nothing is adoptable. When the greedy walk ends beyond its floor, a second walk starts from
 step 1's runner-up (:meth:`ForwardSelection.second_start`) and is kept only if its held-out replay is
 better beyond the first walk's floor (the adoption test). A second walk whose adopted effects become
-those of the greedy walk after one of its steps has joined it: from there it would walk the greedy
-path again, so it stops, and the greedy walk is kept.
+those of the greedy walk after one of its steps (each the same effect or one reported confounded with
+it: a force constant for a mass) has joined it: from there it would walk the greedy path again, so it
+stops, and the greedy walk is kept.
 
 With a :class:`.budget.Budget`, a step stopped by it (time spent, or an interruption) is dropped
 whole: the walk keeps the model of its last completed step, and an unfinished second walk is not
@@ -50,10 +51,11 @@ class ForwardSelection:
         self.budget.jobs = problem.options.n_jobs
         self.first_step: FirstStep | None = None
         self.path: Path | None = None
-        self.greedy_sets: list[frozenset] = []
-        """The adopted effects of the greedy walk after each of its steps."""
+        self.greedy_sets: list[dict] = []
+        """The adopted effects of the greedy walk after each of its steps (:func:`_adopted`)."""
         self.joined: dict | None = None
-        """Where the second walk joined the greedy one (``step``, ``greedy_step``, ``effects``), or None."""
+        """Where the second walk joined the greedy one (``step``, ``greedy_step``, ``effects``,
+        ``greedy_effects``), or None."""
 
     def run(self) -> Path:
         """The greedy walk, and the walk from step 1's runner-up when the greedy one ends beyond its
@@ -71,8 +73,10 @@ class ForwardSelection:
         b = self.walk(first=second)
         if self.joined is not None:
             j = self.joined
-            why = (f"joined the greedy path: after its step {j['step']} it had adopted the greedy path's effects "
-                   f"of step {j['greedy_step']} ({', '.join(j['effects'])}); walked no further")
+            why = (f"joined the greedy path: after its step {j['step']} it had adopted {', '.join(j['effects'])}, "
+                   f"the greedy path's effects of step {j['greedy_step']} ({', '.join(j['greedy_effects'])}"
+                   + (", or one confounded with each" if j["effects"] != j["greedy_effects"] else "")
+                   + "); walked no further")
             a.second_start = {
                 "first": second.fit.key, "chosen": False, "joined": dict(j),
                 "effects": [fe["effect"] for fe in b.found], "greedy_effects": [fe["effect"] for fe in a.found],
@@ -131,12 +135,15 @@ class ForwardSelection:
             last = self.path.steps[-1] if self.path.steps and self.path.steps[-1]["step"] == step else {}
             self.budget.done(f"forward step {step}" + (" of the second start" if first is not None else ""),
                              f"adopted {last['accepted']}" if last.get("accepted") else "nothing adopted")
-            now = frozenset(f.key for f in self.path.selected)
+            now = _adopted(self.path)
             if first is None:
                 self.greedy_sets.append(now)
-            elif going and now in self.greedy_sets:     # the greedy path from here on: not walked again
-                self.joined = {"step": step, "greedy_step": self.greedy_sets.index(now) + 1, "effects": sorted(now)}
-                break
+            elif going:
+                k = next((i for i, g in enumerate(self.greedy_sets) if _same_effects(now, g)), None)
+                if k is not None:       # the greedy path from here on: not walked again
+                    self.joined = {"step": step, "greedy_step": k + 1, "effects": sorted(now),
+                                   "greedy_effects": sorted(self.greedy_sets[k])}
+                    break
             if not going:
                 break
         return self.path
@@ -266,6 +273,33 @@ class ForwardSelection:
             return False
         adopt_best(p, path, step, best, conf, alts)
         return True
+
+
+def _adopted(path: Path) -> dict:
+    """The adopted effects of ``path``: key -> the keys reported as confounded with it."""
+    conf = {fe["effect"]: set(fe.get("confounded_with") or ()) for fe in path.found}
+    return {f.key: frozenset(conf.get(f.key, ())) for f in path.selected}
+
+
+def _same_effects(a: dict, b: dict) -> bool:
+    """Whether the adopted effects ``a`` and ``b`` (:func:`_adopted`) are the same, an effect standing
+    for one confounded with it (a force constant for a mass: the selection found them equivalent).
+
+    >>> _same_effects({"mass": frozenset({"force_constant"}), "viscous": frozenset()},
+    ...               {"viscous": frozenset(), "force_constant": frozenset()})
+    True
+    >>> _same_effects({"mass": frozenset()}, {"force_constant": frozenset()})
+    False
+    """
+    if len(a) != len(b):
+        return False
+    left = dict(b)
+    for k, ck in a.items():
+        m = k if k in left else next((g for g, cg in left.items() if g in ck or k in cg), None)
+        if m is None:
+            return False
+        left.pop(m)
+    return True
 
 
 def _snapshot(path: Path) -> tuple:
