@@ -11,6 +11,7 @@ is correlated over tens of milliseconds, not independent per sample.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +36,9 @@ REFINE_JOINT_MAX = 8
 parameters number at most this many."""
 REFINE_BLOCKS_S = (0.02, 0.05, 0.1, 0.2)
 """Block lengths [s] of the robust standard errors (time windows of each trial)."""
+_LS_WORKERS = "workers" in inspect.signature(least_squares).parameters
+"""scipy's least squares takes a map for its finite-difference columns (scipy >= 1.16; requirements.txt
+pins 1.17.1); an older one computes them one after the other."""
 GRID_1D = (-0.6, -0.3, -0.15, -0.05, 0.05, 0.15, 0.3, 0.6)
 """Start grid of a one-parameter replay refinement, in the optimiser's variable (log, or scaled)."""
 REFINE_MODE_PASSES = 3
@@ -245,7 +249,8 @@ def refine_by_replay(candidate: FitResult, selected: list, base: ModelSpec, ctx:
             # (a stick-slip event or an encoder step moves with it) and may be flat at the start (a
             # stage held by friction): start from the best of a coarse grid around it
             z0 = oe.grid(z0, cost0, len(own0))
-        ls_kw = dict(max_nfev=max_nfev, x_scale="jac", diff_step=diff_step, workers=oe.residuals)
+        ls_kw = dict(max_nfev=max_nfev, x_scale="jac", diff_step=diff_step,
+                     **({"workers": oe.residuals} if _LS_WORKERS else {}))
         out = least_squares(oe.residual, z0, bounds=(oe.lo, oe.hi), **ls_kw)
         out = oe.back_to_no_change(out, candidate.effect.nominal(prev), len(out.x) - len(own0), ls_kw)
         if not out.success and out.status < 0 or out.cost >= 0.5 * cost0:
