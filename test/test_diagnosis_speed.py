@@ -52,6 +52,8 @@ class _Scripted(ForwardSelection):
                 self.path.found = [fe for fe in self.path.found if fe["effect"] != op[1:]]
             else:
                 key, *conf = op.split("~")
+                for fe in self.path.found:       # as adoption.adopt_best: both demanded, not confounded
+                    fe["confounded_with"] = [c for c in fe["confounded_with"] if c != key]
                 self.path.selected.append(SimpleNamespace(key=key, theta=None, sigma=None, derived=None))
                 self.path.found.append({"effect": key, "confounded_with": conf})
         self.path.steps.append({"step": step, "accepted": script[step - 1]})
@@ -80,10 +82,13 @@ def test_a_second_walk_stops_where_it_joins_the_greedy_path():
 
 
 def test_a_confounded_alternative_counts_as_the_effect_it_stands_for():
-    # EMPS on main e2d4ff4: the greedy path adopted the mass (the force constant confounded with it);
-    # the second start took the force constant in its place
-    fs = _Scripted(["viscous", "mass~force_constant", "coulomb", "friction_asymmetry"],
-                   ["dither_imbalance", "coulomb", "force_constant -dither_imbalance", "viscous", "friction_asymmetry"])
+    # EMPS on main e2d4ff4: the greedy path adopted viscous (Coulomb confounded with it at step 1, a
+    # mark withdrawn when Coulomb was adopted too), the mass (the force constant confounded with it),
+    # Coulomb and the asymmetry; the second start took the force constant in the mass' place. Coulomb
+    # never stands for viscous (the greedy path adopted both): joined after step 4, not 3
+    fs = _Scripted(["viscous~coulomb", "mass~force_constant", "coulomb", "friction_asymmetry"],
+                   ["dither_imbalance", "coulomb~viscous", "force_constant~mass -dither_imbalance", "viscous",
+                    "friction_asymmetry"])
     fs.walk()
     fs.walk(first=object())
     assert fs.joined is not None and fs.joined["step"] == 4 and fs.joined["greedy_step"] == 3

@@ -51,6 +51,8 @@ class ForwardSelection:
         self.budget.jobs = problem.options.n_jobs
         self.first_step: FirstStep | None = None
         self.path: Path | None = None
+        self.greedy: Path | None = None
+        """The greedy walk."""
         self.greedy_sets: list[dict] = []
         """The adopted effects of the greedy walk after each of its steps (:func:`_adopted`)."""
         self.joined: dict | None = None
@@ -139,13 +141,20 @@ class ForwardSelection:
             if first is None:
                 self.greedy_sets.append(now)
             elif going:
-                k = next((i for i, g in enumerate(self.greedy_sets) if _same_effects(now, g)), None)
+                # the greedy path's confounded marks as it reported them in the end (a mark is
+                # withdrawn when the data demanded both effects)
+                final = _adopted(self.greedy) if self.greedy is not None else {}
+                adopted = set().union(*self.greedy_sets)
+                k = next((i for i, g in enumerate(self.greedy_sets)
+                          if _same_effects(now, {e: final.get(e, c) for e, c in g.items()}, adopted)), None)
                 if k is not None:       # the greedy path from here on: not walked again
                     self.joined = {"step": step, "greedy_step": k + 1, "effects": sorted(now),
                                    "greedy_effects": sorted(self.greedy_sets[k])}
                     break
             if not going:
                 break
+        if first is None:
+            self.greedy = self.path
         return self.path
 
     def second_start(self, a: Path) -> JudgedRow | None:
@@ -281,13 +290,17 @@ def _adopted(path: Path) -> dict:
     return {f.key: frozenset(conf.get(f.key, ())) for f in path.selected}
 
 
-def _same_effects(a: dict, b: dict) -> bool:
-    """Whether the adopted effects ``a`` and ``b`` (:func:`_adopted`) are the same, an effect standing
-    for one confounded with it (a force constant for a mass: the selection found them equivalent).
+def _same_effects(a: dict, b: dict, adopted=frozenset()) -> bool:
+    """Whether the adopted effects ``a`` and ``b`` (:func:`_adopted`) are the same, an effect of ``a``
+    standing for one of ``b`` confounded with it (a force constant for a mass: the selection found
+    them equivalent) unless it is in ``adopted`` itself (the effects ``b``'s path adopted: the data
+    demanded it beside the other).
 
-    >>> _same_effects({"mass": frozenset({"force_constant"}), "viscous": frozenset()},
-    ...               {"viscous": frozenset(), "force_constant": frozenset()})
+    >>> _same_effects({"force_constant": frozenset(), "viscous": frozenset()},
+    ...               {"viscous": frozenset(), "mass": frozenset({"force_constant"})})
     True
+    >>> _same_effects({"coulomb": frozenset()}, {"viscous": frozenset({"coulomb"})}, adopted={"viscous", "coulomb"})
+    False
     >>> _same_effects({"mass": frozenset()}, {"force_constant": frozenset()})
     False
     """
@@ -295,7 +308,8 @@ def _same_effects(a: dict, b: dict) -> bool:
         return False
     left = dict(b)
     for k, ck in a.items():
-        m = k if k in left else next((g for g, cg in left.items() if g in ck or k in cg), None)
+        m = k if k in left else None if k in adopted else next(
+            (g for g, cg in left.items() if g in ck or k in cg), None)
         if m is None:
             return False
         left.pop(m)
