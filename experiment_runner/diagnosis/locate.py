@@ -402,7 +402,6 @@ def noise_spectrum_modes(spec, data) -> tuple[list, dict]:
     good = np.all(status == 0, axis=1)
     if good.sum() < 4:
         return [], {"why": "the model's simulated recordings diverged"}
-    B = len(j.cols)
     cols = np.tile(j.cols, EXCITATION_RUNS)
     dx = allv.subset(cols)
     rng = np.random.default_rng(20251)
