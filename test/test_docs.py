@@ -142,6 +142,7 @@ def test_numpydoc_on_diagnosis_and_campaigns():
         + "\n  ".join(fixed))
 
 
+@pytest.mark.slow  # imports every diagnosis and campaigns module (~6 s)
 def test_public_object_walk_sees_methods_and_skips_private():
     """The walk the numpydoc check relies on reaches methods and leaves private names out."""
     names = dict(public_objects())
