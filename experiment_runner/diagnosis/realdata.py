@@ -626,6 +626,18 @@ def to_markdown(rep: dict) -> str:
 
 # --------------------------------------------------------------------------- command line
 def add_realdata_arguments(parser):
+    """Add the arguments of ``nanostage realdata`` (wire with ``set_defaults(func=main_realdata)``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        ``parser``.
+    """
     parser.add_argument("--out", default="out/realdata", help="output folder (report.md, report.json, plots)")
     parser.add_argument("--data", default=None, help="data folder (default ../shared/data or $NANOSTAGE_DATA)")
     parser.add_argument("--only", nargs="*", choices=["emps", "tribometer"], default=None, help="data sets to run")
@@ -639,6 +651,18 @@ def add_realdata_arguments(parser):
 
 
 def main_realdata(args) -> int:
+    """Run ``nanostage realdata`` from parsed arguments.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        As :func:`add_realdata_arguments` defines them.
+
+    Returns
+    -------
+    int
+        0 when the reports were written; 2 when the data are missing (one message on stderr).
+    """
     try:
         rep = run_realdata(args.out, data=args.data, only=args.only, structure_check=not args.no_structure_check,
                            plots=not args.no_plots, verbose=args.verbose, overwrite=args.overwrite)

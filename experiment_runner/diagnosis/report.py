@@ -94,6 +94,23 @@ __all__ = ["write_report", "to_markdown", "jsonable"]
 
 
 def jsonable(o):
+    """``o`` as strict JSON types: numpy values as Python ones, non-finite floats as None, paths as
+    strings, private (``_``-prefixed) dict entries dropped.
+
+    Parameters
+    ----------
+    o : object
+        Nested dicts, lists, tuples, numpy arrays and scalars, paths.
+
+    Returns
+    -------
+    object
+
+    Examples
+    --------
+    >>> jsonable({"a": np.float64("nan"), "_x": 1, "n": np.arange(2)})
+    {'a': None, 'n': [0, 1]}
+    """
     if isinstance(o, dict):
         return {str(k): jsonable(v) for k, v in o.items() if not str(k).startswith("_")}
     if isinstance(o, (list, tuple)):

@@ -102,6 +102,26 @@ CASES = _cases()
 
 
 def judge(case: Case, rep: dict) -> dict:
+    """Whether a diagnosis passed its self-test case.
+
+    Passed: the truth's effect(s) named first (or in the named effect's confounded set), every
+    parameter within its tolerance of the truth, the held-out error's excess over the run-to-run
+    floor down by at least 50 %, and no effect the truth lacks (a negative control: "model
+    adequate" and nothing named).
+
+    Parameters
+    ----------
+    case : Case
+        The self-test case (its truth and expected parameters).
+    rep : dict
+        The diagnosis report.
+
+    Returns
+    -------
+    dict
+        ``passed``, ``false_positive``, ``named``, ``named_first``, ``extra_effects``, ``params``
+        (the checks), ``held_out_fall`` and what it was measured on.
+    """
     found = rep["found"]
     names = [f["effect"] for f in found]
     out = {"case": case.name, "truth_effect": case.effect, "verdict": rep["verdict"], "named": names}

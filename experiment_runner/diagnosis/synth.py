@@ -66,6 +66,18 @@ def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None
 
 
 def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the arguments of ``nanostage synth`` (wire with ``set_defaults(func=main_synth)``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        ``parser``.
+    """
     parser.add_argument("truth", help="truth preset (name or YAML) or model file {preset}")
     parser.add_argument("experiment", help="experiment (name or YAML): profile, trials, starts")
     parser.add_argument("--out", required=True, help="recording to write (bag directory; NAME.mcap -> NAME/NAME.mcap)")
@@ -79,6 +91,18 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
 
 
 def main_synth(args) -> int:
+    """Run ``nanostage synth`` from parsed arguments: write the recording, print its path.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        As :func:`add_synth_arguments` defines them.
+
+    Returns
+    -------
+    int
+        0 (errors are raised; the CLI turns bad input into one message and exit 2).
+    """
     path = synth(args.truth, args.experiment, args.out, seed=args.seed, trials=args.trials, conceal=not args.reveal,
                  overwrite=args.overwrite)
     print(path)
