@@ -35,7 +35,7 @@ class ObsResult:
     snaps : tuple, optional
         ``(every, z, fr, ps, dbuf)`` plant-state snapshots every ``every`` samples (open-loop windows).
     bad : int
-        Samples where the observer diverged (0: none).
+        Sample-and-trial steps the plant's step flagged (not OK; reset and continued; 0: none).
     """
     r: np.ndarray        # (T, B) force residual [N]
     x: np.ndarray        # observer table position [m]
