@@ -2,8 +2,8 @@
 
 :class:`ModelSpec` is what every hypothesis modifies and every kernel runs: a validated
 :class:`stage_sim.config.Preset`, so the improved model is a preset YAML the simulator (batch
-engine and ROS graph) runs as is. Effects that used to need extra "additive" forces are plant
-features now: ``stage.force_offset``, ``stage.force_ripple``, ``stage.periodic_force`` and
+engine and ROS graph) runs as is. Forces on the table are plant features too (a model file's
+``additive_forces`` block is refused with a message naming these fields): ``stage.force_offset``, ``stage.force_ripple``, ``stage.periodic_force`` and
 the friction variations (``f_c_difference``, ``viscous_difference``, ``f_c_gradient``,
 ``f_c_curvature``, ``position_center`` of each friction element).
 """
