@@ -39,7 +39,29 @@ def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None
     """Simulate ``experiment`` on ``truth`` and write the recording; returns the MCAP path.
 
     The recording is written whole and moved into place (:mod:`experiment_runner.outputs`); an
-    existing one at ``out`` is replaced only with ``overwrite`` (refused before the simulation)."""
+    existing one at ``out`` is replaced only with ``overwrite`` (refused before the simulation).
+
+    Parameters
+    ----------
+    truth : str, pathlib.Path, dict or ModelSpec
+        The concealed truth (:func:`.model.load_model`).
+    experiment : str or pathlib.Path
+        The experiment file (:mod:`experiment_runner.experiment`).
+    out : str or pathlib.Path
+        The recording to write.
+    seed : int, optional
+        Noise seed (default the truth's ``simulation.seed``).
+    trials : int, optional
+        Trials (default the experiment's).
+    conceal : bool, optional
+        Do not record the truth in the recording's ``/experiment/config``.
+    overwrite : bool, optional
+        Replace an existing recording at ``out``.
+
+    Returns
+    -------
+    pathlib.Path
+    """
     check_recording(bag_layout(out)[0], overwrite)
     spec = load_model(truth)
     exp = load_experiment(experiment)
