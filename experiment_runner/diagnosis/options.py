@@ -67,14 +67,30 @@ class Options:
     extra: dict = field(default_factory=dict)
 
     def effect_library(self) -> Library:
-        """The library the candidates come from (the options' or :data:`.effects.LIBRARY`)."""
+        """The library the candidates come from (the options' or :data:`.effects.LIBRARY`).
+
+        Returns
+        -------
+        Library
+        """
         return self.library if self.library is not None else LIBRARY
 
     def candidates(self) -> list[str]:
-        """Keys of the effects the forward selection proposes, in order."""
+        """Keys of the effects the forward selection proposes, in order.
+
+        Returns
+        -------
+        list of str
+        """
         return list(self.effects) if self.effects else self.effect_library().candidates()
 
     def log(self, *parts) -> None:
-        """Progress on stdout (``verbose``)."""
+        """Progress on stdout (``verbose``).
+
+        Parameters
+        ----------
+        *parts : object
+            Printed separated by spaces.
+        """
         if self.verbose:
             print("[diagnose]", *parts, flush=True)
