@@ -66,6 +66,7 @@ def frictionless(d: dict) -> None:
 
 
 class Mass(Effect):
+    """``mass``: an error of the table's mass (see the class attributes and ``--list-effects``)."""
     key = "mass"
     title = "mass error"
     physics = "The moving mass differs (stage.table.mass)."

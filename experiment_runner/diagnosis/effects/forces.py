@@ -17,6 +17,7 @@ def no_ilc(d: dict) -> None:
 
 
 class Ripple(Effect):
+    """``ripple``: a force periodic in the table's position (see the class attributes)."""
     key = "ripple"
     title = "position-periodic force ripple"
     physics = ("Motor cogging / commutation ripple: F = A sin(2 pi x / period + phase) on the table "
@@ -65,6 +66,7 @@ class Ripple(Effect):
 
 
 class Offset(Effect):
+    """``offset``: a constant force on the table (see the class attributes)."""
     key = "offset"
     title = "constant force offset"
     physics = ("A constant force on the table (cable drag, gravity on a tilted axis, amplifier offset): "
@@ -95,6 +97,7 @@ class Offset(Effect):
 
 
 class PeriodicForce(Effect):
+    """``dither_imbalance``: a force at a fixed frequency on the table (see the class attributes)."""
     key = "dither_imbalance"
     title = "dither imbalance / periodic force"
     physics = ("A force at a fixed frequency on the table: the net force of imbalanced dither piezos "
@@ -144,6 +147,7 @@ class PeriodicForce(Effect):
 
 
 class IsolatorTransient(Effect):
+    """``isolator_transient``: the impulse of the semi-active isolator's switching (see the class attributes)."""
     key = "isolator_transient"
     title = "isolator switching transient"
     physics = ("SAI locking (Ch. 5, Sec. 5.3): the solenoid armature strikes the lock face and a "

@@ -87,6 +87,7 @@ def virgin_x50(fr_dump: list) -> float:
 
 
 class Coulomb(Effect):
+    """``coulomb``: the bearings' Coulomb friction level (see the class attributes)."""
     key = "coulomb"
     title = "Coulomb friction level"
     physics = ("The sliding friction force F_C differs (all friction elements scaled; added at the table if the "

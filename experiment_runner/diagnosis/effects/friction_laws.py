@@ -47,6 +47,7 @@ def _no_friction(spec) -> str | None:
 
 
 class Dahl(Effect):
+    """``dahl``: pre-motion friction as a Dahl contact (see the class attributes)."""
     key = "dahl"
     title = "pre-motion friction (Dahl)"
     physics = ("Friction builds up over a contact stiffness k_sigma after each reversal before gross sliding "
@@ -275,6 +276,7 @@ class Gms(Effect):
 
 
 class Stribeck(Effect):
+    """``stribeck``: the Stribeck effect, as LuGre with the model's bristle stiffness and damping (see the class attributes)."""
     key = "stribeck"
     title = "Stribeck effect (LuGre)"
     physics = ("Friction higher at low sliding speed: LuGre with g(v) = F_C + (F_S - F_C) exp(-(v/v_s)^2), "
