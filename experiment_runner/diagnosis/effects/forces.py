@@ -12,7 +12,13 @@ __all__ = ["Ripple", "Offset", "PeriodicForce", "IsolatorTransient", "no_ilc"]
 
 def no_ilc(d: dict) -> None:
     """The SAI stage of preset mapping ``d`` without its iterative learning (Step II): every trial
-    alike, as recorded."""
+    alike, as recorded.
+
+    Parameters
+    ----------
+    d : dict
+        A preset mapping (changed in place).
+    """
     d["sai_manager"]["ilc"] = None
 
 
