@@ -39,64 +39,109 @@ __all__ = ["Setup", "Lattice", "Prediction", "Location", "read", "quantization",
 
 @dataclass
 class Setup:
-    """What :func:`read` leaves: the recording and the nominal as the diagnosis runs them."""
+    """What :func:`read` leaves: the recording and the nominal as the diagnosis runs them.
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording as read (plant inputs filled in from the nominal where absent).
+    nominal : ModelSpec
+        The nominal model (at the recording's rate).
+    notes : list
+        The report's notes on the recording and the model.
+    nominal_replay : dict
+        The nominal's closed-loop replay of the recorded reference (:func:`.predict.replay`).
+    observer : Observer
+        The force observer on the data.
+    band_hz : float
+        The force residual's band [Hz] (half the observer bandwidth).
+    window : int
+        Length of the report's open-loop windows [samples].
+    """
     data: DiagData
     nominal: ModelSpec
-    """The nominal model (at the recording's rate)."""
     notes: list
-    """The report's notes on the recording and the model."""
     nominal_replay: dict
-    """The nominal's closed-loop replay of the recorded reference (:func:`.predict.replay`)."""
     observer: Observer
     band_hz: float
-    """The force residual's band [Hz] (half the observer bandwidth)."""
     window: int
-    """Length of the report's open-loop windows [samples]."""
 
 
 @dataclass
 class Lattice:
-    """What :func:`quantization` leaves."""
+    """What :func:`quantization` leaves.
+
+    Parameters
+    ----------
+    base : ModelSpec
+        The nominal with the encoder step found from the lattice (where the selection starts).
+    found : list
+        The report's row of the quantization, when found.
+    stochastic : dict
+        The report's ``stochastic`` entries so far.
+    """
     base: ModelSpec
-    """The nominal with the encoder step found from the lattice (where the selection starts)."""
     found: list
-    """The report's row of the quantization, when found."""
     stochastic: dict
-    """The report's ``stochastic`` entries so far."""
 
 
 @dataclass
 class Prediction:
-    """What :func:`predict` leaves."""
+    """What :func:`predict` leaves.
+
+    Parameters
+    ----------
+    residual : ObsResult
+        The nominal's force residual (with window snapshots).
+    windows : dict, optional
+        The nominal's open-loop windows (:func:`.predict.open_loop_windows`).
+    floor : ForceFloor
+        The base model's force-residual floor.
+    controller_error : float
+        Relative RMS by which the model's controller misses the recorded command (0: open loop).
+    reference : numpy.ndarray, optional
+        The equivalent reference the replay follows, or None (the recorded one).
+    judge : ReplayJudge
+        The replay judge of the held-out trials (open loop: :class:`.openloop.OpenLoopJudge`).
+    fit_judge : ReplayJudge, optional
+        The same on the fit trials (None: candidates are not refined by the replay).
+    replay_floor : Floor
+        The base model's run-to-run replay floor.
+    nominal_replay_floor : Floor, optional
+        The nominal's own replay floor where the base took a drive-noise level before judging
+        (:func:`drive_noise_prior`; None: ``replay_floor`` is the nominal's): the report's nominal
+        column.
+    """
     residual: ObsResult
-    """The nominal's force residual (with window snapshots)."""
     windows: dict | None
-    """The nominal's open-loop windows (:func:`.predict.open_loop_windows`)."""
     floor: ForceFloor
-    """The base model's force-residual floor."""
     controller_error: float
-    """Relative RMS by which the model's controller misses the recorded command (0: open loop)."""
     reference: np.ndarray | None
-    """The equivalent reference the replay follows, or None (the recorded one)."""
     judge: ReplayJudge
     fit_judge: ReplayJudge | None
     replay_floor: Floor
-    """The base model's run-to-run replay floor."""
     nominal_replay_floor: Floor | None = None
-    """The nominal's own replay floor where the base took a drive-noise level before judging
-    (:func:`drive_noise_prior`; None: ``replay_floor`` is the nominal's): the report's nominal column."""
 
 
 @dataclass
 class Location:
-    """What :func:`locate` leaves."""
+    """What :func:`locate` leaves.
+
+    Parameters
+    ----------
+    summary : dict
+        The report's ``locate`` section.
+    arrays : dict
+        Arrays for the plots.
+    context : Context
+        What was located, for the effects.
+    library : Library
+        The effects bound to this recording (the options' library is never changed).
+    """
     summary: dict
-    """The report's ``locate`` section."""
     arrays: dict
-    """Arrays for the plots."""
     context: Context
     library: Library
-    """The effects bound to this recording (the options' library is never changed)."""
 
 
 def fill_plant_inputs(spec: ModelSpec, data, rp: dict) -> list[str]:
