@@ -59,7 +59,9 @@ class Budget:
     max_seconds : float or None
         The budget [s], from the start (finite, > 0); None: no limit.
     progress : bool
-        Progress lines on ``stream`` (default stderr).
+        Progress lines on ``stream``.
+    stream : file-like, optional
+        Where they go (default ``sys.stderr``).
     """
 
     def __init__(self, max_seconds: float | None = DEFAULT_MAX_SECONDS, progress: bool = True, stream=None):

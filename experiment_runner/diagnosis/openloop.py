@@ -108,7 +108,9 @@ class OpenLoopJudge(ReplayJudge):
         The force observer on ``data`` (its smoothing and masks): it re-initialises the windows.
     window_s : float
         Window length [s] (at least 20 samples); windows tile each trial from its start.
-    seeds, alpha, z_block, block_s
+    seeds : tuple of int
+        As :class:`.judge.ReplayJudge`.
+    alpha, z_block, block_s : float
         As :class:`.judge.ReplayJudge`.
     """
 

@@ -41,35 +41,69 @@ NOMINAL_Z = 2.0
 @dataclass
 class Problem:
     """What the forward selection works on: fixed for one diagnosis (the evaluator's floor follows
-    the current model)."""
+    the current model).
+
+    Parameters
+    ----------
+    options : Options
+        The diagnosis's options.
+    data : DiagData
+        The recording.
+    observer : Observer
+        The force observer on it.
+    base : ModelSpec
+        The nominal with the quantization found from the lattice: where every path starts.
+    library : Library
+        The effects, bound to the recording.
+    keys : list
+        The keys proposed, in order.
+    evaluator : Evaluator
+        The force-residual evaluator of candidate fits (its floor follows the current model).
+    judge : ReplayJudge
+        The held-out samples' judge (closed-loop replay, or open-loop windows).
+    fit_judge : ReplayJudge, optional
+        The fit samples' judge (the replay refinement's); None: no refinement.
+    base_floor : ForceFloor
+        The base model's force-residual floor.
+    base_replay_floor : Floor
+        The base model's run-to-run replay floor.
+    J_held_base : float
+        The base model's held-out force-residual J.
+    J_fit_base : float
+        The same on the fit samples.
+    band_hz : float
+        The force residual's band [Hz] (half the observer bandwidth).
+    n_eff : float
+        Effective sample count of the held-out force residual (the base model's floor; at least 10).
+    executor : object
+        Where candidate fits run (None: in this process).
+    token : str, optional
+        Identifies the fit data shared with worker processes.
+    blob : bytes, optional
+        That data, pickled once.
+    noise_ratio : float, optional
+        The data's drive-noise level over the base model's, read from the residual spectrum before
+        judging (:func:`.stages.drive_noise_prior`; None: not read).
+    """
     options: Options
     data: DiagData
     observer: Observer
     base: ModelSpec
-    """The nominal with the quantization found from the lattice: where every path starts."""
     library: Library
-    """The effects, bound to the recording."""
     keys: list
-    """The keys proposed, in order."""
     evaluator: Evaluator
     judge: ReplayJudge
-    """The held-out samples' judge (closed-loop replay, or open-loop windows)."""
     fit_judge: ReplayJudge | None
-    """The fit samples' judge (the replay refinement's); None: no refinement."""
     base_floor: ForceFloor
     base_replay_floor: Floor
     J_held_base: float
     J_fit_base: float
     band_hz: float
-    """The force residual's band [Hz] (half the observer bandwidth)."""
     n_eff: float
-    """Effective sample count of the held-out force residual (the base model's floor; at least 10)."""
     executor: object = None
     token: str | None = None
     blob: bytes | None = None
     noise_ratio: float | None = None
-    """The data's drive-noise level over the base model's, read from the residual spectrum before
-    judging (:func:`.stages.drive_noise_prior`; None: not read)."""
 
     @property
     def refines(self) -> bool:
@@ -179,59 +213,111 @@ class Problem:
 @dataclass
 class Candidate:
     """An effect proposed at a step; ``replaces``: the adopted member of its exclusive group it is
-    fitted without (a replacement), else None."""
+    fitted without (a replacement), else None.
+
+    Parameters
+    ----------
+    effect : Effect
+        The effect.
+    replaces : str, optional
+        Key of the adopted effect it replaces.
+    """
     effect: Effect
     replaces: str | None = None
 
 
 @dataclass
 class JudgedRow:
-    """A fitted candidate judged by its replay against the current model's run-to-run floor."""
+    """A fitted candidate judged by its replay against the current model's run-to-run floor.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The candidate's fit.
+    replay : Replay
+        Its replay of the held-out data.
+    comparison : Comparison
+        Against the current model (:meth:`.judge.ReplayJudge.compare`).
+    on_bound : list
+        Its parameters at a bound (and the adopted effects' when fitted together).
+    ok : bool
+        Adoptable: beyond the floor, identified, moved by the data.
+    why : str
+        Why not adoptable, in words ('' when it is).
+    rule : str
+        Chosen (:func:`choose`): the rule that chose it among the candidates the replay cannot tell
+        apart.
+    """
     fit: FitResult
     replay: Replay
     comparison: Comparison
     on_bound: list
-    """Its parameters at a bound (and the adopted effects' when fitted together)."""
     ok: bool
-    """Adoptable: beyond the floor, identified, moved by the data."""
     why: str
     rule: str = ""
-    """Chosen (:func:`choose`): the rule that chose it among the candidates the replay cannot tell apart."""
 
 
 @dataclass
 class Path:
-    """One walk of the forward selection: the current model and what led to it."""
+    """One walk of the forward selection: the current model and what led to it.
+
+    Parameters
+    ----------
+    current : ModelSpec
+        The current model.
+    J_held : float
+        The current model's held-out force-residual J (its own floor).
+    J_fit : float
+        The same on the fit samples.
+    floor : ForceFloor
+        The current model's force-residual floor.
+    replay_floor : Floor
+        The current model's run-to-run replay floor.
+    context : Context
+        The located context (proposals renewed after every adoption).
+    steps : list
+        The report's step records.
+    selected : list
+        The adopted effects' fits, in order.
+    found : list
+        The report's rows of the adopted effects (one per selected fit).
+    banned : set
+        Keys not proposed again (withdrawn, replaced, a known quantity's confounded alternative).
+    continued : set
+        Continuations (:meth:`.forward.ForwardSelection.continuations`) tried on the current model
+        (emptied by every adoption).
+    refit : tuple, optional
+        (model, joint fit): the best re-fit of the adopted effects alone a step's joint refinements
+        reached.
+    second_start : dict, optional
+        What the walk from step 1's runner-up found (:meth:`.forward.ForwardSelection.run`).
+    """
     current: ModelSpec
     J_held: float
-    """The current model's held-out force-residual J (its own floor)."""
     J_fit: float
     floor: ForceFloor
-    """The current model's force-residual floor."""
     replay_floor: Floor
-    """The current model's run-to-run replay floor."""
     context: Context
-    """The located context (proposals renewed after every adoption)."""
     steps: list = field(default_factory=list)
-    """The report's step records."""
     selected: list = field(default_factory=list)
-    """The adopted effects' fits, in order."""
     found: list = field(default_factory=list)
-    """The report's rows of the adopted effects (one per selected fit)."""
     banned: set = field(default_factory=set)
-    """Keys not proposed again (withdrawn, replaced, a known quantity's confounded alternative)."""
     continued: set = field(default_factory=set)
-    """Continuations (:meth:`.forward.ForwardSelection.continuations`) tried on the current model
-    (emptied by every adoption)."""
     refit: tuple | None = None
-    """(model, joint fit): the best re-fit of the adopted effects alone a step's joint refinements reached."""
     second_start: dict | None = None
-    """What the walk from step 1's runner-up found (:meth:`.forward.ForwardSelection.run`)."""
 
 
 @dataclass
 class FirstStep:
-    """Step 1 of the greedy walk: its judged rows and its record (the second start begins there)."""
+    """Step 1 of the greedy walk: its judged rows and its record (the second start begins there).
+
+    Parameters
+    ----------
+    judged : list of JudgedRow
+        The step's judged candidates.
+    record : dict
+        The step's report record.
+    """
     judged: list
     record: dict
 

@@ -57,7 +57,23 @@ LUGRE_MAX_RATIO = 3.0
 
 @dataclass
 class TribData:
-    """Used part of the record (SI): time [s], position [m], friction [N], normal force [N]."""
+    """Used part of the record (SI): time [s], position [m], friction [N], normal force [N].
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        Time [s].
+    x : numpy.ndarray
+        Position [m].
+    f : numpy.ndarray
+        Friction force [N].
+    normal : numpy.ndarray
+        Normal force [N].
+    rev : numpy.ndarray
+        Sample index of each reversal (start of a stroke).
+    path : pathlib.Path
+        The file read.
+    """
     t: np.ndarray
     x: np.ndarray
     f: np.ndarray

@@ -95,20 +95,32 @@ def withdraw_unidentified(problem: Problem, path: Path, found: list) -> list:
 
 @dataclass
 class Validation:
-    """What :func:`validate` leaves."""
+    """What :func:`validate` leaves.
+
+    Parameters
+    ----------
+    held : numpy.ndarray
+        The held-out samples (the fit samples when none are held out).
+    residual : ObsResult
+        The improved model's force residual.
+    improved_replay : dict
+        The improved model's closed-loop replay (for the plots).
+    adequate_nominal : bool
+        The nominal's replay is consistent with its own run-to-run floor.
+    adequate : bool
+        The improved model's replay is stable and consistent with its run-to-run floor.
+    headline : dict
+        The report's ``replay``.
+    figures : dict
+        The report's ``validation``.
+    """
     held: np.ndarray
-    """The held-out samples (the fit samples when none are held out)."""
     residual: ObsResult
-    """The improved model's force residual."""
     improved_replay: dict
-    """The improved model's closed-loop replay (for the plots)."""
     adequate_nominal: bool
     adequate: bool
-    """The improved model's replay is stable and consistent with its run-to-run floor."""
     headline: dict
-    """The report's ``replay``."""
     figures: dict
-    """The report's ``validation``."""
 
 
 def _how(data, judge) -> str:
@@ -521,7 +533,44 @@ def sparse_terms(data, res: ObsResult, ctx: Context, f_band: float) -> dict:
 
 @dataclass
 class Run:
-    """Everything the report is written from (one diagnosis' stages)."""
+    """Everything the report is written from (one diagnosis' stages).
+
+    Parameters
+    ----------
+    nominal_source : object
+        The nominal as given (name, path or model).
+    setup : Setup
+        What :func:`.stages.read` left.
+    stochastic : dict
+        The report's ``stochastic`` section.
+    prediction : Prediction
+        What :func:`.stages.predict` left.
+    locate_summary : dict
+        The report's ``locate`` section.
+    problem : Problem
+        What the forward selection worked on.
+    path : Path
+        The selection's final path.
+    found : list
+        The report's rows of the adopted effects.
+    joint : dict, optional
+        The report's ``joint_fit`` (:func:`.closing.refit_jointly`).
+    J_fit_nominal, J_held_nominal : float
+        The nominal's force-residual J on the fit and held-out samples.
+    adequacy_tolerance : float
+        Tolerance of the adequacy test.
+    validation : Validation
+        What :func:`validate` left.
+    withdrawn : list
+        The report's rows of the adopted effects withdrawn as not identified
+        (:func:`withdraw_unidentified`).
+    detection : list, optional
+        What the record could have revealed on top of the final model (:func:`detection_limits`),
+        when that model is consistent with its floor.
+    remaining : dict, optional
+        Where the final model's force residual lies (:func:`.locate.locate`'s summary), when it is
+        not.
+    """
     nominal_source: object
     setup: Setup
     stochastic: dict
@@ -536,12 +585,8 @@ class Run:
     adequacy_tolerance: float
     validation: Validation
     withdrawn: list = field(default_factory=list)
-    """The report's rows of the adopted effects withdrawn as not identified (:func:`withdraw_unidentified`)."""
     detection: list | None = None
-    """What the record could have revealed on top of the final model (:func:`detection_limits`), when
-    that model is consistent with its floor."""
     remaining: dict | None = None
-    """Where the final model's force residual lies (:func:`.locate.locate`'s summary), when it is not."""
 
 
 def assemble(run: Run, timing: dict, sparse: dict | None) -> dict:
