@@ -19,7 +19,7 @@ processes of one thread each (:func:`campaign_trials_per_s`); ``campaign_scale_o
 _1`` (the goal: >= 0.85 N); ``campaign_trials_per_s_dask_N``: the same ``N`` workers as a Dask
 ``LocalCluster``; ``campaign_trials_per_s_all_cores_1``: this process with ``N`` numba threads, as
 ``nanostage campaign --workers 1`` runs, and ``threads_scale_all_cores`` its ratio to one thread
-(in-process thread scaling; ``docs/results.md`` says why it stays below the processes').
+(in-process thread scaling; ``docs/speed.md`` says why it stays below the processes').
 
 ``diagnose_seconds_10s``: wall time of ``nanostage diagnose`` (reading the MCAP file
 included) on a 10 s, 10 kHz synthetic recording with one concealed effect

@@ -19,8 +19,8 @@ and yields ``(task id, result)`` pairs as the tasks complete. :func:`default_wor
 place that decides how many cores "every core" is (the CPUs this process may run on, capped by
 its cgroup's CPU quota): the commands' default ``--workers`` (campaigns, design sweeps) and the
 diagnosis' candidate-fit threads. Worker processes, not threads, are the default where a command
-runs many similar tasks: on 16 cores, 16 processes ran Table 4.2 trials 10.8x as fast as one,
-one process with 16 numba threads 2.7x (``docs/results.md``, "Speed"). A cluster of several machines,
+runs many similar tasks: on 16 cores, 16 one-thread processes ran Table 4.2 trials 15.96x as fast
+as one, one process with 16 numba threads 5.14x (``docs/speed.md``). A cluster of several machines,
 each with this package installed in the same version (``scripts/bootstrap.sh``)::
 
     dask scheduler                                   # on one machine: tcp://HOST:8786

@@ -9,7 +9,6 @@ EMPS validation record (force pulses) is read from ``../shared/data`` when it is
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
 import pytest

@@ -65,7 +65,25 @@ _CLIP = 20.0      # |log ratio| used for a metric that is 0, nan or not reached
 
 @dataclass(frozen=True)
 class ParamSpec:
-    """One parameter and the target it is fitted to (see module docstring)."""
+    """One parameter and the target it is fitted to (see module docstring).
+
+    Parameters
+    ----------
+    name : str
+        The parameter's name.
+    bounds : tuple of float
+        Its search range (SI units, or the scale factor of a ``scale`` parameter).
+    seed_value : float
+        The seed's baseline number of the target metric (SI).
+    log : bool
+        Search in log(p).
+    form : {"absolute", "quadrature_excess"}
+        What is matched: the metric itself, or its excess over ``seed_floor`` in quadrature.
+    seed_floor : float
+        ``quadrature_excess``: the deterministic floor of the seed value.
+    null : float, optional
+        ``quadrature_excess``: the parameter value that removes the effect.
+    """
     name: str
     bounds: tuple[float, float]
     seed_value: float                 # the seed's baseline number (SI)
@@ -77,7 +95,27 @@ class ParamSpec:
 
 @dataclass
 class ParamFit:
-    """Result for one parameter."""
+    """Result for one parameter.
+
+    Parameters
+    ----------
+    name : str
+        The parameter.
+    value, start : float
+        Fitted and start value.
+    bounds : tuple of float
+        Search range.
+    at_bound : {None, "lower", "upper"}
+        The bound the fit ended at, if any (then the target is not reached).
+    seed_value : float
+        The seed's number of the target metric (SI).
+    seed_effective : float
+        What the residual compares with (after the floor).
+    sim_start, sim_value, sim_effective : float or None
+        The metric at the start values, at the fitted values, and its effective part.
+    residual : float
+        log(sim_effective / seed_effective) at the fit.
+    """
     name: str
     value: float
     start: float
@@ -93,6 +131,23 @@ class ParamFit:
 
 @dataclass
 class CalibrationResult:
+    """What :func:`fit` returns.
+
+    Parameters
+    ----------
+    values : dict
+        Parameter name -> fitted value.
+    params : list of ParamFit
+        Per parameter.
+    evaluations : int
+        Simulations of the baseline run.
+    rounds : int
+        Gauss-Seidel rounds run.
+    converged : bool
+        No parameter changed by more than ``rtol`` in the last round.
+    history : list
+        ``(values, metrics)`` of every evaluation.
+    """
     values: dict
     params: list
     evaluations: int
@@ -114,6 +169,7 @@ def fit(specs: list[ParamSpec], start: dict, evaluate: Callable[[dict], dict], *
     Parameters
     ----------
     specs : list of ParamSpec
+        The parameters, each with its target.
     start : dict
         Start value of every parameter (usually the preset's value); also the values
         held for parameters not being fitted.
@@ -127,6 +183,10 @@ def fit(specs: list[ParamSpec], start: dict, evaluate: Callable[[dict], dict], *
         Stop when no parameter changes by more than this (relative) in a round.
     progress : callable, optional
         Called after every new evaluation (progress bars).
+
+    Returns
+    -------
+    CalibrationResult
     """
     cache: dict = {}
     history: list = []
@@ -225,7 +285,22 @@ def fit(specs: list[ParamSpec], start: dict, evaluate: Callable[[dict], dict], *
 
 
 def calibrate(camp: Campaign, n_trials: int, bar=None) -> dict:
-    """Fit the campaign's calibration parameters on its baseline case; returns calibration.json content."""
+    """Fit the campaign's calibration parameters on its baseline case.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign (its ``calibration`` block and seed targets).
+    n_trials : int
+        Trials per evaluation.
+    bar : tqdm.tqdm, optional
+        Progress bar, updated per evaluation.
+
+    Returns
+    -------
+    dict
+        The ``calibration.json`` content: values, per-parameter fits, fingerprint.
+    """
     cal = camp.calibration
     base = camp.case(camp.baseline)
     preset0 = case_preset(camp, base)
@@ -301,7 +376,20 @@ def calibrate(camp: Campaign, n_trials: int, bar=None) -> dict:
 
 def calibration_fingerprint(camp: Campaign, n_trials: int) -> str:
     """Hash of everything a baseline calibration depends on: the test, starts, the baseline
-    case and its resolved preset, the calibration spec and its seed targets, the trial count."""
+    case and its resolved preset, the calibration spec and its seed targets, the trial count.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign whose baseline is calibrated.
+    n_trials : int
+        Trials per evaluation.
+
+    Returns
+    -------
+    str
+        16 hex digits; a ``calibration.json`` is reused only under the same fingerprint.
+    """
     base = camp.case(camp.baseline)
     doc = {"test": camp.test.model_dump(mode="json"), "starts": camp.starts.model_dump(mode="json"),
            "baseline": base.model_dump(mode="json"), "preset": case_preset(camp, base).model_dump(mode="json"),
@@ -317,6 +405,22 @@ def source_calibration(camp: Campaign, out_dir: Path, n_trials: Optional[int] = 
 
     The result's ``applied`` overrides are those of this campaign's cases; ``source`` tells
     where the values come from (``loaded_from`` is None when fitted in this run).
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign whose calibration comes from another.
+    out_dir : pathlib.Path
+        This campaign's output folder.
+    n_trials : int, optional
+        Trials per evaluation (default: the campaign's, else the source's).
+    bar : tqdm.tqdm, optional
+        Progress bar of a fit.
+
+    Returns
+    -------
+    dict
+        The ``calibration.json`` content with ``reused``, ``source`` and per parameter ``applied``.
     """
     src = calibration_source(camp)
     n = int(n_trials or camp.calibration.trials or src.calibration.trials)

@@ -20,7 +20,18 @@ __all__ = ["add_campaign_arguments", "main_campaign"]
 
 
 def add_campaign_arguments(parser):
-    """Arguments of ``nanostage campaign`` (wire with ``set_defaults(func=main_campaign)``)."""
+    """Add the arguments of ``nanostage campaign`` (wire with ``set_defaults(func=main_campaign)``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        ``parser``.
+    """
     parser.add_argument("campaign", nargs="?", help="campaign name (see --list) or YAML path")
     parser.add_argument("--list", action="store_true", help="list the shipped campaigns")
     parser.add_argument("--main", action="store_true",
@@ -47,7 +58,23 @@ def add_campaign_arguments(parser):
 
 
 def read_calibration(path) -> dict:
-    """A ``calibration.json`` written by an earlier campaign (``--calibration``)."""
+    """A ``calibration.json`` written by an earlier campaign (``--calibration``).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file (read bounded, at most 64 MB).
+
+    Returns
+    -------
+    dict
+        Its content; ``values`` maps each calibrated quantity to a finite number (SI units).
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        The file is missing, not JSON, or its ``values`` are not finite numbers.
+    """
     try:
         doc = json.loads(read_text_file(path, "calibration", max_bytes=64 << 20))
     except ConfigError as err:
@@ -63,8 +90,19 @@ def read_calibration(path) -> dict:
 
 
 def main_campaign(args) -> int:
-    """Run ``nanostage campaign`` from parsed arguments; 0 on success. Bad input raises
-    :class:`~stage_sim.config.ConfigError` (the CLI prints it and exits 2)."""
+    """Run ``nanostage campaign`` from parsed arguments.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        As :func:`add_campaign_arguments` defines them.
+
+    Returns
+    -------
+    int
+        0 on success. Bad input raises :class:`~stage_sim.config.ConfigError` (the CLI prints it
+        and exits 2).
+    """
     if args.list:
         for name in list_campaigns():
             c = load_campaign(name, check_presets=False)

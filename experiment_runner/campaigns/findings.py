@@ -20,7 +20,24 @@ __all__ = ["evaluate_findings", "evaluate_frf_findings", "seed_bound_check"]
 
 
 def evaluate_findings(camp: Campaign, runs: dict) -> list[dict]:
-    """Direction of every seed finding in the simulation (z: difference / its standard error)."""
+    """Direction of every seed finding in the simulation (z: difference / its standard error).
+
+    A 'lower' / 'higher' finding agrees when the difference of the trial means has the seed's sign
+    and ``|z| >= 2``; a 'similar' one when the relative difference is within its tolerance.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign (its ``seed.findings`` and ``seed.values``).
+    runs : dict
+        ``(case, condition key)`` -> :class:`~experiment_runner.campaigns.base.RunResult`.
+
+    Returns
+    -------
+    list of dict
+        One row per finding: ids, the seed's and the simulated values and change, ``z``,
+        ``agrees``, ``status`` and the notes (e.g. trials that did not settle).
+    """
     out = []
     conds = conditions(camp)
     for f in camp.seed.findings:
@@ -126,6 +143,18 @@ def evaluate_frf_findings(camp, runs: dict) -> list[dict]:
     ``versus_amplitude`` (default: the same amplitude). 'lower' / 'higher' agree when the
     sign matches, 'similar' when the relative change ``(case - versus) / |versus|`` is within
     the tolerance.
+
+    Parameters
+    ----------
+    camp : Campaign
+        A frequency-response campaign.
+    runs : dict
+        ``(case, condition key)`` -> :class:`~experiment_runner.campaigns.frequency_response.FrfRun`.
+
+    Returns
+    -------
+    list of dict
+        One row per finding, as :func:`evaluate_findings`'s.
     """
     conds = conditions(camp)
     out = []
@@ -162,7 +191,21 @@ def evaluate_frf_findings(camp, runs: dict) -> list[dict]:
 
 
 def seed_bound_check(camp, runs: dict) -> list[dict]:
-    """Every seed value vs the simulation (``bound: upper/lower`` values are limits the seed states)."""
+    """Every seed value vs the simulation (``bound: upper/lower`` values are limits the seed states).
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign.
+    runs : dict
+        ``(case, condition key)`` -> :class:`~experiment_runner.campaigns.frequency_response.FrfRun`.
+
+    Returns
+    -------
+    list of dict
+        One row per seed value: the seed's value or limit, the simulated one, their ratio, and
+        ``within_bound`` (None where the seed states a value, not a limit, or the simulated one is undefined).
+    """
     rows = []
     conds = conditions(camp)
     for v in camp.seed.values:

@@ -46,7 +46,45 @@ FRF_METRICS = FrequencyResponseTest.METRICS
 # =========================================================================== runs
 @dataclass
 class FrfRun:
-    """One case at one amplitude (a campaign condition)."""
+    """One case at one amplitude (a campaign condition).
+
+    Parameters
+    ----------
+    case : str
+        The case's name.
+    cond : Condition
+        The condition (its force amplitude).
+    preset : stage_sim.config.Preset
+        The case's stage, as run.
+    overrides : dict
+        The case's overrides of its preset.
+    freqs_hz : numpy.ndarray
+        (nf,) excitation frequencies [Hz].
+    G : numpy.ndarray
+        (nf,) plant FRF, force -> position [m/N].
+    G_aug : numpy.ndarray
+        Augmented plant (Eq. C.5; ``G`` without DOB) [m/N].
+    L : numpy.ndarray
+        Loop broken at the plant input.
+    T : numpy.ndarray
+        Closed loop, reference -> position.
+    values : dict
+        Metric -> value (bandwidth [Hz], margins [dB, deg], Table C.1 fit).
+    margins : LoopMargins
+        Gain and phase margins and their frequencies.
+    status : numpy.ndarray
+        (nf,) plant status per frequency (0 ok, -1 skipped).
+    stats : dict
+        Metric -> :class:`~experiment_runner.campaigns.base.Stat` (one value).
+    wall_s : float
+        Wall time [s].
+    T_sim : numpy.ndarray, optional
+        Closed loop simulated at the force amplitude (batch engine).
+    u_amp : numpy.ndarray, optional
+        Force amplitude it reached [N].
+    bandwidth_sim_hz : float
+        -3 dB bandwidth of ``T_sim`` [Hz].
+    """
     case: str
     cond: object                # campaign.Condition
     preset: object
@@ -73,6 +111,17 @@ def run_frf_campaign(kind, camp: Campaign, out_dir: Path, settings: RunSettings)
 
     ``settings.graph`` must be False: the FRFs are open-loop runs of the compiled plant, there is no
     closed-loop trial to re-run through the ROS graph.
+
+    Parameters
+    ----------
+    kind : CampaignKind
+        The frequency-response kind.
+    camp : Campaign
+        The campaign as run.
+    out_dir : pathlib.Path
+        The campaign's output folder.
+    settings : RunSettings
+        How it runs.
 
     Returns
     -------
@@ -147,7 +196,13 @@ def run_frf_campaign(kind, camp: Campaign, out_dir: Path, settings: RunSettings)
 # =========================================================================== outputs
 def write_frf_results(cr) -> None:
     """``results.json`` (metrics, findings, seed checks, every FRF), ``results.csv`` (metrics)
-    and ``frf.csv`` (one row per case x amplitude x frequency); SI units, Hz, dB, degrees."""
+    and ``frf.csv`` (one row per case x amplitude x frequency); SI units, Hz, dB, degrees.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A frequency-response campaign as run.
+    """
     camp = cr.campaign
     rows = []
     for case in camp.cases:
@@ -200,7 +255,21 @@ def _fmt(v, metric) -> str:
 
 def write_frf_plots(cr, plt, out: Path) -> list:
     """Bode plots (plant, augmented plant with DOB, closed loop) per case, every amplitude,
-    and bandwidth / margins vs amplitude (Fig. 4.6 / C.10 style); returns the PNG paths."""
+    and bandwidth / margins vs amplitude (Fig. 4.6 / C.10 style); returns the PNG paths.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A frequency-response campaign as run.
+    plt : module
+        ``matplotlib.pyplot``.
+    out : pathlib.Path
+        Plots folder.
+
+    Returns
+    -------
+    list of pathlib.Path
+    """
     camp = cr.campaign
     files = []
     cmap = plt.get_cmap("viridis")
@@ -264,7 +333,20 @@ def write_frf_plots(cr, plt, out: Path) -> list:
 
 
 def frf_table(cr, metric) -> list[str]:
-    """Markdown rows of one metric: amplitude x case (the seed's number or limit where it states one)."""
+    """Markdown rows of one metric: amplitude x case (the seed's number or limit where it states one).
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A frequency-response campaign as run.
+    metric : str
+        Metric name (:data:`~experiment_runner.campaigns.registry.METRICS`).
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     camp = cr.campaign
     lines = ["| amplitude | " + " | ".join(c.label for c in camp.cases) + " |", "|---|" + "---|" * len(camp.cases)]
     bounds = {(s["case"], s["condition"]): s for s in seed_bound_check(camp, cr.runs) if s["metric"] == metric}
@@ -282,7 +364,17 @@ def frf_table(cr, metric) -> list[str]:
 
 
 def frf_how(cr) -> str:
-    """How a frequency-response campaign was run (the report's head)."""
+    """How a frequency-response campaign was run (the report's head).
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A frequency-response campaign as run.
+
+    Returns
+    -------
+    str
+    """
     t = cr.campaign.test
     return (f"open-loop stepped-sine plant FRFs on the compiled plant ({len(t.amplitudes)} force "
             f"amplitudes x {len(frequency_grid(t))} frequencies {t.f_min:g}–{t.f_max:g} Hz per case, "
@@ -292,7 +384,18 @@ def frf_how(cr) -> str:
 
 def frf_section(cr) -> list[str]:
     """The body of a frequency-response campaign's report: bandwidth and margins per amplitude,
-    the closed loop simulated, the seed's numbers, the findings."""
+    the closed loop simulated, the seed's numbers, the findings.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A frequency-response campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     camp = cr.campaign
     L = ["## Bandwidth and margins per amplitude", "",
           "BW: -3 dB bandwidth of the closed loop T (reference → measured position); GM / PM: margins of the loop "
@@ -345,7 +448,18 @@ def frf_section(cr) -> list[str]:
 
 
 def frf_settings(cr) -> list[str]:
-    """The settings at the end of a frequency-response campaign's report."""
+    """The settings at the end of a frequency-response campaign's report.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A frequency-response campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     L = ["## Settings", "", f"* Test: `{cr.campaign.test.model_dump()}`", "* Cases:"]
     L += cases_md(cr)
     L += ["", "Files: `results.json` (metrics, findings, every FRF), `results.csv` (metrics), `frf.csv` "
@@ -360,24 +474,111 @@ class FrequencyResponse:
     metrics = FrequencyResponseTest.METRICS
 
     def reference(self, camp: Campaign, cond: Condition, rate: float) -> None:
+        """No closed-loop reference: the FRFs are open-loop sine forces on the plant.
+
+        Parameters
+        ----------
+        camp : Campaign
+            The campaign as run.
+        cond : Condition
+            A condition.
+        rate : float
+            Control rate [Hz].
+
+        Returns
+        -------
+        None
+        """
         return None          # open-loop sine forces on the plant, no closed-loop reference
 
     def run(self, camp: Campaign, out_dir: Path, settings: RunSettings) -> CampaignRun:
+        """Run the campaign (:func:`run_frf_campaign`).
+
+        Parameters
+        ----------
+        camp : Campaign
+            The campaign as run.
+        out_dir : pathlib.Path
+            The campaign's output folder.
+        settings : RunSettings
+            How it runs.
+
+        Returns
+        -------
+        CampaignRun
+        """
         return run_frf_campaign(self, camp, out_dir, settings)
 
     def write_results(self, cr: CampaignRun) -> None:
+        """Write the results files (:func:`write_frf_results`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A frequency-response campaign as run.
+        """
         write_frf_results(cr)
 
     def report_how(self, cr: CampaignRun) -> str:
+        """How it was run (:func:`frf_how`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A frequency-response campaign as run.
+
+        Returns
+        -------
+        str
+        """
         return frf_how(cr)
 
     def report_section(self, cr: CampaignRun) -> list[str]:
+        """The report's body (:func:`frf_section`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A frequency-response campaign as run.
+
+        Returns
+        -------
+        list of str
+            Lines of Markdown.
+        """
         return frf_section(cr)
 
     def report_settings(self, cr: CampaignRun) -> list[str]:
+        """The report's settings (:func:`frf_settings`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A frequency-response campaign as run.
+
+        Returns
+        -------
+        list of str
+            Lines of Markdown.
+        """
         return frf_settings(cr)
 
     def plots(self, cr: CampaignRun, plt, out: Path) -> list:
+        """The Bode and bandwidth plots (:func:`write_frf_plots`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A frequency-response campaign as run.
+        plt : module
+            ``matplotlib.pyplot``.
+        out : pathlib.Path
+            Plots folder.
+
+        Returns
+        -------
+        list of pathlib.Path
+        """
         return write_frf_plots(cr, plt, out)
 
 
@@ -387,7 +588,22 @@ FREQUENCY_RESPONSE = FrequencyResponse()
 def frf_lines(frf_cr, settling_cr=None, images: str = "") -> list[str]:
     """Markdown: closed-loop bandwidth and margins vs force amplitude of a frequency-response
     campaign run (Fig. 4.6), next to the settling times of the point-to-point run on the same
-    stage, and why the isolated stage's margins differ (rigid-body loop gain at the crossover)."""
+    stage, and why the isolated stage's margins differ (rigid-body loop gain at the crossover).
+
+    Parameters
+    ----------
+    frf_cr : CampaignRun
+        The frequency-response campaign as run.
+    settling_cr : CampaignRun, optional
+        The point-to-point campaign on the same stage.
+    images : str, optional
+        Plots folder relative to the report ('': no images).
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     camp = frf_cr.campaign
     cases = camp.cases
     L = [f"### Closed-loop bandwidth and margins vs force amplitude ({camp.name}, Fig. 4.6)", "",

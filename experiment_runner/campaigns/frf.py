@@ -140,7 +140,17 @@ def _envelope(k, n_ramp):
 
 
 def coulomb_force(preset) -> float:
-    """Total Coulomb (gross-sliding) friction force of a linear stage [N]: bearings and table."""
+    """Total Coulomb (gross-sliding) friction force of a linear stage [N]: bearings and table.
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        A linear stage.
+
+    Returns
+    -------
+    float
+    """
     tot = 0.0
     items = [b.friction for b in preset.stage.bearings]
     if preset.stage.table_friction is not None:
@@ -151,7 +161,17 @@ def coulomb_force(preset) -> float:
 
 
 def moving_mass(preset) -> float:
-    """Table + bearings + structural-mode masses [kg] (the rigid stage in gross motion)."""
+    """Table + bearings + structural-mode masses [kg] (the rigid stage in gross motion).
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        A linear stage.
+
+    Returns
+    -------
+    float
+    """
     st = preset.stage
     m = st.table.mass * (1.0 + sum(md.mass_ratio for md in st.modes))
     return m + sum(b.mass for b in st.bearings)
@@ -159,7 +179,23 @@ def moving_mass(preset) -> float:
 
 @dataclass
 class PlantFrf:
-    """Measured plant FRFs of one preset: rows = amplitudes, columns = frequencies."""
+    """Measured plant FRFs of one preset: rows = amplitudes, columns = frequencies.
+
+    Parameters
+    ----------
+    amplitudes : numpy.ndarray
+        (na,) force amplitudes [N].
+    freqs_hz : numpy.ndarray
+        (nf,) excitation frequencies [Hz].
+    G : numpy.ndarray
+        (na, nf) complex, command force -> position [m/N]; NaN where not measured.
+    status : numpy.ndarray
+        (na, nf) plant status (0 ok, -1 skipped: the stage would slide beyond ``max_displacement``).
+    samples : int
+        Column-samples simulated.
+    wall_s : float
+        Wall time [s].
+    """
     amplitudes: np.ndarray     # (na,) force amplitudes [N]
     freqs_hz: np.ndarray       # (nf,) excitation frequencies [Hz]
     G: np.ndarray              # (na, nf) complex, command force -> position [m/N]; nan = not measured
@@ -378,6 +414,13 @@ def controller_frf(preset, freqs_hz) -> dict:
 
     The servo computes ``u = C (r - y) - Q G_n^-1 y + Q z^-1 u`` (no DOB: the last two are 0).
 
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The case's stage and controller (its control rate).
+    freqs_hz : array_like
+        Frequencies [Hz].
+
     Returns
     -------
     dict
@@ -408,6 +451,15 @@ def loop_frfs(preset, freqs_hz, G) -> dict:
     * ``T = C G_aug / (1 + C G_aug)``: reference to measured position;
     * ``G_aug = G / (1 - Q z^-1 + Q G_n^-1 G)``: Eq. C.5 with the servo's one-sample ``Q`` path
       (without DOB ``G_aug = G``).
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The case's stage and controller.
+    freqs_hz : array_like
+        (nf,) frequencies [Hz].
+    G : numpy.ndarray
+        (..., nf) complex plant FRF [m/N].
 
     Returns
     -------

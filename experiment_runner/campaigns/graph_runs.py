@@ -53,7 +53,22 @@ def _graph_worker(jobs: list, domain_id: int) -> list:
 
 
 def run_graph_jobs(jobs: list, workers: int = 2, bar=None) -> list:
-    """Run graph jobs on ``workers`` spawned processes, each on its own ROS domain."""
+    """Run graph jobs on ``workers`` spawned processes, each on its own ROS domain.
+
+    Parameters
+    ----------
+    jobs : list of dict
+        The graph trials (each with its ``samples``, for balancing the processes' load).
+    workers : int, optional
+        Processes (at most one per job).
+    bar : tqdm.tqdm, optional
+        Progress bar updated as each process's trials finish.
+
+    Returns
+    -------
+    list of dict
+        The trials' results, in the order the processes finished.
+    """
     if not jobs:
         return []
     workers = max(1, min(workers, len(jobs)))
@@ -76,7 +91,21 @@ def run_graph_jobs(jobs: list, workers: int = 2, bar=None) -> list:
 
 
 def compare_graph(g: dict, rr: RunResult) -> dict:
-    """Graph trial vs the same batch trial: metrics and the largest difference of the measured position."""
+    """Graph trial vs the same batch trial: metrics and the largest difference of the measured position.
+
+    Parameters
+    ----------
+    g : dict
+        The graph trial's result (:func:`run_graph_jobs`).
+    rr : RunResult
+        The batch run of the same case and condition.
+
+    Returns
+    -------
+    dict
+        Completion, wall time, recording, both trials' metrics and ``max_abs_diff_m`` /
+        ``max_abs_ref_diff_m`` [m] (or ``read_error`` when the recording cannot be read).
+    """
     out = {"done": g["done"], "aborted": g["aborted"], "wall_s": g["wall_s"], "recording": g["recording"],
            "results": g["results"]}
     if g["results"]:

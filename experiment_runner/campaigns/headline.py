@@ -29,7 +29,21 @@ __all__ = ["Ratio", "HEADLINE", "PREMOTION_TAU_MIN", "bar", "holds", "evaluate",
 
 
 class Ratio(NamedTuple):
-    """One headline ratio: ``metric`` of ``case`` over ``versus`` at ``step`` in ``campaign``."""
+    """One headline ratio: ``metric`` of ``case`` over ``versus`` at ``step`` in ``campaign``.
+
+    Parameters
+    ----------
+    campaign : str
+        Campaign name.
+    case, versus : str
+        The cases of the numerator and the denominator.
+    step : float
+        Step size [m] of the condition.
+    metric : str
+        Metric name (:data:`~experiment_runner.campaigns.registry.METRICS`).
+    similar : float, optional
+        Tolerance of a "similar" ratio around 1 (None: a change).
+    """
     campaign: str
     case: str
     versus: str
@@ -59,13 +73,45 @@ HEADLINE = (
 
 
 def bar(seed_ratio: float) -> float:
-    """The simulated ratio that keeps half the seed's change: ``(1 + seed_ratio) / 2``."""
+    """The simulated ratio that keeps half the seed's change: ``(1 + seed_ratio) / 2``.
+
+    Parameters
+    ----------
+    seed_ratio : float
+        The seed's ratio.
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> bar(0.36)
+    0.68
+    """
     return round((1.0 + seed_ratio) / 2.0, 12)
 
 
 def holds(sim: float, seed: float, similar: Optional[float] = None) -> bool:
     """Whether ``sim`` keeps at least half the seed's change (or, for a "similar" ratio, lies within
-    ``similar`` of 1)."""
+    ``similar`` of 1).
+
+    Parameters
+    ----------
+    sim, seed : float
+        The simulated and the seed's ratio (non-finite: does not hold).
+    similar : float, optional
+        Tolerance of a "similar" ratio.
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> holds(0.41, 0.36), holds(1.09, 1.69), holds(1.02, 1.0, similar=0.3)
+    (True, False, True)
+    """
     if not (math.isfinite(sim) and math.isfinite(seed)):
         return False
     if similar is not None:
@@ -166,8 +212,19 @@ def _excess(r: Ratio, cr, who) -> float:
 
 
 def evaluate(runs) -> list[dict]:
-    """The headline ratios over campaign runs (``runs``: CampaignRun objects; ratios of campaigns not
-    among them are skipped)."""
+    """The headline ratios over campaign runs.
+
+    Parameters
+    ----------
+    runs : list of CampaignRun
+        Campaigns as run; ratios of campaigns not among them are skipped.
+
+    Returns
+    -------
+    list of dict
+        One row per ratio of :data:`HEADLINE` (the content of ``headline.json``): the seed's and
+        the simulated ratio (mean and median), the bar, whether it holds, and the mechanism verdict.
+    """
     by_name = {cr.campaign.name: cr for cr in runs}
     out = []
     for r in HEADLINE:
@@ -203,7 +260,18 @@ def _median(st) -> float:
 
 
 def report_lines(runs) -> list[str]:
-    """Markdown: the headline table and, per ratio, its mechanism verdict."""
+    """Markdown: the headline table and, per ratio, its mechanism verdict.
+
+    Parameters
+    ----------
+    runs : list of CampaignRun
+        Campaigns as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown (empty when no ratio's campaign is among ``runs``).
+    """
     rows = evaluate(runs)
     if not rows:
         return []

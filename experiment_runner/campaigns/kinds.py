@@ -22,10 +22,27 @@ KINDS: dict[str, CampaignKind] = {k.name: k for k in (POINT_TO_POINT, CIRCLE, FR
 
 
 def schemas() -> tuple:
-    """The test schema classes of the campaign file's ``test`` union (each has its kind in :data:`KINDS`)."""
+    """The test schema classes of the campaign file's ``test`` union.
+
+    Returns
+    -------
+    tuple of type
+        The pydantic classes in :mod:`~experiment_runner.campaigns.spec`; each has its kind in :data:`KINDS`.
+    """
     return typing.get_args(typing.get_args(Test)[0])
 
 
 def kind_of(camp: Campaign) -> CampaignKind:
-    """The kind of a campaign (its ``test.kind``)."""
+    """The kind of a campaign (its ``test.kind``).
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign.
+
+    Returns
+    -------
+    CampaignKind
+        Its entry in :data:`KINDS`.
+    """
     return KINDS[camp.test.kind]

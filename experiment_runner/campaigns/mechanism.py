@@ -109,7 +109,17 @@ def turning_points(x, hysteresis: float) -> list[int]:
 
 def frictionless_twin(preset):
     """The preset's equivalent frictionless stage: bearings bolted rigidly, no friction (bearings
-    and table), no isolator lock, SAI manager or dither; controller, masses, modes and drive kept."""
+    and table), no isolator lock, SAI manager or dither; controller, masses, modes and drive kept.
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The stage and its controller.
+
+    Returns
+    -------
+    stage_sim.config.Preset
+    """
     ov = {"stage.table_friction": None, "stage.sai": None, "stage.bearing_sensor": None,
           "sai_manager": None, "dither": None}
     for i in range(len(preset.stage.bearings)):
@@ -122,7 +132,17 @@ def frictionless_twin(preset):
 def premotion_range(preset) -> float:
     """Displacement after a reversal at which the bearings' friction is (nearly) saturated [m]:
     the largest block's ``2 alpha_i F_C / k_i`` for GMS and its rate-and-state variant (Masing: twice
-    the virgin range), ``2 x 3 F_C / k_sigma`` for Dahl (95% of the swing); nan for other models."""
+    the virgin range), ``2 x 3 F_C / k_sigma`` for Dahl (95% of the swing); nan for other models.
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The stage and its controller.
+
+    Returns
+    -------
+    float
+    """
     out = []
     for b in preset.stage.bearings:
         f = b.friction
@@ -137,7 +157,17 @@ def premotion_range(preset) -> float:
 
 def initial_stiffness(preset) -> float:
     """The bearings' pre-motion stiffness right after a reversal [N/m] (in parallel): ``sum k_i`` of
-    a GMS model (and its rate-and-state variant), ``k_sigma`` of Dahl; nan for other models."""
+    a GMS model (and its rate-and-state variant), ``k_sigma`` of Dahl; nan for other models.
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The stage and its controller.
+
+    Returns
+    -------
+    float
+    """
     tot, seen = 0.0, False
     for b in preset.stage.bearings:
         f = b.friction
@@ -154,6 +184,19 @@ def creep_time_constant(preset, stiffness: float) -> float:
     """Slow closed-loop time constant ``(kp + k) / ki`` [s] of the preset's PID on a table held by a
     spring ``stiffness`` [N/m] to ground (the creep of the last micrometres in the pre-motion regime).
 
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The stage and its controller.
+    stiffness : float
+        The spring [N/m] (e.g. :func:`initial_stiffness`).
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
     >>> from stage_sim.config import load_preset
     >>> p = load_preset("sai_stage")
     >>> round(creep_time_constant(p, 2.19e6) * 1e3, 1), round(creep_time_constant(p, 5e4) * 1e3, 1)
@@ -165,7 +208,17 @@ def creep_time_constant(preset, stiffness: float) -> float:
 
 def lock_delay(preset) -> float:
     """Time from the stiff command to the lock [s]: the solenoid voltage's RC filter falling to half
-    (``ln 2 / (2 pi f_RC)``) plus the armature's travel (``switch_delay``), as the plant models it."""
+    (``ln 2 / (2 pi f_RC)``) plus the armature's travel (``switch_delay``), as the plant models it.
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        A stage with a semi-active isolator.
+
+    Returns
+    -------
+    float
+    """
     sai = preset.stage.sai
     if sai is None:
         return 0.0
@@ -234,6 +287,17 @@ def creep_fit(e, k_from: int, k_to: int, rate: float, window: float) -> dict:
     """Decay of ``|e|`` from sample ``k_from`` (plus 2 ms) to ``k_to`` (the settling instant): the time
     constant of a log-linear fit over the samples outside the window, and its amplitude at ``k_from``.
 
+    Parameters
+    ----------
+    e : numpy.ndarray
+        Position error [m] per sample.
+    k_from, k_to : int
+        First and last sample of the fit.
+    rate : float
+        Sample rate [Hz].
+    window : float
+        Half-width of the settling window [m].
+
     Returns
     -------
     dict
@@ -284,6 +348,27 @@ def analyse(camp, case, cond, preset, trial: int, correction=None, hysteresis: f
     Returns a dict of plain numbers (SI) and, under ``"trace"``, the arrays of the plot:
     ``t`` [s] after the reference stopped, ``e`` and ``e_twin`` (true table position minus
     target, signed along the move) [m].
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as run.
+    case : Case
+        The case.
+    cond : Condition
+        The condition.
+    preset : stage_sim.config.Preset
+        The stage and its controller.
+    trial : int
+        The trial (simulated again, with its :func:`frictionless_twin`).
+    correction : numpy.ndarray, optional
+        SAI Step II correction.
+    hysteresis : float, optional
+        Return [m] that makes an extremum a reversal (:func:`turning_points`).
+
+    Returns
+    -------
+    dict
     """
     rate = preset.controller.rate
     ref, (tr,), res = simulate_trials(camp, case, cond, preset, [trial], correction)
@@ -341,7 +426,17 @@ def _nm(x):
 
 
 def switch_summary(sw: dict) -> str:
-    """One clause: where the table is when the SAI locks, and what the locked stage then has to do."""
+    """One clause: where the table is when the SAI locks, and what the locked stage then has to do.
+
+    Parameters
+    ----------
+    sw : dict
+        :func:`switch_state`'s result.
+
+    Returns
+    -------
+    str
+    """
     e = sw["error_m"]
     return (f"locks {sw['t_lock_s'] * 1e3:+.1f} ms after the reference stops with the table {_nm(abs(e))} "
             f"{'past' if e > 0 else 'short of'} the target (flexure deflection {_nm(sw['deflection_m'])}, table "
@@ -356,7 +451,17 @@ def _tau(v) -> str:
 
 
 def summary(m: dict) -> str:
-    """One sentence: how the trial ended its move, reversed and settled, and whether friction set the time."""
+    """One sentence: how the trial ended its move, reversed and settled, and whether friction set the time.
+
+    Parameters
+    ----------
+    m : dict
+        :func:`analyse`'s result.
+
+    Returns
+    -------
+    str
+    """
     e0 = m["end_error_m"]
     s = [f"ends the move {_nm(abs(e0))} {'past' if e0 > 0 else 'short of'} the target"]
     ex = m.get("excursion_m", e0)
@@ -390,7 +495,19 @@ def summary(m: dict) -> str:
 def report_lines(cr, images: str = "") -> list[str]:
     """Markdown: the settling mechanism of every case and condition's representative trial; with
     ``images`` (the plots folder relative to the report, e.g. ``"table_4_2/plots"``) the
-    mechanism plots are embedded too."""
+    mechanism plots are embedded too.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A point-to-point campaign as run (its representative trials' ``mechanism``).
+    images : str, optional
+        Plots folder relative to the report ('' : no images).
+
+    Returns
+    -------
+    list of str
+    """
     rows = [(cr.campaign.case(k[0]).label, rr.cond.label, rr.mechanism) for k, rr in cr.runs.items()
             if rr.mechanism]
     if not rows:
@@ -417,7 +534,19 @@ def report_lines(cr, images: str = "") -> list[str]:
 
 def switch_lines(cr, images: str = "") -> list[str]:
     """Markdown: each switched (SAI) case at its switch, beside the seed's account of it
-    (``seed_mechanism`` of the case); with ``images`` the switch plots are embedded."""
+    (``seed_mechanism`` of the case); with ``images`` the switch plots are embedded.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A point-to-point campaign as run (its representative trials' ``mechanism``).
+    images : str, optional
+        Plots folder relative to the report.
+
+    Returns
+    -------
+    list of str
+    """
     L = []
     for case in cr.campaign.cases:
         ms = [(cond, cr.runs[(case.name, cond.key)].mechanism) for cond in cr.conditions
@@ -440,7 +569,21 @@ def switch_lines(cr, images: str = "") -> list[str]:
 
 def plot(cr, plt, out) -> list:
     """``out/mechanism_<condition>.png`` for every condition: |error| (log) through the settling portion
-    of each case's representative trial, its reversal instants (▼) and the friction-free twin (dashed)."""
+    of each case's representative trial, its reversal instants (▼) and the friction-free twin (dashed).
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A point-to-point campaign as run (its representative trials' ``mechanism``).
+    plt : module
+        ``matplotlib.pyplot``.
+    out : pathlib.Path
+        Plots folder.
+
+    Returns
+    -------
+    list of pathlib.Path
+    """
     files = []
     cols = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for cond in cr.conditions:
@@ -485,7 +628,21 @@ def plot_switch(cr, plt, out) -> list:
     """``out/switch_<case>_<condition>.png`` for every switched (SAI) case: (a) table position minus
     target through the end of the move and the settling portion, with the other cases' representative
     trials, the stiff command, the lock and the reversals (▼); (b) the flexure's deflection; (c) |error|
-    on a log scale with the window and the locked stage's slow-pole creep from the lock."""
+    on a log scale with the window and the locked stage's slow-pole creep from the lock.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        A point-to-point campaign as run (its representative trials' ``mechanism``).
+    plt : module
+        ``matplotlib.pyplot``.
+    out : pathlib.Path
+        Plots folder.
+
+    Returns
+    -------
+    list of pathlib.Path
+    """
     files = []
     for case in cr.campaign.cases:
         for cond in cr.conditions:

@@ -20,14 +20,36 @@ __all__ = ["MetricInfo", "METRICS", "Metric", "TRIAL_METRICS", "fmt_metric", "fm
 
 
 class MetricInfo(NamedTuple):
-    """How a metric is named and shown."""
+    """How a metric is named and shown.
+
+    Parameters
+    ----------
+    label : str
+        Its name in reports, e.g. "settling time".
+    unit : str
+        Display unit, e.g. "ms".
+    scale : float
+        Display value = SI value x ``scale``.
+    short : str, optional
+        Format of a compact table cell (``"{:.1f}°"``); default: :func:`fmt_metric`'s.
+    """
     label: str                       # e.g. "settling time"
     unit: str                        # display unit, e.g. "ms"
     scale: float                     # display value = SI value x scale
     short: Optional[str] = None      # compact format of a table cell ("{:.1f}°"); default: fmt_metric
 
-    def compact(self, v) -> str:
-        """A table cell: ``short`` (or :func:`fmt_metric`'s ``3 significant digits unit``), ``–`` if undefined."""
+    def compact(self, v: Optional[float]) -> str:
+        """A table cell: ``short`` (or :func:`fmt_metric`'s ``3 significant digits unit``), ``–`` if undefined.
+
+        Parameters
+        ----------
+        v : float or None
+            The value in SI units.
+
+        Returns
+        -------
+        str
+        """
         if v is None or not math.isfinite(v):
             return "–"
         return self.short.format(v * self.scale) if self.short else f"{v * self.scale:.3g} {self.unit}"
@@ -56,16 +78,42 @@ TRIAL_METRICS = ("settling_time_s", "rms_in_position_m", "peak_tracking_error_m"
 """The metrics of one simulated trial (a failed trial has them all None)."""
 
 
-def fmt_metric(v, metric: str, digits: int = 3) -> str:
-    """``0.044, 'settling_time_s' -> '44 ms'``: ``digits`` significant digits in the display unit."""
+def fmt_metric(v: Optional[float], metric: str, digits: int = 3) -> str:
+    """``0.044, 'settling_time_s' -> '44 ms'``: ``digits`` significant digits in the display unit.
+
+    Parameters
+    ----------
+    v : float or None
+        The value in SI units; None or non-finite gives ``–``.
+    metric : str
+        A key of :data:`METRICS`.
+    digits : int, optional
+        Significant digits.
+
+    Returns
+    -------
+    str
+    """
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
     info = METRICS[metric]
     return f"{v * info.scale:.{digits}g} {info.unit}"
 
 
-def fmt_change(r) -> str:
+def fmt_change(r: Optional[float]) -> str:
     """Relative change as a signed percentage.
+
+    Parameters
+    ----------
+    r : float or None
+        The change as a fraction (-0.634: 63 % less); None or non-finite gives ``–``.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
 
     >>> fmt_change(-0.634), fmt_change(None)
     ('-63%', '–')

@@ -40,13 +40,41 @@ def _plt():
 
 
 def colors(n):
+    """Matplotlib's colour cycle names for ``n`` cases (``C0`` .. ``C9``, repeating).
+
+    Parameters
+    ----------
+    n : int
+        Number of cases.
+
+    Returns
+    -------
+    list of str
+
+    Examples
+    --------
+    >>> colors(3)
+    ['C0', 'C1', 'C2']
+    """
     return [f"C{i % 10}" for i in range(n)]
 
 
 # =========================================================================== outputs
 def write_outputs(cr: CampaignRun, *, report: bool, plots: bool, t_start: float) -> None:
     """Results files (the kind's ``write_results``), PNG plots and ``report.md``; the results are
-    written first (kept if a plot fails) and again with the final timing."""
+    written first (kept if a plot fails) and again with the final timing.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+    report : bool
+        Write ``report.md``.
+    plots : bool
+        Write the PNG plots.
+    t_start : float
+        ``time.monotonic()`` at the campaign's start (total wall time).
+    """
     t3 = time.monotonic()
     cr.kind.write_results(cr)
     if report:
@@ -61,7 +89,17 @@ def write_outputs(cr: CampaignRun, *, report: bool, plots: bool, t_start: float)
 
 # =========================================================================== plots
 def write_plots(cr: CampaignRun) -> list:
-    """Write the PNG plots of a campaign run into ``out_dir/plots``; returns their paths."""
+    """Write the PNG plots of a campaign run into ``out_dir/plots``; returns their paths.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of pathlib.Path
+    """
     plt = _plt()
     out = outputs.prepare_folder(cr.out_dir / "plots")
     files = cr.kind.plots(cr, plt, out)
@@ -71,7 +109,21 @@ def write_plots(cr: CampaignRun) -> list:
 
 def trial_plots(cr: CampaignRun, plt, out: Path) -> list:
     """The plots every trial campaign ends with: the distribution of each metric, the Step II
-    learning, the settling mechanism (point-to-point) and the calibration."""
+    learning, the settling mechanism (point-to-point) and the calibration.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+    plt : module
+        ``matplotlib.pyplot``.
+    out : pathlib.Path
+        Plots folder.
+
+    Returns
+    -------
+    list of pathlib.Path or None
+    """
     camp = cr.campaign
     cols = colors(len(camp.cases))
     files = [_plot_distribution(plt, cr, metric, camp.cases, cols, out) for metric in cr.kind.metrics]
@@ -84,7 +136,21 @@ def trial_plots(cr: CampaignRun, plt, out: Path) -> list:
 
 
 def save_figure(plt, fig, path: Path) -> Path:
-    """Lay out, write ``path`` (PNG, 110 dpi), close the figure; returns ``path``."""
+    """Lay out, write ``path`` (PNG, 110 dpi), close the figure; returns ``path``.
+
+    Parameters
+    ----------
+    plt : module
+        ``matplotlib.pyplot``.
+    fig : matplotlib.figure.Figure
+        The figure.
+    path : pathlib.Path
+        The PNG file (written atomically).
+
+    Returns
+    -------
+    pathlib.Path
+    """
     fig.tight_layout()
     outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
@@ -206,7 +272,18 @@ def _sim_cell(st, metric, baseline_cal=False):
 
 
 def comparison_table(cr) -> list[str]:
-    """Markdown rows: condition x metric, per case seed | simulation (mean ± std)."""
+    """Markdown rows: condition x metric, per case seed | simulation (mean ± std).
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     camp = cr.campaign
     cal_targets = set()
     if cr.calibration and not cr.calibration.get("source"):
@@ -230,7 +307,18 @@ def comparison_table(cr) -> list[str]:
 
 
 def excess_notes(cr) -> list[str]:
-    """Explain calibration targets fitted in the quadrature-excess form (the total cannot match)."""
+    """Explain calibration targets fitted in the quadrature-excess form (the total cannot match).
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     out = []
     cal = cr.calibration or {}
     for p in ([] if cal.get("source") else cal.get("parameters", [])):
@@ -249,6 +337,18 @@ def excess_notes(cr) -> list[str]:
 
 
 def findings_table(cr) -> list[str]:
+    """Markdown table of the seed's findings: seed change, simulated change, z, agrees.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     lines = ["| finding (seed) | condition | seed change | simulation change | z | agrees |", "|---|---|---|---|---|---|"]
     for f in cr.findings:
         sim = fmt_change(f["sim_change"])
@@ -267,7 +367,18 @@ def findings_table(cr) -> list[str]:
 
 
 def summary_lines(cr) -> list[str]:
-    """Console summary: ``finding | seed | ours | agrees``."""
+    """Console summary: ``finding | seed | ours | agrees``.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines for stdout.
+    """
     out = [f"{cr.campaign.title}"]
     for f in cr.findings:
         out.append(f"  {f['id']:28s} | seed {fmt_change(f['seed_change']):>6s} | ours {fmt_change(f['sim_change']):>6s}"
@@ -278,6 +389,18 @@ def summary_lines(cr) -> list[str]:
 
 
 def calibration_lines(cr) -> list[str]:
+    """Markdown: what was calibrated, to which seed target, and where it ended (or that nothing was).
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     cal = cr.calibration
     camp = cr.campaign
     if cal is None:
@@ -348,7 +471,20 @@ def _short(v):
 
 def report_head(camp, how: str) -> list[str]:
     """The first lines of a campaign's ``report.md``: title, description, seed, ``how`` it was
-    run, seed notes."""
+    run, seed notes.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign.
+    how : str
+        How it was run (the kind's ``report_how``).
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     L = [f"# {camp.title}", ""]
     if camp.description:
         L += [camp.description.strip(), ""]
@@ -359,7 +495,18 @@ def report_head(camp, how: str) -> list[str]:
 
 
 def write_report(cr: CampaignRun) -> Path:
-    """``out_dir/report.md``: head, the kind's section, plots, settings."""
+    """``out_dir/report.md``: head, the kind's section, plots, settings.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    pathlib.Path
+        The report.
+    """
     L = report_head(cr.campaign, cr.kind.report_how(cr))
     L += cr.kind.report_section(cr)
     L += plots_md(cr)
@@ -368,7 +515,17 @@ def write_report(cr: CampaignRun) -> Path:
 
 
 def trial_how(cr: CampaignRun) -> str:
-    """How a trial campaign was run (the report's head)."""
+    """How a trial campaign was run (the report's head).
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    str
+    """
     camp = cr.campaign
     return (f"{camp.trials} trials per case and condition, run on the batch engine"
             + (" (representative trials also through the ROS 2 graph)" if cr.settings.get("graph") else "")
@@ -379,7 +536,18 @@ def trial_how(cr: CampaignRun) -> str:
 
 def trial_section(cr: CampaignRun) -> list[str]:
     """The body of a trial campaign's report: seed vs simulation, findings, mechanism,
-    calibration, Step II, the ROS-graph runs."""
+    calibration, Step II, the ROS-graph runs.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     camp = cr.campaign
     L = []
     L += ["## Seed vs simulation", "",
@@ -450,7 +618,18 @@ def trial_section(cr: CampaignRun) -> list[str]:
 
 
 def trial_settings(cr: CampaignRun) -> list[str]:
-    """The settings at the end of a trial campaign's report."""
+    """The settings at the end of a trial campaign's report.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     camp = cr.campaign
     L = ["## Settings", "",
          f"* Test: `{camp.test.model_dump()}`",
@@ -465,7 +644,24 @@ def trial_settings(cr: CampaignRun) -> list[str]:
 def write_index(runs, out_dir, runtime_s: float, extras: dict | None = None) -> Path:
     """The main job's summary ``out_dir/report.md`` over several campaign runs, led by the seed's
     headline ratios (:mod:`~experiment_runner.campaigns.headline`, also ``out_dir/headline.json``);
-    ``extras`` maps a campaign name to Markdown lines added to its section."""
+    ``extras`` maps a campaign name to Markdown lines added to its section.
+
+    Parameters
+    ----------
+    runs : list of CampaignRun
+        The campaigns as run.
+    out_dir : str or pathlib.Path
+        The main job's folder.
+    runtime_s : float
+        Its wall time [s].
+    extras : dict, optional
+        Campaign name -> Markdown lines added to its section.
+
+    Returns
+    -------
+    pathlib.Path
+        The summary ``report.md``.
+    """
     out_dir = Path(out_dir)
     L = ["# Campaigns: seed vs simulation", "",
          f"Main job: {', '.join(cr.campaign.name for cr in runs)}; total wall time {runtime_s:.0f} s. "
@@ -503,7 +699,18 @@ def write_index(runs, out_dir, runtime_s: float, extras: dict | None = None) -> 
 
 
 def plots_md(cr) -> list[str]:
-    """Markdown lines embedding the campaign's PNG plots (paths relative to the report)."""
+    """Markdown lines embedding the campaign's PNG plots (paths relative to the report).
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     L = []
     for p in cr.files.get("plots") or []:
         rel = Path(p).relative_to(cr.out_dir)
@@ -512,7 +719,18 @@ def plots_md(cr) -> list[str]:
 
 
 def cases_md(cr) -> list[str]:
-    """Markdown list items: every case with its preset, overrides and description."""
+    """Markdown list items: every case with its preset, overrides and description.
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run.
+
+    Returns
+    -------
+    list of str
+        Lines of Markdown.
+    """
     L = []
     for case in cr.campaign.cases:
         ov = cr.runs[(case.name, cr.conditions[0].key)].overrides

@@ -30,7 +30,25 @@ MAIN_JOB_FRF = {"table_4_2": "frf_fi", "table_5_2": "frf_sai"}
 
 
 def as_run(camp: Campaign, settings: RunSettings) -> Campaign:
-    """The campaign with the settings' ``trials`` (the calibration's trials capped to it) and ``dwell``."""
+    """The campaign with the settings' ``trials`` (the calibration's trials capped to it) and ``dwell``.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as loaded.
+    settings : RunSettings
+        Its ``trials`` and ``dwell`` [s] replace the campaign's where given.
+
+    Returns
+    -------
+    Campaign
+        ``camp`` itself when neither is given, else a validated copy.
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        ``dwell`` given for a campaign that is not point-to-point.
+    """
     if settings.trials is None and settings.dwell is None:
         return camp
     data = camp.model_dump()
@@ -54,7 +72,8 @@ def run_campaign(campaign, out_dir, settings: RunSettings | None = None, **chang
     ----------
     campaign : str, Path or Campaign
         A shipped campaign's name, a campaign file, or a loaded campaign.
-    out_dir : path
+    out_dir : str or pathlib.Path
+        Its output folder.
     settings : RunSettings, optional
         How to run it (default ``RunSettings()``: as ``nanostage campaign NAME``).
     **changes
@@ -71,10 +90,27 @@ def run_campaign(campaign, out_dir, settings: RunSettings | None = None, **chang
 
 
 def main_job(out_dir="out/campaigns", settings: RunSettings | None = None, **changes) -> Path:
-    """Tables 4.2 and 5.2 end to end: calibration, all trials on the batch engine, one
-    representative trial per case and step size through the ROS graph (``graph=True`` unless
-    changed), and the frequency responses of the same stages; writes ``out_dir/<campaign>/...``
-    and the summary ``out_dir/report.md``; returns its path."""
+    """Tables 4.2 and 5.2 end to end (``nanostage campaign --main``).
+
+    Calibration, all trials on the batch engine, one representative trial per case and step
+    size through the ROS graph (``graph=True`` unless changed), and the frequency responses of
+    the same stages; writes ``out_dir/<campaign>/...``, the headline ratios
+    ``out_dir/headline.json`` and the summary ``out_dir/report.md``.
+
+    Parameters
+    ----------
+    out_dir : str or pathlib.Path
+        Output folder (:func:`experiment_runner.outputs.prepare_folder`).
+    settings : RunSettings, optional
+        How to run (default ``RunSettings(graph=True)``); one pool of workers serves every campaign.
+    **changes
+        Fields of ``settings`` to change.
+
+    Returns
+    -------
+    pathlib.Path
+        The summary ``report.md``.
+    """
     t0 = time.monotonic()
     settings = replace(settings or RunSettings(graph=True), **changes)
     out_dir = outputs.prepare_folder(out_dir, settings.overwrite, option="--out")

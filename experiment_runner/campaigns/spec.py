@@ -73,6 +73,17 @@ Name = Annotated[str, Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=40)]
 def fmt_length(x: float) -> str:
     """``5e-3 -> '5 mm'``, ``5e-6 -> '5 µm'``, ``5e-8 -> '50 nm'``.
 
+    Parameters
+    ----------
+    x : float
+        A length [m].
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
     >>> fmt_length(5e-3), fmt_length(-5e-6), fmt_length(2e-5)
     ('5 mm', '-5 µm', '20 µm')
     """
@@ -588,9 +599,35 @@ class Campaign(_Strict):
 
     # ----------------------------------------------------------------- helpers
     def case(self, name: str) -> Case:
+        """The case named ``name``.
+
+        Parameters
+        ----------
+        name : str
+            A case name.
+
+        Returns
+        -------
+        Case
+        """
         return next(c for c in self.cases if c.name == name)
 
     def seed_value(self, case: str, metric: str, **at) -> Optional[float]:
+        """The seed's number of ``metric`` for ``case`` at the one condition ``at`` selects (None: the seed gives none).
+
+        Parameters
+        ----------
+        case : str
+            Case name.
+        metric : str
+            Metric name.
+        **at
+            The condition (``step``, ``radius``, ``speed``, ``sweep``, ``amplitude``).
+
+        Returns
+        -------
+        float or None
+        """
         cond = [c for c in conditions(self) if c.matches(**at)]
         for v in self.seed.values:
             if v.case == case and v.metric == metric and cond and cond[0].matches(**v.at()) \
@@ -601,7 +638,17 @@ class Campaign(_Strict):
 
 
 def conditions(c: Campaign) -> list[Condition]:
-    """Every condition of the campaign: test conditions x sweep values."""
+    """Every condition of the campaign: test conditions x sweep values.
+
+    Parameters
+    ----------
+    c : Campaign
+        The campaign.
+
+    Returns
+    -------
+    list of Condition
+    """
     base = c.test.conditions()
     if c.sweep is None:
         return base
@@ -616,7 +663,12 @@ def conditions(c: Campaign) -> list[Condition]:
 
 # =========================================================================== loading
 def list_campaigns() -> list[str]:
-    """Names of the campaigns shipped with the package."""
+    """Names of the campaigns shipped with the package.
+
+    Returns
+    -------
+    list of str
+    """
     return sorted(p.stem for p in CAMPAIGN_DIR.glob("*.yaml"))
 
 
@@ -626,6 +678,17 @@ def load_campaign(name_or_path, check_presets: bool = True) -> Campaign:
     With ``check_presets`` every case's preset is loaded with the campaign's and the
     case's overrides, and every calibrated or swept path is resolved, so a campaign
     that loads also runs.
+
+    Parameters
+    ----------
+    name_or_path : str or pathlib.Path
+        A shipped campaign's name or a YAML file.
+    check_presets : bool, optional
+        Also resolve every preset and path (:func:`check_campaign`).
+
+    Returns
+    -------
+    Campaign
     """
     data, path = read_yaml_file(name_or_path, CAMPAIGN_DIR, "campaign")
     try:
@@ -638,7 +701,15 @@ def load_campaign(name_or_path, check_presets: bool = True) -> Campaign:
 
 
 def check_campaign(camp: Campaign, source: str = "<campaign>") -> None:
-    """Resolve every case's preset, overrides, calibrated and swept paths; ConfigError naming the field."""
+    """Resolve every case's preset, overrides, calibrated and swept paths; ConfigError naming the field.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign.
+    source : str, optional
+        Where it came from, for messages.
+    """
     for i, case in enumerate(camp.cases):
         where = f"{source}: cases.{i} ({case.name})"
         try:
@@ -719,6 +790,26 @@ def resolve(preset: Preset, paths, mode: str, value, series: Optional[float] = N
     """Absolute dotted-path overrides setting (``mode: value``), scaling (``scale``) or
     scaling and combining in series with ``series`` (``series_scale``) ``paths``.
 
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The case's preset.
+    paths : list of str
+        Dotted paths (with ``*`` over list items).
+    mode : {'value', 'scale', 'series_scale'}
+        How ``value`` applies.
+    value : float
+        The value or factor.
+    series : float, optional
+        The element combined in series (``series_scale``).
+
+    Returns
+    -------
+    dict
+        Absolute dotted-path overrides.
+
+    Examples
+    --------
     >>> p = load_preset("fi_stage_gms")
     >>> o = resolve(p, ["stage.bearings.*.friction.f_c"], "scale", 2.0)
     >>> o
@@ -752,7 +843,23 @@ def case_overrides(camp: Campaign, case: Case, cal_values: Optional[dict] = None
                    cond: Optional[Condition] = None) -> dict:
     """Every override of a case as absolute dotted paths, in application order: campaign,
     case, calibrated parameters, sweep value. ``with_overrides(load_preset(case.preset), o)``
-    gives the case's preset (this is also what the graph experiment file holds)."""
+    gives the case's preset (this is also what the graph experiment file holds).
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign.
+    case : Case
+        One of its cases.
+    cal_values : dict, optional
+        Calibrated values (``calibration.json`` ``values``).
+    cond : Condition, optional
+        A condition (its speed and sweep value).
+
+    Returns
+    -------
+    dict
+    """
     flat = {**copy.deepcopy(camp.overrides), **copy.deepcopy(case.overrides)}
     if cond is not None and cond.speed is not None:
         flat.update({k: float(f) * cond.speed for k, f in case.per_speed.items()})
@@ -771,7 +878,19 @@ def case_overrides(camp: Campaign, case: Case, cal_values: Optional[dict] = None
 
 
 def calibration_source(camp: Campaign, source: str = "<campaign>") -> Optional[Campaign]:
-    """The campaign whose calibration ``calibration: {from: NAME}`` reuses (None otherwise)."""
+    """The campaign whose calibration ``calibration: {from: NAME}`` reuses (None otherwise).
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign.
+    source : str, optional
+        Where it came from, for messages.
+
+    Returns
+    -------
+    Campaign or None
+    """
     if not isinstance(camp.calibration, CalibrationFrom):
         return None
     name = camp.calibration.from_
@@ -797,7 +916,17 @@ _SOURCES: dict = {}
 
 
 def cal_parameters(camp: Campaign) -> list:
-    """The calibrated parameters applied to the cases (own, or those of ``calibration.from``)."""
+    """The calibrated parameters applied to the cases (own, or those of ``calibration.from``).
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign.
+
+    Returns
+    -------
+    list of CalParameter
+    """
     if camp.calibration is None:
         return []
     src = calibration_source(camp)
@@ -806,6 +935,23 @@ def cal_parameters(camp: Campaign) -> list:
 
 def case_preset(camp: Campaign, case: Case, cal_values: Optional[dict] = None,
                 cond: Optional[Condition] = None) -> Preset:
+    """The preset a case runs on: its preset with :func:`case_overrides` applied.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign.
+    case : Case
+        One of its cases.
+    cal_values : dict, optional
+        Calibrated values (``calibration.json`` ``values``).
+    cond : Condition, optional
+        A condition (its speed and sweep value).
+
+    Returns
+    -------
+    stage_sim.config.Preset
+    """
     flat = case_overrides(camp, case, cal_values, cond)
     base = load_preset(case.preset)
     return with_overrides(base, flat) if flat else base

@@ -99,6 +99,11 @@ def campaign_key(camp, presets: dict) -> str:
         The campaign as run (trial count and dwell overrides applied).
     presets : dict
         ``(case name, condition key) -> Preset`` as run (overrides, calibration, sweep applied).
+
+    Returns
+    -------
+    str
+        Hex digest; a stream is resumed only under the same key.
     """
     return _digest({
         "test": camp.test.model_dump(mode="json"), "trials": camp.trials,
@@ -206,19 +211,59 @@ class TrialStream:
         self._synced = time.monotonic()
 
     def done(self, case: str, condition: str) -> set:
-        """Trial indices of ``case`` at ``condition`` already in the stream."""
+        """Trial indices of ``case`` at ``condition`` already in the stream.
+
+        Parameters
+        ----------
+        case : str
+            Case name.
+        condition : str
+            Condition key.
+
+        Returns
+        -------
+        set of int
+        """
         return self._done.get((case, condition), set())
 
     def append(self, records: list) -> None:
-        """Append trial records (dicts with case, condition, trial, x0_m, metrics): written through to the
-        operating system at once, on disk within :data:`SYNC_SECONDS`."""
+        """Append trial records: written through to the operating system at once, on disk within :data:`SYNC_SECONDS`.
+
+        Parameters
+        ----------
+        records : list of dict
+            Each with ``case``, ``condition``, ``trial``, ``x0_m`` [m] and ``metrics``; trials
+            already in the stream are skipped.
+        """
         new = [r for r in records if int(r["trial"]) not in self.done(r["case"], r["condition"])]
         self._write(new)
         for r in new:
             self._done.setdefault((r["case"], r["condition"]), set()).add(int(r["trial"]))
 
     def read(self, case: str, condition: str, n: int) -> tuple[list, list]:
-        """Metrics dicts and start positions [m] of trials ``0 .. n-1`` of ``case`` at ``condition``."""
+        """Metrics dicts and start positions [m] of trials ``0 .. n-1`` of ``case`` at ``condition``.
+
+        Parameters
+        ----------
+        case : str
+            Case name.
+        condition : str
+            Condition key.
+        n : int
+            Trials to read.
+
+        Returns
+        -------
+        metrics : list of dict
+            Per trial, as :func:`experiment_runner.campaigns.trials.metric_record`.
+        x0 : list of float
+            Start position of every trial [m].
+
+        Raises
+        ------
+        RuntimeError
+            A trial of ``0 .. n-1`` is not in the stream.
+        """
         mets, x0 = [None] * n, [None] * n
         self._file.flush()
         with open(self.path, encoding="utf-8") as f:
@@ -235,6 +280,7 @@ class TrialStream:
         return mets, x0
 
     def close(self) -> None:
+        """Flush, fsync and close the file (idempotent)."""
         if not self._file.closed:
             self._file.flush()
             self._sync()
@@ -298,9 +344,24 @@ def chunk_task(camp_json: str, case_name: str, cond_key: str, preset_json: str,
 
 
 def warm_up(camp, case, cond, preset, executor) -> None:
-    """Warm ``executor``'s workers in the background (:meth:`~experiment_runner.executor.Executor.warm`)
-    with trial 0 of ``case`` at ``cond``: its modules imported, the batch engine's kernels loaded,
-    the preset's models built (cached for the real chunks)."""
+    """Warm ``executor``'s workers in the background (:meth:`~experiment_runner.executor.Executor.warm`).
+
+    Each worker runs trial 0 of ``case`` at ``cond``: its modules imported, the batch engine's
+    kernels loaded, the preset's models built (cached for the real chunks).
+
+    Parameters
+    ----------
+    camp : experiment_runner.campaigns.spec.Campaign
+        The campaign as run.
+    case : experiment_runner.campaigns.spec.Case
+        The case.
+    cond : experiment_runner.campaigns.spec.Condition
+        The condition.
+    preset : stage_sim.config.Preset
+        The case's stage at that condition, as run.
+    executor : experiment_runner.executor.Executor
+        Where the trials will run.
+    """
     executor.warm(chunk_task, (camp.model_dump_json(), case.name, cond.key, preset.model_dump_json(), None, [0],
                                code_fingerprint()))
 
@@ -313,6 +374,26 @@ def chunk_size(n: int, samples: int, workers: int, total: Optional[int] = None, 
     :data:`MIN_CHUNK`, and the workers finish together instead of waiting for one worker's last large
     chunk); the job's rest is split into equal chunks of at most that.
 
+    Parameters
+    ----------
+    n : int
+        Trials of the job still to hand out.
+    samples : int
+        Samples per trial.
+    workers : int
+        Worker processes.
+    total : int, optional
+        Trials of every job still to hand out (default ``n``).
+    threads : int, optional
+        Threads per worker.
+
+    Returns
+    -------
+    int
+        Trials of the next chunk.
+
+    Examples
+    --------
     >>> chunk_size(40, 15_000, 2, total=160), chunk_size(40, 15_000, 1, total=160), chunk_size(50, 15_000, 2)
     (40, 40, 13)
     >>> chunk_size(500, 11_300, 16, total=2000), chunk_size(500, 11_300, 16, total=200)
@@ -380,6 +461,27 @@ def run_trials(camp, case, cond, preset, correction, executor, stream: TrialStre
     """All ``camp.trials`` trials of ``case`` at ``cond`` (:func:`run_trial_jobs` of one job), read
     back from ``stream``.
 
+    Parameters
+    ----------
+    camp : experiment_runner.campaigns.spec.Campaign
+        The campaign as run.
+    case : experiment_runner.campaigns.spec.Case
+        The case.
+    cond : experiment_runner.campaigns.spec.Condition
+        The condition.
+    preset : stage_sim.config.Preset
+        The case's stage at that condition, as run.
+    correction : numpy.ndarray or None
+        SAI Step II correction held by the manager (None: none).
+    executor : experiment_runner.executor.Executor
+        Where the chunks run.
+    stream : TrialStream
+        The campaign's stream; trials already in it are not run again.
+    chunk : int, optional
+        Trials per chunk (default :func:`chunk_size`).
+    on_chunk : callable, optional
+        ``on_chunk(done, n)`` after each chunk (progress).
+
     Returns
     -------
     metrics : list of dict
@@ -394,6 +496,23 @@ def run_trials(camp, case, cond, preset, correction, executor, stream: TrialStre
 
 def representative_trial(camp, case, cond, preset, index: int, correction, metrics: dict):
     """Trial ``index`` simulated again on its own (for its trace), checked against its streamed ``metrics``.
+
+    Parameters
+    ----------
+    camp : experiment_runner.campaigns.spec.Campaign
+        The campaign as run.
+    case : experiment_runner.campaigns.spec.Case
+        The case.
+    cond : experiment_runner.campaigns.spec.Condition
+        The condition.
+    preset : stage_sim.config.Preset
+        The case's stage at that condition, as run.
+    index : int
+        The trial.
+    correction : numpy.ndarray or None
+        SAI Step II correction (None: none).
+    metrics : dict
+        The trial's metrics as streamed.
 
     Returns
     -------

@@ -41,6 +41,7 @@ class TrialKind:
 
     @property
     def metrics(self) -> tuple:
+        """Metric names the kind reports (its schema's ``METRICS``)."""
         return self.test.METRICS
 
     @property
@@ -49,41 +50,183 @@ class TrialKind:
         return self.test.REPRESENTATIVE
 
     def reference(self, camp: Campaign, cond: Condition, rate: float) -> profiles.Reference:
+        """The shared (start-at-0) reference of a condition (its schema's ``reference``).
+
+        Parameters
+        ----------
+        camp : Campaign
+            The campaign as run.
+        cond : Condition
+            A condition.
+        rate : float
+            Control rate [Hz].
+
+        Returns
+        -------
+        experiment_runner.profiles.Reference
+        """
         return camp.test.reference(cond, rate)
 
     def run(self, camp: Campaign, out_dir: Path, settings: RunSettings) -> CampaignRun:
+        """Run the campaign (:func:`~experiment_runner.campaigns.trial_run.run_trial_campaign`).
+
+        Parameters
+        ----------
+        camp : Campaign
+            The campaign as run.
+        out_dir : pathlib.Path
+            The campaign's output folder.
+        settings : RunSettings
+            How it runs.
+
+        Returns
+        -------
+        CampaignRun
+        """
         return run_trial_campaign(self, camp, out_dir, settings)
 
     def write_results(self, cr: CampaignRun) -> None:
+        """Write the results files (:func:`~experiment_runner.campaigns.trial_run.write_results`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A trial campaign as run.
+        """
         write_results(cr)
 
     def report_how(self, cr: CampaignRun) -> str:
+        """How it was run (:func:`~experiment_runner.campaigns.report.trial_how`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A trial campaign as run.
+
+        Returns
+        -------
+        str
+        """
         return trial_how(cr)
 
     def report_section(self, cr: CampaignRun) -> list[str]:
+        """The report's body (:func:`~experiment_runner.campaigns.report.trial_section`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A trial campaign as run.
+
+        Returns
+        -------
+        list of str
+            Lines of Markdown.
+        """
         return trial_section(cr)
 
     def report_settings(self, cr: CampaignRun) -> list[str]:
+        """The report's settings (:func:`~experiment_runner.campaigns.report.trial_settings`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A trial campaign as run.
+
+        Returns
+        -------
+        list of str
+            Lines of Markdown.
+        """
         return trial_settings(cr)
 
     def plots(self, cr: CampaignRun, plt, out: Path) -> list:
+        """The kind's own plots, then the shared ones (:func:`~experiment_runner.campaigns.report.trial_plots`).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A trial campaign as run.
+        plt : module
+            ``matplotlib.pyplot``.
+        out : pathlib.Path
+            Plots folder.
+
+        Returns
+        -------
+        list of pathlib.Path
+        """
         return self.own_plots(cr, plt, out) + trial_plots(cr, plt, out)
 
     # ---------------------------------------------------------------- per kind
     def own_plots(self, cr: CampaignRun, plt, out: Path) -> list:
-        """The kind's plots (before the shared ones)."""
+        """The kind's plots (before the shared ones).
+
+        Parameters
+        ----------
+        cr : CampaignRun
+            A trial campaign as run.
+        plt : module
+            ``matplotlib.pyplot``.
+        out : pathlib.Path
+            Plots folder.
+
+        Returns
+        -------
+        list of pathlib.Path
+        """
         raise NotImplementedError
 
     def trace(self, camp: Campaign, ref, trial, res, metrics: dict, rep: int) -> Trace:
-        """What the plots need of the representative trial ``rep`` (``res``: its one-row batch result)."""
+        """What the plots need of the representative trial ``rep`` (``res``: its one-row batch result).
+
+        Parameters
+        ----------
+        camp : Campaign
+            The campaign as run.
+        ref : experiment_runner.profiles.Reference
+            The shared reference.
+        trial : experiment_runner.experiment.Trial
+            The trial.
+        res : experiment_runner.batch.BatchResult
+            Its one-row batch result.
+        metrics : dict
+            Its metrics.
+        rep : int
+            Its index.
+
+        Returns
+        -------
+        Trace
+        """
         raise NotImplementedError
 
     def analyse(self, camp, case, cond, preset, rep: int, correction) -> Optional[dict]:
-        """The settling mechanism of the representative trial (None: not analysed)."""
+        """The settling mechanism of the representative trial (None: not analysed).
+
+        Parameters
+        ----------
+        camp : Campaign
+            The campaign as run.
+        case : Case
+            The case.
+        cond : Condition
+            A condition.
+        preset : stage_sim.config.Preset
+            The case's stage.
+        rep : int
+            The representative trial.
+        correction : numpy.ndarray or None
+            SAI Step II correction.
+
+        Returns
+        -------
+        dict or None
+        """
         return None
 
 
 class PointToPoint(TrialKind):
+    """Point-to-point moves: settling time and RMS in-position error (seed Sec. 3.4.1)."""
     name = "point_to_point"
     test = PointToPointTest
 
@@ -111,6 +254,7 @@ class PointToPoint(TrialKind):
 
 
 class Circle(TrialKind):
+    """Circles: peak and RMS tracking error (seed Sec. 3.4.2, 4.4.2)."""
     name = "circle"
     test = CircleTest
 

@@ -52,7 +52,23 @@ def _bar(settings: RunSettings, desc: str, **kw) -> tqdm:
 
 
 def run_trial_campaign(kind: CampaignKind, camp: Campaign, out_dir: Path, settings: RunSettings) -> CampaignRun:
-    """Calibrate (baseline only), run every case and condition, write the outputs (see the module docstring)."""
+    """Calibrate (baseline only), run every case and condition, write the outputs (see the module docstring).
+
+    Parameters
+    ----------
+    kind : CampaignKind
+        The campaign's kind (point-to-point or circle).
+    camp : Campaign
+        The campaign as run.
+    out_dir : pathlib.Path
+        The campaign's output folder.
+    settings : RunSettings
+        How it runs.
+
+    Returns
+    -------
+    CampaignRun
+    """
     t_start = time.monotonic()
     out_dir = outputs.prepare_folder(out_dir, settings.overwrite, files=OUTPUT_FILES, option="--out")
     conds = conditions(camp)
@@ -84,7 +100,22 @@ def calibration_of(camp: Campaign, out_dir: Path, settings: RunSettings) -> Opti
     """The calibration the cases run with (``calibration.json`` content), or None (the presets' values).
 
     A fit runs in this process (numba threads over the trials): on a process pool its many short
-    evaluations were no faster (table_4_2, 16 trials, 2 workers: calibration + simulation the same)."""
+    evaluations were no faster (table_4_2, 16 trials, 2 workers: calibration + simulation the same).
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as run.
+    out_dir : pathlib.Path
+        The campaign's output folder.
+    settings : RunSettings
+        How it runs.
+
+    Returns
+    -------
+    dict or None
+        ``settings.calibration`` marked ``reused``, a new fit, or None when nothing is calibrated.
+    """
     if settings.calibration is not None:
         cal = dict(settings.calibration)
         cal["reused"] = True
@@ -108,7 +139,32 @@ def simulate_all(kind: CampaignKind, camp: Campaign, conds: list, cal_values: Op
 
     First the presets and Step II corrections of every case and condition, then all their trials
     as one task list on the executor (:func:`~experiment_runner.campaigns.stream.run_trial_jobs`),
-    then each one's statistics and representative trial."""
+    then each one's statistics and representative trial.
+
+    Parameters
+    ----------
+    kind : CampaignKind
+        The campaign's kind (point-to-point or circle).
+    camp : Campaign
+        The campaign as run.
+    conds : list of Condition
+        The conditions.
+    cal_values : dict or None
+        Calibrated values (SI units).
+    out_dir : pathlib.Path
+        The campaign's output folder.
+    settings : RunSettings
+        How it runs.
+    executor : experiment_runner.executor.Executor
+        Where the trials run.
+
+    Returns
+    -------
+    runs : dict
+        ``(case, condition key)`` -> :class:`RunResult`.
+    step_ii : dict
+        Case -> its learned Step II correction (:func:`~experiment_runner.campaigns.trials.learn_step_ii`).
+    """
     step_ii, runs, first = {}, {}, {}
     n_units = len(camp.cases) * len(conds) + sum(
         ((c.step_ii.iterations if c.step_ii.iterations is not None else
@@ -174,7 +230,20 @@ def _case_at(kind, camp, case, cond, preset, corr, cal_values, stream, out_dir, 
 
 
 def representative(kind: CampaignKind, mets: list) -> int:
-    """The trial whose representative metric is nearest the median of the settled ones (0 if none)."""
+    """The trial whose representative metric is nearest the median of the settled ones (0 if none).
+
+    Parameters
+    ----------
+    kind : CampaignKind
+        The campaign's kind (point-to-point or circle).
+    mets : list of dict
+        Metrics per trial.
+
+    Returns
+    -------
+    int
+        Trial index.
+    """
     key = kind.representative_metric
     vals = np.array([np.nan if m.get(key) is None else m[key] for m in mets], float)
     ok = np.flatnonzero(np.isfinite(vals))
@@ -186,7 +255,25 @@ def representative(kind: CampaignKind, mets: list) -> int:
 
 def run_graph(camp: Campaign, conds: list, runs: dict, step_ii: dict, cal_values: Optional[dict], out_dir: Path,
               settings: RunSettings) -> None:
-    """The representative trial of every case and condition through the ROS graph; sets ``runs[...].graph``."""
+    """The representative trial of every case and condition through the ROS graph; sets ``runs[...].graph``.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as run.
+    conds : list of Condition
+        The conditions.
+    runs : dict
+        ``(case, condition key)`` -> :class:`RunResult`; each gets its ``graph`` comparison.
+    step_ii : dict
+        Learned Step II corrections per case.
+    cal_values : dict or None
+        Calibrated values.
+    out_dir : pathlib.Path
+        The campaign's output folder.
+    settings : RunSettings
+        How it runs.
+    """
     exp_dir = out_dir / "graph_experiments"
     jobs = []
     for case in camp.cases:
@@ -208,7 +295,13 @@ def run_graph(camp: Campaign, conds: list, runs: dict, step_ii: dict, cal_values
 
 
 def write_results(cr: CampaignRun) -> None:
-    """``results.csv``, ``results.json`` and ``calibration.json`` (SI units)."""
+    """Write ``results.csv``, ``results.json`` and ``calibration.json`` (SI units).
+
+    Parameters
+    ----------
+    cr : CampaignRun
+        The campaign as run; the files go to ``cr.out_dir``.
+    """
     camp = cr.campaign
     metrics = cr.kind.metrics
     rows = []

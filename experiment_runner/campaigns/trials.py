@@ -26,13 +26,44 @@ __all__ = ["reference", "start_position", "make_trials", "simulate_trials", "met
 
 
 def reference(camp: Campaign, cond: Condition, rate: float) -> profiles.Reference:
-    """The shared (start-at-0) reference of a condition at the control rate."""
+    """The shared (start-at-0) reference of a condition at the control rate.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as run.
+    cond : Condition
+        The condition.
+    rate : float
+        Control rate [Hz].
+
+    Returns
+    -------
+    experiment_runner.profiles.Reference
+    """
     return camp.test.reference(cond, rate)
 
 
 def start_position(camp: Campaign, preset: Preset, ref: profiles.Reference, i: int) -> float:
     """Start of trial ``i``: as :func:`experiment_runner.experiment.build_trials` for a one-trial
-    experiment with ``starts.seed = campaign starts.seed + i``."""
+    experiment with ``starts.seed = campaign starts.seed + i``.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as run.
+    preset : stage_sim.config.Preset
+        The case's stage, as run.
+    ref : experiment_runner.profiles.Reference
+        The shared (start-at-0) reference.
+    i : int
+        Trial index.
+
+    Returns
+    -------
+    float
+        Start position [m], drawn inside the stage's travel less the campaign's margin.
+    """
     travel = preset.stage.travel
     try:
         return float(profiles.random_starts(1, (travel.min, travel.max), camp.starts.margin, camp.starts.seed + i,
@@ -42,7 +73,26 @@ def start_position(camp: Campaign, preset: Preset, ref: profiles.Reference, i: i
 
 
 def make_trials(camp: Campaign, case: Case, preset: Preset, ref: profiles.Reference, indices) -> list[Trial]:
-    """Trials ``indices`` of ``case`` on ``ref`` (start position and noise seed of each)."""
+    """Trials ``indices`` of ``case`` on ``ref`` (start position and noise seed of each).
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as run.
+    case : Case
+        The case.
+    preset : stage_sim.config.Preset
+        The case's stage, as run.
+    ref : experiment_runner.profiles.Reference
+        The shared (start-at-0) reference.
+    indices : iterable of int
+        Trial indices.
+
+    Returns
+    -------
+    list of experiment_runner.experiment.Trial
+        Noise seed of trial ``i``: the preset's ``simulation.seed + i``.
+    """
     base = preset.simulation.seed
     out = []
     for i in indices:
@@ -55,6 +105,23 @@ def make_trials(camp: Campaign, case: Case, preset: Preset, ref: profiles.Refere
 def simulate_trials(camp: Campaign, case: Case, cond: Condition, preset: Preset, indices, correction=None,
                     models=None):
     """Trials ``indices`` of ``case`` at ``cond`` on the batch engine.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as run.
+    case : Case
+        The case.
+    cond : Condition
+        The condition.
+    preset : stage_sim.config.Preset
+        The case's stage, as run.
+    indices : iterable of int
+        Trial indices.
+    correction : numpy.ndarray, optional
+        SAI Step II reference correction held by the manager.
+    models : experiment_runner.batch.Models, optional
+        The preset's compiled models, when already built.
 
     Returns
     -------
@@ -74,8 +141,25 @@ def simulate_trials(camp: Campaign, case: Case, cond: Condition, preset: Preset,
 
 
 def metric_record(trial: Trial, res, j: int, rate: float) -> dict:
-    """Metrics of trial ``trial`` (row ``j`` of ``res``): :func:`experiment_runner.experiment.trial_metrics`,
-    or every metric None and ``failed`` (the plant's status) for a trial that failed."""
+    """Metrics of trial ``trial`` (row ``j`` of ``res``).
+
+    Parameters
+    ----------
+    trial : experiment_runner.experiment.Trial
+        The trial.
+    res : experiment_runner.batch.BatchResult
+        The batch it ran in.
+    j : int
+        Its row in ``res``.
+    rate : float
+        Control rate [Hz].
+
+    Returns
+    -------
+    dict
+        :func:`experiment_runner.experiment.trial_metrics` (SI units), or every metric None and
+        ``failed`` (the plant's status) for a trial that failed.
+    """
     if res.status[j] != 0:
         return {"trial": trial.index, "case": trial.case, **{k: None for k in TRIAL_METRICS},
                 "failed": STATUS_TEXT[int(res.status[j])]}
@@ -83,7 +167,22 @@ def metric_record(trial: Trial, res, j: int, rate: float) -> dict:
 
 
 def plain(d: dict) -> dict:
-    """numpy scalars -> Python numbers (JSON)."""
+    """numpy scalars -> Python numbers (JSON), one level deep.
+
+    Parameters
+    ----------
+    d : dict
+        Values possibly numpy scalars.
+
+    Returns
+    -------
+    dict
+
+    Examples
+    --------
+    >>> plain({"n": np.int64(3), "t": np.float64(0.5), "s": "x"})
+    {'n': 3, 't': 0.5, 's': 'x'}
+    """
     out = {}
     for k, v in d.items():
         if isinstance(v, np.integer):
@@ -96,7 +195,26 @@ def plain(d: dict) -> dict:
 
 def graph_experiment(camp: Campaign, case: Case, cond: Condition, trial: int, cal_values=None) -> dict:
     """A one-trial experiment file (:mod:`experiment_runner.experiment`) reproducing trial
-    ``trial`` of ``case`` at ``cond`` through the ROS graph."""
+    ``trial`` of ``case`` at ``cond`` through the ROS graph.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as run.
+    case : Case
+        The case.
+    cond : Condition
+        The condition.
+    trial : int
+        Trial index (its start position and noise seed).
+    cal_values : dict, optional
+        Calibrated values (``calibration.json`` ``values``).
+
+    Returns
+    -------
+    dict
+        The experiment document (its ``preset`` and ``overrides`` as the batch ran the trial).
+    """
     preset = case_preset(camp, case, cal_values, cond)
     ov = case_overrides(camp, case, cal_values, cond)
     ov["simulation.seed"] = int(preset.simulation.seed + trial)
@@ -113,7 +231,28 @@ def learn_step_ii(camp: Campaign, case: Case, preset: Preset, progress=None, con
     ``learn: at_rest`` (the seed's): the stage holds position, goes compliant for ``compliant_time``
     and back to stiff. ``learn: on_move`` (not the seed's; needs ``cond``): the error after the switch
     at the end of the condition's own move, i.e. the correction also learns whatever the locked stage
-    repeatably does after the move."""
+    repeatably does after the move.
+
+    Parameters
+    ----------
+    camp : Campaign
+        The campaign as run.
+    case : Case
+        The case.
+    preset : stage_sim.config.Preset
+        The case's stage, as run.
+    progress : callable, optional
+        Called with no argument after each iteration.
+    cond : Condition, optional
+        The condition of an ``on_move`` learning.
+
+    Returns
+    -------
+    dict
+        ``correction`` (the learned reference correction [m] per sample after the switch),
+        ``rms_history_m`` / ``peak_history_m`` (the error per iteration [m]), ``iterations`` and the
+        settings learned with (``length_s``, ``trials``, ``compliant_time_s``, ``learn``).
+    """
     spec = case.step_ii
     ilc = preset.sai_manager.ilc
     rate = preset.controller.rate

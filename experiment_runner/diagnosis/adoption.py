@@ -21,7 +21,19 @@ __all__ = ["adopt_best", "backward", "refit_selected", "keep_refit", "renew_floo
 
 def keep_joint_values(problem: Problem, path: Path, jf: FitResult, new: FitResult | None = None) -> None:
     """Keep the re-fitted values of the adopted deterministic effects (joint fit ``jf``), and of
-    ``new``, the effect being adopted, when ``jf`` was fitted with it (after the adopted ones)."""
+    ``new``, the effect being adopted, when ``jf`` was fitted with it (after the adopted ones).
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+    jf : FitResult
+        The joint fit.
+    new : FitResult, optional
+        The effect being adopted.
+    """
     base = problem.base
     k = 0
     for f, fe in zip(path.selected, path.found):
@@ -51,7 +63,17 @@ def _keep_refined(problem: Problem, path: Path, f: FitResult, ref: Refinement) -
 
 
 def renew_floor(problem: Problem, path: Path, spec) -> None:
-    """The noise floors of the current model ``spec`` re-estimated (after every change)."""
+    """The noise floors of the current model ``spec`` re-estimated (after every change).
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+    spec : ModelSpec
+        The current model.
+    """
     opt, data, ev = problem.options, problem.data, problem.evaluator
     path.floor = ForceFloor(spec, data, problem.observer.f_o, opt.floor_seeds, data.smooth_hz)
     ev.floor = path.floor.noise
@@ -62,7 +84,19 @@ def renew_floor(problem: Problem, path: Path, spec) -> None:
 def keep_refit(problem: Problem, path: Path) -> bool:
     """When no candidate is adopted: the adopted effects' best re-fit their candidates' joint
     refinements reached (:func:`.refining.own_share`) replaces their values if the held-out replay is
-    not worse; the floors are renewed. Returns whether it was kept."""
+    not worse; the floors are renewed. Returns whether it was kept.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+
+    Returns
+    -------
+    bool
+    """
     best, path.refit = path.refit, None
     if best is None:
         return False
@@ -89,7 +123,17 @@ def _better(problem: Problem, path: Path, spec) -> bool:
 def refit_selected(problem: Problem, path: Path, step: int) -> None:
     """From the second step on: continue the fit of the adopted effects alone first (a candidate is
     credited only with what it adds to them), kept if the replay of the fit samples is better and the
-    held-out replay not worse; the floors renewed if it was; then :func:`_rerefine`."""
+    held-out replay not worse; the floors renewed if it was; then :func:`_rerefine`.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+    step : int
+        The forward step (1 = first).
+    """
     refitted = False
     for _ in range(3 if step > 1 else 0):
         rf = joint_fit(path.selected, problem.base, problem.evaluator, for_fits_on(path.context, path.selected),
@@ -133,7 +177,21 @@ def backward(problem: Problem, path: Path, last: FitResult) -> bool:
     that is better): if the model with it does not replay the held-out data better beyond the floor of
     the model without it (the same test as its adoption), the later effects made it redundant (a mass
     error adopted where a structural mode replayed as well, the mode adopted next): it is withdrawn and
-    not proposed again. Returns whether one was."""
+    not proposed again. Returns whether one was.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+    last : FitResult
+        The effect just adopted.
+
+    Returns
+    -------
+    bool
+    """
     selected, judge = path.selected, problem.judge
     changed = False
     for e in [s for s in selected if s is not last and s.effect.kind == "deterministic"]:
@@ -210,7 +268,23 @@ def adopt_best(problem: Problem, path: Path, step: int, best: JudgedRow, conf: l
     """Adopt the chosen candidate ``best`` at ``step``: the member of its exclusive group it replaces
     leaves (and does not come back), the adopted effects keep their re-fit, the adopted effects are
     refined together by the replay (:func:`_adopted_values`), the floors are renewed, redundant earlier
-    effects withdrawn (:func:`backward`) and the next proposals located in what the new model leaves."""
+    effects withdrawn (:func:`backward`) and the next proposals located in what the new model leaves.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+    step : int
+        The forward step.
+    best : JudgedRow
+        The chosen candidate.
+    conf : list
+        Candidates the held-out replay cannot tell from it (confounded).
+    alts : list
+        Their report rows (alternatives).
+    """
     bf, selected = best.fit, path.selected
     gone = None
     if bf.replaces is not None:

@@ -59,7 +59,9 @@ class Budget:
     max_seconds : float or None
         The budget [s], from the start (finite, > 0); None: no limit.
     progress : bool
-        Progress lines on ``stream`` (default stderr).
+        Progress lines on ``stream``.
+    stream : file-like, optional
+        Where they go (default ``sys.stderr``).
     """
 
     def __init__(self, max_seconds: float | None = DEFAULT_MAX_SECONDS, progress: bool = True, stream=None):
@@ -85,38 +87,84 @@ class Budget:
         """Threads of the search's independent model evaluations (:func:`parallel_map`)."""
 
     def elapsed(self) -> float:
-        """Seconds since the start."""
+        """Seconds since the start.
+
+        Returns
+        -------
+        float
+        """
         return time.perf_counter() - self.t0
 
     def spent(self) -> bool:
         """Whether the search must stop (the budget is spent, or :meth:`halt` was called); the first
-        time, the stage reached is noted."""
+        time, the stage reached is noted.
+
+        Returns
+        -------
+        bool
+        """
         if self.stopped is None and self.max_seconds is not None and self.elapsed() >= self.max_seconds:
             self.halt("time budget")
         return self.stopped is not None
 
     def halt(self, why: str) -> None:
-        """Stop the search now (``why``: ``"time budget"`` or ``"interrupted (SIGTERM)"`` ...)."""
+        """Stop the search now (``why``: ``"time budget"`` or ``"interrupted (SIGTERM)"`` ...).
+
+        Parameters
+        ----------
+        why : str
+            Why, as the report says it.
+        """
         if self.stopped is None:
             self.stopped, self.after = why, self.stage
 
     def say(self, text: str) -> None:
-        """A progress line with the elapsed seconds (when ``progress``)."""
+        """A progress line with the elapsed seconds (when ``progress``).
+
+        Parameters
+        ----------
+        text : str
+            The line.
+        """
         if self.progress:
             print(f"[diagnose {self.elapsed():7.1f} s] {text}", file=self.stream or sys.stderr, flush=True)
 
     def done(self, stage: str, detail: str = "") -> None:
-        """Stage ``stage`` is complete (a progress line)."""
+        """Stage ``stage`` is complete (a progress line).
+
+        Parameters
+        ----------
+        stage : str
+            The stage's name.
+        detail : str, optional
+            Appended to the line.
+        """
         self.stage = stage
         self.say(f"{stage} done" + (f": {detail}" if detail else ""))
 
     def skip(self, what: str) -> None:
-        """``what`` was not examined (the budget was spent first)."""
+        """``what`` was not examined (the budget was spent first).
+
+        Parameters
+        ----------
+        what : str
+            The stage or step, in words.
+        """
         if what not in self.not_examined:
             self.not_examined.append(what)
 
     def allows(self, what: str) -> bool:
-        """Whether the optional stage ``what`` may run; if not, it is noted as not examined."""
+        """Whether the optional stage ``what`` may run; if not, it is noted as not examined.
+
+        Parameters
+        ----------
+        what : str
+            The stage, in words.
+
+        Returns
+        -------
+        bool
+        """
         if self.spent():
             self.skip(what)
             return False
@@ -142,7 +190,12 @@ class Budget:
                 _ACTIVE = prev
 
     def statement(self) -> str | None:
-        """The report's leading sentence when the search stopped early, else None."""
+        """The report's leading sentence when the search stopped early, else None.
+
+        Returns
+        -------
+        str or None
+        """
         if self.stopped is None:
             return None
         what = "not examined: " + (", ".join(self.not_examined) if self.not_examined else "nothing")
@@ -152,7 +205,13 @@ class Budget:
         return f"{self.stopped} {after}; {what}"
 
     def summary(self) -> dict:
-        """The report's ``budget`` section."""
+        """The report's ``budget`` section.
+
+        Returns
+        -------
+        dict
+            ``max_seconds``, ``spent_s``, ``reached``, ``stopped``, ``after_stage``, ``not_examined``, ``statement``.
+        """
         return {"max_seconds": self.max_seconds, "spent_s": self.elapsed(), "reached": self.stopped is not None,
                 "stopped": self.stopped, "after_stage": self.after, "not_examined": list(self.not_examined),
                 "statement": self.statement()}
@@ -167,14 +226,26 @@ def checkpoint() -> None:
 
 
 def halt_search(why: str) -> None:
-    """Stop the running search (an interruption noticed where the fits are waited on)."""
+    """Stop the running search (an interruption noticed where the fits are waited on).
+
+    Parameters
+    ----------
+    why : str
+        Why, as the report says it.
+    """
     b = _ACTIVE
     if b is not None:
         b.halt(why)
 
 
 def progress(text: str) -> None:
-    """A progress line of the running search (none running: nothing)."""
+    """A progress line of the running search (none running: nothing).
+
+    Parameters
+    ----------
+    text : str
+        The line.
+    """
     b = _ACTIVE
     if b is not None:
         b.say(text)

@@ -19,6 +19,23 @@ def effect_keys(text: str) -> list[str]:
     """argparse type of ``--effects``: comma-separated keys of the library of hypotheses (those
     ``--list-effects`` prints), each checked; a usage error naming the unknown ones and the keys.
 
+    Parameters
+    ----------
+    text : str
+        The option's value.
+
+    Returns
+    -------
+    list of str
+        The keys, stripped.
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        An unknown key, or none.
+
+    Examples
+    --------
     >>> effect_keys("viscous, stribeck")
     ['viscous', 'stribeck']
     """
@@ -33,6 +50,18 @@ def effect_keys(text: str) -> list[str]:
 
 
 def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the arguments of ``nanostage diagnose`` (wire with ``set_defaults(func=main_diagnose)``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        ``parser``.
+    """
     parser.add_argument("recording", nargs="?", help="contract recording (MCAP file or bag directory)")
     parser.add_argument("nominal", nargs="?", help="nominal model: preset name or YAML, or model file "
                                                    "{preset}; default: the preset in the "
@@ -93,7 +122,17 @@ def _nominal_from_config(rec):
 
 
 def diagnose_options(args):
-    """The :class:`.options.Options` of parsed ``nanostage diagnose`` arguments."""
+    """The :class:`.options.Options` of parsed ``nanostage diagnose`` arguments.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        As :func:`add_diagnose_arguments` defines them.
+
+    Returns
+    -------
+    Options
+    """
     from .options import Options
     return Options(bandwidth=args.bandwidth, max_fit_seconds=args.max_fit_seconds,
                    effects=args.effects,
@@ -102,6 +141,22 @@ def diagnose_options(args):
 
 
 def main_diagnose(args) -> int:
+    """Run ``nanostage diagnose`` from parsed arguments.
+
+    A diagnosis of ``args.recording`` against its nominal, the self-test (``--selftest``), the
+    power study (``--selftest --power``) or the library listing (``--list-effects``).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        As :func:`add_diagnose_arguments` defines them.
+
+    Returns
+    -------
+    int
+        0 when a report was written (a partial one included); the self-test: 0 when every case
+        passed, else 1. Bad input exits 2 with one message.
+    """
     if args.list_effects:
         from .effects import LIBRARY
         print(json.dumps(LIBRARY.describe(as_json=True), indent=1) if args.json else LIBRARY.describe())
@@ -222,6 +277,15 @@ def remaining_line(rep: dict) -> str | None:
     """The stdout line of what the improved model leaves (the report's ``remaining``, its three
     largest signatures), or None when it left nothing beyond its floor.
 
+    Parameters
+    ----------
+    rep : dict
+        A diagnosis report (``report.json`` content).
+
+    Returns
+    -------
+    str or None
+
     Examples
     --------
     >>> remaining_line({"remaining": {"signatures": [{"text": "line at 50 Hz", "share": 0.4}]}})
@@ -270,7 +334,18 @@ def _main_power(args) -> int:
 
 def replay_lines(rep: dict) -> list[str]:
     """The headline: held-out closed-loop replay error, nominal -> improved, against the run-to-run
-    floor (what stdout and report.md lead with)."""
+    floor (what stdout and report.md lead with).
+
+    Parameters
+    ----------
+    rep : dict
+        A diagnosis report (``report.json`` content).
+
+    Returns
+    -------
+    list of str
+        Lines, in the recording's units (``rep["units"]``).
+    """
     r = rep["replay"]
     c, p = r["command_rms_N"], r["position_rms_m"]
     st = r["stable"]

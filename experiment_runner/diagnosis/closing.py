@@ -36,7 +36,21 @@ def refit_jointly(problem: Problem, path: Path, found: list) -> dict | None:
     """The adopted deterministic effects fitted together by the force observer; used (the model and
     the report's rows take its values, as the YAML does) if the replay is not worse, no parameter is at
     its bound and no two effects' parameters are confounded. Returns the report's ``joint_fit`` (None
-    with fewer than two adopted deterministic effects, or when the fit fails)."""
+    with fewer than two adopted deterministic effects, or when the fit fails).
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+    found : list of dict
+        The report's rows of the adopted effects (changed in place).
+
+    Returns
+    -------
+    dict or None
+    """
     opt, judge, base, ev = problem.options, problem.judge, problem.base, problem.evaluator
     selected = path.selected
     if len([f for f in selected if f.effect.kind == "deterministic"]) < 2:
@@ -137,7 +151,19 @@ def drive_noise(problem: Problem, path: Path, found: list, stochastic: dict) -> 
     only if the data's replay error is inconsistent with the current model's run-to-run floor (a
     calibrated z-score over its simulated recordings) and consistent with the candidate's (a
     deterministic remnant the effects left also makes the replay inconsistent: a noise level is
-    adopted only if it makes the data consistent with the model's own recordings)."""
+    adopted only if it makes the data consistent with the model's own recordings).
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+    found : list of dict
+        The report's rows of the adopted effects (changed in place).
+    stochastic : dict
+        The report's stochastic-effects section (changed in place).
+    """
     opt, data, obs, judge, ev = problem.options, problem.data, problem.observer, problem.judge, problem.evaluator
     ninfo = {"nominal_A": problem.base.preset.stage.drive.noise_current_rms, "found": False}
     try:

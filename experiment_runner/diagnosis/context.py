@@ -20,6 +20,39 @@ class Context:
 
     The defaults are what an effect assumes without a recording (a unit test's model alone).
 
+    Parameters
+    ----------
+    u_max : float
+        Largest recorded command magnitude [N].
+    v_max : float
+        Largest velocity magnitude of the smoothed measurement [m/s].
+    x_span : float
+        Range of the observer's positions over the judged samples [m].
+    x_center : float
+        Centre of that range [m] (position-dependent friction is written about it).
+    x_half_span : float
+        Half that range [m].
+    r_rms : float
+        RMS of the nominal's band-limited force residual [N] (scale of force amplitudes).
+    stroke : float
+        Median stroke of a trial [m].
+    peak_hz : tuple
+        Peaks of the force residual's spectrum above the floor [Hz], strongest first.
+    line_hz : tuple
+        Narrow lines of the force residual's spectrum [Hz].
+    ripple_period : tuple
+        Peaks of the residual's periodogram against position [m] (at most three).
+    frf_modes : tuple
+        Modes located on the command -> measurement transfer (:func:`.frf.locate_modes`: dicts with
+        ``f_hz``, ``zeta``, ``fraction``).
+    smoothing_hz : float
+        Cutoff of the measurement's smoothing the force observer follows [Hz].
+    resolution : float
+        Encoder step of the model the effects are added to [m] (the shortest Maxwell-slip distance).
+    level_fitted : bool
+        The Coulomb level is an adopted effect (position-dependent friction then has no level of its
+        own).
+
     Examples
     --------
     >>> import dataclasses
@@ -28,31 +61,16 @@ class Context:
     (0.0004,)
     """
     u_max: float = 10.0
-    """Largest recorded command magnitude [N]."""
     v_max: float = 1e-3
-    """Largest velocity magnitude of the smoothed measurement [m/s]."""
     x_span: float = 1e-3
-    """Range of the observer's positions over the judged samples [m]."""
     x_center: float = 0.0
-    """Centre of that range [m] (position-dependent friction is written about it)."""
     x_half_span: float = 1e-3
-    """Half that range [m]."""
     r_rms: float = 0.1
-    """RMS of the nominal's band-limited force residual [N] (scale of force amplitudes)."""
     stroke: float = 0.0
-    """Median stroke of a trial [m]."""
     peak_hz: tuple = ()
-    """Peaks of the force residual's spectrum above the floor [Hz], strongest first."""
     line_hz: tuple = ()
-    """Narrow lines of the force residual's spectrum [Hz]."""
     ripple_period: tuple = ()
-    """Peaks of the residual's periodogram against position [m] (at most three)."""
     frf_modes: tuple = ()
-    """Modes located on the command -> measurement transfer (:func:`.frf.locate_modes`: dicts with
-    ``f_hz``, ``zeta``, ``fraction``)."""
     smoothing_hz: float = 0.0
-    """Cutoff of the measurement's smoothing the force observer follows [Hz]."""
     resolution: float = 0.0
-    """Encoder step of the model the effects are added to [m] (the shortest Maxwell-slip distance)."""
     level_fitted: bool = False
-    """The Coulomb level is an adopted effect (position-dependent friction then has no level of its own)."""

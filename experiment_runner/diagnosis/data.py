@@ -37,6 +37,57 @@ __all__ = ["DiagData", "load_data", "from_trials", "smooth"]
 
 @dataclass
 class DiagData:
+    """A recording as the diagnosis works on it: trials as columns, padded, split into fit and held-out.
+
+    Arrays are (T, B): T samples (the longest trial), B trials; shorter trials are padded
+    (``valid`` False). Units are SI, or their rotary counterparts on a rotary axis
+    (:mod:`~experiment_runner.diagnosis.units`).
+
+    Parameters
+    ----------
+    rate : float
+        Control rate [Hz].
+    t0 : numpy.ndarray
+        (B,) start time of each trial [s].
+    x_ref, v_ref : numpy.ndarray
+        (T, B) reference position [m] and velocity [m/s].
+    u : numpy.ndarray
+        (T, B) command [N] (``command_kind``).
+    y : numpy.ndarray
+        (T, B) measured position [m].
+    valid, fit, held : numpy.ndarray
+        (T, B) bool: a real sample (not padding); used for fitting; held out for judging.
+    lengths : numpy.ndarray
+        (B,) samples per trial.
+    trial_ids : list of int
+        Trial numbers of the recording.
+    source : str
+        Where the data came from (the recording's path).
+    split : str
+        How the trials were split into fit and held-out, in words.
+    ys, vs : numpy.ndarray, optional
+        (T, B) zero-phase smoothed position and its velocity (:func:`smooth`).
+    smooth_hz : float
+        Cutoff of that smoothing [Hz].
+    notes : list of str
+        What the reader noticed (excluded trials, gaps bridged).
+    d0, d1 : numpy.ndarray, optional
+        (T, B) dither force of piezo 1 and 2 [N] (None: no dither).
+    mode : numpy.ndarray, optional
+        (T, B) SAI solenoid command, 1 compliant, 0 stiff (None: compliant).
+    f_ext : numpy.ndarray, optional
+        (T, B) known external force on the table [N] (``/stage/external_force``; None: none).
+    open_loop : bool
+        No reference: the recorded command drove the plant (``x_ref`` is the measured position).
+    axis : {"linear", "rotary"}
+        The recording's ``run.axis`` (or the preset's ``stage.kind``).
+    command_kind : {"drive", "measured"}
+        What ``/stage/command`` holds: a drive's command, or the force applied.
+    excluded : list of str
+        Trials left out as damaged ("trial N: why"; also in ``notes``).
+    incomplete : list of str
+        Trials kept though incomplete (aborted, cut short).
+    """
     rate: float                   # control rate [Hz]
     t0: np.ndarray                # (B,) start time of each trial [s]
     x_ref: np.ndarray             # (T, B) [m]
@@ -65,25 +116,47 @@ class DiagData:
     incomplete: list = field(default_factory=list)  # trials kept though incomplete (aborted, cut short): "trial N: why"
 
     def plant_inputs(self) -> tuple:
-        """``(d0, d1, mode)`` as (T, B) arrays: zero dither and a compliant (no) isolator where absent."""
+        """``(d0, d1, mode)`` as (T, B) arrays: zero dither and a compliant (no) isolator where absent.
+
+        Returns
+        -------
+        tuple of numpy.ndarray
+        """
         zero = np.zeros(self.shape)
         return (zero if self.d0 is None else self.d0, zero if self.d1 is None else self.d1,
                 np.ones(self.shape) if self.mode is None else self.mode)
 
     def known_force(self) -> np.ndarray:
-        """The known external table force (T, B) [N]: ``f_ext``, zero where absent."""
+        """The known external table force (T, B) [N]: ``f_ext``, zero where absent.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
         return np.zeros(self.shape) if self.f_ext is None else self.f_ext
 
     @property
     def dt(self) -> float:
+        """Control period [s]."""
         return 1.0 / self.rate
 
     @property
     def shape(self):
+        """(T, B) of the arrays."""
         return self.u.shape
 
     def subset(self, cols) -> "DiagData":
-        """The same data restricted to trials ``cols`` (indices into the batch axis)."""
+        """The same data restricted to trials ``cols`` (indices into the batch axis).
+
+        Parameters
+        ----------
+        cols : array_like of int
+            Trial columns.
+
+        Returns
+        -------
+        DiagData
+        """
         cols = np.asarray(cols, int)
         kw = {k: None if getattr(self, k) is None else getattr(self, k)[:, cols]
               for k in ("x_ref", "v_ref", "u", "y", "valid", "fit", "held", "ys", "vs", "d0", "d1", "mode", "f_ext")}
@@ -94,7 +167,26 @@ class DiagData:
 
 
 def smooth(y: np.ndarray, rate: float, cutoff: float, lengths=None):
-    """Zero-phase 2nd-order Butterworth low-pass of each column; returns (ys, vs)."""
+    """Zero-phase 2nd-order Butterworth low-pass of each column and its velocity.
+
+    Parameters
+    ----------
+    y : numpy.ndarray
+        (T, B) positions.
+    rate : float
+        Sample rate [Hz].
+    cutoff : float
+        Cutoff [Hz] (at most 0.95 of Nyquist).
+    lengths : array_like of int, optional
+        Samples of each column (the rest is padding, held at the last value).
+
+    Returns
+    -------
+    ys : numpy.ndarray
+        (T, B) smoothed positions.
+    vs : numpy.ndarray
+        (T, B) their velocity (``np.gradient`` x rate; zero in the padding).
+    """
     wn = min(0.95, 2.0 * cutoff / rate)
     sos = signal.butter(2, wn, output="sos")
     ys = np.empty_like(y)
@@ -124,7 +216,28 @@ def _stack(cols, T):
 
 
 def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trials: int | None = None) -> DiagData:
-    """Read ``source`` (path or :class:`~experiment_runner.recording.Recording`) into :class:`DiagData`."""
+    """Read ``source`` (path or :class:`~experiment_runner.recording.Recording`) into :class:`DiagData`.
+
+    Parameters
+    ----------
+    source : str, pathlib.Path or Recording
+        A contract recording (MCAP file or bag folder).
+    burn_in : float, optional
+        Seconds at the start of each trial left out of fit and held-out sets.
+    min_trial : float, optional
+        Trials shorter than this [s] (and than 10 samples) are left out.
+    max_trials : int, optional
+        Use at most this many trials.
+
+    Returns
+    -------
+    DiagData
+
+    Raises
+    ------
+    experiment_runner.recording.RecordingError
+        Fewer than 10 control samples, or a damaged recording.
+    """
     from experiment_runner.recording import Recording, RecordingError, read_recording
     rec = source if isinstance(source, Recording) else read_recording(source, require_reference=False)
     n = len(rec)
@@ -218,7 +331,33 @@ def _undamaged(rec, slices) -> tuple[list, list[str]]:
 def from_trials(rate: float, t0, x_ref, v_ref, u, y, trial_ids=None, source: str = "", notes=None,
                 burn_in: float = 0.005, d0=None, d1=None, mode=None, f_ext=None, open_loop: bool = False) -> DiagData:
     """:class:`DiagData` of trials given as lists of 1-D arrays (one per trial; ``d0, d1, mode``,
-    ``f_ext`` optional; ``open_loop``: no reference, ``x_ref`` is the measured position), stacked, masked and split into fit and held-out sets as :func:`load_data` does."""
+    ``f_ext`` optional; ``open_loop``: no reference, ``x_ref`` is the measured position), stacked, masked and split into fit and held-out sets as :func:`load_data` does.
+
+    Parameters
+    ----------
+    rate : float
+        Control rate [Hz].
+    t0 : array_like
+        Start time of each trial [s].
+    x_ref, v_ref, u, y : list of numpy.ndarray
+        Per trial: reference [m], reference velocity [m/s], command [N], measured position [m].
+    trial_ids : list of int, optional
+        Trial numbers (default 0..B-1).
+    source : str, optional
+        Where the data came from.
+    notes : list of str, optional
+        Notes carried into the data.
+    burn_in : float, optional
+        Seconds at the start of each trial left out of fit and held-out sets.
+    d0, d1, mode, f_ext : list of numpy.ndarray, optional
+        Per trial: dither forces [N], SAI solenoid command, known external force [N].
+    open_loop : bool, optional
+        The command drove the plant without a reference.
+
+    Returns
+    -------
+    DiagData
+    """
     B = len(u)
     T = max(len(a) for a in u)
     lengths = np.array([len(a) for a in u])

@@ -18,6 +18,16 @@ def data_root(explicit=None) -> Path:
     otherwise ``../shared/data`` relative to the repository (this package's ``../../..``) and to
     the working directory, then ``/work/shared/data``. Raises :class:`DataMissing` naming
     every place tried.
+
+    Parameters
+    ----------
+    explicit : str or pathlib.Path, optional
+        The folder to use (``--data``).
+
+    Returns
+    -------
+    pathlib.Path
+        The first of the candidate folders that exists.
     """
     repo = Path(__file__).resolve().parents[2]
     given = explicit or os.environ.get("NANOSTAGE_DATA")
@@ -31,7 +41,20 @@ def data_root(explicit=None) -> Path:
 
 
 def need_file(path: Path, what: str) -> Path:
-    """``path`` if it is a file, else :class:`DataMissing` naming ``what`` and the path."""
+    """``path`` if it is a file, else :class:`DataMissing` naming ``what`` and the path.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The file.
+    what : str
+        What it is, for the message (e.g. "EMPS data").
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+    """
     if not path.is_file():
         raise DataMissing(f"{what}: {path} does not exist")
     return path

@@ -39,13 +39,41 @@ __all__ = ["observer_model", "observe", "open_loop", "new_state", "friction_norm
 
 def observer_model(pm: PlantModel) -> PlantModel:
     """The plant model without its random parts (drive noise, random bearing friction) and
-    with an ideal sensor: what the observer and the open-loop windows run."""
+    with an ideal sensor: what the observer and the open-loop windows run.
+
+    Parameters
+    ----------
+    pm : stage_sim.plant.PlantModel
+        The plant model.
+
+    Returns
+    -------
+    stage_sim.plant.PlantModel
+    """
     return pm._replace(noise_std=0.0, fr_noise=np.zeros_like(pm.fr_noise), q_table=0.0, q_bearing=0.0)
 
 
 @njit(cache=True, inline="always")
 def friction_norm(pm, z, fr, b, fc_tot):
-    """Normalised friction force on the table DOF (-1 ... 1) of trial ``b``: pre-motion state aware."""
+    """Normalised friction force on the table DOF (-1 ... 1) of trial ``b``: pre-motion state aware.
+
+    Parameters
+    ----------
+    pm : stage_sim.plant.PlantModel
+        The plant model.
+    z : numpy.ndarray
+        The plant's continuous states.
+    fr : numpy.ndarray
+        The friction states.
+    b : int
+        Trial column.
+    fc_tot : float
+        Coulomb force of the friction elements on the table [N].
+
+    Returns
+    -------
+    float
+    """
     n = pm.n
     tot = 0.0
     for e in range(pm.fr_kind.shape[0]):
@@ -70,15 +98,36 @@ def observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every,
             out_d, out_x, out_v, out_phi, snap_z, snap_fr, snap_ps, snap_dbuf):
     """Force observer over a batch of trials (see module docstring).
 
-    ``inp``: :class:`stage_sim.plant.PlantInputs` over the record, (T, B) each: the recorded
-    command [N], piezo dither forces [N] and SAI solenoid command (1 compliant, 0 stiff); its
-    ``f_ext`` (T, B) is the known external table force [N] (``/stage/external_force``), applied
-    with the tracking force, or empty (0, 0) for none. ``ys, vs``: (T, B) smoothed
-    measured position [m] and velocity [m/s]. ``st``: plant state
-    (:class:`stage_sim.plant.PlantState`, at rest at ``ys[0]``). Writes ``out_d`` (force residual [N]), ``out_x``, ``out_v`` (observer position
-    and velocity), ``out_phi`` (normalised table friction state), and every ``snap_every``
-    samples the plant state into ``snap_*`` (for :func:`open_loop`). Returns the number of
-    samples at which the plant reported a non-OK status.
+    Parameters
+    ----------
+    pm : stage_sim.plant.PlantModel
+        The observer's plant model (:func:`observer_model`).
+    fc_tot : float
+        Coulomb force of the friction elements on the table [N].
+    inp : stage_sim.plant.PlantInputs
+        Over the record, (T, B) each: the recorded command [N], piezo dither forces [N] and SAI
+        solenoid command (1 compliant, 0 stiff); its ``f_ext`` (T, B) is the known external table
+        force [N] (``/stage/external_force``), applied with the tracking force, or empty (0, 0) for none.
+    ys, vs : numpy.ndarray
+        (T, B) smoothed measured position [m] and velocity [m/s].
+    st : stage_sim.plant.PlantState
+        Plant state, at rest at ``ys[0]``.
+    omega : float
+        Observer bandwidth [rad/s].
+    m_eff : float
+        Table mass at high frequency [kg].
+    snap_every : int
+        Keep the plant state every this many samples (0: never).
+    out_d, out_x, out_v, out_phi : numpy.ndarray
+        (T, B) outputs: force residual [N], observer position [m] and velocity [m/s], normalised
+        table friction state.
+    snap_z, snap_fr, snap_ps, snap_dbuf : numpy.ndarray
+        Plant-state snapshots (for :func:`open_loop`).
+
+    Returns
+    -------
+    int
+        Sample-and-trial steps at which the plant reported a non-OK status.
     """
     B = ys.shape[1]
     return _observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every, out_d, out_x, out_v, out_phi,
@@ -134,8 +183,30 @@ def open_loop(pm, inp, k0, st, out_x, seeds=None, out_y=None) -> int:
     writes the true table position into ``out_x`` (length, W) and, if given, the measurement
     (the sensor's, quantized) into ``out_y``. ``seeds`` (W,): the noise seeds of a plant model
     with noise (a simulated recording; zeros by default). The plant's open-loop driver
-    :func:`stage_sim.plant.run_open_loop`. Returns the number of columns that diverged or left
-    the travel."""
+    :func:`stage_sim.plant.run_open_loop`.
+
+    Parameters
+    ----------
+    pm : stage_sim.plant.PlantModel
+        The plant model.
+    inp : stage_sim.plant.PlantInputs
+        (length, W) inputs.
+    k0 : int
+        First sample.
+    st : stage_sim.plant.PlantState
+        Start state, one column per window.
+    out_x : numpy.ndarray
+        (length, W) true table position [m], written.
+    seeds : numpy.ndarray, optional
+        (W,) noise seeds.
+    out_y : numpy.ndarray, optional
+        (length, W) measurement [m], written.
+
+    Returns
+    -------
+    int
+        Columns that diverged or left the travel.
+    """
     W = out_x.shape[1]
     seeds = np.zeros(W, np.int64) if seeds is None else np.asarray(seeds, np.int64)
     meas = np.zeros((2, W))
@@ -147,6 +218,20 @@ def open_loop(pm, inp, k0, st, out_x, seeds=None, out_y=None) -> int:
 
 
 def new_state(pm: PlantModel, x0, sai_mode: float = 1.0) -> PlantState:
-    """Plant state at rest at ``x0`` (B,), the isolator in ``sai_mode`` (1 compliant, 0 stiff and locked)."""
+    """Plant state at rest at ``x0`` (B,), the isolator in ``sai_mode`` (1 compliant, 0 stiff and locked).
+
+    Parameters
+    ----------
+    pm : stage_sim.plant.PlantModel
+        The plant model.
+    x0 : numpy.ndarray
+        (B,) positions [m].
+    sai_mode : float, optional
+        1 compliant, 0 stiff and locked.
+
+    Returns
+    -------
+    stage_sim.plant.PlantState
+    """
     x0 = np.atleast_1d(np.asarray(x0, float))
     return init_plant_state(pm, len(x0), x0, sai_mode=sai_mode)

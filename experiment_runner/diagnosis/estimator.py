@@ -41,7 +41,24 @@ class Diagnosis:
         self.options = Options(**options)
 
     def fit(self, recording, nominal, data: DiagData | None = None, out=None) -> "Diagnosis":
-        """Diagnose ``recording`` (path / Recording, or ``None`` with ``data``) against ``nominal``."""
+        """Diagnose ``recording`` (path / Recording, or ``None`` with ``data``) against ``nominal``.
+
+        Parameters
+        ----------
+        recording : str, pathlib.Path or Recording
+            A contract recording (MCAP file or bag folder); None when ``data`` is given.
+        nominal : str, pathlib.Path, dict or ModelSpec
+            The model that was supposed to predict it (:func:`.model.load_model`).
+        data : DiagData, optional
+            The recording already loaded.
+        out : str or pathlib.Path, optional
+            Output folder of the report.
+
+        Returns
+        -------
+        Diagnosis
+            ``self``, with ``model_``, ``report_``, ``nominal_``, ``effects_``.
+        """
         rep = diagnose(recording, nominal, out=out, options=self.options, data=data)
         self.model_: ModelSpec = rep.pop("_improved_spec")
         self.report_ = rep
@@ -59,11 +76,33 @@ class Diagnosis:
         return ReplayJudge(data, x_ref=x_eq)
 
     def predict(self, data) -> Replay:
-        """Closed-loop replay of the held-out trials of ``data`` (DiagData or recording) by ``model_``."""
+        """Closed-loop replay of the held-out trials of ``data`` (DiagData or recording) by ``model_``.
+
+        Parameters
+        ----------
+        data : DiagData, str or pathlib.Path
+            Data (or a recording) with held-out trials.
+
+        Returns
+        -------
+        Replay
+            Command [N] and position [m], (T, B) each.
+        """
         return self._judge(data).replay(self._rated(self.model_, data))
 
     def score(self, data) -> float:
-        """Share of the nominal's replay excess over the floor removed by ``model_`` on ``data``."""
+        """Share of the nominal's replay excess over the floor removed by ``model_`` on ``data``.
+
+        Parameters
+        ----------
+        data : DiagData, str or pathlib.Path
+            Data (or a recording) with held-out trials.
+
+        Returns
+        -------
+        float
+            1: the improved model replays at its floor; 0: no better than the nominal; < 0: worse.
+        """
         j = self._judge(data)
         nom, new = j.floor(self._rated(self.nominal_, data)), j.floor(self._rated(self.model_, data))
         r_nom, r_new = j.floor_ratio(nom.replay, nom), j.floor_ratio(new.replay, new)

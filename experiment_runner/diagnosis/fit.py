@@ -52,7 +52,17 @@ __all__ = ["Evaluator", "FitResult", "fit_effect", "fit_with", "joint_fit", "est
 
 # --------------------------------------------------------------------------- evaluation
 class Evaluator:
-    """Whitened residuals of a model on the fit and held-out samples."""
+    """Whitened residuals of a model on the fit and held-out samples.
+
+    Parameters
+    ----------
+    obs : Observer
+        The force observer on the data.
+    floor : NoiseFloor
+        The base model's force-residual floor (whitening).
+    max_fit_seconds : float, optional
+        Cap of the fit set [s of data] (whole trials, in order).
+    """
 
     def __init__(self, obs: Observer, floor: NoiseFloor, max_fit_seconds: float = 3.0):
         self.obs = obs
@@ -89,7 +99,19 @@ class Evaluator:
 
     def fit_vector(self, spec: ModelSpec, bad: float = 1e3) -> np.ndarray:
         """Whitened residual on the fit samples (the least-squares vector); ``bad`` in every
-        sample where the observer diverged."""
+        sample where the observer diverged.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+        bad : float, optional
+            The value of every sample when the observer diverges.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
         res = self._run(spec, self.fit_cols)
         m = self.data.fit[:, self.fit_cols]
         if res.bad:           # not whitened: a diverged residual is no spectrum
@@ -97,6 +119,21 @@ class Evaluator:
         return self.floor.whiten(res.r, m)[m]
 
     def J(self, spec: ModelSpec, which: str = "held", floor: NoiseFloor | None = None) -> float:
+        """Whitened mean square of ``spec``'s force residual on the held-out (or fit) samples; inf when the observer diverges.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+        which : {'held', 'fit'}, optional
+            The samples.
+        floor : NoiseFloor, optional
+            The floor whose units are used (default the evaluator's).
+
+        Returns
+        -------
+        float
+        """
         cols = self.held_cols if which == "held" else self.fit_cols
         mask = (self.data.held if which == "held" else self.data.fit)[:, cols]
         res = self._run(spec, cols)
@@ -105,7 +142,19 @@ class Evaluator:
         return (floor or self.floor).ms(res.r, mask)
 
     def both(self, spec: ModelSpec, floor: NoiseFloor | None = None) -> tuple[float, float, float]:
-        """(J_fit, J_held, n_eff_held) in one or two observer runs."""
+        """(J_fit, J_held, n_eff_held) in one or two observer runs.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+        floor : NoiseFloor, optional
+            The floor whose units are used (default the evaluator's).
+
+        Returns
+        -------
+        tuple of float
+        """
         fl = floor or self.floor
         cols = np.union1d(self.fit_cols, self.held_cols)
         res = self._run(spec, cols)
@@ -123,7 +172,21 @@ class Evaluator:
 
 
 def n_eff(w: np.ndarray, mask: np.ndarray, max_lag: int = 200) -> float:
-    """Effective number of independent samples of a (whitened) residual over ``mask``."""
+    """Effective number of independent samples of a (whitened) residual over ``mask``.
+
+    Parameters
+    ----------
+    w : numpy.ndarray
+        (T, B) whitened residual.
+    mask : numpy.ndarray
+        (T, B) bool.
+    max_lag : int, optional
+        Largest lag of the autocorrelation summed.
+
+    Returns
+    -------
+    float
+    """
     n = int(mask.sum())
     if n < 10:
         return float(max(n, 1))
@@ -143,6 +206,49 @@ def n_eff(w: np.ndarray, mask: np.ndarray, max_lag: int = 200) -> float:
 # --------------------------------------------------------------------------- one effect
 @dataclass
 class FitResult:
+    """One fitted effect: its values, uncertainties, model and scores (a report row is made of it).
+
+    Parameters
+    ----------
+    key, title : str
+        The effect's key and title.
+    names, units : list of str
+        Its parameters.
+    theta : numpy.ndarray
+        Fitted values.
+    sigma : numpy.ndarray
+        Their standard errors (NaN: none).
+    corr : numpy.ndarray, optional
+        Their correlation matrix.
+    spec : ModelSpec
+        The model with the effect.
+    J_fit, J_held : float
+        Whitened force-residual mean square on the fit and held-out samples.
+    n_eff_held : float
+        Effective held-out sample count.
+    evals : int
+        Model evaluations.
+    seconds : float
+        Wall time [s].
+    nominal : dict
+        The base model's values of the parameters.
+    derived : dict
+        Derived physical quantities.
+    expressible : bool
+        The fitted model is a preset the simulator runs.
+    note : str
+        What the fit noted.
+    on_bound : list of str
+        Parameters at a bound.
+    joint : FitResult, optional
+        Fitted together with the adopted effects (:func:`fit_with`).
+    replaces : str, optional
+        The adopted effect of its exclusive group it replaces.
+    refined : bool
+        Values from the closed-loop replay (output error), not the observer.
+    effect : Effect, optional
+        The (bound) effect fitted.
+    """
     key: str
     title: str
     names: list
@@ -167,29 +273,81 @@ class FitResult:
     effect: "Effect | None" = None       # the (bound) effect fitted: what applies theta to a model
 
     def params(self) -> list[dict]:
+        """The parameters as report rows: ``name``, ``unit``, ``value``, ``sigma`` (None: no standard error).
+
+        Returns
+        -------
+        list of dict
+        """
         return [{"name": n, "unit": u, "value": float(v), "sigma": float(s) if np.isfinite(s) else None,
                  "nominal": self.nominal.get(n)} for n, u, v, s in zip(self.names, self.units, self.theta, self.sigma)]
 
 
 class Transform:
-    """Parameter <-> optimiser variable: log for log params, linear scaled otherwise."""
+    """Parameter <-> optimiser variable: log for log params, linear scaled otherwise.
+
+    Parameters
+    ----------
+    params : list of Param
+        The fitted parameters.
+    """
 
     def __init__(self, params: list[Param]):
         self.p = params
         self.scale = np.array([1.0 if p.log else max(abs(p.hi - p.lo) / 10.0, abs(p.x0), 1e-12) for p in params])
 
     def to_z(self, theta):
+        """Optimiser variables of parameter values ``theta``.
+
+        Parameters
+        ----------
+        theta : sequence of float
+            Parameter values.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
         return np.array([math.log(max(t, 1e-300)) if p.log else t / s for t, p, s in zip(theta, self.p, self.scale)])
 
     def to_theta(self, z):
+        """Parameter values of optimiser variables ``z``.
+
+        Parameters
+        ----------
+        z : sequence of float
+            Optimiser variables.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
         return np.array([math.exp(v) if p.log else v * s for v, p, s in zip(z, self.p, self.scale)])
 
     def bounds(self):
+        """The parameters' bounds in optimiser variables.
+
+        Returns
+        -------
+        tuple of numpy.ndarray
+            ``(lo, hi)``.
+        """
         lo = [math.log(max(p.lo, 1e-300)) if p.log else p.lo / s for p, s in zip(self.p, self.scale)]
         hi = [math.log(p.hi) if p.log else p.hi / s for p, s in zip(self.p, self.scale)]
         return np.array(lo), np.array(hi)
 
     def dtheta_dz(self, theta):
+        """Derivative of each parameter with respect to its optimiser variable at ``theta``.
+
+        Parameters
+        ----------
+        theta : sequence of float
+            Parameter values.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
         return np.array([t if p.log else s for t, p, s in zip(theta, self.p, self.scale)])
 
 
@@ -197,8 +355,19 @@ def bad_point(ms: float) -> float:
     """The residual per sample of a bad point (no model, or one the observer or the simulator
     cannot run) of a least-squares fit whose start has mean square ``ms``: a million times the
     start's cost, never below 1e3 (nor above 1e100) -- worse than any model that runs, however bad
-    that one is (a flat 1e3 was better than a nominal at J 4e8).
+    that one is (a flat 1e3 would be better than a nominal at J 4e8).
 
+    Parameters
+    ----------
+    ms : float
+        Mean square of the fit's start.
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
     >>> bad_point(4e8), bad_point(0.5), bad_point(float("inf"))
     (20000000.0, 1000.0, 1000.0)
     """
@@ -207,7 +376,28 @@ def bad_point(ms: float) -> float:
 
 def fit_effect(effect: Effect, base: ModelSpec, ev: Evaluator, ctx: dict, max_nfev: int | None = None,
                starts: list | None = None) -> FitResult | None:
-    """Fit ``effect`` added to ``base`` on the fit samples; judge it on the held-out ones."""
+    """Fit ``effect`` added to ``base`` on the fit samples; judge it on the held-out ones.
+
+    Parameters
+    ----------
+    effect : Effect
+        The candidate.
+    base : ModelSpec
+        The model the effects are added to.
+    ev : Evaluator
+        The force-residual evaluator.
+    ctx : Context
+        What was located on the recording.
+    max_nfev : int, optional
+        Most residual evaluations.
+    starts : list, optional
+        Start vectors (default the effect's :meth:`.effects.base.Effect.starts`).
+
+    Returns
+    -------
+    FitResult or None
+        None when the effect does not apply to ``base`` or is not fitted here.
+    """
     if effect.applicable(base) is not None or effect.kind not in ("deterministic", "integer"):
         return None
     effect = effect.bound(ctx)
@@ -309,6 +499,27 @@ def gauss_newton(fun, z0, lo, hi, r0=None, max_iter: int = 8, h: float = 1e-3, r
     Each iteration costs ``len(z) + 1`` residual evaluations (plus one per rejected step);
     a problem linear in ``z`` converges in one or two iterations. Returns dict with ``x``,
     ``fun``, ``cost`` (sum of squares), ``jac``, ``nfev``.
+
+    Parameters
+    ----------
+    fun : callable
+        ``fun(z)`` -> residual vector.
+    z0 : numpy.ndarray
+        Start.
+    lo, hi : numpy.ndarray
+        Bounds.
+    r0 : numpy.ndarray, optional
+        ``fun(z0)``, when known.
+    max_iter : int, optional
+        Most iterations.
+    h : float, optional
+        Relative finite-difference step.
+    rtol : float, optional
+        Stop when the cost falls by less than this fraction.
+
+    Returns
+    -------
+    dict
     """
     z = np.array(z0, float)
     p = len(z)
@@ -366,7 +577,15 @@ def gauss_newton(fun, z0, lo, hi, r0=None, max_iter: int = 8, h: float = 1e-3, r
 
 # --------------------------------------------------------------------------- joint fit
 class JointEffect(Effect):
-    """Several fitted effects applied in sequence, all parameters free."""
+    """Several fitted effects applied in sequence, all parameters free.
+
+    Parameters
+    ----------
+    parts : list of tuple
+        ``(effect, number of its parameters)``, in the order applied.
+    thetas : list, optional
+        The parts' fitted values (each part's bounds are relative to its predecessors').
+    """
 
     def __init__(self, parts: list[tuple[Effect, int]], thetas: list | None = None):
         self.key = "+".join(e.key for e, _ in parts)
@@ -396,7 +615,19 @@ class JointEffect(Effect):
 
 def spec_with(selected: list[FitResult], base: ModelSpec) -> ModelSpec:
     """``base`` with the ``selected`` effects at their current values (stochastic and integer ones
-    first, as :func:`fit_with` builds them)."""
+    first, as :func:`fit_with` builds them).
+
+    Parameters
+    ----------
+    selected : list of FitResult
+        The adopted effects.
+    base : ModelSpec
+        The model the effects are added to.
+
+    Returns
+    -------
+    ModelSpec
+    """
     spec = base
     for f in selected:
         if f.effect.kind != "deterministic":
@@ -409,7 +640,21 @@ def spec_with(selected: list[FitResult], base: ModelSpec) -> ModelSpec:
 
 def spec_moved(selected: list[FitResult], theta, base: ModelSpec) -> ModelSpec:
     """:func:`spec_with` with the deterministic ``selected`` effects at the joint values ``theta``
-    (theirs, in order, first)."""
+    (theirs, in order, first).
+
+    Parameters
+    ----------
+    selected : list of FitResult
+        The adopted effects.
+    theta : sequence of float
+        Joint values of the deterministic effects' parameters.
+    base : ModelSpec
+        The model the effects are added to.
+
+    Returns
+    -------
+    ModelSpec
+    """
     k, moved = 0, []
     for f in selected:
         if f.effect.kind == "deterministic":
@@ -424,7 +669,27 @@ def joint_fit(fits: list[FitResult], base: ModelSpec, ev: Evaluator, ctx: dict,
               min_effects: int = 2, max_iter: int = 4) -> FitResult | None:
     """Re-fit all selected deterministic effects together (integer ones held at their value;
     at most ``max_iter`` Gauss-Newton iterations); None if there are fewer than
-    ``min_effects`` of them."""
+    ``min_effects`` of them.
+
+    Parameters
+    ----------
+    fits : list of FitResult
+        The adopted effects.
+    base : ModelSpec
+        The model the effects are added to.
+    ev : Evaluator
+        The force-residual evaluator.
+    ctx : Context
+        What was located on the recording.
+    min_effects : int, optional
+        Fewest deterministic effects to fit jointly.
+    max_iter : int, optional
+        Most Gauss-Newton iterations.
+
+    Returns
+    -------
+    FitResult or None
+    """
     cont = [f for f in fits if f.effect.kind == "deterministic"]
     fixed = [f for f in fits if f.effect.kind != "deterministic"]
     if len(cont) < max(1, min_effects):
@@ -447,6 +712,23 @@ def fit_with(effect: Effect, selected: list[FitResult], base: ModelSpec, ev: Eva
     in its presence, so an error the first fit made while the second was missing does not
     stay in the residual. Returns the candidate's :class:`FitResult` (its own parameters;
     ``spec`` and ``J`` are the joint model's) with ``joint`` = the joint :class:`FitResult`.
+
+    Parameters
+    ----------
+    effect : Effect
+        The candidate.
+    selected : list of FitResult
+        The adopted effects.
+    base : ModelSpec
+        The model the effects are added to.
+    ev : Evaluator
+        The force-residual evaluator.
+    ctx : Context
+        What was located on the recording.
+
+    Returns
+    -------
+    FitResult or None
     """
     cont = [f for f in selected if f.effect.kind == "deterministic"]
     if effect.kind != "deterministic" or not cont:
@@ -485,6 +767,18 @@ def estimate_lattice(y: np.ndarray, min_frac: float = 0.995):
     The smallest spacing between distinct values is the candidate; it is accepted if
     (nearly) every value is an integer multiple of it from the first value, then refined
     by least squares.
+
+    Parameters
+    ----------
+    y : numpy.ndarray
+        Measured positions [m].
+    min_frac : float, optional
+        Share of values that must lie on the lattice.
+
+    Returns
+    -------
+    float or None
+        The step [m].
     """
     y = np.asarray(y, float).ravel()
     y = y[np.isfinite(y)]
@@ -515,6 +809,23 @@ def noise_components(spec: ModelSpec, data: DiagData, obs_factory, seeds=(7001,)
     """Force-residual spectra of simulated recordings: quantization-only and drive-noise parts.
 
     Returns (f, S_q, S_n, sigma_ref): with drive noise sigma, S(f) ~ S_q + (sigma/sigma_ref)^2 S_n.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        The recording.
+    obs_factory : callable
+        Builds the force observer of a simulated recording.
+    seeds : tuple of int, optional
+        Noise seeds.
+    sigma_ref : float, optional
+        Reference drive-noise RMS current [A].
+
+    Returns
+    -------
+    tuple
     """
     s0 = spec.preset.stage.drive.noise_current_rms
     sigma_ref = sigma_ref or (s0 if s0 > 0 else 1e-3)
@@ -542,7 +853,28 @@ def noise_components(spec: ModelSpec, data: DiagData, obs_factory, seeds=(7001,)
 def fit_noise_level(r_meas: np.ndarray, mask: np.ndarray, rate: float, comps, f_max: float | None = None,
                     f_min: float = 0.0) -> dict:
     """Drive-noise RMS current implied by the measured residual spectrum (robust median over
-    the bands between ``f_min`` and ``f_max`` where drive noise dominates the floor)."""
+    the bands between ``f_min`` and ``f_max`` where drive noise dominates the floor).
+
+    Parameters
+    ----------
+    r_meas : numpy.ndarray
+        (T, B) measured force residual [N].
+    mask : numpy.ndarray
+        (T, B) bool.
+    rate : float
+        Sample rate [Hz].
+    comps : tuple
+        :func:`noise_components`' result.
+    f_max : float, optional
+        Upper end of the bands [Hz].
+    f_min : float, optional
+        Lower end [Hz].
+
+    Returns
+    -------
+    dict
+        ``ok`` and, when ok, ``sigma`` [A] with its uncertainty and the bands' ratios; else ``why``.
+    """
     f, S_q, S_n, sigma_ref = comps
     psd = []
     for b in range(r_meas.shape[1]):
@@ -579,7 +911,23 @@ def sparse_regression(features: dict, target: np.ndarray, threshold: float = 0.0
     """Sequentially thresholded least squares (SINDy, Brunton et al. 2016) of ``target`` on
     ``features`` (name -> vector). Coefficients whose contribution (|c| * RMS(feature)) is
     below ``threshold`` times the target RMS are dropped, then the rest refitted.
-    Returns {name: coef} of the surviving terms and the explained fraction."""
+    Returns {name: coef} of the surviving terms and the explained fraction.
+
+    Parameters
+    ----------
+    features : dict
+        Name -> feature vector.
+    target : numpy.ndarray
+        The target vector.
+    threshold : float, optional
+        Relative contribution below which a term is dropped.
+    n_iter : int, optional
+        Thresholding rounds.
+
+    Returns
+    -------
+    dict
+    """
     names = list(features)
     if not names or not len(target):
         return {"terms": {}, "explained": 0.0}

@@ -45,7 +45,25 @@ class ForceFloor:
 
 
 def light_floor(spec: ModelSpec, data: DiagData, f_o: float, seed: int, smooth_hz: float) -> NoiseFloor:
-    """Noise floor of ``spec``'s force residual from one simulated recording."""
+    """Noise floor of ``spec``'s force residual from one simulated recording.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        The recording.
+    f_o : float
+        Observer bandwidth [Hz].
+    seed : int
+        Noise seed of the simulated recording.
+    smooth_hz : float
+        Position smoothing cutoff [Hz].
+
+    Returns
+    -------
+    NoiseFloor
+    """
     sim = sim_data(spec, data, seed)
     r = Observer(sim, bandwidth=f_o, smooth_hz=smooth_hz).run(spec).r
     return NoiseFloor(data.rate, [r], [sim.fit | sim.held], f_max=f_o, rms_min=force_resolution(spec, f_o))

@@ -58,7 +58,19 @@ def measured_frf(data: DiagData, nperseg: int | None = None):
     """Command -> measured position transfer ``H = P_uy / P_uu`` and coherence, averaged over the
     trials (valid samples, linear detrend per segment). Returns (f [Hz], H, coherence) or None.
     On a closed-loop record this is the plant only where the command is not driven by the loop's
-    own noise (module docstring); :func:`transfer_ratio` is the estimate the diagnosis uses."""
+    own noise (module docstring); :func:`transfer_ratio` is the estimate the diagnosis uses.
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording.
+    nperseg : int, optional
+        Welch segment length (default from the trial lengths).
+
+    Returns
+    -------
+    tuple or None
+    """
     num = den = syy = None
     nps = _nperseg(data, nperseg)
     for b in range(data.shape[1]):
@@ -79,7 +91,20 @@ def measured_frf(data: DiagData, nperseg: int | None = None):
 
 def drive_frf(spec: ModelSpec, f) -> np.ndarray:
     """The model's drive at ``f`` [Hz]: force-constant ratio times the drive delay (whole samples
-    exactly, the fraction as ``exp(-j w tau)``): what turns the command into table force."""
+    exactly, the fraction as ``exp(-j w tau)``): what turns the command into table force.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    f : numpy.ndarray
+        Frequencies [Hz].
+
+    Returns
+    -------
+    numpy.ndarray
+        Complex, [-] (force-constant ratio, delay).
+    """
     pm = spec.compiled().pm_full
     return pm.kf_ratio * np.exp(-2j * np.pi * np.asarray(f) * pm.dt * (pm.delay + pm.delay_frac))
 
@@ -88,7 +113,22 @@ def model_frf(spec: ModelSpec, f: np.ndarray, drive: bool = True) -> np.ndarray:
     """The model plant's command -> table position transfer at ``f`` [Hz]: exact ZOH of its linear
     part over a control period (``z = exp(j 2 pi f / rate)``), times the force-constant ratio and
     the drive delay (whole samples exactly, the fraction as ``exp(-j w tau)``); ``drive=False``:
-    the table force -> position transfer (a known external force's path)."""
+    the table force -> position transfer (a known external force's path).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    f : numpy.ndarray
+        Frequencies [Hz].
+    drive : bool, optional
+        Include the drive (:func:`drive_frf`).
+
+    Returns
+    -------
+    numpy.ndarray
+        Complex [m/N].
+    """
     pm = spec.compiled().pm_full
     n2 = pm.phi.shape[0]
     Phi = np.linalg.matrix_power(pm.phi, pm.n_sub)
@@ -114,7 +154,21 @@ def transfer_ratio(spec: ModelSpec, data: DiagData, nperseg: int | None = None):
     (:func:`model_frf`): where its friction holds the table (pre-sliding stiffness, low
     frequencies) ``R`` shows the friction, not a mass (:func:`locate_modes` reads narrow features
     only). Returns ``(f [Hz], R, coherence, instrument per bin)`` for ``f > 0``, or None (trials
-    shorter than a segment)."""
+    shorter than a segment).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        The recording.
+    nperseg : int, optional
+        Welch segment length (default from the trial lengths).
+
+    Returns
+    -------
+    tuple or None
+    """
     nps = _nperseg(data, nperseg)
     fk = data.known_force()
     names = ["command"] if data.open_loop else ["reference", "known force"]
@@ -158,7 +212,24 @@ def transfer_ratio(spec: ModelSpec, data: DiagData, nperseg: int | None = None):
 
 def mode_ratio(f, f_b: float, zeta: float, phi: float) -> np.ndarray:
     """``R(j 2 pi f)``: a mode of blocked frequency ``f_b``, damping ``zeta`` and modal mass fraction
-    ``phi`` taken out of a rigid table, over the rigid table (module docstring)."""
+    ``phi`` taken out of a rigid table, over the rigid table (module docstring).
+
+    Parameters
+    ----------
+    f : numpy.ndarray
+        Frequencies [Hz].
+    f_b : float
+        Blocked frequency [Hz].
+    zeta : float
+        Damping ratio.
+    phi : float
+        Modal mass fraction (0...1).
+
+    Returns
+    -------
+    numpy.ndarray
+        Complex.
+    """
     s = 2j * np.pi * np.asarray(f)
     w = 2 * np.pi * f_b
     g = (w * w + 2 * zeta * w * s) / (s * s + 2 * zeta * w * s + w * w)
@@ -172,7 +243,25 @@ def locate_modes(spec: ModelSpec, data: DiagData, min_coherence: float = 0.8, ma
     least 4 robust standard deviations out, each fitted by :func:`mode_ratio` times a complex gain
     over an octave each side; kept if lightly damped (zeta < 0.2), of a fraction of the mass (< 0.8),
     fitting to 15 % RMS and with no parameter at its bound. Returns the fitted modes ``{f_hz, zeta, fraction, feature_hz, kind,
-    depth_db, fit_rms, source}``, deepest first. ``est``: :func:`transfer_ratio`'s result, if at hand."""
+    depth_db, fit_rms, source}``, deepest first. ``est``: :func:`transfer_ratio`'s result, if at hand.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        The recording.
+    min_coherence : float, optional
+        Bins below it are not used.
+    max_modes : int, optional
+        Most modes returned.
+    est : tuple, optional
+        :func:`transfer_ratio`'s result.
+
+    Returns
+    -------
+    list of dict
+    """
     est = transfer_ratio(spec, data) if est is None else est
     if est is None:
         return []
@@ -219,7 +308,24 @@ NOISE_BAND_ALPHA = 1e-3
 def psd_trials(x: np.ndarray, mask: np.ndarray, rate: float, nperseg: int) -> np.ndarray:
     """Welch PSD (Hann, 50 % overlap, linear detrend) of the masked samples of each column of ``x``
     (T, B), averaged over the columns weighted by their samples; columns shorter than a segment are
-    skipped. Returns the PSD at ``rfftfreq(nperseg, 1/rate)`` (zeros if no column is long enough)."""
+    skipped. Returns the PSD at ``rfftfreq(nperseg, 1/rate)`` (zeros if no column is long enough).
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        (T, B) signal.
+    mask : numpy.ndarray
+        (T, B) bool.
+    rate : float
+        Sample rate [Hz].
+    nperseg : int
+        Segment length.
+
+    Returns
+    -------
+    numpy.ndarray
+        PSD on ``nperseg // 2 + 1`` bins.
+    """
     P, n = 0.0, 0
     for b in range(x.shape[1]):
         m = mask[:, b]
@@ -238,7 +344,28 @@ def loop_from_excitation(f_ext: np.ndarray, du: np.ndarray, mask: np.ndarray, ra
     white table force ``f_ext`` (T, C): the force -> command transfer is ``T = -X / (1 + D X)``
     (``D`` the drive, :func:`drive_frf`), so ``X = -T / (1 + D T)``. Along the recorded
     trajectory: friction enters as the model's own contact does there (a Dahl contact's stiffness
-    while it sticks)."""
+    while it sticks).
+
+    Parameters
+    ----------
+    f_ext : numpy.ndarray
+        (T, C) known white table force [N].
+    du : numpy.ndarray
+        (T, C) command response [N].
+    mask : numpy.ndarray
+        (T, C) bool.
+    rate : float
+        Sample rate [Hz].
+    nperseg : int
+        Segment length.
+    drive : numpy.ndarray
+        The drive at the segment's frequencies (:func:`drive_frf`).
+
+    Returns
+    -------
+    numpy.ndarray
+        Complex ``X``.
+    """
     pff, pfu = 0.0, 0.0
     for c in range(f_ext.shape[1]):
         m = mask[:, c]

@@ -70,6 +70,20 @@ def own_resolution(a: np.ndarray, mask: np.ndarray) -> float:
     Quantization on a lattice is the encoder's step (:func:`.fit.estimate_lattice`, taken into
     the model before judging): a signal at rest on its lattice reads 0 here.
 
+    Parameters
+    ----------
+    a : numpy.ndarray
+        (T, B) recorded signal.
+    mask : numpy.ndarray
+        (T, B) bool: the samples to use (a column needs more than 5).
+
+    Returns
+    -------
+    float
+        In ``a``'s unit.
+
+    Examples
+    --------
     >>> rng = np.random.default_rng(0)
     >>> t = np.linspace(0.0, 1.0, 4000)[:, None]
     >>> x = 1e-3 * np.sin(2 * np.pi * t) + 1e-8 * rng.normal(size=t.shape)
@@ -88,7 +102,18 @@ def own_resolution(a: np.ndarray, mask: np.ndarray) -> float:
 
 
 def noise_free(spec: ModelSpec) -> ModelSpec:
-    """``spec`` without its random parts (drive current noise, random bearing friction)."""
+    """``spec`` without its random parts (drive current noise, random bearing friction).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+
+    Returns
+    -------
+    ModelSpec
+        ``spec`` itself when it has none.
+    """
     p = spec.preset
     if p.stage.drive.noise_current_rms == 0 and all(b.force_noise_rms == 0 for b in p.stage.bearings):
         return spec
@@ -101,7 +126,19 @@ def noise_free(spec: ModelSpec) -> ModelSpec:
 class Replay:
     """A closed-loop replay on the judge's trials: (T, B) arrays, ``ok`` if every trial ran
     through (no divergence, inside the travel) and the command did not sit at its limit more
-    than the recording's does."""
+    than the recording's does.
+
+    Parameters
+    ----------
+    u : numpy.ndarray
+        (T, B) command [N].
+    y : numpy.ndarray
+        (T, B) measured position [m].
+    ok : bool
+        Every trial ran through.
+    why : str
+        Why not, when not ``ok``.
+    """
     u: np.ndarray
     y: np.ndarray
     ok: bool
@@ -110,7 +147,21 @@ class Replay:
 
 @dataclass
 class Floor:
-    """Run-to-run floor of one model: ``K`` simulated recordings and its noise-free replay."""
+    """Run-to-run floor of one model: ``K`` simulated recordings and its noise-free replay.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    replay : Replay
+        Its noise-free replay.
+    u, y : numpy.ndarray
+        (K, T, B) simulated commands [N] and measurements [m].
+    sigma_u, sigma_y : float
+        RMS command [N] and position [m] error of a simulated recording against the replay.
+    white : numpy.ndarray, optional
+        Prewhitening filter of the errors (open-loop judge), else None.
+    """
     spec: ModelSpec
     replay: Replay
     u: np.ndarray            # (K, T, B) simulated commands
@@ -122,7 +173,25 @@ class Floor:
 
 @dataclass
 class Comparison:
-    """Outcome of :meth:`ReplayJudge.compare` (all ``D`` per held-out sample, floor units)."""
+    """Outcome of :meth:`ReplayJudge.compare` (all ``D`` per held-out sample, floor units).
+
+    Parameters
+    ----------
+    D_before, D_after : float
+        The data's replay error before and after the change.
+    T : float
+        ``D_before - D_after``.
+    threshold_sim : float
+        Mean + t standard deviations of ``T`` over the simulated recordings.
+    se_block : float
+        Standard error of ``T``'s noise part from the data, over held-out blocks.
+    stable : bool
+        The new replay ran through.
+    accepted : bool
+        ``T`` beyond both the threshold and ``z_block`` standard errors.
+    why : str
+        The verdict in words.
+    """
     D_before: float
     D_after: float
     T: float                 # D_before - D_after
@@ -133,6 +202,14 @@ class Comparison:
     why: str
 
     def row(self) -> dict:
+        """The comparison as a report row.
+
+        Returns
+        -------
+        dict
+            ``D_before``, ``D_after``, ``improvement``, ``threshold``, ``block_se``, ``stable``,
+            ``beyond_floor``, ``why``.
+        """
         return {"D_before": self.D_before, "D_after": self.D_after, "improvement": self.T,
                 "threshold": self.threshold_sim, "block_se": self.se_block, "stable": self.stable,
                 "beyond_floor": self.accepted, "why": self.why}
@@ -202,7 +279,20 @@ class ReplayJudge:
     # ------------------------------------------------------------------ simulation
     def simulate_recordings(self, spec: ModelSpec, seeds):
         """Recordings of ``spec`` on the judged trials with noise ``seeds`` (one batch call): ``(u, y)``
-        each (K, T, B), the simulator's status (K, B) and the preset."""
+        each (K, T, B), the simulator's status (K, B) and the preset.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+        seeds : sequence of int
+            One recording per seed (trial ``b``: ``seed + b``).
+
+        Returns
+        -------
+        tuple
+            ``(u, y, status, preset)``.
+        """
         checkpoint()          # a search whose budget is spent stops here (:mod:`.budget`)
         p = spec.preset
         K = len(seeds)
@@ -221,7 +311,17 @@ class ReplayJudge:
         return u, y, res.status.reshape(K, B), p
 
     def replay(self, spec: ModelSpec) -> Replay:
-        """Noise-free closed-loop replay of ``spec`` (cached on the spec)."""
+        """Noise-free closed-loop replay of ``spec`` (cached on the spec).
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        Replay
+        """
         key = ("judge_replay", self.token)
         hit = spec._compiled.get(key)
         if hit is not None:
@@ -245,7 +345,17 @@ class ReplayJudge:
         return r
 
     def floor(self, spec: ModelSpec) -> Floor:
-        """Run-to-run floor of ``spec``: ``K`` simulated recordings (one batch call)."""
+        """Run-to-run floor of ``spec``: ``K`` simulated recordings (one batch call).
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        Floor
+        """
         rp = self.replay(spec)
         u, y, _, _ = self.simulate_recordings(spec, self.seeds)
         du = (u - rp.u[None])[:, self.mask]
@@ -279,36 +389,126 @@ class ReplayJudge:
     def residual(self, rp: Replay, fl: Floor) -> np.ndarray:
         """The data's replay error against ``rp`` on the judged samples in ``fl``'s floor units, as one
         vector (channel after channel): its sum of squares is ``n D``. What an output-error fit
-        minimises."""
+        minimises.
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        numpy.ndarray
+            (2 n,) command then position errors.
+        """
         return np.concatenate([e[self.mask] for e in self._errors(self.u, self.y, rp, fl)])
 
     def difference(self, rp_a: Replay, rp_b: Replay, fl: Floor) -> np.ndarray:
         """``rp_a`` - ``rp_b`` on the judged samples in ``fl``'s floor units, as :meth:`residual`'s
-        vector (a replay in place of the data)."""
+        vector (a replay in place of the data).
+
+        Parameters
+        ----------
+        rp_a, rp_b : Replay
+            Two replays.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
         return np.concatenate([e[self.mask] for e in self._errors(rp_a.u, rp_a.y, rp_b, fl)])
 
     def sim_residuals(self, rp: Replay, fl: Floor) -> np.ndarray:
         """(K, n): :meth:`residual` of each of ``fl``'s simulated recordings against ``rp`` (what
-        the data's residual would be, run to run, were ``fl``'s model the truth)."""
+        the data's residual would be, run to run, were ``fl``'s model the truth).
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        numpy.ndarray
+            (K, 2 n).
+        """
         return np.stack([np.concatenate([e[self.mask] for e in self._errors(fl.u[k], fl.y[k], rp, fl)])
                          for k in range(self.K)])
 
     def data_blocks(self, rp: Replay, fl: Floor) -> np.ndarray:
-        """Per-block sums of the data's normalised squared replay error against ``rp``."""
+        """Per-block sums of the data's normalised squared replay error against ``rp``.
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        numpy.ndarray
+            (n_blocks,).
+        """
         return self._blocks(self._e2(self.u, self.y, rp, fl))
 
     def sim_blocks(self, rp: Replay, fl: Floor, of: Floor | None = None) -> np.ndarray:
         """(K, n_blocks): the same for the simulated recordings of ``of`` (default ``fl``),
-        normalised by ``fl``."""
+        normalised by ``fl``.
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+        of : Floor, optional
+            Whose simulated recordings (default ``fl``).
+
+        Returns
+        -------
+        numpy.ndarray
+            (K, n_blocks).
+        """
         of = of or fl
         return np.stack([self._blocks(self._e2(of.u[k], of.y[k], rp, fl)) for k in range(self.K)])
 
     def D(self, rp: Replay, fl: Floor) -> float:
-        """Data's replay error against ``rp`` in units of ``fl``'s floor (2 = at the floor)."""
+        """Data's replay error against ``rp`` in units of ``fl``'s floor (2 = at the floor).
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        float
+            Per judged sample, both channels summed.
+        """
         return float(self.data_blocks(rp, fl).sum() / max(self.n, 1))
 
     def rms(self, rp: Replay) -> tuple[float, float]:
-        """Physical RMS replay errors on the held-out samples: command [N], position [m]."""
+        """Physical RMS replay errors on the held-out samples: command [N], position [m].
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+
+        Returns
+        -------
+        tuple of float
+            NaN when no sample is judged.
+        """
         if not self.n:
             return float("nan"), float("nan")
         return (float(np.sqrt(np.mean((self.u - rp.u)[self.mask] ** 2))),
@@ -376,7 +576,28 @@ class ReplayJudge:
                 of_base: Floor | None = None) -> Comparison:
         """Is ``rp_new`` (current model + an effect) a real improvement over ``fl``'s model (or over
         the replay ``rp_base``, e.g. a simpler alternative, whose model's simulated recordings
-        ``of_base`` (its floor) give the run-to-run threshold; in ``fl``'s floor units)?"""
+        ``of_base`` (its floor) give the run-to-run threshold; in ``fl``'s floor units)?
+
+        Accepted when the improvement ``T`` is positive, beyond the simulation-calibrated
+        threshold, and beyond ``z_block`` standard errors of its noise part from the data.
+
+        Parameters
+        ----------
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+        rp_new : Replay
+            The replay of the changed model.
+        fl_blocks : numpy.ndarray, optional
+            ``sim_blocks(fl.replay, fl)``, when already computed.
+        rp_base : Replay, optional
+            The replay to improve on (default ``fl.replay``).
+        of_base : Floor, optional
+            The floor of ``rp_base``'s model.
+
+        Returns
+        -------
+        Comparison
+        """
         rp0 = fl.replay if rp_base is None else rp_base
         b0 = self.data_blocks(rp0, fl)
         b1 = self.data_blocks(rp_new, fl)
@@ -410,8 +631,25 @@ class ReplayJudge:
         while ``D(a)`` is within 25 % of ``D(b)`` (the block bootstrap alone would call a large
         difference concentrated in a few blocks, e.g. at the reversals, "equivalent").
         Recordings of ``fl``'s model are the wrong reference when both replays are far from it:
-        their difference then scatters with that distance, and a candidate at the floor looked
-        equivalent to one 28x above it. Returns (equivalent, d)."""
+        their difference then scatters with that distance; hence ``of_b``.
+
+        Parameters
+        ----------
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+        rp_a, rp_b : Replay
+            The two replays; ``rp_b`` the better.
+        margin : float, optional
+            Relative margin of ``D(a)`` over ``D(b)``.
+        of_b : Floor, optional
+            The floor of ``rp_b``'s model.
+
+        Returns
+        -------
+        equivalent : bool
+        d : float
+            ``D(a) - D(b)``.
+        """
         ba = self.data_blocks(rp_a, fl)
         bb = self.data_blocks(rp_b, fl)
         n = max(self.n, 1)
@@ -428,7 +666,21 @@ class ReplayJudge:
         """z-score of the data's ``log(D + mean D_k)`` among ``fl``'s simulated recordings (both against
         ``rp``, normalised by ``norm``, default ``fl``): about N(0, 1) when the data could be
         a recording of ``fl``'s model; large positive = the data is further from the replay
-        than run-to-run noise explains."""
+        than run-to-run noise explains.
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The model whose simulated recordings the data are compared with.
+        norm : Floor, optional
+            The floor whose units normalise the errors (default ``fl``).
+
+        Returns
+        -------
+        float
+        """
         norm = norm or fl
         n = max(self.n, 1)
         Dd = self.data_blocks(rp, norm).sum() / n
@@ -441,7 +693,19 @@ class ReplayJudge:
         return float((math.log(Dd + c) - np.mean(lk)) / sd)
 
     def floor_ratio(self, rp: Replay, fl: Floor) -> float:
-        """Data's replay error over the floor's, RMS ratio (1 = at the run-to-run floor)."""
+        """Data's replay error over the floor's, RMS ratio (1 = at the run-to-run floor).
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        float
+        """
         n = max(self.n, 1)
         Dd = self.data_blocks(rp, fl).sum() / n
         Dk = self.sim_blocks(rp, fl).sum(axis=1) / n
@@ -470,7 +734,21 @@ def _servo_on(spec: ModelSpec, data: DiagData, x_ref: np.ndarray, cols) -> np.nd
 
 def controller_check(spec: ModelSpec, data: DiagData, max_samples: int = 20000) -> float:
     """Relative RMS difference between the recorded command and the model's servo run on the
-    recorded reference and measurement (0 when the preset's controller is the recording's)."""
+    recorded reference and measurement (0 when the preset's controller is the recording's).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model (its controller).
+    data : DiagData
+        The recording.
+    max_samples : int, optional
+        Samples per trial compared.
+
+    Returns
+    -------
+    float
+    """
     T = min(data.shape[0], max_samples)
     sub = data.subset(np.arange(data.shape[1]))
     for k in ("x_ref", "v_ref", "u", "y", "valid"):
@@ -485,7 +763,20 @@ def equivalent_reference(spec: ModelSpec, data: DiagData) -> np.ndarray:
     """Reference (T, B) for which the model's servo, fed the recorded measurement, gives the
     recorded command: per sample, the servo's output is affine in the reference sample (for
     PID, DOB and NIASA; a feedforward friction model is solved by the secant through two
-    trial values), so it is solved exactly and the servo advanced with the solution."""
+    trial values), so it is solved exactly and the servo advanced with the solution.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model (its controller, unsaturated).
+    data : DiagData
+        The recording.
+
+    Returns
+    -------
+    numpy.ndarray
+        (T, B) reference [m].
+    """
     p = spec.preset
     sm = build_servo(p.controller, p.stage)._replace(limit=1e300)      # the affine law, unsaturated
     T, B = data.shape

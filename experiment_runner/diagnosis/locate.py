@@ -37,6 +37,23 @@ REGIMES = ("in_position", "settling", "reversal", "acceleration", "constant_velo
 
 
 def lowpass(r: np.ndarray, mask: np.ndarray, rate: float, f_hi: float) -> np.ndarray:
+    """The residual ``r`` (T, B) low-passed at ``f_hi`` [Hz] (zero phase, 2nd order) on ``mask``, zero elsewhere.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        (T, B) residual.
+    mask : numpy.ndarray
+        (T, B) bool.
+    rate : float
+        Sample rate [Hz].
+    f_hi : float
+        Cutoff [Hz].
+
+    Returns
+    -------
+    numpy.ndarray
+    """
     sos = signal.butter(2, min(0.95, 2 * f_hi / rate), output="sos")
     return np.where(mask, signal.sosfiltfilt(sos, taper(r, mask), axis=0), 0.0)
 
@@ -48,6 +65,21 @@ def regimes(x_ref, v_ref, valid, rate: float, t_settle: float = 0.02) -> np.ndar
     ``in_position``; below 10 % of the peak speed between motions of opposite direction
     -> ``reversal``; otherwise ``acceleration`` if |a_ref| > 30 % of its peak, else
     ``constant_velocity``.
+
+    Parameters
+    ----------
+    x_ref, v_ref : numpy.ndarray
+        (T, B) reference [m], [m/s].
+    valid : numpy.ndarray
+        (T, B) bool.
+    rate : float
+        Sample rate [Hz].
+    t_settle : float, optional
+        Seconds after a stop counted as settling.
+
+    Returns
+    -------
+    numpy.ndarray
     """
     T, B = v_ref.shape
     lab = np.full((T, B), -1, int)
@@ -94,7 +126,34 @@ def _share(e, tot):
 
 
 def segments(rl, fl, mask, rate, block: float = 0.05, top: int = 8, lab=None, t0=None, trial_ids=None):
-    """Time blocks ranked by excess residual energy (measured minus floor)."""
+    """Time blocks ranked by excess residual energy (measured minus floor).
+
+    Parameters
+    ----------
+    rl, fl : numpy.ndarray
+        (T, B) low-passed residual of the data and of the floor [N].
+    mask : numpy.ndarray
+        (T, B) bool.
+    rate : float
+        Sample rate [Hz].
+    block : float, optional
+        Block length [s].
+    top : int, optional
+        Blocks listed.
+    lab : numpy.ndarray, optional
+        Regime per sample (:func:`regimes`).
+    t0 : numpy.ndarray, optional
+        Trial start times [s].
+    trial_ids : list of int, optional
+        Trial numbers.
+
+    Returns
+    -------
+    rows : list of dict
+        The ``top`` blocks, largest excess first.
+    n : int
+        Blocks examined.
+    """
     T, B = rl.shape
     nb = max(1, int(round(block * rate)))
     rows = []
@@ -129,7 +188,25 @@ LINE_RATIO_ABOVE_BAND = 100.0
 
 
 def spectrum(r, r_floor, mask, mask_floor, rate, f_obs, nperseg: int = 1024):
-    """Residual PSD vs floor PSD: bands, peaks and narrow lines."""
+    """Residual PSD vs floor PSD: bands, peaks and narrow lines.
+
+    Parameters
+    ----------
+    r, r_floor : numpy.ndarray
+        (T, B) residual of the data and of the floor [N].
+    mask, mask_floor : numpy.ndarray
+        (T, B) bool.
+    rate : float
+        Sample rate [Hz].
+    f_obs : float
+        Observer bandwidth [Hz].
+    nperseg : int, optional
+        Welch segment length.
+
+    Returns
+    -------
+    dict
+    """
     def psd(x, m):
         out = []
         for b in range(x.shape[1]):
@@ -200,7 +277,23 @@ def _reversal_displacement(x, v, valid, v_dead):
 
 
 def state_bins(rl, mask, variables: dict, n_bins: int = 16):
-    """Per variable: bin centres, mean residual per bin, counts, explained share (R^2)."""
+    """Per variable: bin centres, mean residual per bin, counts, explained share (R^2).
+
+    Parameters
+    ----------
+    rl : numpy.ndarray
+        (T, B) low-passed residual [N].
+    mask : numpy.ndarray
+        (T, B) bool.
+    variables : dict
+        Name -> (T, B) state variable.
+    n_bins : int, optional
+        Bins per variable.
+
+    Returns
+    -------
+    dict
+    """
     out = {}
     r = rl[mask]
     tot = float(np.sum(r ** 2)) or 1e-300
@@ -235,7 +328,28 @@ def _lomb_scargle(x, y, w):
 
 def ripple_periods(x, rl, v, mask, lam_min, lam_max, n: int = 300, top: int = 3):
     """Periods [m] of the strongest periodicity of the residual against position (moving
-    samples, after removing the part that only depends on the direction of motion)."""
+    samples, after removing the part that only depends on the direction of motion).
+
+    Parameters
+    ----------
+    x, rl, v : numpy.ndarray
+        (T, B) position [m], low-passed residual [N], velocity [m/s].
+    mask : numpy.ndarray
+        (T, B) bool.
+    lam_min, lam_max : float
+        Period range searched [m].
+    n : int, optional
+        Grid points.
+    top : int, optional
+        Periods returned.
+
+    Returns
+    -------
+    best : list of float
+        The strongest periods [m] (empty when there are too few moving samples).
+    info : dict or None
+        The scanned ``period_m`` grid and its ``power``.
+    """
     if not (lam_max > lam_min > 0):
         return [], None
     vm = np.max(np.abs(v[mask])) if mask.any() else 0.0
@@ -277,7 +391,27 @@ def ripple_periods(x, rl, v, mask, lam_min, lam_max, n: int = 300, top: int = 3)
 
 def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None = None) -> tuple[dict, dict, Context]:
     """All views; returns (summary for the report, arrays for plots, the recording's :class:`.context.Context`
-    for the effects)."""
+    for the effects).
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording.
+    res : ObsResult
+        The model's force observer on it.
+    res_floor : ObsResult
+        The same on a simulated recording (the floor).
+    floor_data : DiagData
+        That recording.
+    f_obs : float
+        Observer bandwidth [Hz].
+    f_band : float, optional
+        Low-pass of the views [Hz].
+
+    Returns
+    -------
+    tuple
+    """
     rate = data.rate
     f_band = f_band or f_obs / 2
     mask = data.valid.copy()
@@ -360,7 +494,29 @@ def proposals(data, res, res_floor, floor_data, f_obs: float, f_band: float, ctx
     """The context's proposal entries (:data:`PROPOSAL_KEYS`) from the force residual ``res`` of the
     current model (its floor's residual ``res_floor`` on the simulated recording ``floor_data``): new
     findings first, then the earlier ones of ``ctx`` not within 15 % of them (at most three periods;
-    peaks and lines as located). Empty when the residual cannot be located (the earlier proposals stay)."""
+    peaks and lines as located). Empty when the residual cannot be located (the earlier proposals stay).
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording.
+    res : ObsResult
+        The current model's force observer.
+    res_floor : ObsResult
+        Its floor's.
+    floor_data : DiagData
+        The floor's simulated recording.
+    f_obs : float
+        Observer bandwidth [Hz].
+    f_band : float
+        Low-pass of the views [Hz].
+    ctx : Context
+        The context so far.
+
+    Returns
+    -------
+    dict
+    """
     try:
         _, _, c = locate(data, res, res_floor, floor_data, f_obs, f_band)
     except Exception:     # noqa: BLE001 - the earlier proposals stay
@@ -384,7 +540,20 @@ def noise_spectrum_modes(spec, data) -> tuple[list, dict]:
     ``spec``'s simulated recordings (the replay judge's fixed seeds, every trial), through the
     model's closed loop measured under a known white force of the drive noise's RMS. Returns
     ``(modes, info)``; nothing on an open-loop record or a model without drive noise (its
-    simulated recordings would have no spread to compare with)."""
+    simulated recordings would have no spread to compare with).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        A closed-loop record.
+
+    Returns
+    -------
+    tuple
+        ``(modes, diagnostics)``.
+    """
     if data.open_loop:
         return [], {"why": "open-loop record (the transfer is measured directly)"}
     sig = float(spec.compiled().pm_full.noise_std)
@@ -402,7 +571,6 @@ def noise_spectrum_modes(spec, data) -> tuple[list, dict]:
     good = np.all(status == 0, axis=1)
     if good.sum() < 4:
         return [], {"why": "the model's simulated recordings diverged"}
-    B = len(j.cols)
     cols = np.tile(j.cols, EXCITATION_RUNS)
     dx = allv.subset(cols)
     rng = np.random.default_rng(20251)
@@ -428,7 +596,20 @@ def transfer_modes(spec, data) -> tuple[list, dict]:
     """Modes of ``data`` against model ``spec``: narrow features of the measured transfer
     (:func:`.frf.locate_modes`, by instrument variables) and, on a closed-loop record, of the noise
     response (:func:`noise_spectrum_modes`) not within 15 % of one of them. Returns ``(modes,
-    info)``: ``info`` holds the transfer's instruments and the noise spectrum's examined bands."""
+    info)``: ``info`` holds the transfer's instruments and the noise spectrum's examined bands.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        The recording.
+
+    Returns
+    -------
+    tuple
+        ``(modes, diagnostics)``.
+    """
     est = transfer_ratio(spec, data)
     modes = list(locate_modes(spec, data, est=est)) if est is not None else []
     info: dict = {}

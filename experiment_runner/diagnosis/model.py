@@ -2,8 +2,8 @@
 
 :class:`ModelSpec` is what every hypothesis modifies and every kernel runs: a validated
 :class:`stage_sim.config.Preset`, so the improved model is a preset YAML the simulator (batch
-engine and ROS graph) runs as is. Effects that used to need extra "additive" forces are plant
-features now: ``stage.force_offset``, ``stage.force_ripple``, ``stage.periodic_force`` and
+engine and ROS graph) runs as is. Forces on the table are plant features too (a model file's
+``additive_forces`` block is refused with a message naming these fields): ``stage.force_offset``, ``stage.force_ripple``, ``stage.periodic_force`` and
 the friction variations (``f_c_difference``, ``viscous_difference``, ``f_c_gradient``,
 ``f_c_curvature``, ``position_center`` of each friction element).
 """
@@ -24,7 +24,18 @@ __all__ = ["ModelSpec", "Compiled", "load_model", "friction_elements", "table_ma
 
 
 def friction_elements(preset: Preset) -> list[tuple[str, object]]:
-    """``(dotted path, friction config)`` of every friction element of the stage."""
+    """``(dotted path, friction config)`` of every friction element of the stage.
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The stage.
+
+    Returns
+    -------
+    list of tuple
+        The table's friction first (if any), then each bearing's, e.g. ``("stage.bearings.0.friction", cfg)``.
+    """
     out = []
     st = preset.stage
     if st.table_friction is not None:
@@ -35,25 +46,68 @@ def friction_elements(preset: Preset) -> list[tuple[str, object]]:
 
 
 def table_mass(preset: Preset) -> float:
-    """Mass moving with the table at high frequency: table + rigidly bolted bearings [kg]."""
+    """Mass moving with the table at high frequency: table + rigidly bolted bearings [kg].
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The stage.
+
+    Returns
+    -------
+    float
+    """
     st = preset.stage
     return st.table.mass + sum(b.mass for b in st.bearings if b.joint is None)
 
 
 def total_mass(preset: Preset) -> float:
-    """Every body of the stage [kg] (the low-frequency rigid-body mass)."""
+    """Every body of the stage [kg] (the low-frequency rigid-body mass).
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The stage.
+
+    Returns
+    -------
+    float
+        Table, bearings and the modes' split-off masses.
+    """
     st = preset.stage
     return st.table.mass + sum(b.mass for b in st.bearings) + sum(m.mass_ratio * st.table.mass for m in st.modes)
 
 
 def coulomb_total(preset: Preset) -> float:
-    """Sum of the Coulomb forces of the friction elements [N]."""
+    """Sum of the Coulomb forces of the friction elements [N].
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The stage.
+
+    Returns
+    -------
+    float
+    """
     return float(sum(getattr(fr, "f_c", 0.0) for _, fr in friction_elements(preset)))
 
 
 @dataclass
 class Compiled:
-    """What the kernels need for one :class:`ModelSpec`."""
+    """What the kernels need for one :class:`ModelSpec`.
+
+    Parameters
+    ----------
+    pm : stage_sim.plant.PlantModel
+        The observer's plant model (noise-free, ideal sensor; drive kept).
+    pm_full : stage_sim.plant.PlantModel
+        The full plant model.
+    fc_tot : float
+        Coulomb force of the friction elements on the table's degree of freedom [N].
+    m_eff : float
+        Table mass at high frequency [kg] (:func:`table_mass`).
+    """
     pm: object             # observer PlantModel (noise-free, ideal sensor; drive kept)
     pm_full: object        # the full PlantModel
     fc_tot: float          # Coulomb force of the friction elements on the table DOF [N]
@@ -62,13 +116,38 @@ class Compiled:
 
 @dataclass
 class ModelSpec:
-    """A validated preset (and notes for the improved-preset header)."""
+    """A validated preset (and notes for the improved-preset header).
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The model.
+    notes : tuple of str
+        Lines of the header of the written preset (:meth:`preset_yaml`).
+    _compiled : dict
+        Cache of :meth:`compiled` (not compared, not pickled).
+    """
     preset: Preset
     notes: tuple = ()
     _compiled: dict = field(default_factory=dict, repr=False, compare=False)
 
     def with_changes(self, changes: dict | None = None, edit=None, notes=()) -> "ModelSpec":
-        """New spec: dotted-path ``changes``, then ``edit(dict)`` on the preset mapping."""
+        """New spec: dotted-path ``changes``, then ``edit(dict)`` on the preset mapping.
+
+        Parameters
+        ----------
+        changes : dict, optional
+            Dotted path (``"stage.table.mass"``) -> value (SI units).
+        edit : callable, optional
+            ``edit(data)`` changes the preset mapping in place, after ``changes``.
+        notes : tuple of str
+            Appended to the spec's notes.
+
+        Returns
+        -------
+        ModelSpec
+            Validated again (:func:`stage_sim.config.preset_from_dict`).
+        """
         data = self.preset.model_dump()
         for dotted, value in (changes or {}).items():
             set_dotted(data, dotted, value)
@@ -78,7 +157,12 @@ class ModelSpec:
         return ModelSpec(preset, tuple(self.notes) + tuple(notes))
 
     def compiled(self) -> Compiled:
-        """Kernel arrays (built once per spec)."""
+        """Kernel arrays (built once per spec).
+
+        Returns
+        -------
+        Compiled
+        """
         if "c" in self._compiled:
             return self._compiled["c"]
         p = self.preset
@@ -99,6 +183,12 @@ class ModelSpec:
 
     # ------------------------------------------------------------------ files
     def preset_yaml(self) -> str:
+        """The preset as YAML, headed by its notes as comments (the improved model a user can load).
+
+        Returns
+        -------
+        str
+        """
         head = f"# {self.preset.name}: written by nanostage diagnose\n"
         for n in self.notes:
             head += f"# {n}\n"
@@ -106,7 +196,23 @@ class ModelSpec:
 
 
 def load_model(source) -> ModelSpec:
-    """A preset name/path, a preset mapping, a :class:`Preset`, or a model file ``{preset: ...}``."""
+    """A preset name/path, a preset mapping, a :class:`Preset`, or a model file ``{preset: ...}``.
+
+    Parameters
+    ----------
+    source : str, pathlib.Path, dict, Preset or ModelSpec
+        A shipped preset's name, a YAML file (a preset or ``{preset: ...}``), a mapping, a preset,
+        or a spec (returned as is).
+
+    Returns
+    -------
+    ModelSpec
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        Not a mapping, an invalid preset, or a field no longer supported (``additive_forces``).
+    """
     if isinstance(source, ModelSpec):
         return source
     if isinstance(source, Preset):

@@ -22,6 +22,21 @@ __all__ = ["Observer", "ObsResult", "smoothing_hz", "SMOOTH_FACTOR"]
 
 @dataclass
 class ObsResult:
+    """What one run of the force observer gives.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        (T, B) force residual [N]: what the model does not explain.
+    x, v : numpy.ndarray
+        (T, B) observer table position [m] and velocity [m/s].
+    phi : numpy.ndarray
+        (T, B) normalised table friction state [-].
+    snaps : tuple, optional
+        ``(every, z, fr, ps, dbuf)`` plant-state snapshots every ``every`` samples (open-loop windows).
+    bad : int
+        Sample-and-trial steps the plant's step flagged (not OK; reset and continued; 0: none).
+    """
     r: np.ndarray        # (T, B) force residual [N]
     x: np.ndarray        # observer table position [m]
     v: np.ndarray        # observer table velocity [m/s]
@@ -39,15 +54,42 @@ def smoothing_hz(spec: ModelSpec, rate: float, f_o: float) -> float:
     ``SMOOTH_FACTOR * f_o``, or (nearly raw) ``0.45 * rate`` for a model with a semi-active
     isolator: its lock mode (~2 kHz) rings after every lock, and with the ring smoothed out of
     the measurement the observer would fight the model's own ring (the isolator transient
-    could not be fitted)."""
+    could not be fitted).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model (its stage's ``sai``).
+    rate : float
+        Control rate [Hz].
+    f_o : float
+        Observer bandwidth [Hz].
+
+    Returns
+    -------
+    float
+    """
     if spec.preset.stage.sai is not None:
         return 0.45 * rate
     return min(SMOOTH_FACTOR * f_o, 0.45 * rate)
 
 
 class Observer:
-    """Force observer on one :class:`DiagData` (smoothing done once, runs per model);
-    ``smooth_hz``: see :func:`smoothing_hz` (default ``SMOOTH_FACTOR`` x the bandwidth)."""
+    """Force observer on one :class:`DiagData` (smoothing done once, runs per model).
+
+    Parameters
+    ----------
+    data : DiagData
+        The data; its smoothed position is set here, and the last ``burn_out`` seconds of each
+        trial are taken out of its fit and held-out sets.
+    bandwidth : float, optional
+        Observer bandwidth [Hz] (default rate/25; above ~rate/25 the 3rd-order observer is unstable).
+    smooth_hz : float, optional
+        Cutoff of the position smoothing [Hz] (:func:`smoothing_hz`; default ``SMOOTH_FACTOR`` x
+        the bandwidth, at most 0.45 x rate).
+    burn_out : float, optional
+        Seconds at each trial's end where the smoothed signal is unreliable.
+    """
 
     def __init__(self, data: DiagData, bandwidth: float | None = None, smooth_hz: float | None = None,
                  burn_out: float = 0.004):
@@ -72,6 +114,21 @@ class Observer:
         self.calls = 0
 
     def run(self, spec: ModelSpec, cols=None, snap_every: int = 0) -> ObsResult:
+        """Run the observer of model ``spec`` over the data.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+        cols : array_like of int, optional
+            Trial columns (default all).
+        snap_every : int, optional
+            Keep the plant state every this many samples (0: none).
+
+        Returns
+        -------
+        ObsResult
+        """
         c = spec.compiled()
         u, ys, vs, fe, inputs = self.u, self.ys, self.vs, self.fe, self.inputs
         if cols is not None:

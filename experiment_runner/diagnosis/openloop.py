@@ -66,13 +66,33 @@ AR_ORDER = 8
 
 def quiet_model(spec: ModelSpec):
     """The full plant of ``spec`` without its random parts, the sensor's quantization kept
-    (deterministic): the predictor's model."""
+    (deterministic): the predictor's model.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+
+    Returns
+    -------
+    stage_sim.plant.PlantModel
+    """
     pm = spec.compiled().pm_full
     return pm._replace(noise_std=0.0, fr_noise=np.zeros_like(pm.fr_noise), q_bearing=0.0)
 
 
 def noisy_model(spec: ModelSpec):
-    """The full plant of ``spec`` (noise and quantization): the simulated recordings' model."""
+    """The full plant of ``spec`` (noise and quantization): the simulated recordings' model.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+
+    Returns
+    -------
+    stage_sim.plant.PlantModel
+    """
     return spec.compiled().pm_full
 
 
@@ -88,7 +108,9 @@ class OpenLoopJudge(ReplayJudge):
         The force observer on ``data`` (its smoothing and masks): it re-initialises the windows.
     window_s : float
         Window length [s] (at least 20 samples); windows tile each trial from its start.
-    seeds, alpha, z_block, block_s
+    seeds : tuple of int
+        As :class:`.judge.ReplayJudge`.
+    alpha, z_block, block_s : float
         As :class:`.judge.ReplayJudge`.
     """
 
@@ -146,7 +168,17 @@ class OpenLoopJudge(ReplayJudge):
         return y, bad
 
     def replay(self, spec: ModelSpec) -> Replay:
-        """Noise-free open-loop windows of ``spec`` (cached on the spec); ``u`` = the recorded command."""
+        """Noise-free open-loop windows of ``spec`` (cached on the spec); ``u`` = the recorded command.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        Replay
+        """
         key = ("judge_replay", self.token)
         hit = spec._compiled.get(key)
         if hit is not None:
@@ -166,7 +198,17 @@ class OpenLoopJudge(ReplayJudge):
         each predicted as the data is -- windows re-initialised from ITS measurement -- so the floor
         holds the model's noise and the uncertainty of the re-initialised state. The simulated
         recording ``k`` is stored as the data's prediction plus its own prediction error, so the
-        judge's statistics (``S_k - R``) are those of the closed-loop judge."""
+        judge's statistics (``S_k - R``) are those of the closed-loop judge.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        Floor
+        """
         rp = self.replay(spec)
         _, r = self._observed(spec)
         r = missing_force(r, self.obs.data.lengths[self.cols], self.rate, self.obs.f_o)
@@ -242,13 +284,35 @@ class OpenLoopJudge(ReplayJudge):
         return [self._white(y - rp.y, fl.white)]
 
     def rms(self, rp: Replay) -> tuple[float, float]:
-        """RMS errors on the judged samples: command (0: it is the input), position [m]."""
+        """RMS errors on the judged samples: command (0: it is the input), position [m].
+
+        Parameters
+        ----------
+        rp : Replay
+            A prediction on the judged samples.
+
+        Returns
+        -------
+        tuple of float
+        """
         if not self.n:
             return float("nan"), float("nan")
         return 0.0, float(np.sqrt(np.mean((self.y - rp.y)[self.mask] ** 2)))
 
     def floor_ratio(self, rp: Replay, fl: Floor) -> float:
-        """Data's prediction error over the floor's, RMS ratio (1 = at the run-to-run floor; one channel)."""
+        """Data's prediction error over the floor's, RMS ratio (1 = at the run-to-run floor; one channel).
+
+        Parameters
+        ----------
+        rp : Replay
+            A prediction.
+        fl : Floor
+            The floor whose units are used.
+
+        Returns
+        -------
+        float
+        """
         n = max(self.n, 1)
         Dd = self.data_blocks(rp, fl).sum() / n
         Dk = self.sim_blocks(rp, fl).sum(axis=1) / n
@@ -265,7 +329,24 @@ def missing_force(r: np.ndarray, lengths, rate: float, f_o: float) -> np.ndarray
     force ``r`` (T, B) low-passed (zero phase) at ``MISSING_LP * f_o``. Near the smoothing cutoff the
     tracking force also holds the smoothing's own misfit of fast command changes; a simulated recording
     must show that misfit itself (as the data does), not have it added: below the cutoff it keeps the
-    simulated recording near the data (the model's missing physics), above it the model runs free."""
+    simulated recording near the data (the model's missing physics), above it the model runs free.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        (T, B) observer tracking force [N].
+    lengths : array_like of int
+        Samples per trial.
+    rate : float
+        Sample rate [Hz].
+    f_o : float
+        Observer bandwidth [Hz].
+
+    Returns
+    -------
+    numpy.ndarray
+        (T, B) [N].
+    """
     return smooth(r, rate, MISSING_LP * f_o, lengths)[0]
 
 
@@ -281,7 +362,19 @@ def _initial_offset(e: np.ndarray, basis) -> np.ndarray:
 
 def window_replay(spec: ModelSpec, data: DiagData) -> dict:
     """The open-loop windows of ``spec`` over every usable sample of ``data`` as a replay dict
-    (:func:`.predict.replay`'s keys; ``u`` the recorded command, ``y``/``x`` the prediction)."""
+    (:func:`.predict.replay`'s keys; ``u`` the recorded command, ``y``/``x`` the prediction).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        An open-loop record.
+
+    Returns
+    -------
+    dict
+    """
     obs = Observer(data, bandwidth=data.rate / 25.0, smooth_hz=data.smooth_hz or None)
     j = OpenLoopJudge(dataclasses.replace(data, held=data.valid.copy()), obs)
     rp = j.replay(spec)
@@ -294,7 +387,21 @@ def window_replay(spec: ModelSpec, data: DiagData) -> dict:
 def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
     """Recordings simulated from ``spec`` on an open-loop record, one per seed (one kernel call):
     the recorded command, the known force plus ``spec``'s observer force on the data (as a known
-    force), the model's noise; each a :class:`DiagData` with the record's masks and split."""
+    force), the model's noise; each a :class:`DiagData` with the record's masks and split.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        An open-loop record.
+    seeds : iterable of int
+        One recording per seed.
+
+    Returns
+    -------
+    list of DiagData
+    """
     obs = Observer(data, bandwidth=data.rate / 25.0, smooth_hz=data.smooth_hz or None)
     res = obs.run(spec)
     pm = noisy_model(spec)

@@ -51,6 +51,24 @@ def diagnose(recording, nominal, out=None, options: Options | None = None, data:
     :class:`.model.ModelSpec` or mapping); ``data``: the recording already loaded (``recording`` may
     then be None). Returns the report with ``_improved_spec`` (the improved model)
     (:func:`diagnose_stages`' report).
+
+    Parameters
+    ----------
+    recording : str, pathlib.Path or Recording
+        A contract recording (MCAP file or bag folder); None when ``data`` is given.
+    nominal : str, pathlib.Path, dict or ModelSpec
+        The model that was supposed to predict it (:func:`.model.load_model`).
+    out : str or pathlib.Path, optional
+        Output folder of ``report.json``, ``report.md``, ``improved_preset.yaml`` and the plots (None: nothing written).
+    options : Options, optional
+        How to diagnose (:class:`.options.Options`; default ``Options()``).
+    data : DiagData, optional
+        The recording already loaded.
+
+    Returns
+    -------
+    dict
+        The report (fields in :mod:`.report`), with ``_improved_spec``.
     """
     return diagnose_stages(recording, nominal, out, options, data)[0]
 
@@ -71,6 +89,24 @@ def diagnose_stages(recording, nominal, out=None, options: Options | None = None
     stage_sim.config.ConfigError
         ``options.workers`` below 1, or the Dask scheduler ``options.cluster`` cannot be
         reached (before any work is done); a nominal that does not fit the recording.
+
+    Parameters
+    ----------
+    recording : str, pathlib.Path or Recording
+        A contract recording (MCAP file or bag folder); None when ``data`` is given.
+    nominal : str, pathlib.Path, dict or ModelSpec
+        The model that was supposed to predict it (:func:`.model.load_model`).
+    out : str or pathlib.Path, optional
+        Output folder of ``report.json``, ``report.md``, ``improved_preset.yaml`` and the plots (None: nothing written).
+    options : Options, optional
+        How to diagnose (:class:`.options.Options`; default ``Options()``).
+    data : DiagData, optional
+        The recording already loaded.
+
+    Returns
+    -------
+    tuple
+        ``(report, Run)``.
     """
     opt = options or Options()
     budget = Budget(opt.max_seconds, progress=opt.progress)

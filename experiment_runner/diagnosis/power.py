@@ -87,7 +87,17 @@ MASTER_SEED = 20240611
 
 def dealt_effects(library=LIBRARY) -> list[str]:
     """The keys of every effect a truth can be written with (:attr:`.effects.base.Effect.deal`), in the
-    order they are dealt (an effect whose truths are another's, ``truth_of``, is dealt as that one)."""
+    order they are dealt (an effect whose truths are another's, ``truth_of``, is dealt as that one).
+
+    Parameters
+    ----------
+    library : Library, optional
+        The library of effects.
+
+    Returns
+    -------
+    list of str
+    """
     return [e.key for e in library.dealt()]
 
 
@@ -101,6 +111,33 @@ def _never_paired(a: str, b: str, library=LIBRARY) -> bool:
 
 @dataclass
 class PowerCase:
+    """One case of the study, fixed by its index (same study, same cases).
+
+    Parameters
+    ----------
+    index : int
+        Its place in the study.
+    effects : tuple of str
+        Concealed effects: () a negative control, (e,) a single effect, (e1, e2) a pair.
+    stage : {"rigid", "isolated", "sai"}
+        The nominal stage (``fi_stage_nofi``, ``fi_stage``, ``sai_stage``).
+    friction : {"dahl", "gms", "coulomb"}
+        The nominal's bearing friction law.
+    rate : float
+        Control rate [Hz].
+    noise : float
+        Drive-noise factor on the nominal's level.
+    record : {"p2p1", "p2p", "circle", "sine", "steps"}
+        The recorded experiment.
+    quantiles : tuple of float
+        Effect-size quantile per effect (0...1 over its range, log-uniform).
+    seed : int
+        Noise seed of the truth's recording.
+    profile : dict
+        The experiment's profile.
+    trials : int
+        Trials recorded.
+    """
     index: int
     effects: tuple                   # () negative control, (e,) single, (e1, e2) pair
     stage: str                       # rigid | isolated | sai
@@ -115,17 +152,30 @@ class PowerCase:
 
     @property
     def name(self) -> str:
+        """``NNN_effects_record_stage_friction_Nk``, e.g. ``001_viscous_p2p1_isolated_gms_10k``."""
         what = "+".join(self.effects) or "negative"
         return f"{self.index:03d}_{what}_{self.record}_{self.stage}_{self.friction}_{int(self.rate / 1000)}k"
 
     @property
     def kind(self) -> str:
+        """``negative``, ``single`` or ``pair``."""
         return "negative" if not self.effects else ("pair" if len(self.effects) > 1 else "single")
 
 
 # --------------------------------------------------------------------------- nominals
 def nominal_doc(case: PowerCase) -> dict:
-    """The nominal preset (mapping) of a case."""
+    """The nominal preset (mapping) of a case.
+
+    Parameters
+    ----------
+    case : PowerCase
+        The case.
+
+    Returns
+    -------
+    dict
+        A preset mapping (drive noise scaled by ``case.noise``, PID re-shaped at another rate).
+    """
     base = {"rigid": "fi_stage_nofi", "isolated": "fi_stage", "sai": "sai_stage"}[case.stage]
     d = load_preset(base).model_dump(mode="json")
     d["name"] = f"power_{case.name}_nominal"
@@ -213,7 +263,19 @@ def _draw_record(rng, case: PowerCase):
 
 def make_cases(n: int = DEFAULT_CASES, master_seed: int = MASTER_SEED) -> list[PowerCase]:
     """The ``n`` cases of the study: 30 % negative controls, 10 % pairs, the rest single
-    effects dealt over :func:`dealt_effects` in turn, sizes stratified per effect."""
+    effects dealt over :func:`dealt_effects` in turn, sizes stratified per effect.
+
+    Parameters
+    ----------
+    n : int, optional
+        Cases.
+    master_seed : int, optional
+        Seed of the deal.
+
+    Returns
+    -------
+    list of PowerCase
+    """
     n = int(n)
     n_neg = max(1, round(0.3 * n)) if n >= 3 else 0
     n_pair = round(0.1 * n)
@@ -260,7 +322,18 @@ def _trials(case: PowerCase, nominal):
 
 
 def build_case(case: PowerCase):
-    """(nominal Preset, truth Preset, truth values {effect: {param: value}}, DiagData, trials)."""
+    """Build a case: its nominal, its concealed truth and the truth's recording.
+
+    Parameters
+    ----------
+    case : PowerCase
+        The case.
+
+    Returns
+    -------
+    tuple
+        ``(nominal Preset, truth Preset, truth values {effect: {param: value}}, DiagData, trials)``.
+    """
     nom_doc = nominal_doc(case)
     nominal = preset_from_dict(nom_doc, f"power case {case.name} nominal")
     tr = _trials(case, nominal)
@@ -277,7 +350,19 @@ def build_case(case: PowerCase):
 
 
 def record(truth, trials):
-    """What a rig records of ``trials`` run on ``truth`` (noise on): a :class:`~.data.DiagData`."""
+    """What a rig records of ``trials`` run on ``truth`` (noise on).
+
+    Parameters
+    ----------
+    truth : stage_sim.config.Preset
+        The concealed truth.
+    trials : list of experiment_runner.experiment.Trial
+        The trials.
+
+    Returns
+    -------
+    DiagData
+    """
 
     res = simulate(truth, np.stack([t.x_ref for t in trials]), np.stack([t.v_ref for t in trials]),
                    seeds=[truth.simulation.seed + t.index for t in trials], check=False)
@@ -294,7 +379,22 @@ def record(truth, trials):
 def replay_change(nominal, variants: dict, data) -> dict:
     """How far the nominal's held-out replay is from recordings of each variant (presets),
     beyond its own run-to-run floor: ``sqrt(|E D(variant) - E D(nominal)| / E D(nominal))``
-    (:mod:`.judge`; 4 simulated recordings per variant)."""
+    (:mod:`.judge`; 4 simulated recordings per variant).
+
+    Parameters
+    ----------
+    nominal : stage_sim.config.Preset
+        The nominal.
+    variants : dict
+        Name -> preset.
+    data : DiagData
+        The recording (its held-out trials are judged).
+
+    Returns
+    -------
+    dict
+        Name -> the change, in floor units (3 = the study's threshold of a detectable effect).
+    """
     j = ReplayJudge(data)
     nom = ModelSpec(nominal)
     fl = j.floor(nom)
@@ -316,7 +416,23 @@ def _named(rep: dict) -> list[tuple[str, set]]:
 
 
 def judge_case(case: PowerCase, rep: dict, expect: dict, change: dict) -> dict:
-    """Outcome of one case: named first / pair / false positive, parameter errors, reasons."""
+    """Outcome of one case: named first / pair / false positive, parameter errors, reasons.
+
+    Parameters
+    ----------
+    case : PowerCase
+        The case.
+    rep : dict
+        The diagnosis report.
+    expect : dict
+        Effect -> parameter -> true value.
+    change : dict
+        Effect -> :func:`replay_change` of it.
+
+    Returns
+    -------
+    dict
+    """
     named = _named(rep)
     keys = [k for k, _ in named]
     truth = set(case.effects)
@@ -359,7 +475,20 @@ def _reason(rep: dict, effect: str) -> str:
 
 def run_case(case: PowerCase, keep=None) -> dict:
     """Build, diagnose and judge one case (an executor task); the warnings it raised listed
-    in the result (``warnings``), not printed."""
+    in the result (``warnings``), not printed.
+
+    Parameters
+    ----------
+    case : PowerCase
+        The case.
+    keep : str or pathlib.Path, optional
+        Folder for the case's recording and report.
+
+    Returns
+    -------
+    dict
+        :func:`judge_case`'s result (or ``error`` when the case failed) with ``setting``, ``seconds`` and any ``warnings``.
+    """
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:     # a worker process: per case, not per thread
         warnings.simplefilter("default")
@@ -455,7 +584,20 @@ def _pair_change(r: dict, e: str) -> float:
 
 
 def summarize(results: list[dict], threshold: float = 3.0) -> dict:
-    """The study's rates from the case results."""
+    """The study's rates from the case results.
+
+    Parameters
+    ----------
+    results : list of dict
+        :func:`run_case` results.
+    threshold : float, optional
+        Effect size (replay change, floor units) from which an effect counts as detectable.
+
+    Returns
+    -------
+    dict
+        ``power`` (the rates), ``false_positive_rate``, counts of cases, errors and warnings.
+    """
     singles = [r for r in results if r["kind"] == "single" and "error" not in r]
     pairs = [r for r in results if r["kind"] == "pair" and "error" not in r]
     negs = [r for r in results if r["kind"] == "negative"]
@@ -512,7 +654,30 @@ def run_power(n_cases: int = DEFAULT_CASES, workers: int | None = None, cluster=
               verbose: bool = False, only=None) -> dict:
     """Run the study (cases on ``workers`` local processes, default one per core this process may use
     (:func:`~experiment_runner.executor.default_workers`), or a Dask ``cluster``); returns the
-    summary with ``results``; with ``out`` writes ``power.json``, ``report.md`` and the plot."""
+    summary with ``results``; with ``out`` writes ``power.json``, ``report.md`` and the plot.
+
+    Parameters
+    ----------
+    n_cases : int, optional
+        Cases (:func:`make_cases`).
+    workers : int, optional
+        Local worker processes (default: one per core this process may use).
+    cluster : str, optional
+        Dask scheduler address (instead of local workers).
+    out : str or pathlib.Path, optional
+        Output folder.
+    keep : str or pathlib.Path, optional
+        Folder for every case's recording and report.
+    verbose : bool, optional
+        A line per case.
+    only : list of str, optional
+        Run only cases whose name contains one of these.
+
+    Returns
+    -------
+    dict
+        :func:`summarize`'s summary with ``wall_s`` and ``results``.
+    """
     if workers is None and cluster is None:
         workers = default_workers()
     cases = make_cases(n_cases)
@@ -542,6 +707,20 @@ def _fmt_change(r) -> str:
 
 # --------------------------------------------------------------------------- report
 def write_report(out, s: dict) -> Path:
+    """Write ``power.json``, ``report.md`` and the detection-rate plot into ``out``.
+
+    Parameters
+    ----------
+    out : str or pathlib.Path
+        Output folder (:func:`experiment_runner.outputs.prepare_folder`).
+    s : dict
+        :func:`run_power`'s summary.
+
+    Returns
+    -------
+    pathlib.Path
+        The folder.
+    """
     out = outputs.prepare_folder(out)
     outputs.write_text(out / "power.json", json.dumps(jsonable(s), indent=1))
     plots = []
@@ -558,6 +737,19 @@ def _pct(x):
 
 
 def to_markdown(s: dict, plots=()) -> str:
+    """The study's ``report.md``.
+
+    Parameters
+    ----------
+    s : dict
+        :func:`run_power`'s summary.
+    plots : sequence of str, optional
+        Plot file names to embed.
+
+    Returns
+    -------
+    str
+    """
     p = s["power"]
     L = ["# Diagnosis power study", "",
          f"{s['cases']} cases ({s['singles']} single effects, {s['pairs']} pairs, {s['negatives']} negative controls), "

@@ -48,8 +48,26 @@ __all__ = ["replay", "sim_data", "sim_batch", "NoiseFloor", "open_loop_windows",
 def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds, f_ext=None):
     """Closed-loop runs of ``spec`` on references (T, B) with noise ``seeds`` (B,) and the known
     external table force ``f_ext`` (T, B; None: none): the batch engine
-    (:func:`experiment_runner.batch.simulate`) itself; returns (y, u, x_true, inputs), each
-    (T, B), ``inputs`` = (d0, d1, mode) the plant's dither forces and SAI command."""
+    (:func:`experiment_runner.batch.simulate`) itself.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    x_ref, v_ref : numpy.ndarray
+        (T, B) references [m], [m/s].
+    seeds : array_like of int
+        (B,) noise seeds.
+    f_ext : numpy.ndarray, optional
+        (T, B) known external table force [N].
+
+    Returns
+    -------
+    y, u, x_true : numpy.ndarray
+        (T, B) measured position [m], command [N], true table position [m].
+    inputs : tuple of numpy.ndarray
+        ``(d0, d1, mode)``: the plant's dither forces [N] and SAI command, (T, B) each.
+    """
     fe = None if f_ext is None else np.asarray(f_ext, float).T
     res = simulate(spec.preset, np.asarray(x_ref, float).T, np.asarray(v_ref, float).T,
                    seeds=np.asarray(seeds, np.int64), check=False, f_ext=fe)
@@ -60,7 +78,21 @@ def closed_loop(spec: ModelSpec, x_ref, v_ref, seeds, f_ext=None):
 def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
     """Recordings simulated from ``spec`` on the recorded reference, one per seed, in ONE batch
     call (trials x seeds); each is a :class:`DiagData` with the recording's masks and split.
-    An open-loop record: :func:`.openloop.sim_batch` (the recorded command, no controller)."""
+    An open-loop record: :func:`.openloop.sim_batch` (the recorded command, no controller).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        The recording.
+    seeds : iterable of int
+        One simulated recording per seed (trial ``b`` gets ``seed + b``).
+
+    Returns
+    -------
+    list of DiagData
+    """
     if data.open_loop:
         return open_loop_sim_batch(spec, data, seeds)
     B = data.shape[1]
@@ -81,7 +113,22 @@ def sim_batch(spec: ModelSpec, data: DiagData, seeds) -> list:
 def replay(spec: ModelSpec, data: DiagData, seed: int = 1000):
     """Closed-loop replay of the recorded reference; returns dict of (T, B) arrays. An open-loop
     record: the model's open-loop windows re-initialised from the measurement, over all samples
-    (:func:`.openloop.window_replay`; ``u`` is the recorded command)."""
+    (:func:`.openloop.window_replay`; ``u`` is the recorded command).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        The recording.
+    seed : int, optional
+        Noise seed of the first trial (trial ``b``: ``seed + b``).
+
+    Returns
+    -------
+    dict
+        ``y`` [m], ``u`` [N], ``x`` [m], ``d0``, ``d1`` [N], ``mode``: (T, B) arrays.
+    """
     if data.open_loop:
         return window_replay(spec, data)
     B = data.shape[1]
@@ -90,12 +137,39 @@ def replay(spec: ModelSpec, data: DiagData, seed: int = 1000):
 
 
 def sim_data(spec: ModelSpec, data: DiagData, seed: int) -> DiagData:
-    """A recording simulated from ``spec`` on the recorded reference, same masks and split."""
+    """A recording simulated from ``spec`` on the recorded reference, same masks and split.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    data : DiagData
+        The recording.
+    seed : int
+        Noise seed.
+
+    Returns
+    -------
+    DiagData
+    """
     return sim_batch(spec, data, [seed])[0]
 
 
 def compare_replay(data: DiagData, rp: dict) -> dict:
-    """RMS command and position errors of a replay against the recording (valid samples)."""
+    """RMS command and position errors of a replay against the recording (valid samples).
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording.
+    rp : dict
+        A replay (:func:`replay`).
+
+    Returns
+    -------
+    dict
+        ``rms_command_error_N``, ``rms_position_error_m``, ``rms_command_N``.
+    """
     m = data.valid
     du = (data.u - rp["u"])[m]
     dy = (data.y - rp["y"])[m]
@@ -106,7 +180,23 @@ def compare_replay(data: DiagData, rp: dict) -> dict:
 
 # --------------------------------------------------------------------------- noise floor
 def taper(r: np.ndarray, mask: np.ndarray, n_taper: int = 16) -> np.ndarray:
-    """Residual with the masked-out samples set to zero, edges tapered (per column)."""
+    """Residual with the masked-out samples set to zero, edges tapered (per column).
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        (T, B) residual.
+    mask : numpy.ndarray
+        (T, B) bool: samples kept.
+    n_taper : int, optional
+        Samples of the raised-cosine taper at each end of a column's kept samples (columns
+        with fewer than ``2 n_taper`` kept samples are not tapered).
+
+    Returns
+    -------
+    numpy.ndarray
+        (T, B).
+    """
     out = np.where(mask, r, 0.0)
     if n_taper > 0:
         w = 0.5 - 0.5 * np.cos(np.pi * np.arange(n_taper) / n_taper)
@@ -133,6 +223,19 @@ def force_resolution(spec, f_o: float) -> float:
     the rigid mass (table and bearings) times the acceleration of the encoder's uniform
     quantization error (``q / sqrt(12)``) at ``f_o``.
 
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    f_o : float
+        Observer bandwidth [Hz].
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
     >>> from stage_sim.config import load_preset
     >>> from experiment_runner.diagnosis.model import ModelSpec
     >>> f = force_resolution(ModelSpec(load_preset("fi_stage_nofi")), 40.0)
@@ -153,6 +256,26 @@ class NoiseFloor:
     [N]: the least residual a recording resolves (:func:`force_resolution`), a white floor under
     ``S(f)``: a model whose simulated recordings leave no residual at all (a stage held by
     Coulomb friction that never slips: its measurement never changes) still has a floor.
+
+    Parameters
+    ----------
+    rate : float
+        Sample rate [Hz].
+    residuals : list of numpy.ndarray
+        (T, B) force residuals [N] of simulated recordings.
+    masks : list of numpy.ndarray
+        (T, B) bool: their samples to use.
+    f_max : float
+        Whitening band [Hz]; rolled off above (8th order).
+    nperseg : int, optional
+        Welch segment length.
+    rms_min : float, optional
+        The least residual a recording resolves [N].
+
+    Raises
+    ------
+    ValueError
+        The simulated residual is not finite, or no column has 64 usable samples.
     """
 
     def __init__(self, rate: float, residuals, masks, f_max: float, nperseg: int = 1024, rms_min: float = 0.0):
@@ -194,6 +317,18 @@ class NoiseFloor:
         self.sim_ms = [float(x * self.scale ** 2) for x in ms]
 
     def gain(self, n: int) -> np.ndarray:
+        """The whitening gain on the ``rfft`` grid of ``n`` samples (scaled: unit mean square floor).
+
+        Parameters
+        ----------
+        n : int
+            FFT length.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``n // 2 + 1`` gains [1/N].
+        """
         f = np.fft.rfftfreq(n, 1.0 / self.rate)
         g = 1.0 / np.sqrt(np.interp(f, self.f, self.psd))
         roll = 1.0 / np.sqrt(1.0 + (f / self.f_max) ** 8)
@@ -202,7 +337,19 @@ class NoiseFloor:
         return g * self.scale
 
     def whiten(self, r: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """Whitened residual (same shape); masked-out samples are zero before and after."""
+        """Whitened residual (same shape); masked-out samples are zero before and after.
+
+        Parameters
+        ----------
+        r : numpy.ndarray
+            (T, B) residual [N].
+        mask : numpy.ndarray
+            (T, B) bool.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
         T = r.shape[0]
         n = int(2 ** np.ceil(np.log2(2 * T)))
         g = self.gain(n)
@@ -211,13 +358,42 @@ class NoiseFloor:
         return np.where(mask, w, 0.0)
 
     def ms(self, r: np.ndarray, mask: np.ndarray) -> float:
-        """Whitened mean square over ``mask`` (1 = noise floor)."""
+        """Whitened mean square over ``mask`` (1 = noise floor).
+
+        Parameters
+        ----------
+        r : numpy.ndarray
+            (T, B) residual [N].
+        mask : numpy.ndarray
+            (T, B) bool.
+
+        Returns
+        -------
+        float
+        """
         w = self.whiten(r, mask)
         return float(np.sum(w[mask] ** 2) / max(1, mask.sum()))
 
 
 def band_rms(r: np.ndarray, mask: np.ndarray, rate: float, f_hi: float) -> float:
-    """RMS [N] of the residual low-passed (zero phase, 2nd order) at ``f_hi``, over ``mask``."""
+    """RMS [N] of the residual low-passed (zero phase, 2nd order) at ``f_hi``, over ``mask``.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        (T, B) residual [N].
+    mask : numpy.ndarray
+        (T, B) bool.
+    rate : float
+        Sample rate [Hz].
+    f_hi : float
+        Cutoff [Hz].
+
+    Returns
+    -------
+    float
+        NaN for an empty mask.
+    """
     sos = signal.butter(2, min(0.95, 2 * f_hi / rate), output="sos")
     rl = signal.sosfiltfilt(sos, taper(r, mask), axis=0)
     return float(np.sqrt(np.mean(rl[mask] ** 2))) if mask.any() else float("nan")
@@ -227,9 +403,23 @@ def band_rms(r: np.ndarray, mask: np.ndarray, rate: float, f_hi: float) -> float
 def open_loop_windows(spec: ModelSpec, obs: Observer, res: ObsResult, length: int):
     """Open-loop windows from the observer snapshots (``res`` run with ``snap_every=length``).
 
-    Returns dict: ``start`` (W,), ``trial`` (W,), ``drift_m`` (W,) position error at the
-    window end, ``force_N`` (W,) constant force explaining the drift (rigid-body
-    approximation ``2 m e / T^2``), ``err`` (length, W) the position error over each window.
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    obs : Observer
+        The observer that ran.
+    res : ObsResult
+        Its run, with snapshots.
+    length : int
+        Window length [samples].
+
+    Returns
+    -------
+    dict
+        ``start`` (W,), ``trial`` (W,), ``drift_m`` (W,) position error at the window end,
+        ``force_N`` (W,) constant force explaining the drift (rigid-body approximation
+        ``2 m e / T^2``), ``err`` (length, W) the position error over each window.
     """
     every, sz, sf, sps, sdb = res.snaps
     data = obs.data

@@ -86,7 +86,27 @@ EMPS_SHA256 = "6cf6814ae14618795da0101aae2bb97ff0c6351b0501b5492751b02b07facf7e"
 # =========================================================================== EMPS
 @dataclass
 class EmpsData:
-    """The EMPS record in SI (arrays of shape (N,))."""
+    """The EMPS record in SI (arrays of shape (N,)).
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        Time [s].
+    qm : numpy.ndarray
+        Measured position, load side [m].
+    qg : numpy.ndarray
+        Reference position [m].
+    vir : numpy.ndarray
+        Controller output [V].
+    gtau : float
+        Drive gain [N/V].
+    kp : float
+        Position-loop gain [1/s].
+    kv : float
+        Velocity-loop gain [V/(m/s)].
+    path : pathlib.Path
+        The file read.
+    """
     t: np.ndarray        # time [s]
     qm: np.ndarray       # measured position, load side [m]
     qg: np.ndarray       # reference position [m]
@@ -108,7 +128,22 @@ class EmpsData:
 
 
 def load_emps(path) -> EmpsData:
-    """Read ``DATA_EMPS.mat`` (MATLAB v5) and check its arrays (shape, finiteness, sampling)."""
+    """Read ``DATA_EMPS.mat`` (MATLAB v5) and check its arrays (shape, finiteness, sampling).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file.
+
+    Returns
+    -------
+    EmpsData
+
+    Raises
+    ------
+    DataMissing
+        The file is not there.
+    """
     path = need_file(Path(path), "EMPS data")
     try:
         m = loadmat(path)
@@ -138,6 +173,22 @@ def idim_ls(d: EmpsData, cutoff: float = 100.0, decimate: int = 10, asymmetric: 
 
     Returns values, relative standard deviations (LS, white residual) and the relative error
     ``||tau - A theta|| / ||tau||``. A check of the data path, independent of the diagnosis.
+
+    Parameters
+    ----------
+    d : EmpsData
+        The record.
+    cutoff : float, optional
+        Low-pass cutoff [Hz].
+    decimate : int, optional
+        Decimation factor after filtering.
+    asymmetric : bool, optional
+        Fit direction-dependent friction (``Fv+-``, ``Fc+-``) and no offset.
+
+    Returns
+    -------
+    dict
+        Values (SI), relative standard deviations and the relative error.
     """
     fs = 1.0 / d.dt
     sos = signal.butter(4, cutoff / (fs / 2), output="sos")
@@ -228,6 +279,19 @@ def rigid_quantities(rep: dict, spec, x: np.ndarray, v: np.ndarray) -> dict:
     force-constant ratio's own uncertainty is not propagated). Returns ``quantities``
     ``{name: {"value", "sigma"}}``, ``found``, ``unmapped`` effects and the
     :class:`stage_control.cascaded.RigidAxis` arguments (``axis``).
+
+    Parameters
+    ----------
+    rep : dict
+        The diagnosis report (its found effects and covariance).
+    spec : ModelSpec or stage_sim.config.Preset
+        The diagnosed model.
+    x, v : numpy.ndarray
+        Recorded position [m] and velocity [m/s].
+
+    Returns
+    -------
+    dict
     """
     preset = getattr(spec, "preset", spec)
     ax = _preset_axis(preset)
@@ -314,7 +378,28 @@ def run_emps(root: Path, out: Path, structure_check: bool = True, plots: bool = 
     """Convert, diagnose from the plain nominal, compare with the published model (see module doc).
 
     ``max_seconds``: the diagnosis's wall-clock budget (``nanostage diagnose``'s default; ``None``: no
-    limit, for a check whose answer must not depend on the machine's load)."""
+    limit, for a check whose answer must not depend on the machine's load).
+
+    Parameters
+    ----------
+    root : pathlib.Path
+        The data folder (``emps/DATA_EMPS.mat`` in it).
+    out : pathlib.Path
+        Output folder of the recording and the diagnosis report.
+    structure_check : bool, optional
+        Also fit the published model structures through the diagnosis (~1 min).
+    plots : bool, optional
+        Write the PNG plots.
+    verbose : bool, optional
+        Print the diagnosis's steps.
+    max_seconds : float or None, optional
+        The diagnosis's wall-clock budget [s].
+
+    Returns
+    -------
+    dict
+        The data set's section of the realdata report.
+    """
 
 
     T0 = time.perf_counter()
@@ -421,7 +506,22 @@ def _emps_plots(out: Path, d: EmpsData, replay: dict, held: np.ndarray) -> list[
 
 # --------------------------------------------------------------------------- tribometer run
 def run_tribometer(root: Path, out: Path, plots: bool = True) -> dict:
-    """Open-loop, position-driven friction identification (:mod:`.tribometer`)."""
+    """Open-loop, position-driven friction identification (:mod:`.tribometer`).
+
+    Parameters
+    ----------
+    root : pathlib.Path
+        The data folder (``microtribometer_reciprocating/test_data_2.txt`` in it).
+    out : pathlib.Path
+        Output folder of its plots.
+    plots : bool, optional
+        Write the PNG plots.
+
+    Returns
+    -------
+    dict
+        The data set's section of the realdata report (held-out RMS per friction model).
+    """
     T0 = time.perf_counter()
     path = need_file(Path(root) / "microtribometer_reciprocating" / "test_data_2.txt",
                       "tribometer data (shared/data/microtribometer_reciprocating)")
@@ -490,14 +590,30 @@ def run_realdata(out, data=None, only=None, structure_check: bool = True, plots:
 
     Parameters
     ----------
-    out : path
+    out : str or pathlib.Path
         Output folder (``emps/`` holds the recording and the diagnosis report).
-    data : path, optional
+    data : str or pathlib.Path, optional
         The data folder (default: :func:`data_root`).
     only : list of str, optional
         ``["emps"]``, ``["tribometer"]`` (default both).
     structure_check : bool
         Also fit the published model structures through the diagnosis (EMPS; ~1 min).
+    plots : bool
+        Write the PNG plots.
+    verbose : bool
+        Print the diagnosis's steps.
+    overwrite : bool
+        ``out`` may be a folder nanostage did not write (:func:`experiment_runner.outputs.prepare_folder`).
+
+    Returns
+    -------
+    dict
+        The report: ``datasets`` (per data set), ``seconds``, and ``json`` (its JSON-able form).
+
+    Raises
+    ------
+    DataMissing
+        A data set is not where it should be.
     """
     root = data_root(data)
     out = outputs.prepare_folder(out, overwrite, files=("report.json", "report.md"), option="--out")
@@ -526,7 +642,18 @@ def _dev(v: float, ref: float) -> str:
 
 
 def to_markdown(rep: dict) -> str:
-    """The realdata report (``rep`` as written to ``report.json``)."""
+    """The realdata report (``rep`` as written to ``report.json``).
+
+    Parameters
+    ----------
+    rep : dict
+        :func:`run_realdata`'s report.
+
+    Returns
+    -------
+    str
+        Markdown.
+    """
     L = ["# Diagnosis on real data", "", f"Data: `{rep['data_root']}`. Total {rep['seconds']:.0f} s.", ""]
     e = rep["datasets"].get("emps")
     if e:
@@ -626,6 +753,18 @@ def to_markdown(rep: dict) -> str:
 
 # --------------------------------------------------------------------------- command line
 def add_realdata_arguments(parser):
+    """Add the arguments of ``nanostage realdata`` (wire with ``set_defaults(func=main_realdata)``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        ``parser``.
+    """
     parser.add_argument("--out", default="out/realdata", help="output folder (report.md, report.json, plots)")
     parser.add_argument("--data", default=None, help="data folder (default ../shared/data or $NANOSTAGE_DATA)")
     parser.add_argument("--only", nargs="*", choices=["emps", "tribometer"], default=None, help="data sets to run")
@@ -639,6 +778,18 @@ def add_realdata_arguments(parser):
 
 
 def main_realdata(args) -> int:
+    """Run ``nanostage realdata`` from parsed arguments.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        As :func:`add_realdata_arguments` defines them.
+
+    Returns
+    -------
+    int
+        0 when the reports were written; 2 when the data are missing (one message on stderr).
+    """
     try:
         rep = run_realdata(args.out, data=args.data, only=args.only, structure_check=not args.no_structure_check,
                            plots=not args.no_plots, verbose=args.verbose, overwrite=args.overwrite)

@@ -47,20 +47,35 @@ REFINE_MODE_PASSES = 3
 
 @dataclass
 class Refinement:
-    """A candidate refined by the replay."""
+    """A candidate refined by the replay.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The refined model (the adopted effects and the candidate).
+    theta : numpy.ndarray
+        The candidate's own parameters.
+    sigma : numpy.ndarray
+        Their block-robust standard errors.
+    at_bound : list
+        Names of the candidate's own parameters at a bound.
+    joint : FitResult, optional
+        The fit over the adopted effects' and the candidate's parameters (refined together), else
+        None.
+    """
     spec: ModelSpec
-    """The refined model (the adopted effects and the candidate)."""
     theta: np.ndarray
-    """The candidate's own parameters."""
     sigma: np.ndarray
-    """Their block-robust standard errors."""
     at_bound: list
-    """Names of the candidate's own parameters at a bound."""
     joint: FitResult | None
-    """The fit over the adopted effects' and the candidate's parameters (refined together), else None."""
 
     def on_bound(self) -> bool:
-        """Any refined parameter at a bound (of the joint fit, when refined together)."""
+        """Any refined parameter at a bound (of the joint fit, when refined together).
+
+        Returns
+        -------
+        bool
+        """
         return bool(self.joint.on_bound if self.joint is not None else self.at_bound)
 
 
@@ -70,6 +85,22 @@ def block_covariance(J: np.ndarray, r: np.ndarray, block: np.ndarray, min_blocks
     independent between them: the cluster-robust sandwich ``B M B``, ``B = (J'J)^-1``,
     ``M = G/(G-1) sum_g (J_g' r_g)(J_g' r_g)'`` over the ``G`` blocks. With fewer than
     ``min_blocks`` blocks, the classical ``s^2 (J'J)^-1``.
+
+    Parameters
+    ----------
+    J : numpy.ndarray
+        (n, p) Jacobian.
+    r : numpy.ndarray
+        (n,) residual at the optimum.
+    block : numpy.ndarray
+        (n,) block id of each residual.
+    min_blocks : int, optional
+        Fewest blocks for the sandwich.
+
+    Returns
+    -------
+    numpy.ndarray
+        (p, p) covariance.
 
     Examples
     --------

@@ -94,6 +94,23 @@ __all__ = ["write_report", "to_markdown", "jsonable"]
 
 
 def jsonable(o):
+    """``o`` as strict JSON types: numpy values as Python ones, non-finite floats as None, paths as
+    strings, private (``_``-prefixed) dict entries dropped.
+
+    Parameters
+    ----------
+    o : object
+        Nested dicts, lists, tuples, numpy arrays and scalars, paths.
+
+    Returns
+    -------
+    object
+
+    Examples
+    --------
+    >>> jsonable({"a": np.float64("nan"), "_x": 1, "n": np.arange(2)})
+    {'a': None, 'n': [0, 1]}
+    """
     if isinstance(o, dict):
         return {str(k): jsonable(v) for k, v in o.items() if not str(k).startswith("_")}
     if isinstance(o, (list, tuple)):
@@ -374,7 +391,18 @@ def _md_noise(rep: dict) -> list[str]:
 
 
 def to_markdown(rep: dict) -> str:
-    """``report.md`` from the report dict."""
+    """``report.md`` from the report dict.
+
+    Parameters
+    ----------
+    rep : dict
+        The diagnosis report (``report.json`` content).
+
+    Returns
+    -------
+    str
+        Markdown, leading with the held-out replay headline.
+    """
     L = []
     for section in (_md_headline, _md_found, _md_findings, _md_proof, _md_locate, _md_candidates, _md_noise):
         L += section(rep)
@@ -513,7 +541,28 @@ REPORT_FILES = ("report.md", "report.json", "improved_preset.yaml")
 
 def write_report(out, rep: dict, improved, nominal, data, arrays: dict, plots: bool = True) -> Path:
     """``report.json``, ``report.md``, ``improved_preset.yaml`` and the plots, each written atomically
-    to the output folder ``out`` (:mod:`experiment_runner.outputs`); returns ``out``."""
+    to the output folder ``out`` (:mod:`experiment_runner.outputs`).
+
+    Parameters
+    ----------
+    out : str or pathlib.Path
+        Output folder.
+    rep : dict
+        The report (gets the names of the files written).
+    improved, nominal : ModelSpec
+        The improved and the nominal model.
+    data : DiagData
+        The recording.
+    arrays : dict
+        Signals for the plots (replays, residuals).
+    plots : bool, optional
+        Write the PNG plots (a plot that fails is noted in the report, never loses it).
+
+    Returns
+    -------
+    pathlib.Path
+        ``out``.
+    """
     out = outputs.prepare_folder(out)
     outputs.write_text(out / "improved_preset.yaml", improved.preset_yaml())
     rep["improved_model"]["preset_yaml"] = "improved_preset.yaml"

@@ -41,35 +41,69 @@ NOMINAL_Z = 2.0
 @dataclass
 class Problem:
     """What the forward selection works on: fixed for one diagnosis (the evaluator's floor follows
-    the current model)."""
+    the current model).
+
+    Parameters
+    ----------
+    options : Options
+        The diagnosis's options.
+    data : DiagData
+        The recording.
+    observer : Observer
+        The force observer on it.
+    base : ModelSpec
+        The nominal with the quantization found from the lattice: where every path starts.
+    library : Library
+        The effects, bound to the recording.
+    keys : list
+        The keys proposed, in order.
+    evaluator : Evaluator
+        The force-residual evaluator of candidate fits (its floor follows the current model).
+    judge : ReplayJudge
+        The held-out samples' judge (closed-loop replay, or open-loop windows).
+    fit_judge : ReplayJudge, optional
+        The fit samples' judge (the replay refinement's); None: no refinement.
+    base_floor : ForceFloor
+        The base model's force-residual floor.
+    base_replay_floor : Floor
+        The base model's run-to-run replay floor.
+    J_held_base : float
+        The base model's held-out force-residual J.
+    J_fit_base : float
+        The same on the fit samples.
+    band_hz : float
+        The force residual's band [Hz] (half the observer bandwidth).
+    n_eff : float
+        Effective sample count of the held-out force residual (the base model's floor; at least 10).
+    executor : object
+        Where candidate fits run (None: in this process).
+    token : str, optional
+        Identifies the fit data shared with worker processes.
+    blob : bytes, optional
+        That data, pickled once.
+    noise_ratio : float, optional
+        The data's drive-noise level over the base model's, read from the residual spectrum before
+        judging (:func:`.stages.drive_noise_prior`; None: not read).
+    """
     options: Options
     data: DiagData
     observer: Observer
     base: ModelSpec
-    """The nominal with the quantization found from the lattice: where every path starts."""
     library: Library
-    """The effects, bound to the recording."""
     keys: list
-    """The keys proposed, in order."""
     evaluator: Evaluator
     judge: ReplayJudge
-    """The held-out samples' judge (closed-loop replay, or open-loop windows)."""
     fit_judge: ReplayJudge | None
-    """The fit samples' judge (the replay refinement's); None: no refinement."""
     base_floor: ForceFloor
     base_replay_floor: Floor
     J_held_base: float
     J_fit_base: float
     band_hz: float
-    """The force residual's band [Hz] (half the observer bandwidth)."""
     n_eff: float
-    """Effective sample count of the held-out force residual (the base model's floor; at least 10)."""
     executor: object = None
     token: str | None = None
     blob: bytes | None = None
     noise_ratio: float | None = None
-    """The data's drive-noise level over the base model's, read from the residual spectrum before
-    judging (:func:`.stages.drive_noise_prior`; None: not read)."""
 
     @property
     def refines(self) -> bool:
@@ -77,12 +111,36 @@ class Problem:
         return self.fit_judge is not None
 
     def held_out_D(self, spec: ModelSpec, floor: Floor) -> float:
-        """Replay error of the held-out samples in units of ``floor`` (inf: unstable)."""
+        """Replay error of the held-out samples in units of ``floor`` (inf: unstable).
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            A model.
+        floor : Floor
+            The floor whose units are used.
+
+        Returns
+        -------
+        float
+        """
         rp = self.judge.replay(spec)
         return self.judge.D(rp, floor) if rp.ok else float("inf")
 
     def fit_D(self, spec: ModelSpec, floor: Floor) -> float:
-        """Replay error of the fit samples in units of ``floor`` (the held-out one without a fit judge)."""
+        """Replay error of the fit samples in units of ``floor`` (the held-out one without a fit judge).
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            A model.
+        floor : Floor
+            The floor whose units are used.
+
+        Returns
+        -------
+        float
+        """
         if self.fit_judge is None:
             return self.held_out_D(spec, floor)
         rp = self.fit_judge.replay(spec)
@@ -90,7 +148,21 @@ class Problem:
 
     def params_of(self, f: FitResult, ctx: Context, spec: ModelSpec | None = None):
         """Candidate ``f``'s fitted parameters (:class:`.effects.base.Param`: bounds) on ``spec``
-        (default: the base model), or None."""
+        (default: the base model), or None.
+
+        Parameters
+        ----------
+        f : FitResult
+            A candidate's fit.
+        ctx : Context
+            What was located on the recording.
+        spec : ModelSpec, optional
+            The model (default the base).
+
+        Returns
+        -------
+        list of Param or None
+        """
         try:
             ps = f.effect.params(self.base if spec is None else spec, ctx)
         except Exception:     # noqa: BLE001 - no ranges: the standard errors alone decide
@@ -98,13 +170,40 @@ class Problem:
         return ps if len(ps) == len(f.theta) else None
 
     def spans(self, f: FitResult, ctx: Context):
-        """The ranges (hi - lo) of candidate ``f``'s parameters on the base model, or None."""
+        """The ranges (hi - lo) of candidate ``f``'s parameters on the base model, or None.
+
+        Parameters
+        ----------
+        f : FitResult
+            A candidate's fit.
+        ctx : Context
+            What was located on the recording.
+
+        Returns
+        -------
+        list of float or None
+        """
         ps = self.params_of(f, ctx)
         return None if ps is None else [p.hi - p.lo for p in ps]
 
     def identification(self, f: FitResult, ctx: Context, spec: ModelSpec | None = None) -> tuple:
         """:func:`identification` of fit ``f`` (its bounds on ``spec``, default the base model; the
-        plausible ranges the library documents, on the recording's axis)."""
+        plausible ranges the library documents, on the recording's axis).
+
+        Parameters
+        ----------
+        f : FitResult
+            A candidate's fit.
+        ctx : Context
+            What was located on the recording.
+        spec : ModelSpec, optional
+            The model (default the base).
+
+        Returns
+        -------
+        tuple
+            ``(why not, weak)`` as :func:`identification`.
+        """
         if f.effect is None or f.effect.kind == "integer":
             return None, []
         doc = {p.name: p for p in f.effect.parameters}
@@ -114,66 +213,130 @@ class Problem:
 @dataclass
 class Candidate:
     """An effect proposed at a step; ``replaces``: the adopted member of its exclusive group it is
-    fitted without (a replacement), else None."""
+    fitted without (a replacement), else None.
+
+    Parameters
+    ----------
+    effect : Effect
+        The effect.
+    replaces : str, optional
+        Key of the adopted effect it replaces.
+    """
     effect: Effect
     replaces: str | None = None
 
 
 @dataclass
 class JudgedRow:
-    """A fitted candidate judged by its replay against the current model's run-to-run floor."""
+    """A fitted candidate judged by its replay against the current model's run-to-run floor.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The candidate's fit.
+    replay : Replay
+        Its replay of the held-out data.
+    comparison : Comparison
+        Against the current model (:meth:`.judge.ReplayJudge.compare`).
+    on_bound : list
+        Its parameters at a bound (and the adopted effects' when fitted together).
+    ok : bool
+        Adoptable: beyond the floor, identified, moved by the data.
+    why : str
+        Why not adoptable, in words ('' when it is).
+    rule : str
+        Chosen (:func:`choose`): the rule that chose it among the candidates the replay cannot tell
+        apart.
+    """
     fit: FitResult
     replay: Replay
     comparison: Comparison
     on_bound: list
-    """Its parameters at a bound (and the adopted effects' when fitted together)."""
     ok: bool
-    """Adoptable: beyond the floor, identified, moved by the data."""
     why: str
     rule: str = ""
-    """Chosen (:func:`choose`): the rule that chose it among the candidates the replay cannot tell apart."""
 
 
 @dataclass
 class Path:
-    """One walk of the forward selection: the current model and what led to it."""
+    """One walk of the forward selection: the current model and what led to it.
+
+    Parameters
+    ----------
+    current : ModelSpec
+        The current model.
+    J_held : float
+        The current model's held-out force-residual J (its own floor).
+    J_fit : float
+        The same on the fit samples.
+    floor : ForceFloor
+        The current model's force-residual floor.
+    replay_floor : Floor
+        The current model's run-to-run replay floor.
+    context : Context
+        The located context (proposals renewed after every adoption).
+    steps : list
+        The report's step records.
+    selected : list
+        The adopted effects' fits, in order.
+    found : list
+        The report's rows of the adopted effects (one per selected fit).
+    banned : set
+        Keys not proposed again (withdrawn, replaced, a known quantity's confounded alternative).
+    continued : set
+        Continuations (:meth:`.forward.ForwardSelection.continuations`) tried on the current model
+        (emptied by every adoption).
+    refit : tuple, optional
+        (model, joint fit): the best re-fit of the adopted effects alone a step's joint refinements
+        reached.
+    second_start : dict, optional
+        What the walk from step 1's runner-up found (:meth:`.forward.ForwardSelection.run`).
+    """
     current: ModelSpec
     J_held: float
-    """The current model's held-out force-residual J (its own floor)."""
     J_fit: float
     floor: ForceFloor
-    """The current model's force-residual floor."""
     replay_floor: Floor
-    """The current model's run-to-run replay floor."""
     context: Context
-    """The located context (proposals renewed after every adoption)."""
     steps: list = field(default_factory=list)
-    """The report's step records."""
     selected: list = field(default_factory=list)
-    """The adopted effects' fits, in order."""
     found: list = field(default_factory=list)
-    """The report's rows of the adopted effects (one per selected fit)."""
     banned: set = field(default_factory=set)
-    """Keys not proposed again (withdrawn, replaced, a known quantity's confounded alternative)."""
     continued: set = field(default_factory=set)
-    """Continuations (:meth:`.forward.ForwardSelection.continuations`) tried on the current model
-    (emptied by every adoption)."""
     refit: tuple | None = None
-    """(model, joint fit): the best re-fit of the adopted effects alone a step's joint refinements reached."""
     second_start: dict | None = None
-    """What the walk from step 1's runner-up found (:meth:`.forward.ForwardSelection.run`)."""
 
 
 @dataclass
 class FirstStep:
-    """Step 1 of the greedy walk: its judged rows and its record (the second start begins there)."""
+    """Step 1 of the greedy walk: its judged rows and its record (the second start begins there).
+
+    Parameters
+    ----------
+    judged : list of JudgedRow
+        The step's judged candidates.
+    record : dict
+        The step's report record.
+    """
     judged: list
     record: dict
 
 
 def for_fits_on(ctx: Context, selected: list) -> Context:
     """The located context for fits on top of ``selected``: with the Coulomb level adopted, the
-    position-dependent friction has no level parameter of its own (``level_fitted``)."""
+    position-dependent friction has no level parameter of its own (``level_fitted``).
+
+    Parameters
+    ----------
+    ctx : Context
+        What was located on the recording.
+    selected : list of FitResult
+        The adopted effects.
+
+    Returns
+    -------
+    Context
+    """
     return dataclasses.replace(ctx, level_fitted=any(f.effect.sets_friction_level for f in selected))
 
 
@@ -189,6 +352,28 @@ def identification(names, theta, sigma, params=None, documented=None, axis: str 
     ``weak``: the names of the parameters whose standard error exceeds their magnitude (in an
     effect identified by its others: reported as not determined, never as a finding).
 
+    Parameters
+    ----------
+    names : list of str
+        Parameter names.
+    theta : sequence of float
+        Fitted values.
+    sigma : sequence of float or None
+        Their standard errors.
+    params : list of Param, optional
+        What they were fitted with (bounds).
+    documented : dict, optional
+        Name -> :class:`.effects.base.Parameter` (plausible ranges).
+    axis : {'linear', 'rotary'}, optional
+        The recording's axis.
+
+    Returns
+    -------
+    tuple
+        ``(why, weak)``: ``why`` None when identified; ``weak`` a list of names.
+
+    Examples
+    --------
     >>> from experiment_runner.diagnosis.effects.base import Param, Parameter
     >>> ratio = [Param("ratio", "-", 0.3, 3.0, 1.0)]
     >>> identification(["ratio"], [0.3004], [0.01], ratio)[0]
@@ -265,7 +450,27 @@ def _at_nominal(f: FitResult, spans=None) -> bool:
 def judge_rows(problem: Problem, fits: list, floor: Floor, sim_blocks, first: bool, ctx: Context) -> list:
     """Each fit's replay judged against the current model's run-to-run ``floor`` (``sim_blocks``: its
     simulated recordings' block errors); ``first``: the first step (no share of the remaining excess
-    is asked)."""
+    is asked).
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on.
+    fits : list of FitResult
+        The step's fitted candidates.
+    floor : Floor
+        The current model's run-to-run floor.
+    sim_blocks : numpy.ndarray
+        (K, n_blocks) block errors of the floor's simulated recordings.
+    first : bool
+        The first step.
+    ctx : Context
+        What was located on the recording.
+
+    Returns
+    -------
+    list of JudgedRow
+    """
     opt, judge = problem.options, problem.judge
     out = []
     D_floor = float(np.mean(sim_blocks.sum(axis=1))) / max(judge.n, 1)
@@ -298,7 +503,20 @@ def judge_rows(problem: Problem, fits: list, floor: Floor, sim_blocks, first: bo
 
 def rank(row: JudgedRow, complexity: float) -> float:
     """A judged candidate's rank: its replay with the selection's complexity penalty per parameter (a
-    12-block GMS must do clearly better than the one Coulomb level it contains)."""
+    12-block GMS must do clearly better than the one Coulomb level it contains).
+
+    Parameters
+    ----------
+    row : JudgedRow
+        A judged candidate.
+    complexity : float
+        Penalty per parameter.
+
+    Returns
+    -------
+    float
+        Lower is better.
+    """
     return row.comparison.D_after * (1 + complexity * len(row.fit.theta))
 
 
@@ -307,7 +525,21 @@ def choose(problem: Problem, judged: list, floor: Floor) -> tuple:
     adoptable). Candidates the held-out replay cannot tell from the best are confounded; one of them
     is adopted: not a quantity the nominal states as known unless the data demand it, then the
     simplest, then the best replay; a simpler adoptable candidate wins unless the more complex one
-    improves on it beyond the floor."""
+    improves on it beyond the floor.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on.
+    judged : list of JudgedRow
+        The step's judged candidates.
+    floor : Floor
+        The current model's run-to-run floor.
+
+    Returns
+    -------
+    tuple
+    """
     judge, known = problem.judge, problem.library.known
     ok = sorted([j for j in judged if j.ok], key=lambda j: rank(j, problem.options.complexity))
     ok, floors = _consistent_from_below(problem, ok)
@@ -397,7 +629,23 @@ def _threshold(J: float, n_eff: float) -> float:
 
 
 def step_rows(problem: Problem, judged: list, J_held: float, n_eff: float) -> list:
-    """The report's rows of a step's candidates, best replay first."""
+    """The report's rows of a step's candidates, best replay first.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on.
+    judged : list of JudgedRow
+        The step's judged candidates.
+    J_held : float
+        The current model's held-out replay error.
+    n_eff : float
+        Effective held-out sample count.
+
+    Returns
+    -------
+    list of dict
+    """
     opt, judge = problem.options, problem.judge
     threshold = _threshold(J_held, n_eff)
     rows = []

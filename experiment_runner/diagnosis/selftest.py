@@ -102,6 +102,26 @@ CASES = _cases()
 
 
 def judge(case: Case, rep: dict) -> dict:
+    """Whether a diagnosis passed its self-test case.
+
+    Passed: the truth's effect(s) named first (or in the named effect's confounded set), every
+    parameter within its tolerance of the truth, the held-out error's excess over the run-to-run
+    floor down by at least 50 %, and no effect the truth lacks (a negative control: "model
+    adequate" and nothing named).
+
+    Parameters
+    ----------
+    case : Case
+        The self-test case (its truth and expected parameters).
+    rep : dict
+        The diagnosis report.
+
+    Returns
+    -------
+    dict
+        ``passed``, ``false_positive``, ``named``, ``named_first``, ``extra_effects``, ``params``
+        (the checks), ``held_out_fall`` and what it was measured on.
+    """
     found = rep["found"]
     names = [f["effect"] for f in found]
     out = {"case": case.name, "truth_effect": case.effect, "verdict": rep["verdict"], "named": names}
@@ -145,10 +165,31 @@ def judge(case: Case, rep: dict) -> dict:
 
 def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verbose: bool = False,
                  workers: int | None = None, cluster=None, overwrite: bool = False) -> dict:
-    """Run the cases (``only``: names or prefixes); returns the summary dict. ``workers`` /
-    ``cluster``: where each diagnosis runs its candidate fits (:class:`.options.Options`).
-    ``keep``: an output folder for the recordings and reports (``overwrite``: as
-    :func:`experiment_runner.outputs.prepare_folder`'s); else a temporary folder, removed."""
+    """Run the concealed-truth cases (``nanostage diagnose --selftest``).
+
+    Parameters
+    ----------
+    only : list of str, optional
+        Run only the cases whose name starts with one of these.
+    as_json : bool, optional
+        Print nothing per case (the caller prints the summary as JSON).
+    keep : str, optional
+        Output folder for the recordings and reports; else a temporary folder, removed.
+    verbose : bool, optional
+        Print each diagnosis's steps.
+    workers : int, optional
+        Where each diagnosis runs its candidate fits (:class:`.options.Options`).
+    cluster : str, optional
+        A Dask scheduler for them instead.
+    overwrite : bool, optional
+        As :func:`experiment_runner.outputs.prepare_folder`'s, for ``keep``.
+
+    Returns
+    -------
+    dict
+        ``cases``, ``passed``, ``false_positives``, ``negative_controls``, ``by_profile`` and
+        ``results`` (one :func:`judge` row per case, with its timings).
+    """
     cases = [c for c in CASES if not only or any(c.name.startswith(o) for o in only)]
     tmp = outputs.prepare_folder(keep, overwrite, option="--keep") if keep else Path(tempfile.mkdtemp(prefix="nanostage_selftest_"))
     results = []
@@ -200,7 +241,20 @@ def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verb
 def diagnose_seconds(duration: float = 10.0, keep: str | None = None) -> float:
     """Wall time [s] of ``diagnose`` on a synthetic recording of ``duration`` seconds at the
     nominal's 10 kHz (circle trials of 0.5 s, truth = nominal + 30 % Coulomb friction,
-    concealed), written and read back as MCAP like any recording (``nanostage bench``)."""
+    concealed), written and read back as MCAP like any recording (``nanostage bench``).
+
+    Parameters
+    ----------
+    duration : float, optional
+        Seconds of recording.
+    keep : str, optional
+        Folder for the recording (else a temporary folder, removed).
+
+    Returns
+    -------
+    float
+        Seconds.
+    """
     case = next(c for c in CASES if c.name == "coulomb_+30%")
     cycles = 0.5 / (2 * 3.141592653589793 * 1.0e-3 / 0.02)          # 0.5 s of circle per trial
     exp = dict(EXPERIMENTS["circle"], name="diag_bench", trials=max(2, int(round(duration / 0.5))))

@@ -141,6 +141,23 @@ def remaining(data, r: np.ndarray, held: np.ndarray, f_band: float, floor_rms: f
     >>> out = remaining(d, r, d.valid, 1000.0)
     >>> round(out["lines"][0]["f_hz"]), round(out["lines"][0]["amplitude_N"], 1)
     (120, 0.3)
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording.
+    r : numpy.ndarray
+        (T, B) force residual [N].
+    held : numpy.ndarray
+        (T, B) bool: the samples examined.
+    f_band : float
+        Low-pass cutoff of the position and regime views [Hz].
+    floor_rms : float, optional
+        RMS of the model's own floor residual [N] (the ``ratio``'s denominator).
+
+    Returns
+    -------
+    dict
     """
     U = axis_units(getattr(data, "axis", "linear") or "linear")
     fu, pu = U["force"], U["position"]

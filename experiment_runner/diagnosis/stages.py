@@ -39,71 +39,131 @@ __all__ = ["Setup", "Lattice", "Prediction", "Location", "read", "quantization",
 
 @dataclass
 class Setup:
-    """What :func:`read` leaves: the recording and the nominal as the diagnosis runs them."""
+    """What :func:`read` leaves: the recording and the nominal as the diagnosis runs them.
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording as read (plant inputs filled in from the nominal where absent).
+    nominal : ModelSpec
+        The nominal model (at the recording's rate).
+    notes : list
+        The report's notes on the recording and the model.
+    nominal_replay : dict
+        The nominal's closed-loop replay of the recorded reference (:func:`.predict.replay`).
+    observer : Observer
+        The force observer on the data.
+    band_hz : float
+        The force residual's band [Hz] (half the observer bandwidth).
+    window : int
+        Length of the report's open-loop windows [samples].
+    """
     data: DiagData
     nominal: ModelSpec
-    """The nominal model (at the recording's rate)."""
     notes: list
-    """The report's notes on the recording and the model."""
     nominal_replay: dict
-    """The nominal's closed-loop replay of the recorded reference (:func:`.predict.replay`)."""
     observer: Observer
     band_hz: float
-    """The force residual's band [Hz] (half the observer bandwidth)."""
     window: int
-    """Length of the report's open-loop windows [samples]."""
 
 
 @dataclass
 class Lattice:
-    """What :func:`quantization` leaves."""
+    """What :func:`quantization` leaves.
+
+    Parameters
+    ----------
+    base : ModelSpec
+        The nominal with the encoder step found from the lattice (where the selection starts).
+    found : list
+        The report's row of the quantization, when found.
+    stochastic : dict
+        The report's ``stochastic`` entries so far.
+    """
     base: ModelSpec
-    """The nominal with the encoder step found from the lattice (where the selection starts)."""
     found: list
-    """The report's row of the quantization, when found."""
     stochastic: dict
-    """The report's ``stochastic`` entries so far."""
 
 
 @dataclass
 class Prediction:
-    """What :func:`predict` leaves."""
+    """What :func:`predict` leaves.
+
+    Parameters
+    ----------
+    residual : ObsResult
+        The nominal's force residual (with window snapshots).
+    windows : dict, optional
+        The nominal's open-loop windows (:func:`.predict.open_loop_windows`).
+    floor : ForceFloor
+        The base model's force-residual floor.
+    controller_error : float
+        Relative RMS by which the model's controller misses the recorded command (0: open loop).
+    reference : numpy.ndarray, optional
+        The equivalent reference the replay follows, or None (the recorded one).
+    judge : ReplayJudge
+        The replay judge of the held-out trials (open loop: :class:`.openloop.OpenLoopJudge`).
+    fit_judge : ReplayJudge, optional
+        The same on the fit trials (None: candidates are not refined by the replay).
+    replay_floor : Floor
+        The base model's run-to-run replay floor.
+    nominal_replay_floor : Floor, optional
+        The nominal's own replay floor where the base took a drive-noise level before judging
+        (:func:`drive_noise_prior`; None: ``replay_floor`` is the nominal's): the report's nominal
+        column.
+    """
     residual: ObsResult
-    """The nominal's force residual (with window snapshots)."""
     windows: dict | None
-    """The nominal's open-loop windows (:func:`.predict.open_loop_windows`)."""
     floor: ForceFloor
-    """The base model's force-residual floor."""
     controller_error: float
-    """Relative RMS by which the model's controller misses the recorded command (0: open loop)."""
     reference: np.ndarray | None
-    """The equivalent reference the replay follows, or None (the recorded one)."""
     judge: ReplayJudge
     fit_judge: ReplayJudge | None
     replay_floor: Floor
-    """The base model's run-to-run replay floor."""
     nominal_replay_floor: Floor | None = None
-    """The nominal's own replay floor where the base took a drive-noise level before judging
-    (:func:`drive_noise_prior`; None: ``replay_floor`` is the nominal's): the report's nominal column."""
 
 
 @dataclass
 class Location:
-    """What :func:`locate` leaves."""
+    """What :func:`locate` leaves.
+
+    Parameters
+    ----------
+    summary : dict
+        The report's ``locate`` section.
+    arrays : dict
+        Arrays for the plots.
+    context : Context
+        What was located, for the effects.
+    library : Library
+        The effects bound to this recording (the options' library is never changed).
+    """
     summary: dict
-    """The report's ``locate`` section."""
     arrays: dict
-    """Arrays for the plots."""
     context: Context
     library: Library
-    """The effects bound to this recording (the options' library is never changed)."""
 
 
 def fill_plant_inputs(spec: ModelSpec, data, rp: dict) -> list[str]:
     """Give ``data`` the dither forces and SAI command it lacks but the model's plant takes, from the
     nominal closed-loop replay ``rp`` (the model's own dither generator and SAI manager on the
     recorded reference: the switching rule and the dither's open-loop part depend on the reference
-    only). Returns the notes for the report."""
+    only). Returns the notes for the report.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The nominal.
+    data : DiagData
+        The recording (changed in place).
+    rp : dict
+        The nominal's closed-loop replay (:func:`.predict.replay`).
+
+    Returns
+    -------
+    list of str
+        Notes on what was filled in.
+    """
     p, notes = spec.preset, []
     if p.dither is not None and data.d0 is None:
         data.d0, data.d1 = rp["d0"], rp["d1"]
@@ -124,6 +184,23 @@ def read(recording, nominal, opt: Options, data: DiagData | None, timing: dict) 
     ------
     stage_sim.config.ConfigError
         A closed-loop record against a nominal without a controller, or axes that differ.
+
+    Parameters
+    ----------
+    recording : str, pathlib.Path or Recording
+        The recording (None when ``data`` is given).
+    nominal : str, pathlib.Path, dict or ModelSpec
+        The nominal.
+    opt : Options
+        The diagnosis's options.
+    data : DiagData or None
+        The recording already loaded.
+    timing : dict
+        Wall times [s] per stage (added to).
+
+    Returns
+    -------
+    Setup
     """
     t = time.perf_counter()
     data = data if data is not None else load_data(recording)
@@ -153,7 +230,19 @@ def read(recording, nominal, opt: Options, data: DiagData | None, timing: dict) 
 
 def quantization(setup: Setup, opt: Options) -> Lattice:
     """The encoder's lattice from the measured positions (a stochastic effect, decided by its own
-    estimate: adopted when it differs from the nominal's step by more than 5 %)."""
+    estimate: adopted when it differs from the nominal's step by more than 5 %).
+
+    Parameters
+    ----------
+    setup : Setup
+        What :func:`read` left.
+    opt : Options
+        The diagnosis's options.
+
+    Returns
+    -------
+    Lattice
+    """
     data, spec0 = setup.data, setup.nominal
     found = []
     base = spec0
@@ -184,7 +273,23 @@ def predict(setup: Setup, base: ModelSpec, opt: Options, timing: dict) -> Predic
     """The nominal's force-observer residual and open-loop windows, the noise floors and the replay
     judges: the closed-loop replay of the held-out trials against the run-to-run floor (on an
     open-loop record the same statistics on the open-loop windows re-initialised from the
-    measurement), and the same of the fit samples for the output-error refinement."""
+    measurement), and the same of the fit samples for the output-error refinement.
+
+    Parameters
+    ----------
+    setup : Setup
+        What :func:`read` left.
+    base : ModelSpec
+        The nominal with the encoder step found (:class:`Lattice`).
+    opt : Options
+        The diagnosis's options.
+    timing : dict
+        Wall times [s] per stage (added to).
+
+    Returns
+    -------
+    Prediction
+    """
     data, spec0, obs, notes = setup.data, setup.nominal, setup.observer, setup.notes
     t = time.perf_counter()
     res_nom = obs.run(spec0, snap_every=setup.window)
@@ -214,7 +319,17 @@ def predict(setup: Setup, base: ModelSpec, opt: Options, timing: dict) -> Predic
 
 
 def noise_states(spec: ModelSpec) -> bool:
-    """The model states a random force (drive current noise or bearing friction noise)."""
+    """The model states a random force (drive current noise or bearing friction noise).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+
+    Returns
+    -------
+    bool
+    """
     st = spec.preset.stage
     return st.drive.noise_current_rms > 0 or any(b.force_noise_rms > 0 for b in st.bearings)
 
@@ -229,7 +344,25 @@ def drive_noise_prior(setup: Setup, lattice: Lattice, pred: Prediction, opt: Opt
     ratio of the data's level to the model's is kept (``stochastic['noise_prior']``): where the data
     are not quieter than the model, a candidate whose replay is closer to the data than its own
     recordings are replays the noise (:func:`.selection.choose`). Returns the prediction (renewed
-    floors when the base changed); ``lattice`` gets the base and the finding."""
+    floors when the base changed); ``lattice`` gets the base and the finding.
+
+    Parameters
+    ----------
+    setup : Setup
+        What :func:`read` left.
+    lattice : Lattice
+        What :func:`quantization` left (gets the base and the finding).
+    pred : Prediction
+        What :func:`predict` left.
+    opt : Options
+        The diagnosis's options.
+    timing : dict
+        Wall times [s] per stage (added to).
+
+    Returns
+    -------
+    Prediction
+    """
     data, obs = setup.data, setup.observer
     t = time.perf_counter()
     base = lattice.base
@@ -296,7 +429,25 @@ def drive_noise_prior(setup: Setup, lattice: Lattice, pred: Prediction, opt: Opt
 def locate(setup: Setup, base: ModelSpec, pred: Prediction, opt: Options, timing: dict) -> Location:
     """Where and what the nominal's residual holds (regimes, spectra, bins; modes on the measured
     transfer and, on a closed-loop record, in the command's noise spectrum, anywhere up to Nyquist:
-    :func:`.locate.transfer_modes`); the library bound to the recording."""
+    :func:`.locate.transfer_modes`); the library bound to the recording.
+
+    Parameters
+    ----------
+    setup : Setup
+        What :func:`read` left.
+    base : ModelSpec
+        The nominal with the encoder step found (:class:`Lattice`).
+    pred : Prediction
+        What :func:`predict` left.
+    opt : Options
+        The diagnosis's options.
+    timing : dict
+        Wall times [s] per stage (added to).
+
+    Returns
+    -------
+    Location
+    """
     data, obs = setup.data, setup.observer
     t = time.perf_counter()
     summary, arrays, ctx = locate_residual(data, pred.residual, pred.floor.res_a, pred.floor.sim_a, obs.f_o,
@@ -316,7 +467,27 @@ def locate(setup: Setup, base: ModelSpec, pred: Prediction, opt: Options, timing
 
 def prepare(setup: Setup, base: ModelSpec, pred: Prediction, loc: Location, opt: Options, executor) -> tuple:
     """The evaluator and the selection's :class:`.selection.Problem`; returns ``(problem, J_fit_nominal,
-    J_held_nominal, adequacy tolerance)``."""
+    J_held_nominal, adequacy tolerance)``.
+
+    Parameters
+    ----------
+    setup : Setup
+        What :func:`read` left.
+    base : ModelSpec
+        The nominal with the encoder step found (:class:`Lattice`).
+    pred : Prediction
+        What :func:`predict` left.
+    loc : Location
+        What :func:`locate` left.
+    opt : Options
+        The diagnosis's options.
+    executor : experiment_runner.executor.Executor or None
+        Where candidate fits run.
+
+    Returns
+    -------
+    tuple
+    """
     spec0, fl = setup.nominal, pred.floor
     ev = Evaluator(setup.observer, fl.noise, opt.max_fit_seconds)
     Jf0, Jh0, _ = ev.both(spec0)

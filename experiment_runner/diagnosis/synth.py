@@ -39,7 +39,29 @@ def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None
     """Simulate ``experiment`` on ``truth`` and write the recording; returns the MCAP path.
 
     The recording is written whole and moved into place (:mod:`experiment_runner.outputs`); an
-    existing one at ``out`` is replaced only with ``overwrite`` (refused before the simulation)."""
+    existing one at ``out`` is replaced only with ``overwrite`` (refused before the simulation).
+
+    Parameters
+    ----------
+    truth : str, pathlib.Path, dict or ModelSpec
+        The concealed truth (:func:`.model.load_model`).
+    experiment : str or pathlib.Path
+        The experiment file (:mod:`experiment_runner.experiment`).
+    out : str or pathlib.Path
+        The recording to write.
+    seed : int, optional
+        Noise seed (default the truth's ``simulation.seed``).
+    trials : int, optional
+        Trials (default the experiment's).
+    conceal : bool, optional
+        Do not record the truth in the recording's ``/experiment/config``.
+    overwrite : bool, optional
+        Replace an existing recording at ``out``.
+
+    Returns
+    -------
+    pathlib.Path
+    """
     check_recording(bag_layout(out)[0], overwrite)
     spec = load_model(truth)
     exp = load_experiment(experiment)
@@ -66,6 +88,18 @@ def synth(truth, experiment, out, *, seed: int | None = None, trials: int | None
 
 
 def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the arguments of ``nanostage synth`` (wire with ``set_defaults(func=main_synth)``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        ``parser``.
+    """
     parser.add_argument("truth", help="truth preset (name or YAML) or model file {preset}")
     parser.add_argument("experiment", help="experiment (name or YAML): profile, trials, starts")
     parser.add_argument("--out", required=True, help="recording to write (bag directory; NAME.mcap -> NAME/NAME.mcap)")
@@ -79,6 +113,18 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
 
 
 def main_synth(args) -> int:
+    """Run ``nanostage synth`` from parsed arguments: write the recording, print its path.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        As :func:`add_synth_arguments` defines them.
+
+    Returns
+    -------
+    int
+        0 (errors are raised; the CLI turns bad input into one message and exit 2).
+    """
     path = synth(args.truth, args.experiment, args.out, seed=args.seed, trials=args.trials, conceal=not args.reveal,
                  overwrite=args.overwrite)
     print(path)

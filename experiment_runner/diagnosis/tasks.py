@@ -35,7 +35,33 @@ _STATE_LOCK = threading.Lock()
 def fit_candidate(e, current: ModelSpec, selected: list, J_fit_cur: float, ev: Evaluator, ctx: Context,
                   base: ModelSpec, own_floor: bool, floor_seed: int) -> FitResult | None:
     """Fit candidate effect ``e`` on ``current`` (with the ``selected`` effects re-fitted, from
-    step 2 on) and judge it on held-out data; None if it does not apply."""
+    step 2 on) and judge it on held-out data; None if it does not apply.
+
+    Parameters
+    ----------
+    e : Effect
+        The candidate (bound to the recording).
+    current : ModelSpec
+        The current model.
+    selected : list of FitResult
+        The adopted effects (re-fitted with the candidate from step 2 on).
+    J_fit_cur : float
+        The current model's force-residual J on the fit samples.
+    ev : Evaluator
+        The force-residual evaluator.
+    ctx : Context
+        The located context of this step.
+    base : ModelSpec
+        The model every path starts from.
+    own_floor : bool
+        Judge against the candidate's own noise floor.
+    floor_seed : int
+        Noise seed of that floor's simulated recording.
+
+    Returns
+    -------
+    FitResult or None
+    """
     ctx = for_fits_on(ctx, selected)
     f = fit_with(e, selected, base, ev, ctx) if selected and e.kind == "deterministic" else None
     f = f or fit_effect(e, current, ev, ctx)
@@ -58,7 +84,18 @@ def fit_candidate(e, current: ModelSpec, selected: list, J_fit_cur: float, ev: E
 
 def shared_state(problem: Problem) -> tuple[str, bytes]:
     """``(token, blob)``: what every candidate-fit task of one diagnosis needs, pickled once (the
-    recording smoothed and masked, observer bandwidth, fit-set cap, base model)."""
+    recording smoothed and masked, observer bandwidth, fit-set cap, base model).
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on.
+
+    Returns
+    -------
+    tuple
+        ``(token, blob)``.
+    """
     opt = problem.options
     blob = pickle.dumps({"data": problem.data, "f_o": problem.observer.f_o, "max_fit_seconds": opt.max_fit_seconds,
                          "base": problem.base, "own_floor": opt.own_floor, "floor_seed": opt.floor_seeds[0]},
@@ -67,7 +104,13 @@ def shared_state(problem: Problem) -> tuple[str, bytes]:
 
 
 def forget(token: str | None) -> None:
-    """Drop this process's copy of diagnosis ``token``'s task state (an executor running the tasks here)."""
+    """Drop this process's copy of diagnosis ``token``'s task state (an executor running the tasks here).
+
+    Parameters
+    ----------
+    token : str or None
+        The diagnosis (None: nothing).
+    """
     with _STATE_LOCK:
         _STATE.pop(token, None)
 
@@ -95,6 +138,29 @@ def candidate_task(token: str, blob: bytes, e, current: ModelSpec, selected: lis
     ``blob`` is diagnosis ``token``'s shared state (:func:`shared_state`); ``ctx`` the located
     context of this step. BLAS runs single-threaded, as in :func:`.pipeline.diagnose`. Returns
     ``(FitResult or None, error repr or None, evaluations, evaluation seconds)``.
+
+    Parameters
+    ----------
+    token : str
+        The diagnosis.
+    blob : bytes
+        Its shared state.
+    e : Effect
+        The bound candidate.
+    current : ModelSpec
+        The current model.
+    selected : list of FitResult
+        The adopted effects (re-fitted with the candidate from step 2 on).
+    J_fit_cur : float
+        The current model's force-residual J on the fit samples.
+    floor : NoiseFloor
+        The current model's force-residual floor.
+    ctx : Context
+        The located context of this step.
+
+    Returns
+    -------
+    tuple
     """
     st = _task_state(token, blob)
     ev = Evaluator(st["obs"], floor, st["max_fit_seconds"])
@@ -167,7 +233,13 @@ def _started() -> int:
 
 def warm_up(ex) -> None:
     """Run one :func:`_started` per worker of ``ex`` (a background thread of :func:`.pipeline.diagnose`:
-    the worker processes import while this one predicts and locates)."""
+    the worker processes import while this one predicts and locates).
+
+    Parameters
+    ----------
+    ex : experiment_runner.executor.Executor
+        The executor of the candidate fits.
+    """
     try:
         for _ in ex.map(_started, [(i, ()) for i in range(ex.workers)]):
             pass

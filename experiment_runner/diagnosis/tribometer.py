@@ -57,7 +57,23 @@ LUGRE_MAX_RATIO = 3.0
 
 @dataclass
 class TribData:
-    """Used part of the record (SI): time [s], position [m], friction [N], normal force [N]."""
+    """Used part of the record (SI): time [s], position [m], friction [N], normal force [N].
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        Time [s].
+    x : numpy.ndarray
+        Position [m].
+    f : numpy.ndarray
+        Friction force [N].
+    normal : numpy.ndarray
+        Normal force [N].
+    rev : numpy.ndarray
+        Sample index of each reversal (start of a stroke).
+    path : pathlib.Path
+        The file read.
+    """
     t: np.ndarray
     x: np.ndarray
     f: np.ndarray
@@ -93,7 +109,17 @@ def _reversals(x: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def load_tribometer(path) -> TribData:
-    """Read ``test_data_2.txt`` (tab-separated, one header line) into SI; find the reversals."""
+    """Read ``test_data_2.txt`` (tab-separated, one header line) into SI; find the reversals.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file.
+
+    Returns
+    -------
+    TribData
+    """
     path = Path(path)
     if not path.is_file():
         raise DataMissing(f"tribometer data: {path} does not exist")
@@ -258,7 +284,22 @@ def _sigma(jac: np.ndarray, res: np.ndarray) -> np.ndarray:
 
 
 def transition_lengths(d: TribData, f: np.ndarray, strokes=None) -> dict:
-    """Median ``x_zero`` and ``x_80`` [m] over strokes (see module docstring) of force ``f``."""
+    """Median ``x_zero`` and ``x_80`` [m] over strokes (see module docstring) of force ``f``.
+
+    Parameters
+    ----------
+    d : TribData
+        The record.
+    f : numpy.ndarray
+        Friction force [N] per sample (measured or predicted).
+    strokes : list of tuple, optional
+        ``(start, stop)`` ranges (default all).
+
+    Returns
+    -------
+    dict
+        ``x_zero_m`` and ``x_80_m`` (NaN without a stroke), ``strokes``.
+    """
     xz, x8 = [], []
     for a, b in (strokes or d.strokes):
         s = np.sign(d.x[b - 1] - d.x[a])
@@ -285,6 +326,17 @@ def identify_tribometer(d: TribData, held_every: int = 3) -> dict:
     the reversal < 0.15 mm), transition lengths; the winner (lowest held-out RMS), the
     measured transition lengths, and the split. Sigmas are the white-noise least-squares
     approximation: the residuals are correlated along a stroke, so they are lower bounds.
+
+    Parameters
+    ----------
+    d : TribData
+        The record.
+    held_every : int, optional
+        Every this many strokes is held out.
+
+    Returns
+    -------
+    dict
     """
     strokes = d.strokes
     held_ix = [j for j in range(len(strokes)) if j % held_every == held_every - 1]

@@ -7,7 +7,22 @@ __all__ = ["estimate", "check_params"]
 def estimate(found: dict, name: str):
     """``(value, sigma)`` of parameter or derived quantity ``name`` of a found effect (or an
     alternative) of a report: the joint fit's value, else its own, else the derived quantity
-    (sigma None); ``(None, None)`` when it has none."""
+    (sigma None); ``(None, None)`` when it has none.
+
+    Parameters
+    ----------
+    found : dict
+        A found effect or alternative of ``report.json``.
+    name : str
+        Parameter or derived-quantity name.
+
+    Returns
+    -------
+    value : float or None
+        In the effect's unit.
+    sigma : float or None
+        Its standard error.
+    """
     for key in ("params_joint", "params"):
         for p in found.get(key) or []:
             if p["name"].split(".")[-1] == name:
@@ -20,8 +35,24 @@ def estimate(found: dict, name: str):
 def check_params(entry: dict | None, expect: dict) -> tuple[bool, dict]:
     """Estimates of ``entry`` (a found effect or an alternative) against the truth values ``expect``
     (name -> value): each within +-20 % of its truth (a truth of 0: within 20 % of the largest truth,
-    or 2 sigma). Returns (all within, {name: check}).
+    or 2 sigma).
 
+    Parameters
+    ----------
+    entry : dict or None
+        A found effect or alternative of ``report.json`` (None: not found, fails).
+    expect : dict
+        Parameter name -> true value.
+
+    Returns
+    -------
+    ok : bool
+        Every estimate within its tolerance.
+    checks : dict
+        Name -> ``truth``, ``estimate``, ``rel_error``, ``ok``, ``sigma``, ``z``.
+
+    Examples
+    --------
     >>> check_params({"params": [{"name": "c", "value": 21.0, "sigma": 0.5}]}, {"c": 20.0})[0]
     True
     """

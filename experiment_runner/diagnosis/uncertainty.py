@@ -36,6 +36,23 @@ def roughness(D, v: float, sigma: float, target: float = 0.3, points: int = 7) -
     True
     >>> roughness(lambda x: 2.0 + 1e4 * (x - 0.4) ** 2, 0.4, 1e-4) < 1e-4
     True
+
+    Parameters
+    ----------
+    D : callable
+        The replay error as a function of the parameter.
+    v : float
+        The parameter's value.
+    sigma : float
+        Its standard error so far (the first step's scale).
+    target : float, optional
+        Relative rise of ``D`` over the step.
+    points : int, optional
+        Profile points.
+
+    Returns
+    -------
+    float or None
     """
     D0 = D(v)
     if not np.isfinite(D0) or D0 <= 0:
@@ -79,6 +96,18 @@ def spread_over_recordings(J: np.ndarray, R: np.ndarray) -> np.ndarray:
     >>> exact = np.sqrt(L / (J[:, 0] @ J[:, 0]))          # ~sqrt(L) x the white-noise value
     >>> bool(abs(spread_over_recordings(J, R)[0] / exact - 1) < 0.15)
     True
+
+    Parameters
+    ----------
+    J : numpy.ndarray
+        (n, p) Jacobian of the residual.
+    R : numpy.ndarray
+        (K, n) residuals of the simulated recordings.
+
+    Returns
+    -------
+    numpy.ndarray
+        (p,) standard errors.
     """
     step = R @ np.linalg.pinv(J).T
     return np.sqrt(np.mean(step ** 2, axis=0))
@@ -146,7 +175,27 @@ def widen(fit_judge, found: list, selected: list, base, current, opt: Options) -
     final model ``current``'s floor; ``sigma`` becomes ``sqrt(max(sigma_fit, sigma_boot)^2 +
     sigma_rough^2)`` (``sigma_fit``: the fit's own, kept). Returns whether it ran (not without a
     judge of the fit samples, adopted deterministic effects, or when the rebuilt model is not the
-    final one)."""
+    final one).
+
+    Parameters
+    ----------
+    fit_judge : ReplayJudge or None
+        The judge of the fit samples.
+    found : list of dict
+        The report's rows of the adopted effects (changed in place).
+    selected : list of FitResult
+        The adopted effects.
+    base : ModelSpec
+        The model they were added to.
+    current : ModelSpec
+        The final model.
+    opt : Options
+        The diagnosis's options.
+
+    Returns
+    -------
+    bool
+    """
     det = [f for f in selected if f.effect.kind == "deterministic"]
     if fit_judge is None or not det:
         return False

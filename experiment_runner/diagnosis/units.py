@@ -25,20 +25,65 @@ ROTARY = {"kg": "kg·m²", "N": "N·m", "m": "rad", "m/s": "rad/s", "m/s²": "ra
 
 
 def unit_for(unit: str, kind: str = "linear") -> str:
-    """``unit`` (written for a linear axis) on an axis of ``kind`` (``linear`` or ``rotary``)."""
+    """``unit`` (written for a linear axis) on an axis of ``kind`` (``linear`` or ``rotary``).
+
+    Parameters
+    ----------
+    unit : str
+        A linear unit (:data:`ROTARY`'s keys change on a rotary axis, others do not).
+    kind : {"linear", "rotary"}
+        The axis.
+
+    Returns
+    -------
+    str
+    """
     return ROTARY.get(unit, unit) if kind == "rotary" else unit
 
 
 def axis_units(kind: str = "linear") -> dict:
-    """The units of the report's quantities on an axis of ``kind``."""
+    """The units of the report's quantities on an axis of ``kind``.
+
+    Parameters
+    ----------
+    kind : {"linear", "rotary"}
+        The axis.
+
+    Returns
+    -------
+    dict
+        ``axis`` and quantity -> unit (mass, force, position, ...).
+
+    Examples
+    --------
+    >>> axis_units("rotary")["force"]
+    'N·m'
+    """
     base = {"position": "m", "velocity": "m/s", "force": "N", "mass": "kg", "stiffness": "N/m",
             "damping": "N·s/m", "impulse": "N·s"}
     return {"axis": kind, **{k: unit_for(v, kind) for k, v in base.items()}}
 
 
 def convert_units(obj, kind: str):
-    """``obj`` (nested dicts/lists of a report) with every ``"unit"`` value converted to ``kind``
-    (in place; returned)."""
+    """``obj`` (nested dicts/lists of a report) with every ``"unit"`` value converted to ``kind``.
+
+    Parameters
+    ----------
+    obj : dict or list
+        Converted in place.
+    kind : {"linear", "rotary"}
+        The axis.
+
+    Returns
+    -------
+    dict or list
+        ``obj``.
+
+    Examples
+    --------
+    >>> convert_units({"params": [{"unit": "N/m"}]}, "rotary")
+    {'params': [{'unit': 'N·m/rad'}]}
+    """
     if kind == "linear":
         return obj
     if isinstance(obj, dict):

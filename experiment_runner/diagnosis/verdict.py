@@ -35,7 +35,21 @@ def withdraw_unidentified(problem: Problem, path: Path, found: list) -> list:
     error above its value) is withdrawn from the final model, which is rebuilt without it (the
     drive-noise level kept) and its floors renewed. A parameter whose standard error exceeds its
     value in an effect identified by its others is marked ``identified: false``. Returns the report's
-    rows of the withdrawn effects (``why``)."""
+    rows of the withdrawn effects (``why``).
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+    found : list of dict
+        The report's rows of the adopted effects (changed in place).
+
+    Returns
+    -------
+    list of dict
+    """
     gone = []
     axis = problem.data.axis
     for f in [s for s in path.selected if s.effect.kind == "deterministic"]:
@@ -81,20 +95,32 @@ def withdraw_unidentified(problem: Problem, path: Path, found: list) -> list:
 
 @dataclass
 class Validation:
-    """What :func:`validate` leaves."""
+    """What :func:`validate` leaves.
+
+    Parameters
+    ----------
+    held : numpy.ndarray
+        The held-out samples (the fit samples when none are held out).
+    residual : ObsResult
+        The improved model's force residual.
+    improved_replay : dict
+        The improved model's closed-loop replay (for the plots).
+    adequate_nominal : bool
+        The nominal's replay is consistent with its own run-to-run floor.
+    adequate : bool
+        The improved model's replay is stable and consistent with its run-to-run floor.
+    headline : dict
+        The report's ``replay``.
+    figures : dict
+        The report's ``validation``.
+    """
     held: np.ndarray
-    """The held-out samples (the fit samples when none are held out)."""
     residual: ObsResult
-    """The improved model's force residual."""
     improved_replay: dict
-    """The improved model's closed-loop replay (for the plots)."""
     adequate_nominal: bool
     adequate: bool
-    """The improved model's replay is stable and consistent with its run-to-run floor."""
     headline: dict
-    """The report's ``replay``."""
     figures: dict
-    """The report's ``validation``."""
 
 
 def _how(data, judge) -> str:
@@ -115,7 +141,25 @@ def _fall(a, b):
 def validate(setup: Setup, pred: Prediction, problem: Problem, path: Path, opt) -> Validation:
     """The improved model (``path.current``) against the nominal on the held-out data: replay (each
     model against its own run-to-run floor), force residual (each against its own floor), open-loop
-    windows."""
+    windows.
+
+    Parameters
+    ----------
+    setup : Setup
+        The read data, nominal and observer.
+    pred : Prediction
+        The nominal's prediction.
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+    opt : Options
+        The diagnosis's options.
+
+    Returns
+    -------
+    Validation
+    """
     data, obs, judge = setup.data, setup.observer, pred.judge
     current, force_floor, floor_new = path.current, path.floor, path.replay_floor
     floor_nom = pred.nominal_replay_floor or pred.replay_floor      # the nominal's own, before any prior
@@ -179,7 +223,25 @@ def explain_figures(data, res_nom: ObsResult, res_new: ObsResult, held: np.ndarr
                     figures: dict) -> list:
     """Sentences explaining held-out figures that disagree (one better by more than 5 %, another worse
     by more than 5 %): where the force residual rose -- by regime of the reference and below/above a
-    tenth of its band -- beside the replay's change, and which figure decides."""
+    tenth of its band -- beside the replay's change, and which figure decides.
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording.
+    res_nom, res_new : ObsResult
+        Force observer of the nominal and the improved model.
+    held : numpy.ndarray
+        (T, B) bool: held-out samples.
+    f_band : float
+        Band of the residual [Hz].
+    figures : dict
+        Held-out figure -> (nominal, improved).
+
+    Returns
+    -------
+    list of str
+    """
     falls = {k: figures[k]["fall"] for k in ("force_residual_rms_N", "replay_command_rms_N", "replay_position_rms_m")
              if figures.get(k) and figures[k].get("fall") is not None}
     better = [k for k, f in falls.items() if f > 0.05]
@@ -222,7 +284,19 @@ def model_changes(nominal, improved, applied: list) -> list:
     (``by``: the keys of the adopted effects whose model change moves it, ``applied`` = [(effect,
     values)] applied in turn on ``nominal`` with their final values; ``[]`` for a change none makes).
     Nothing moves silently: a field an effect moves besides the parameter it names (a static force
-    scaled with the Coulomb level) is listed with it."""
+    scaled with the Coulomb level) is listed with it.
+
+    Parameters
+    ----------
+    nominal, improved : stage_sim.config.Preset
+        The two models.
+    applied : list of tuple
+        ``(effect, values)`` applied in turn on ``nominal``.
+
+    Returns
+    -------
+    list of dict
+    """
     def flat(d, pre=""):
         out = {}
         if isinstance(d, dict):
@@ -269,7 +343,19 @@ def detection_limits(problem: Problem, path: Path) -> list:
     ``delta`` moves the replay by ``(delta / h) d`` (linearised) and passes the test when its
     squared norm exceeds the Student quantile ``t`` times the spread of ``e_k . d`` over the
     recordings: ``delta_50 = |h| t sd_k(e_k . d) / |d|^2``. Rows: effect, parameter, unit, the
-    model's value, ``smallest_change`` (absolute; ``relative`` to the value where it is not 0)."""
+    model's value, ``smallest_change`` (absolute; ``relative`` to the value where it is not 0).
+
+    Parameters
+    ----------
+    problem : Problem
+        What the forward selection works on (data, evaluator, library, options).
+    path : Path
+        The selection's state: the current model, its floors, the adopted effects.
+
+    Returns
+    -------
+    list of dict
+    """
     judge, lib = problem.judge, problem.library
     fl = path.replay_floor
     rp0 = fl.replay
@@ -318,7 +404,19 @@ def findings(run: Run, verdict: str) -> list:
     """Every finding with its status: ``identified``, ``confounded with X`` (the rule that chose in
     ``chosen_by``), ``not identified`` (withdrawn, why), ``located, not explained`` (what the final
     model leaves beyond its floor, where), or ``nothing found`` with what the record could have
-    revealed (:func:`detection_limits`)."""
+    revealed (:func:`detection_limits`).
+
+    Parameters
+    ----------
+    run : Run
+        The diagnosis's stages.
+    verdict : str
+        The diagnosis's verdict.
+
+    Returns
+    -------
+    list of dict
+    """
     out = []
     for fe in run.found:
         row = {"finding": fe["title"], "effect": fe["effect"], "status": fe["status"]}
@@ -354,7 +452,21 @@ def findings(run: Run, verdict: str) -> list:
 
 def improved_name(spec, nominal, found: list):
     """``spec`` named for what it is: the nominal's name ``+`` the keys of the effects found (the
-    nominal's own name where none was)."""
+    nominal's own name where none was).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The improved model.
+    nominal : ModelSpec
+        The nominal.
+    found : list of dict
+        The report's rows of the adopted effects.
+
+    Returns
+    -------
+    ModelSpec
+    """
     if not found:
         return spec
     return spec.with_changes({"name": nominal.preset.name + "+" + "+".join(fe["effect"] for fe in found)})
@@ -362,14 +474,41 @@ def improved_name(spec, nominal, found: list):
 
 def status_of(row: dict) -> str:
     """A finding's status: ``identified``, or ``confounded with X`` when candidates the held-out replay
-    cannot tell from it exist (listed with the rule that chose, ``chosen_by``)."""
+    cannot tell from it exist (listed with the rule that chose, ``chosen_by``).
+
+    Parameters
+    ----------
+    row : dict
+        A finding's report row.
+
+    Returns
+    -------
+    str
+    """
     alts = [a["effect"] for a in row.get("alternatives") or []] or list(row.get("confounded_with") or [])
     return f"confounded with {', '.join(alts)}" if alts else "identified"
 
 
 def sparse_terms(data, res: ObsResult, ctx: Context, f_band: float) -> dict:
     """SINDy-style regression of the remaining (band-limited) force residual ``res`` on state functions
-    (:func:`.fit.sparse_regression`)."""
+    (:func:`.fit.sparse_regression`).
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording.
+    res : ObsResult
+        The final model's force observer.
+    ctx : Context
+        What was located (position centre, scales).
+    f_band : float
+        Band of the residual [Hz].
+
+    Returns
+    -------
+    dict
+        Terms {name: coefficient} and the explained share.
+    """
     mask = data.fit | data.held
     rl = lowpass(res.r, mask, data.rate, f_band)
     x, v = res.x, data.vs
@@ -394,7 +533,44 @@ def sparse_terms(data, res: ObsResult, ctx: Context, f_band: float) -> dict:
 
 @dataclass
 class Run:
-    """Everything the report is written from (one diagnosis' stages)."""
+    """Everything the report is written from (one diagnosis' stages).
+
+    Parameters
+    ----------
+    nominal_source : object
+        The nominal as given (name, path or model).
+    setup : Setup
+        What :func:`.stages.read` left.
+    stochastic : dict
+        The report's ``stochastic`` section.
+    prediction : Prediction
+        What :func:`.stages.predict` left.
+    locate_summary : dict
+        The report's ``locate`` section.
+    problem : Problem
+        What the forward selection worked on.
+    path : Path
+        The selection's final path.
+    found : list
+        The report's rows of the adopted effects.
+    joint : dict, optional
+        The report's ``joint_fit`` (:func:`.closing.refit_jointly`).
+    J_fit_nominal, J_held_nominal : float
+        The nominal's force-residual J on the fit and held-out samples.
+    adequacy_tolerance : float
+        Tolerance of the adequacy test.
+    validation : Validation
+        What :func:`validate` left.
+    withdrawn : list
+        The report's rows of the adopted effects withdrawn as not identified
+        (:func:`withdraw_unidentified`).
+    detection : list, optional
+        What the record could have revealed on top of the final model (:func:`detection_limits`),
+        when that model is consistent with its floor.
+    remaining : dict, optional
+        Where the final model's force residual lies (:func:`.locate.locate`'s summary), when it is
+        not.
+    """
     nominal_source: object
     setup: Setup
     stochastic: dict
@@ -409,16 +585,26 @@ class Run:
     adequacy_tolerance: float
     validation: Validation
     withdrawn: list = field(default_factory=list)
-    """The report's rows of the adopted effects withdrawn as not identified (:func:`withdraw_unidentified`)."""
     detection: list | None = None
-    """What the record could have revealed on top of the final model (:func:`detection_limits`), when
-    that model is consistent with its floor."""
     remaining: dict | None = None
-    """Where the final model's force residual lies (:func:`.locate.locate`'s summary), when it is not."""
 
 
 def assemble(run: Run, timing: dict, sparse: dict | None) -> dict:
-    """The report dict (fields documented in :mod:`.report`); units on the stage's axis."""
+    """The report dict (fields documented in :mod:`.report`); units on the stage's axis.
+
+    Parameters
+    ----------
+    run : Run
+        The diagnosis's stages.
+    timing : dict
+        Wall times [s] per stage.
+    sparse : dict or None
+        :func:`sparse_terms`' result.
+
+    Returns
+    -------
+    dict
+    """
     setup, pred, problem, path, val = run.setup, run.prediction, run.problem, run.path, run.validation
     data, spec0, obs, ev = setup.data, setup.nominal, setup.observer, problem.evaluator
     if not run.found:
@@ -490,7 +676,19 @@ def assemble(run: Run, timing: dict, sparse: dict | None) -> dict:
 
 
 def plot_arrays(run: Run, loc_arrays: dict) -> dict:
-    """The arrays :func:`.report.write_report` plots."""
+    """The arrays :func:`.report.write_report` plots.
+
+    Parameters
+    ----------
+    run : Run
+        The diagnosis's stages.
+    loc_arrays : dict
+        The location stage's arrays.
+
+    Returns
+    -------
+    dict
+    """
     setup, val = run.setup, run.validation
     return {"res_nom": run.prediction.residual, "res_new": val.residual, "loc": loc_arrays,
             "rp_nom": setup.nominal_replay, "rp_new": val.improved_replay, "held": val.held, "f_band": setup.band_hz,

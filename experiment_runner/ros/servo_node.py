@@ -17,9 +17,9 @@ from experiment_runner.ros.controller import ControllerNode
 from experiment_runner.ros.node import JointStateOut, finite, warm_up_models
 from experiment_runner.ros.run import run_node
 from msg_defs.topics import SAI_COMMAND
+from stage_control.servo import check_reference, servo_step
 
 MOTOR, TABLE = ("motor",), ("table",)
-from stage_control.servo import check_reference, servo_step
 
 
 class ServoNode(ControllerNode):

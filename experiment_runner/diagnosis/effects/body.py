@@ -29,7 +29,17 @@ MASS = ((1e-4, 1e4), (1e-8, 1e2))
 
 def rigid_mass(stage: dict) -> float:
     """Mass of the table's DOF in a preset mapping's ``stage``: table + rigidly bolted bearings +
-    the structural modes on it [kg]."""
+    the structural modes on it [kg].
+
+    Parameters
+    ----------
+    stage : dict
+        A preset mapping's ``stage``.
+
+    Returns
+    -------
+    float
+    """
     mt = stage["table"]["mass"]
     return (mt * (1.0 + sum(m["mass_ratio"] for m in stage["modes"]))
             + sum(b["mass"] for b in stage["bearings"] if b.get("joint") is None))
@@ -39,7 +49,19 @@ def split_mode(d: dict, f: float, zeta: float, fraction: float) -> None:
     """Add to preset mapping ``d`` a structural mode (blocked frequency ``f`` [Hz], damping ratio
     ``zeta``) whose mass is ``fraction`` of the table DOF's mass (:func:`rigid_mass`), taken out of
     the table: the total mass stays. The other modes keep their masses. Raises ``ValueError`` if
-    the table is lighter than the mode mass."""
+    the table is lighter than the mode mass.
+
+    Parameters
+    ----------
+    d : dict
+        A preset mapping (changed in place).
+    f : float
+        Blocked frequency [Hz].
+    zeta : float
+        Damping ratio.
+    fraction : float
+        Mass fraction of the table's degree of freedom.
+    """
     st = d["stage"]
     ms = fraction * rigid_mass(st)
     m_old = st["table"]["mass"]
@@ -58,7 +80,13 @@ def _mode_150(d):
 
 
 def frictionless(d: dict) -> None:
-    """The nominal stage of preset mapping ``d`` without friction: bearings folded into the table mass."""
+    """The nominal stage of preset mapping ``d`` without friction: bearings folded into the table mass.
+
+    Parameters
+    ----------
+    d : dict
+        A preset mapping (changed in place).
+    """
     st = d["stage"]
     st["table"]["mass"] = st["table"]["mass"] + sum(b["mass"] for b in st["bearings"])
     st["bearings"] = []
@@ -66,6 +94,7 @@ def frictionless(d: dict) -> None:
 
 
 class Mass(Effect):
+    """``mass``: an error of the table's mass (see the class attributes and ``--list-effects``)."""
     key = "mass"
     title = "mass error"
     physics = "The moving mass differs (stage.table.mass)."
@@ -119,7 +148,17 @@ class Mode(Effect):
 
     @staticmethod
     def max_fraction(spec) -> float:
-        """The largest mass fraction a mode can take off the table of ``spec``."""
+        """The largest mass fraction a mode can take off the table of ``spec``.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        float
+        """
         st = spec.preset.stage
         d = {"table": {"mass": st.table.mass}, "modes": [m.model_dump() for m in st.modes],
              "bearings": [b.model_dump() for b in st.bearings]}
@@ -205,11 +244,33 @@ class LocatedMode(Effect):
         return {"mode": None}
 
     def mode(self, theta) -> dict:
-        """The located mode of parameter ``theta`` (its index): ``f_hz``, ``zeta``, ``fraction``."""
+        """The located mode of parameter ``theta`` (its index): ``f_hz``, ``zeta``, ``fraction``.
+
+        Parameters
+        ----------
+        theta : sequence of float
+            ``[index]`` of the located mode.
+
+        Returns
+        -------
+        dict
+        """
         return self._modes[int(round(float(theta[0])))]
 
     def with_mode(self, i: int, mode: dict) -> "LocatedMode":
-        """A copy whose located mode ``i`` has the values of ``mode`` (a refinement of the transfer's fit)."""
+        """A copy whose located mode ``i`` has the values of ``mode`` (a refinement of the transfer's fit).
+
+        Parameters
+        ----------
+        i : int
+            Index of the located mode.
+        mode : dict
+            Values replacing its own (``f_hz``, ``zeta``, ``fraction``).
+
+        Returns
+        -------
+        LocatedMode
+        """
         e = copy.copy(self)
         e._modes = tuple(dict(m, **mode) if k == i else m for k, m in enumerate(self._modes))
         return e
@@ -238,7 +299,13 @@ def _fi_stage(d):
 def table_friction(d: dict) -> None:
     """The nominal's rigid body of preset mapping ``d`` written as a table with friction: the two
     identical bolted Dahl bearings folded into the table mass and one table Dahl element of twice
-    their F_C and k_sigma (two identical Dahl elements in parallel are exactly that)."""
+    their F_C and k_sigma (two identical Dahl elements in parallel are exactly that).
+
+    Parameters
+    ----------
+    d : dict
+        A preset mapping (changed in place).
+    """
     st = d["stage"]
     fr = dict(st["bearings"][0]["friction"])
     fr.update(f_c=2 * fr["f_c"], k_sigma=2 * fr["k_sigma"], viscous=2 * fr["viscous"])
@@ -278,22 +345,64 @@ class FiCompliance(Effect):
 
     @staticmethod
     def rigid(st):
-        """Mass of the rigid body: table + bearings [kg]."""
+        """Mass of the rigid body: table + bearings [kg].
+
+        Parameters
+        ----------
+        st : stage_sim.config.Stage
+            The model's stage.
+
+        Returns
+        -------
+        float
+        """
         return st.table.mass + sum(b.mass for b in st.bearings)
 
     @staticmethod
     def mode_mass(st):
-        """Mass of the table's structural modes [kg]."""
+        """Mass of the table's structural modes [kg].
+
+        Parameters
+        ----------
+        st : stage_sim.config.Stage
+            The model's stage.
+
+        Returns
+        -------
+        float
+        """
         return st.table.mass * sum(m.mass_ratio for m in st.modes)
 
     def reduced_mass(self, st, mb):
-        """Reduced mass of one of the ``nb`` joints for total bearing mass ``mb`` [kg]."""
+        """Reduced mass of one of the ``nb`` joints for total bearing mass ``mb`` [kg].
+
+        Parameters
+        ----------
+        st : stage_sim.config.Stage
+            The model's stage.
+        mb : float
+            Total bearing mass [kg].
+
+        Returns
+        -------
+        float
+        """
         nb = max(len(st.bearings), 1)
         mt = self.rigid(st) - mb + self.mode_mass(st)
         return (mb / nb) * mt / (mb / nb + mt)
 
     def bearing_mass(self, st):
-        """The model's bearing mass, or a tenth of the rigid mass without bearings [kg]."""
+        """The model's bearing mass, or a tenth of the rigid mass without bearings [kg].
+
+        Parameters
+        ----------
+        st : stage_sim.config.Stage
+            The model's stage.
+
+        Returns
+        -------
+        float
+        """
         return sum(b.mass for b in st.bearings) if st.bearings else 0.1 * self.rigid(st)
 
     def params(self, spec, ctx):

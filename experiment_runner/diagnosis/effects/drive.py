@@ -9,6 +9,7 @@ __all__ = ["ForceConstant", "Delay", "FractionalDelay"]
 
 
 class ForceConstant(Effect):
+    """``force_constant``: the motor force per command differs from nominal (see the class attributes)."""
     key = "force_constant"
     title = "force-constant error"
     physics = "The motor force per command differs from nominal (stage.drive.force_constant_ratio)."
@@ -39,6 +40,7 @@ class ForceConstant(Effect):
 
 
 class Delay(Effect):
+    """``delay``: a whole number of control periods between command and force (see the class attributes)."""
     key = "delay"
     title = "actuator delay"
     kind = "integer"
@@ -92,7 +94,17 @@ class FractionalDelay(Effect):
 
     @staticmethod
     def total(spec):
-        """The model's drive delay [control periods]."""
+        """The model's drive delay [control periods].
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        float
+        """
         d = spec.preset.stage.drive
         return d.delay_samples + d.delay_fraction
 

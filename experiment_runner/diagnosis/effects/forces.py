@@ -12,11 +12,18 @@ __all__ = ["Ripple", "Offset", "PeriodicForce", "IsolatorTransient", "no_ilc"]
 
 def no_ilc(d: dict) -> None:
     """The SAI stage of preset mapping ``d`` without its iterative learning (Step II): every trial
-    alike, as recorded."""
+    alike, as recorded.
+
+    Parameters
+    ----------
+    d : dict
+        A preset mapping (changed in place).
+    """
     d["sai_manager"]["ilc"] = None
 
 
 class Ripple(Effect):
+    """``ripple``: a force periodic in the table's position (see the class attributes)."""
     key = "ripple"
     title = "position-periodic force ripple"
     physics = ("Motor cogging / commutation ripple: F = A sin(2 pi x / period + phase) on the table "
@@ -65,6 +72,7 @@ class Ripple(Effect):
 
 
 class Offset(Effect):
+    """``offset``: a constant force on the table (see the class attributes)."""
     key = "offset"
     title = "constant force offset"
     physics = ("A constant force on the table (cable drag, gravity on a tilted axis, amplifier offset): "
@@ -95,6 +103,7 @@ class Offset(Effect):
 
 
 class PeriodicForce(Effect):
+    """``dither_imbalance``: a force at a fixed frequency on the table (see the class attributes)."""
     key = "dither_imbalance"
     title = "dither imbalance / periodic force"
     physics = ("A force at a fixed frequency on the table: the net force of imbalanced dither piezos "
@@ -144,6 +153,7 @@ class PeriodicForce(Effect):
 
 
 class IsolatorTransient(Effect):
+    """``isolator_transient``: the impulse of the semi-active isolator's switching (see the class attributes)."""
     key = "isolator_transient"
     title = "isolator switching transient"
     physics = ("SAI locking (Ch. 5, Sec. 5.3): the solenoid armature strikes the lock face and a "

@@ -27,7 +27,18 @@ TORQUE = (1e-5, 1e3)
 
 def friction_weights(spec: ModelSpec):
     """``(elements, weights)``: the friction elements of ``spec`` (:func:`..model.friction_elements`)
-    and each one's share of their total Coulomb force (equal shares when none has one)."""
+    and each one's share of their total Coulomb force (equal shares when none has one).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+
+    Returns
+    -------
+    tuple
+        ``(elements, weights)``; the weights sum to 1.
+    """
     els = friction_elements(spec.preset)
     fcs = np.array([max(getattr(fr, "f_c", 0.0), 0.0) for _, fr in els])
     if len(els) == 0:
@@ -38,7 +49,19 @@ def friction_weights(spec: ModelSpec):
 
 def scaled_variation(fr, f_c_new: float) -> dict:
     """The friction variation fields of element ``fr`` for an element of Coulomb force ``f_c_new``
-    (force-like fields scaled with it, so the relative variation is kept)."""
+    (force-like fields scaled with it, so the relative variation is kept).
+
+    Parameters
+    ----------
+    fr : stage_sim.friction.base.FrictionVariation
+        A friction element.
+    f_c_new : float
+        The new Coulomb force [N].
+
+    Returns
+    -------
+    dict
+    """
     s = f_c_new / fr.f_c if fr.f_c > 0 else 1.0
     return {"f_c_difference": fr.f_c_difference * s, "viscous_difference": fr.viscous_difference,
             "f_c_gradient": fr.f_c_gradient * s, "f_c_curvature": fr.f_c_curvature * s,
@@ -46,7 +69,19 @@ def scaled_variation(fr, f_c_new: float) -> dict:
 
 
 def element_node(d: dict, path: str) -> dict:
-    """The mapping at dotted ``path`` of preset mapping ``d`` (list indices as numbers)."""
+    """The mapping at dotted ``path`` of preset mapping ``d`` (list indices as numbers).
+
+    Parameters
+    ----------
+    d : dict
+        A preset mapping.
+    path : str
+        Dotted path, e.g. ``stage.bearings.0.friction``.
+
+    Returns
+    -------
+    dict
+    """
     node = d
     for k in path.split("."):
         node = node[int(k)] if isinstance(node, list) else node[k]
@@ -54,7 +89,20 @@ def element_node(d: dict, path: str) -> dict:
 
 
 def edit_elements(spec: ModelSpec, fn):
-    """``edit`` callable applying ``fn(node, fr, weight)`` to every friction element's mapping."""
+    """``edit`` callable applying ``fn(node, fr, weight)`` to every friction element's mapping.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    fn : callable
+        ``fn(node, fr, weight)``: the element's mapping, its config and its share of the Coulomb force.
+
+    Returns
+    -------
+    callable
+        ``edit(d)`` for :meth:`.model.ModelSpec.with_changes`.
+    """
     els, w = friction_weights(spec)
 
     def edit(d):
@@ -68,6 +116,17 @@ def virgin_x50(fr_dump: list) -> float:
     dicts) reaches half their total sliding force (pre-motion length scale; Dahl: ln2 F_C/k_sigma).
     Each law's virgin curve and sliding force come from its module (:mod:`stage_sim.friction`).
 
+    Parameters
+    ----------
+    fr_dump : list
+        Friction element configs or their mappings.
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
     >>> x50 = virgin_x50([friction.dahl.element(1e6, 1.0)])     # ln2 um on a grid of 2000 per 8 decades
     >>> bool(abs(x50 / (np.log(2) * 1e-6) - 1) < 0.01)
     True
@@ -87,6 +146,7 @@ def virgin_x50(fr_dump: list) -> float:
 
 
 class Coulomb(Effect):
+    """``coulomb``: the bearings' Coulomb friction level (see the class attributes)."""
     key = "coulomb"
     title = "Coulomb friction level"
     physics = ("The sliding friction force F_C differs (all friction elements scaled; added at the table if the "
@@ -161,7 +221,17 @@ class Viscous(Effect):
 
     @staticmethod
     def total(spec):
-        """The model's total viscous coefficient (table and bearings) [N·s/m]."""
+        """The model's total viscous coefficient (table and bearings) [N·s/m].
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        float
+        """
         st = spec.preset.stage
         c = st.table_friction.viscous if st.table_friction is not None else 0.0
         return c + sum(b.friction.viscous for b in st.bearings)
@@ -283,7 +353,20 @@ class PositionFriction(Effect):
         return e
 
     def probe(self, spec, ctx):
-        """A slope of 5 % of the Coulomb force over the recorded half span."""
+        """A slope of 5 % of the Coulomb force over the recorded half span.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+        ctx : Context
+            What was located on the recording.
+
+        Returns
+        -------
+        tuple
+            ``(theta, i)`` as :meth:`.base.Effect.probe`.
+        """
         ps = self.params(spec, ctx)
         th = [0.0] * len(ps)
         i = len(ps) - 2
@@ -326,7 +409,20 @@ class Asymmetry(Effect):
         return {"dF_C": 0.0, "dc": 0.0}
 
     def probe(self, spec, ctx):
-        """A Coulomb difference of 5 % of the Coulomb force."""
+        """A Coulomb difference of 5 % of the Coulomb force.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+        ctx : Context
+            What was located on the recording.
+
+        Returns
+        -------
+        tuple
+            ``(theta, i)`` as :meth:`.base.Effect.probe`.
+        """
         return [0.05 * coulomb_total(spec.preset), 0.0], 0
 
     def apply(self, spec, theta):

@@ -32,7 +32,17 @@ STIFFNESS = ((1e2, 1e10), (1e-2, 1e6))
 
 def contact_stiffness(spec: ModelSpec) -> float:
     """The model's total pre-motion stiffness at rest [N/m] (:func:`stage_sim.friction.initial_stiffness`
-    summed), or -- friction without pre-motion -- that of a 1 um pre-motion length at F_C."""
+    summed), or -- friction without pre-motion -- that of a 1 um pre-motion length at F_C.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+
+    Returns
+    -------
+    float
+    """
     k0 = float(sum(friction.initial_stiffness(fr) for _, fr in friction_elements(spec.preset)))
     return k0 if k0 > 0 else max(coulomb_total(spec.preset), 1e-3) / 1e-6
 
@@ -47,6 +57,7 @@ def _no_friction(spec) -> str | None:
 
 
 class Dahl(Effect):
+    """``dahl``: pre-motion friction as a Dahl contact (see the class attributes)."""
     key = "dahl"
     title = "pre-motion friction (Dahl)"
     physics = ("Friction builds up over a contact stiffness k_sigma after each reversal before gross sliding "
@@ -146,6 +157,17 @@ class Gms(Effect):
         """(shortest, longest) slip displacement [m] of the log-spaced blocks for an encoder step
         ``resolution`` [m].
 
+        Parameters
+        ----------
+        resolution : float
+            Encoder step [m] (0: ideal).
+
+        Returns
+        -------
+        tuple of float
+
+        Examples
+        --------
         >>> Gms.slip_range(0.0), Gms.slip_range(1e-7)
         ((3e-08, 0.0001), (3e-07, 0.0001))
         """
@@ -155,7 +177,17 @@ class Gms(Effect):
     @staticmethod
     def own_slips(spec) -> np.ndarray | None:
         """The slip displacements ``alpha F_C / k`` the model's Maxwell-slip elements share (None
-        when any friction element is of another law or the elements' blocks differ)."""
+        when any friction element is of another law or the elements' blocks differ).
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        numpy.ndarray or None
+        """
         els = friction_elements(spec.preset)
         if not els or any(fr.model != "gms" for _, fr in els):
             return None
@@ -165,13 +197,34 @@ class Gms(Effect):
         return ds[0]
 
     def deltas(self, ctx: Context) -> np.ndarray:
-        """The :attr:`N` log-spaced slip displacements [m] for a recording of context ``ctx``."""
+        """The :attr:`N` log-spaced slip displacements [m] for a recording of context ``ctx``.
+
+        Parameters
+        ----------
+        ctx : Context
+            What was located on the recording.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
         lo, hi = self.slip_range(ctx.resolution)
         return np.logspace(np.log10(lo), np.log10(hi), self.N)
 
     @staticmethod
     def capacities(spec) -> np.ndarray:
-        """The model's own block capacities (totals over the elements), when it has its own slips."""
+        """The model's own block capacities (totals over the elements), when it has its own slips.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        numpy.ndarray
+            Per block [N].
+        """
         els = friction_elements(spec.preset)
         return np.sum([np.asarray(fr.alpha) * fr.f_c for _, fr in els], axis=0)
 
@@ -242,7 +295,12 @@ class Gms(Effect):
 
     @staticmethod
     def table_4_4() -> dict:
-        """The Maxwell-slip bearing friction of Table 4.4 (preset ``fi_stage_nofi_gms``) as a mapping."""
+        """The Maxwell-slip bearing friction of Table 4.4 (preset ``fi_stage_nofi_gms``) as a mapping.
+
+        Returns
+        -------
+        dict
+        """
         return load_preset("fi_stage_nofi_gms").stage.bearings[0].friction.model_dump(mode="json")
 
     def conceal_on(self, stage, law):
@@ -260,7 +318,17 @@ class Gms(Effect):
 
     @staticmethod
     def truth(elements) -> dict:
-        """The truth values (total F_C, virgin x_50) of Maxwell-slip element mappings."""
+        """The truth values (total F_C, virgin x_50) of Maxwell-slip element mappings.
+
+        Parameters
+        ----------
+        elements : iterable of dict
+            Maxwell-slip element mappings.
+
+        Returns
+        -------
+        dict
+        """
         els = list(elements)
         return {"F_C": float(sum(x["f_c"] * sum(x["alpha"]) for x in els)), "x_50": virgin_x50(els)}
 
@@ -275,6 +343,7 @@ class Gms(Effect):
 
 
 class Stribeck(Effect):
+    """``stribeck``: the Stribeck effect, as LuGre with the model's bristle stiffness and damping (see the class attributes)."""
     key = "stribeck"
     title = "Stribeck effect (LuGre)"
     physics = ("Friction higher at low sliding speed: LuGre with g(v) = F_C + (F_S - F_C) exp(-(v/v_s)^2), "

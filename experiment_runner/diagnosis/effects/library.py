@@ -66,32 +66,88 @@ class Library:
         return len(self._effects)
 
     def keys(self):
-        """The effect keys, in order."""
+        """The effect keys, in order.
+
+        Returns
+        -------
+        KeysView of str
+        """
         return self._effects.keys()
 
     def values(self):
-        """The effects, in order."""
+        """The effects, in order.
+
+        Returns
+        -------
+        ValuesView of Effect
+        """
         return self._effects.values()
 
     def items(self):
-        """``(key, effect)`` pairs, in order."""
+        """``(key, effect)`` pairs, in order.
+
+        Returns
+        -------
+        ItemsView
+        """
         return self._effects.items()
 
     def select(self, keys: Iterable[str]) -> "Library":
-        """The library of the effects ``keys`` (in that order; ``KeyError`` naming an unknown one)."""
+        """The library of the effects ``keys`` (in that order; ``KeyError`` naming an unknown one).
+
+        Parameters
+        ----------
+        keys : iterable of str
+            Effect keys.
+
+        Returns
+        -------
+        Library
+
+        Examples
+        --------
+        >>> from experiment_runner.diagnosis.effects import LIBRARY
+        >>> list(LIBRARY.select(['viscous', 'coulomb']).keys())
+        ['viscous', 'coulomb']
+        """
         return Library([self[k] for k in keys])
 
     def bound(self, ctx: Context) -> "Library":
         """Every effect bound to a recording's located context ``ctx`` (:meth:`.base.Effect.bound`):
-        one diagnosis' library. The effects of this library are not changed."""
+        one diagnosis' library. The effects of this library are not changed.
+
+        Parameters
+        ----------
+        ctx : Context
+            What was located on the recording.
+
+        Returns
+        -------
+        Library
+        """
         return Library([e.bound(ctx) for e in self._effects.values()])
 
     def candidates(self) -> list[str]:
-        """The keys the forward selection proposes (deterministic and integer effects), in order."""
+        """The keys the forward selection proposes (deterministic and integer effects), in order.
+
+        Returns
+        -------
+        list of str
+        """
         return [k for k, e in self._effects.items() if e.kind in ("deterministic", "integer")]
 
     def exclusive_of(self, key: str) -> set:
-        """The other effects sharing an exclusive group with ``key`` (of which at most one is adopted)."""
+        """The other effects sharing an exclusive group with ``key`` (of which at most one is adopted).
+
+        Parameters
+        ----------
+        key : str
+            An effect key.
+
+        Returns
+        -------
+        set of str
+        """
         groups = set(self[key].exclusive)
         return {k for k, e in self._effects.items() if k != key and groups & set(e.exclusive)}
 
@@ -101,11 +157,26 @@ class Library:
         return frozenset(k for k, e in self._effects.items() if e.known_quantity)
 
     def dealt(self) -> list[Effect]:
-        """The effects with a concealed truth of their own, in the power study's deal order."""
+        """The effects with a concealed truth of their own, in the power study's deal order.
+
+        Returns
+        -------
+        list of Effect
+        """
         return sorted((e for e in self._effects.values() if e.deal is not None), key=lambda e: e.deal)
 
     def describe(self, as_json: bool = False):
-        """The library as text (``--list-effects``) or a list of dicts (``--json``)."""
+        """The library as text (``--list-effects``) or a list of dicts (``--json``).
+
+        Parameters
+        ----------
+        as_json : bool, optional
+            Rows as dicts instead of text.
+
+        Returns
+        -------
+        str or list of dict
+        """
         rows = [e.row() for e in self._effects.values()] + [dict(SPARSE_REGRESSION)]
         if as_json:
             return rows

@@ -15,6 +15,7 @@ NOISE = 7.1e-4
 
 
 class NoiseLevel(Effect):
+    """``noise_level``: the drive's current-noise level, decided by the replay's run-to-run consistency (see the class attributes)."""
     key = "noise_level"
     title = "drive-noise level"
     kind = "stochastic"
@@ -44,6 +45,7 @@ class NoiseLevel(Effect):
 
 
 class Quantization(Effect):
+    """``quantization``: the encoder's step, decided by the measurement lattice (see the class attributes)."""
     key = "quantization"
     title = "encoder quantization"
     kind = "stochastic"
