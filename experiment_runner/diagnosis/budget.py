@@ -35,6 +35,7 @@ import sys
 import threading
 import time
 from contextlib import contextmanager
+from typing import Callable, Iterable
 
 __all__ = ["Budget", "BudgetReached", "checkpoint", "halt_search", "progress", "parallel_map", "DEFAULT_MAX_SECONDS"]
 
@@ -255,7 +256,7 @@ _WORKER = threading.local()
 """``on`` in the threads of a :func:`parallel_map` (a nested one runs in its caller's thread)."""
 
 
-def parallel_map(fn, items, n_jobs: int | None = None) -> list:
+def parallel_map(fn: Callable, items: Iterable, n_jobs: int | None = None) -> list:
     """``[fn(x) for x in items]`` on ``n_jobs`` threads (None: the running search's
     :attr:`Budget.jobs`, 1 when none runs), in the items' order: the search's independent model
     evaluations (the compiled kernels release the GIL), so that the result does not depend on the
@@ -264,6 +265,22 @@ def parallel_map(fn, items, n_jobs: int | None = None) -> list:
     the evaluations still running stop at their next :func:`checkpoint`, and is raised again; an
     exception of ``fn`` is raised as from the loop.
 
+    Parameters
+    ----------
+    fn : callable
+        One evaluation, ``fn(item)``; it must not depend on the other items' results.
+    items : iterable
+        The items, evaluated each once.
+    n_jobs : int, optional
+        Threads; None: the running search's :attr:`Budget.jobs` (1 when none runs).
+
+    Returns
+    -------
+    list
+        ``fn(item)`` for each item, in the items' order.
+
+    Examples
+    --------
     >>> parallel_map(lambda x: x * x, [1, 2, 3], n_jobs=2)
     [1, 4, 9]
     """
