@@ -14,7 +14,10 @@ Integration scheme (per control period ``dt``, ``n_sub`` sub-steps of ``h``):
 * friction, lock and impact forces are held over a sub-step and then updated
   exactly in the displacement domain (Dahl, GMS) or at constant velocity (LuGre);
 * Coulomb elements are solved implicitly per sub-step (stick if the force needed
-  to stop is within the static limit), so there is no chattering at rest;
+  to stop is within the static limit), so there is no chattering at rest; a regularised
+  Coulomb element (``F_C tanh(v / v_reg)``) is solved in parts of the sub-step, each exact for the
+  law linearised at its start, and its force acts as its mean plus the slope of its straight-line
+  fit over the sub-step (``gam_ramp``, exact): its stiffness ``F_C / v_reg`` sets no sub-step;
 * optional force variations of each friction element (position-dependent and
   direction-dependent level, direction-dependent viscous part: ``stage_sim.friction.FrictionVariation``)
   scale its held force; optional table forces (``stage.force_offset``, ``force_ripple``,
@@ -110,6 +113,7 @@ class PlantModel(NamedTuple):
     table_force: bool      # any of f_offset, ripple, periodic
     delay_frac: float      # fractional drive delay [control periods] (0 = whole samples only)
     g_prev: np.ndarray     # (n_sub, 2n) exact response of each sub-step to (previous - present) drive force
+    gam_ramp: np.ndarray   # (2n, n) exact response over h to a force (t/h - 1/2) (an implicit law's slope)
 
 
 def _variation(fr) -> np.ndarray:
@@ -139,6 +143,18 @@ def _exact_zoh_cached(a_bytes, b_bytes, shape, h):
     big[:nz, nz:] = b * h
     e = scipy.linalg.expm(big)
     return e[:nz, :nz].copy(), e[:nz, nz:].copy()
+
+
+def _ramp_response(a, b, h):
+    """(2n, n): exact response over ``h`` of ``z' = a z + b f`` from ``z = 0`` to the zero-mean ramp
+    ``f = t / h - 1/2`` (Van Loan, the input's value and slope as states)."""
+    nz, nu = b.shape
+    big = np.zeros((nz + 2 * nu, nz + 2 * nu))
+    big[:nz, :nz] = a * h
+    big[:nz, nz:nz + nu] = b * h
+    big[nz:nz + nu, nz + nu:] = np.eye(nu)
+    e = scipy.linalg.expm(big)
+    return e[:nz, nz + nu:] - 0.5 * e[:nz, nz:nz + nu]
 
 
 def _delayed_zoh(a, b, h, n_sub, frac):
@@ -231,14 +247,13 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
     fr_noise = np.array([noise for _, _, noise in fr_list], float)
     fr_var = np.zeros((nf, 6))
     k_tangent = np.zeros((n, n))
-    c_implicit = np.zeros(n)     # slopes an implicit law solves stably, resolved for accuracy only
     c_law = np.zeros(n)          # damping an explicit law holds over a sub-step (LuGre's sigma1)
     for e, (law, (fr, dof, _)) in enumerate(zip(laws, fr_list)):
         fr_par[e, :len(pars[e])] = pars[e]
         fr_var[e] = _variation(fr)
         cmat[dof, dof] += fr.viscous
         k_tangent[dof, dof] += law.stiffness_at_rest(fr) * (1.0 + abs(fr_var[e, 1]))
-        (c_implicit if law.IMPLICIT else c_law)[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
+        c_law[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
     c_explicit = c_law.copy()    # and the SAI lock's: explicit damping the sub-steps keep stable
 
     sai_dof, k_lock, c_lock, cap, rc_a, arm_steps, pulse_force, pulse_steps = -1, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0
@@ -263,11 +278,11 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
         raise ValueError(
             f"stage needs {n_sub} sub-steps per control period (stiffest mode "
             f"{omega_max / (2 * math.pi):.0f} Hz); limit is simulation.max_substeps={max_substeps}")
-    # resolved for accuracy, up to max_substeps (beyond: stable but coarse): an implicit law's
-    # slope (regularised Coulomb at rest) like explicit damping, a law's explicitly held damping
-    # (LuGre's sigma1 dz/dt, first order in the sub-step) to BRISTLE_H of its rate
-    need = max(math.ceil(float(np.max(c_implicit / np.array(masses))) * dt / max_omega_h),
-               math.ceil(float(np.max(c_law / np.array(masses))) * dt / BRISTLE_H))
+    # resolved for accuracy, up to max_substeps (beyond: stable but coarse): a law's explicitly
+    # held damping (LuGre's sigma1 dz/dt, first order in the sub-step) to BRISTLE_H of its rate. An
+    # implicit law's slope (regularised Coulomb at rest, F_C / v_reg) asks for none: the law resolves
+    # its own transient inside the sub-step (stage_sim.friction.regularized.implicit)
+    need = math.ceil(float(np.max(c_law / np.array(masses))) * dt / BRISTLE_H)
     n_sub = max(n_sub, min(max_substeps, need))
     h = dt / n_sub
 
@@ -316,6 +331,7 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
                           float).reshape(-1, 3),
         table_force=bool(stage.force_offset != 0.0 or stage.force_ripple or stage.periodic_force),
         delay_frac=float(d.delay_fraction), g_prev=_delayed_zoh(a, b, h, n_sub, d.delay_fraction),
+        gam_ramp=_ramp_response(a, b, h) if fr_implicit.any() else np.zeros((2 * n, n)),
     )
 
 
@@ -622,9 +638,9 @@ def plant_step(pm, st, inp, k, seeds, meas, status):
                     sc = 1.0
                     if pm.fr_var[e, 0] != 0.0:
                         sc = _var_scale(pm, e, z[dof, b], 1.0 if a > 0.0 else -1.0)
-                    fc, stick = friction.implicit(kind, p, a, g, z[n + dof, b], sc)
+                    fc, stick, slope = friction.implicit(kind, p, a, g, z[n + dof, b], sc)
                     for r in range(nz):
-                        zn[r, b] -= pm.gam[r, dof] * fc
+                        zn[r, b] -= pm.gam[r, dof] * fc + pm.gam_ramp[r, dof] * slope
                     if stick:
                         zn[n + dof, b] = 0.0
         # ---- friction states, exactly in the displacement domain

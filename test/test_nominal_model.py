@@ -204,8 +204,8 @@ def test_translation_replays_the_independent_simulator(truthsim, friction, monke
     """Noise off and an ideal encoder, the translated preset driven by the reference reproduces the
     independent simulator's (RK4, its own PID and timing) command and position: command RMS within 3 %
     of the command one encoder step makes (Kp q, q = 4.88 nm), position within 5 % of q anywhere
-    (measured: Dahl 1.0 % and 1.8 %, the plant holding the Dahl force over a control period; Coulomb
-    1e-5). With the backward-Euler derivative, without the computation delay or without the viscous
+    (measured: Dahl 1.0 % and 1.8 %, the plant holding the Dahl force over a control period; Coulomb,
+    one plant sub-step per period, 0.07 % and 0.3 %). With the backward-Euler derivative, without the computation delay or without the viscous
     term it does not (13 % to 230 % of Kp q). The encoder is ideal (truthsim's ``Q`` set to 1e-15 m)
     because quantization turns a 1e-11 m difference into a whole encoder step wherever the position
     happens to sit at a rounding boundary."""

@@ -124,12 +124,15 @@ def held(kind, p, s, b, v):
 
 @njit(cache=True, inline="always")
 def implicit(kind, p, a, g, v_prev, sc):
-    """``(force [N], sticks)`` of an implicit law over a sub-step (see :func:`.coulomb.implicit`)."""
+    """``(mean force [N], sticks, slope [N])`` of an implicit law over a sub-step: the force held is
+    ``mean + slope (s - 1/2)`` at the fraction ``s`` of the sub-step (see :func:`.coulomb.implicit`,
+    :func:`.regularized.implicit`; Coulomb's is held flat)."""
     if kind == COULOMB:
-        return coulomb.implicit(p, a, g, v_prev, sc)
+        f, stick = coulomb.implicit(p, a, g, v_prev, sc)
+        return f, stick, 0.0
     if kind == REGULARIZED:
         return regularized.implicit(p, a, g, v_prev, sc)
-    return 0.0, False
+    return 0.0, False, 0.0
 
 
 @njit(cache=True, inline="always")

@@ -2,9 +2,9 @@
 
 A smooth zero-velocity transition (no stiction, no pre-motion state): below ``v_reg`` the
 friction acts as a steep viscous damper ``F_C / v_reg``, above it as Coulomb friction. The
-plant holds per sub-step the mean force of the law linearised at its start (:func:`implicit`):
-stable for any slope; the sub-steps resolve the slope at rest for accuracy
-(:func:`explicit_damping`).
+plant takes per sub-step the mean force and slope of the law solved in parts, each exact for
+the law linearised at its start (:func:`implicit`): stable for any slope, and accurate without
+resolving the slope with sub-steps (:func:`explicit_damping` asks for none).
 """
 from __future__ import annotations
 
@@ -64,15 +64,10 @@ def stiffness_at_rest(cfg: RegularizedCoulombFriction) -> float:
 
 
 def explicit_damping(cfg: RegularizedCoulombFriction) -> float:
-    """Damping the sub-steps must resolve [N·s/m]: the slope at rest ``F_C / v_reg``.
-
-    The implicit solve is stable at any sub-step, but a creep transient lasts only
-    ``m v_reg / F_C`` (0.4 ms for 2 kg, 5 N, 1 mm/s): held over a 1 ms control period the
-    table's position misses ~half the velocity change of every force step (a micrometre over a
-    record against an independent integrator). The plant keeps ``h F_C / (m v_reg)`` within
-    ``simulation.max_omega_h`` as for explicit damping, but -- the solve being stable at any
-    step -- never beyond ``simulation.max_substeps`` and without refusing the stage."""
-    return float(cfg.f_c / cfg.v_reg)
+    """Damping the plant integrates explicitly [N·s/m]: none. The slope at rest ``F_C / v_reg``
+    (a creep transient of ``m v_reg / F_C``: 0.4 us for 2 kg, 5.31 N, 1 um/s) is resolved inside
+    the sub-step by :func:`implicit`, so it asks the plant for no sub-steps."""
+    return 0.0
 
 
 def sliding_force(cfg: RegularizedCoulombFriction) -> float:
@@ -85,36 +80,90 @@ def virgin(cfg: RegularizedCoulombFriction, x) -> np.ndarray:
     return np.full(np.shape(x), float(cfg.f_c))
 
 
+SPLIT_TOL = 1e-4
+"""Largest error of the linearised law at the end of a part of a sub-step, as a fraction of ``F_C``:
+:func:`implicit` splits a sub-step until every part meets it."""
+MAX_PARTS = 4096
+"""Most tries (parts and halvings) in one sub-step; beyond, the rest in one part."""
+
+
+@njit(cache=True, inline="always")
+def _relax(fc, ve, v, dw, g):
+    """One part: the law linearised at ``v``, a free velocity change ``dw`` and ``g`` velocity per
+    unit force over the part. Returns ``(mean force, its first moment over the part's fraction
+    0..1, end velocity, error of the linearised law at the end velocity)``: the velocity relaxes as
+    ``v_b + (v - v_b) exp(-z s)``, so the force is ``(dw + z (v - v_b) exp(-z s)) / g`` -- a
+    transient at the part's start where ``z`` is large, which the first moment keeps."""
+    th = math.tanh(v / ve)
+    f0 = fc * th
+    ct = fc / ve * (1.0 - th * th)
+    z = g * ct
+    if z > 1e-3:
+        em = math.expm1(-z)
+        phi = 1.0 + em / z
+        psi = (-em - z * (1.0 + em)) / (-z * em)
+    else:
+        phi = 0.5 * z * (1.0 - z / 3.0)
+        psi = 0.5 - z / 12.0
+    f = f0 + (dw - g * f0) * phi / g
+    v1 = v + dw - g * f
+    m1 = (0.5 * dw + (v - v1) * psi) / g
+    return f, m1, v1, abs(fc * math.tanh(v1 / ve) - f0 - ct * (v1 - v))
+
+
 @njit(cache=True, inline="always")
 def implicit(p, a, g, v_prev, sc):
-    """The element's force held over a sub-step: the mean of the linearised law over the sub-step.
+    """The element's force over a sub-step: its mean and slope, the law solved in parts.
 
-    With ``F(v) = sc F_C tanh(v / v_reg)`` linearised at the start, ``F_0 + c_t (v - v_prev)``,
-    and the end velocity ``v = a - g F`` of the held force ``F``, the velocity relaxes
-    exponentially towards its balance with rate ``z = g c_t`` per sub-step; the force held is
-    that relaxation's mean, ``F_0 + (a - g F_0 - v_prev) phi(z) / g`` with
-    ``phi(z) = 1 - (1 - exp(-z)) / z``, so the end velocity is the linearised law's exact one
-    (``v_prev + (1 - exp(-z)) (v_balance - v_prev)``): stable for any slope, never past the
-    balance (no oscillation at rest), and second-order accurate for small ``z`` (backward Euler,
-    ``phi = z / (1 + z)``, is first order). Parameters as
-    :func:`stage_sim.friction.coulomb.implicit`; never sticks.
+    Each part holds the mean force of the law linearised at the part's start velocity: with
+    ``F(v) = sc F_C tanh(v / v_reg)`` linearised, ``F_0 + c_t (v - v_0)``, and the end velocity
+    ``v = a - g F`` of the held force ``F``, the velocity relaxes exponentially towards its balance
+    with rate ``z = g c_t`` per part; the force held is that relaxation's mean,
+    ``F_0 + (a - g F_0 - v_0) phi(z) / g`` with ``phi(z) = 1 - (1 - exp(-z)) / z``, so the end
+    velocity is the linearised law's exact one: stable for any slope, never past the balance (no
+    oscillation at rest), second-order accurate for small ``z``. Where the linearisation misses
+    the law at the part's end by more than ``SPLIT_TOL F_C`` -- a breakaway, a reversal, a passage
+    through the transition ``|v| < v_reg`` shorter than the sub-step -- the part is halved (the
+    free velocity change ``a - v_prev`` taken as uniform over the sub-step), so the sub-step
+    length is free of the law's stiffness ``F_C / v_reg``: a creep transient of 0.4 us is
+    resolved inside a 100 us sub-step. Returns the mean force over the sub-step, ``False``
+    (never sticks) and the slope of the force's straight-line fit over the sub-step (its first
+    moment: the plant propagates it exactly, so the position feels when in the sub-step the
+    force switched). Parameters as :func:`stage_sim.friction.coulomb.implicit`.
 
     Examples
     --------
     >>> p = np.array([2.0, 1e-6])
-    >>> f, stick = implicit(p, 1.0, 1e-3, 1.0, 1.0)     # sliding fast: F_C
-    >>> round(f, 12), stick
-    (2.0, False)
-    >>> f, _ = implicit(p, 0.0, 1e-3, 0.0, 1.0)          # at rest, no push: no force
-    >>> f
+    >>> f, stick, slope = implicit(p, 1.0, 1e-3, 1.0, 1.0)     # sliding fast: F_C, flat
+    >>> round(f, 12), stick, round(slope, 12)
+    (2.0, False, 0.0)
+    >>> implicit(p, 0.0, 1e-3, 0.0, 1.0)[0]                    # at rest, no push: no force
     0.0
+    >>> f, _, slope = implicit(p, -3e-3, 1e-3, 1e-3, 1.0)      # reversal at 1/6: +F_C, then -F_C
+    >>> round(f, 2), round(slope, 2)                           # (2/6 - 10/6) F_C / 2; 12 (M_1 - f / 2)
+    (-1.33, -3.33)
     """
     fc = p[0] * sc
-    th = math.tanh(v_prev / p[1])
-    f0 = fc * th
-    z = g * fc / p[1] * (1.0 - th * th)
-    phi = 1.0 + math.expm1(-z) / z if z > 1e-6 else 0.5 * z * (1.0 - z / 3.0)
-    return f0 + (a - g * f0 - v_prev) * phi / g, False
+    ve = p[1]
+    dw = a - v_prev
+    tol = SPLIT_TOL * fc
+    v, left, imp, mom, ds = v_prev, 1.0, 0.0, 0.0, 1.0
+    for _ in range(MAX_PARTS):
+        f, m1, v1, err = _relax(fc, ve, v, dw * ds, g * ds)
+        if err > tol and ds > 1e-9:
+            ds *= 0.5
+            continue
+        imp += f * ds
+        mom += f * ds * (1.0 - left) + m1 * ds * ds
+        v = v1
+        if ds >= left:
+            return imp, False, 12.0 * (mom - 0.5 * imp)
+        left -= ds
+        ds = min(2.0 * ds, left)
+    f, m1, v1, err = _relax(fc, ve, v, dw * left, g * left)
+    imp += f * left
+    mom += f * left * (1.0 - left) + m1 * left * left
+    return imp, False, 12.0 * (mom - 0.5 * imp)
 
 
 @njit(cache=True, inline="always")
