@@ -360,7 +360,7 @@ def test_dahl_bearings_ratchet_out_of_position(tmp_path):
 
 
 # --------------------------------------------------------------------------- graph and CLI
-@pytest.mark.slow
+@pytest.mark.ros
 def test_graph_runs_reproduce_the_batch_trials(tmp_path):
     """Representative trials through the ROS graph, incl. an SAI trial with its learned Step II
     correction, give the batch engine's measured positions exactly."""

@@ -4,7 +4,6 @@ A tiny campaign (Table 4.2's two cases at the 5 µm step, 6 trials, 50 ms dwell)
 exactly the per-trial metrics of one in-memory batch run of all trials, whatever runs it.
 """
 import json
-import logging
 import math
 import os
 import subprocess
@@ -50,14 +49,6 @@ def reference_metrics(camp) -> dict:
     return out
 
 
-@pytest.fixture(scope="module")
-def dask_cluster():
-    from distributed import LocalCluster
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=logging.ERROR) as cluster:
-        yield cluster
-
-
 def _canon(mets) -> str:
     """Exact, NaN-safe comparison form of a metrics list."""
     return json.dumps(mets, sort_keys=True)
@@ -97,7 +88,7 @@ def test_local_process_pool_gives_identical_metrics(camp, reference_metrics, tmp
     _check_same(_run(camp, tmp_path, workers=2), reference_metrics, camp)
 
 
-@pytest.mark.slow
+@pytest.mark.dask
 def test_dask_local_cluster_gives_identical_metrics(camp, reference_metrics, tmp_path, dask_cluster):
     _check_same(_run(camp, tmp_path, cluster=dask_cluster.scheduler_address), reference_metrics, camp)
 
@@ -152,6 +143,7 @@ def test_worker_with_other_model_code_refuses_to_run(camp):
         stream_mod.chunk_task(*args, "0123456789abcdef")
 
 
+@pytest.mark.dask
 def test_executor_map_results_and_errors(dask_cluster):
     tasks = [(("t", i), (float(i),)) for i in range(5)]
     for ex in (make_executor(1), make_executor(2), make_executor(cluster=dask_cluster.scheduler_address)):

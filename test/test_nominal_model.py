@@ -198,6 +198,7 @@ def truthsim():
     return _import_independent("truthsim")
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 @pytest.mark.parametrize("friction", ["dahl", "coulomb"])
 def test_translation_replays_the_independent_simulator(truthsim, friction, monkeypatch):
@@ -233,6 +234,7 @@ def test_translation_replays_the_independent_simulator(truthsim, friction, monke
         assert du_w > 0.1 * kp_q, (wrong, du_w / kp_q)
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_a_corpus_negative_control_diagnosed_with_cli_defaults_names_nothing(tmp_path):
     """Case h02 of the independent corpus (Dahl nominal, 5 mm steps, truth = nominal), generated in-process

@@ -560,11 +560,12 @@ PROBE = textwrap.dedent("""
 """)
 
 
-def test_replay_republishes_with_clock(tmp_path):
+@pytest.mark.ros
+def test_replay_republishes_with_clock(tmp_path, ros_domain):
     sig = _signals(300, seed=9)
     rec = _write_synthetic(tmp_path / "small", sig, family=TS)
     from experiment_runner.ros.run import domain_env
-    env = domain_env(20 + os.getpid() % 70)             # a graph's settings, before the probe's participant
+    env = domain_env(ros_domain)                        # a graph's settings, before the probe's participant
     proc = subprocess.run([sys.executable, "-c", PROBE, str(rec.bag_dir), "0"], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -423,17 +423,11 @@ def test_a_conversion_failing_while_writing_leaves_nothing_half_written(tmp_path
 
 # --------------------------------------------------------------------------- EMPS
 @pytest.fixture(scope="module")
-def emps_file():
-    from experiment_runner.diagnosis.realdata import DataMissing, data_root
-    try:
-        path = data_root() / "emps" / "DATA_EMPS.mat"
-    except DataMissing as err:
-        pytest.skip(f"EMPS data not available: {err}")
-    if not path.is_file():
-        pytest.skip(f"EMPS data not available: {path} does not exist")
-    return path
+def emps_file(shared_file):
+    return shared_file("emps/DATA_EMPS.mat")
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_convert_emps_is_the_table_importer_and_gives_the_same_recording(emps_file, tmp_path, capsys):
     from scipy.io import loadmat

@@ -351,15 +351,8 @@ def test_a_small_rotary_servo_record_converts_in_rotary_units(tmp_path, capsys):
 
 # --------------------------------------------------------------------------- EMPS with force pulses
 @pytest.fixture(scope="module")
-def pulses_file():
-    from experiment_runner.diagnosis.datasets import DataMissing, data_root
-    try:
-        path = data_root() / "emps" / "DATA_EMPS_PULSES.mat"
-    except DataMissing as err:
-        pytest.skip(f"EMPS data not available (../shared/data missing): {err}")
-    if not path.is_file():
-        pytest.skip(f"EMPS data not available: {path} does not exist")
-    return path
+def pulses_file(shared_file):
+    return shared_file("emps/DATA_EMPS_PULSES.mat")
 
 
 @pytest.mark.slow
