@@ -23,8 +23,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from experiment_runner.batch import BatchResult
 from experiment_runner.outputs import OutputError
-from experiment_runner.recording import (McapRecorder, RecordingError, bag_layout, mcap_file, read_recording,
-                                         write_run)
+from experiment_runner.recording import (McapRecorder, RecordingError, TrialSignals, bag_layout, mcap_file,
+                                         read_recording, write_run, write_trials)
 from experiment_runner.metrics import trial_metrics
 from experiment_runner.replay import check_metrics, main_replay, add_replay_arguments
 from msg_defs import convert
@@ -163,6 +163,32 @@ def test_raw_fast_cdr_bytes_read_back(tmp_path):
     rec = _write_synthetic(tmp_path / "raw", sig, raw_measured=True, family=TS)
     r = read_recording(rec.bag_dir)
     assert _same_bits(r.y, sig["y"]) and _same_bits(r.y_bearing, sig["yb"]) and _same_bits(r.x_ref, sig["x_ref"])
+
+
+def test_write_trials_is_the_one_writer_of_signals(tmp_path):
+    """Two trials in stage time (the second failed), a series written on some samples only, the
+    clock first: what is read back is what was given, events and results in order."""
+    n, dt = 50, 1_000_000
+    x = np.linspace(0.0, 1e-6, 2 * n)
+    trials = [TrialSignals(np.arange(k * n, (k + 1) * n, dtype=np.int64) * dt,
+                           [("/stage/isolator", ("isolator",), {"position": np.full(n, float(k))}, [0, 7]),
+                            ("/stage/reference", ("table",), {"position": x[k * n:(k + 1) * n],
+                                                              "velocity": np.zeros(n)}, None),
+                            ("/stage/command", ("motor",), {"effort": -x[k * n:(k + 1) * n]}, None),
+                            ("/stage/measured", ("table",), {"position": x[k * n:(k + 1) * n] + 1e-9}, None)],
+                           {"window_m": 2e-8}, fault="diverged" if k else None, results={"score": float(k)},
+                           clock=True)
+              for k in range(2)]
+    path = write_trials(tmp_path / "rec", "recording_contract: 1\n", trials, case="c", node="n")
+    r = read_recording(path)
+    np.testing.assert_array_equal(r.x_ref, x)
+    np.testing.assert_array_equal(r.u, -x)
+    np.testing.assert_array_equal(r.y, x + 1e-9)
+    assert r.counts["/stage/isolator"] == 4 and r.counts["/clock"] == 2 * n
+    assert [e["event"] for e in r.events] == ["run_start", "trial_start", "trial_end", "trial_start", "fault",
+                                              "trial_end", "run_end"]
+    assert r.events[1]["window_m"] == 2e-8 and r.events[4]["reason"] == "diverged"
+    assert [(q["trial"], q["score"], q["node"]) for q in r.results] == [(0, 0.0, "n"), (1, 1.0, "n")]
 
 
 def test_recording_written_by_rosbags_directly(tmp_path):
