@@ -204,6 +204,7 @@ def test_sweep_schema_errors(tmp_path):
         load_campaign(_write(tmp_path, d))
 
 
+@pytest.mark.slow
 def test_feedforward_stiffness_errors_follow_the_seed():
     """Sec. 4.4.3: the No FI models' stiffnesses scale with the error; FI + Dahl re-combines the
     erroneous k_sigma,NoFI in series with k_fi (8.08e4 N/m of Table 4.3 without error); Baseline and
@@ -224,6 +225,7 @@ def test_feedforward_stiffness_errors_follow_the_seed():
     assert ff[0.5]["fi_gms"] == ff[1.5]["fi_gms"]
 
 
+@pytest.mark.slow
 def test_sai_reversal_window_follows_the_speed():
     c = load_campaign("circle_5_14")
     for cond in conditions(c):

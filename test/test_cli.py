@@ -172,6 +172,7 @@ def test_every_command_has_a_bad_input_test():
     assert commands <= tested, f"no bad-input test for: {sorted(commands - tested)}"
 
 
+@pytest.mark.slow
 def test_a_closed_output_pipe_is_not_a_traceback():
     import subprocess
     import sys
@@ -185,6 +186,7 @@ def test_a_closed_output_pipe_is_not_a_traceback():
     assert proc.wait(timeout=60) == 141 and "Traceback" not in err, err
 
 
+@pytest.mark.slow
 def test_a_command_imports_only_its_own_module():
     """``nanostage presets`` (the before-stop hook's alias-bomb probe) does not import the
     simulator, the diagnosis or the plotting stack: it starts in what reading a preset takes."""
@@ -197,6 +199,7 @@ def test_a_command_imports_only_its_own_module():
     assert out.stderr.strip().splitlines()[-1] == "0 []", out.stderr
 
 
+@pytest.mark.slow
 def test_json_stdout_carries_only_what_python_prints():
     """A compiled library writing to descriptor 1 (LAPACK's 'On entry to DLASCL ...' on a NaN)
     must not break the JSON of a --json run: it goes to stderr, the JSON stays parseable."""

@@ -87,12 +87,14 @@ def test_a_library_object_selects_as_effect_keys_do(case, threaded):
     assert _canon(dict(d.report_, _improved_spec=d.model_)) == _canon(threaded)
 
 
+@pytest.mark.slow
 def test_bad_workers_named(case):
     rec, nominal = case
     with pytest.raises(ConfigError, match="--workers: must be >= 1"):
         diagnose(rec, nominal, options=Options(plots=False, effects=EFFECTS, workers=0))
 
 
+@pytest.mark.slow
 def test_cli_options():
     p = add_diagnose_arguments(argparse.ArgumentParser())
     opt = diagnose_options(p.parse_args(["rec.mcap", "--workers", "3", "--cluster", "tcp://h:8786"]))

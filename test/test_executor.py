@@ -68,6 +68,7 @@ def _check_same(cr, reference_metrics, camp):
         assert rr.trace.settling_time == rr.metrics[rr.rep]["settling_time_s"]
 
 
+@pytest.mark.slow
 def test_in_process_matches_one_batch_and_streams_every_trial(camp, reference_metrics, tmp_path):
     cr = _run(camp, tmp_path, workers=1)
     _check_same(cr, reference_metrics, camp)
@@ -93,6 +94,7 @@ def test_dask_local_cluster_gives_identical_metrics(camp, reference_metrics, tmp
     _check_same(_run(camp, tmp_path, cluster=dask_cluster.scheduler_address), reference_metrics, camp)
 
 
+@pytest.mark.slow
 def test_resume_runs_only_the_missing_trials(camp, reference_metrics, tmp_path, monkeypatch):
     _run(camp, tmp_path)
     path = tmp_path / STREAM_NAME
@@ -117,6 +119,7 @@ def test_resume_runs_only_the_missing_trials(camp, reference_metrics, tmp_path, 
     assert len(recs) == len(camp.cases) * TRIALS           # no duplicate, no partial line
 
 
+@pytest.mark.slow
 def test_stream_of_other_settings_is_refused(camp, tmp_path):
     _run(camp, tmp_path)
     other = Campaign.model_validate({**camp.model_dump(), "trials": TRIALS - 1})

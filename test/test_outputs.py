@@ -416,6 +416,7 @@ def _run(op, out: Path) -> str | None:
                                                          LINK_DIR, NS_FILE, NS_DIR]) for n in NAMES}),
        partials=st.lists(st.sampled_from(["dead", "live", "legacy"]), max_size=3, unique=True),
        overwrite=st.booleans(), ops=st.lists(OPS, max_size=5))
+@pytest.mark.slow
 def test_property_nothing_outside_the_output_nor_a_users_entry_is_touched(out_kind, kinds, partials, overwrite,
                                                                           ops):
     """Over output folders holding users' files, folders, links to files and folders elsewhere,

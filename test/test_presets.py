@@ -316,6 +316,7 @@ def test_loop_shape_pid_rejects_bad_input():
         loop_shape_pid(2.0, 200.0, phase_margin_deg=80.0, derivative_filter_ratio=2.0)
 
 
+@pytest.mark.slow
 def test_tuning_doctests():
     res = doctest.testmod(tuning)
     assert res.attempted > 0 and res.failed == 0

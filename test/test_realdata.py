@@ -62,6 +62,7 @@ def test_convert_refuses_a_bad_file(tmp_path):
 
 
 @pytest.mark.realdata
+@pytest.mark.slow
 def test_cascaded_loop_on_the_published_model_reproduces_the_record(emps):
     from stage_control.cascaded import CascadedPP, RigidAxis, simulate_rigid
     ctrl = CascadedPP(emps.kp, emps.kv, emps.gtau)

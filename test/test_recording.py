@@ -291,6 +291,7 @@ def _chunks(data: bytes):
     return list(zip(ends, counts)), summary
 
 
+@pytest.mark.slow
 def test_truncated_file_is_salvaged_up_to_its_last_complete_chunk(synthetic, tmp_path):
     rec, sig = synthetic
     data = rec.path.read_bytes()
@@ -326,6 +327,7 @@ def test_truncated_file_is_salvaged_up_to_its_last_complete_chunk(synthetic, tmp
         read_recording(path)
 
 
+@pytest.mark.slow
 def test_killed_recorder_leaves_a_readable_file(tmp_path):
     """A recorder process killed with SIGKILL: every flushed chunk is read back."""
     script = textwrap.dedent(f"""
@@ -492,6 +494,7 @@ def simulated(tmp_path_factory):
     return preset, ref, res, path
 
 
+@pytest.mark.slow
 def test_write_run_round_trip_of_a_simulation(simulated):
     preset, ref, res, path = simulated
     r = read_recording(path)
@@ -519,6 +522,7 @@ def test_write_run_round_trip_of_a_simulation(simulated):
         assert np.isfinite(row["settling_time_s"])
 
 
+@pytest.mark.slow
 def test_check_metrics_catches_a_wrong_result(simulated, tmp_path, capsys):
     preset, ref, res, _ = simulated
     path = write_run(tmp_path / "tampered", res, preset, trials=[0], reference=ref, window=25e-9, results=False)

@@ -130,6 +130,7 @@ WRITERS = [w_savetxt_csv, w_savetxt_commented_header, w_savetxt_tsv_headerless, 
 
 @pytest.mark.parametrize("rate", [1000.0, 10000.0])
 @pytest.mark.parametrize("writer", WRITERS, ids=lambda w: w.__name__[2:])
+@pytest.mark.slow
 def test_round_trip_of_files_written_by_other_tools(writer, rate, tmp_path, capsys):
     d = closed_loop(rate)
     src, names, scale = writer(d, tmp_path)
@@ -251,6 +252,7 @@ def test_mapping_file_equals_flags_and_flags_override_it(tmp_path, capsys):
     assert read_recording(tmp_path / "c").events[1]["case"] == "other"
 
 
+@pytest.mark.slow
 def test_irregular_stamps_are_refused_or_resampled_on_request(tmp_path, capsys):
     rng = np.random.default_rng(3)
     n = 400
