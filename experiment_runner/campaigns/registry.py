@@ -18,6 +18,12 @@ The schema's metric type and the per-trial metrics are derived from the table:
 True
 >>> TRIAL_METRICS
 ('settling_time_s', 'rms_in_position_m', 'peak_tracking_error_m', 'rms_tracking_error_m')
+
+... and are the metrics the core measures of a trial:
+
+>>> from experiment_runner import metrics
+>>> TRIAL_METRICS == metrics.METRICS
+True
 """
 from __future__ import annotations
 
