@@ -52,7 +52,7 @@ import tempfile
 import time
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numba
 import numpy as np
@@ -63,6 +63,24 @@ from experiment_runner.campaigns.stream import TrialStream, chunk_task, code_fin
 from experiment_runner.executor import default_workers, local_cluster, make_executor
 from experiment_runner.profiles import point_to_point
 from stage_sim.config import load_preset
+
+
+class Sizes(NamedTuple):
+    """How much work each figure of :func:`run_bench` times. Every figure is a rate or a time per
+    unit of work: a size changes its noise, not what it measures (``diagnose_seconds_<T>s`` names
+    its recording's length)."""
+    repeats: int = 5                 # core figures: the best of this many runs
+    campaign_trials: int = 500       # campaign figures: trials of every case and condition on one worker
+    diagnose_seconds: float = 10.0   # the synthetic recording diagnosed (after a 1 s one, the warm-up) [s]
+    graph_trials: int = 8            # graph figures: trials of the graph run
+    roundtrips: int = 20000          # graph figures: raw rclpy round trips
+    emps: bool = True                # diagnose_seconds_emps: the EMPS main record diagnosed (CLI defaults)
+
+
+FULL = Sizes()
+"""``nanostage bench``."""
+QUICK = Sizes(repeats=2, campaign_trials=12, graph_trials=3, roundtrips=5000, emps=False)
+"""``nanostage bench --quick``."""
 
 
 def _rtf(preset, ref, n_trials, models, repeats, clock=time.perf_counter):
@@ -76,15 +94,14 @@ def _rtf(preset, ref, n_trials, models, repeats, clock=time.perf_counter):
     return n_trials * ref.t[-1] / best
 
 
-def core_figures(quick: bool = False) -> dict:
+def core_figures(repeats: int = FULL.repeats) -> dict:
     """The ``core_*`` figures: FI-stage point-to-point (5 mm), one trial and 100 trials on one
     core (per wall and per CPU second), 100 trials on all cores, the sub-steps per sample and the
-    wall time per sub-step and trial."""
+    wall time per sub-step and trial; each the best of ``repeats`` runs."""
     preset = load_preset("fi_stage")
     models = Models.from_preset(preset)
     ref = point_to_point(5e-3, dt=1.0 / preset.controller.rate)
     simulate(preset, ref.x, ref.v, n_trials=2, models=models)          # compile / load cache
-    repeats = 2 if quick else 5
     threads = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
@@ -112,7 +129,7 @@ def core_figures(quick: bool = False) -> dict:
     }
 
 
-def run_graph_bench(quick: bool = False) -> dict:
+def run_graph_bench(sizes: Sizes = FULL) -> dict:
     """The graph part of the benchmark, all figures from this run.
 
     ``graph_message_rate_one_process`` (messages/s of the one-process graph: control samples/s
@@ -125,8 +142,7 @@ def run_graph_bench(quick: bool = False) -> dict:
     """
     from experiment_runner.ros.run import executor_kind
     from experiment_runner.ros.timing import graph_loop_hz, rclpy_roundtrip_hz
-    trials = 3 if quick else 8
-    n_rt = 5000 if quick else 20000
+    trials, n_rt = sizes.graph_trials, sizes.roundtrips
     one = graph_loop_hz(False, trials)
     procs = graph_loop_hz(True, trials)
     rt = rclpy_roundtrip_hz(n_rt)
@@ -237,11 +253,15 @@ def diagnose_seconds_emps() -> float | None:
         return time.perf_counter() - t0
 
 
-def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, main_job: bool = False) -> int:
-    result = core_figures(quick)
+def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, main_job: bool = False,
+              sizes: Optional[Sizes] = None) -> int:
+    """Measure and print the figures (one JSON object with ``as_json``); ``sizes``: :data:`QUICK` with
+    ``quick``, else :data:`FULL` (a test runs the same code on tiny ones)."""
+    sizes = sizes or (QUICK if quick else FULL)
+    result = core_figures(sizes.repeats)
     result["peak_memory_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
     cores = default_workers()
-    n_camp = 12 if quick else 500
+    n_camp = sizes.campaign_trials
     one = campaign_trials_per_s(1, n_camp, threads=1)
     result["campaign_trials_per_s_1"] = round(one, 1)
     if cores > 1:             # one worker of one thread per core; on 2 cores the same trials as on one worker
@@ -256,12 +276,12 @@ def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, ma
     result["threads_scale_all_cores"] = round(all_threads / one, 2)
     from experiment_runner.diagnosis.selftest import diagnose_seconds
     diagnose_seconds(1.0)         # warm-up: numba's compile / cache load is not timed (as for the core figures)
-    result["diagnose_seconds_10s"] = round(diagnose_seconds(10.0), 1)
-    emps = None if quick else diagnose_seconds_emps()
+    result[f"diagnose_seconds_{sizes.diagnose_seconds:g}s"] = round(diagnose_seconds(sizes.diagnose_seconds), 1)
+    emps = diagnose_seconds_emps() if sizes.emps else None
     if emps is not None:
         result["diagnose_seconds_emps"] = round(emps, 1)
     if graph:
-        result.update(run_graph_bench(quick))
+        result.update(run_graph_bench(sizes))
     if main_job:
         result["main_job_seconds"] = round(main_job_seconds(), 1)
     if as_json:

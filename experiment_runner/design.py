@@ -53,6 +53,7 @@ from experiment_runner import outputs, profiles
 from experiment_runner.batch import Models, simulate
 from experiment_runner.cliargs import nonnegative_float, nonzero_float, positive_float, positive_int
 from experiment_runner.executor import make_executor
+from experiment_runner.experiment import Starts
 from experiment_runner.metrics import rms_in_position, settling_time
 from experiment_runner.paper import fi_design
 from stage_sim.config import GmsFriction, Preset, load_preset, with_overrides
@@ -161,8 +162,7 @@ class Moves:
 
     @classmethod
     def make(cls, preset: Preset, step=STEP, window=WINDOW, dwell=DWELL, n_trials=N_TRIALS) -> "Moves":
-        tr = preset.stage.travel
-        x0 = profiles.random_starts(n_trials, (tr.min, tr.max), margin=abs(step) + 1e-3, rng_seed=START_SEED)
+        x0 = Starts(margin=abs(step) + 1e-3, seed=START_SEED).positions(n_trials, preset.stage.travel)
         return cls(step, window, dwell, n_trials, x0, preset.simulation.seed + np.arange(n_trials))
 
     def run(self, preset: Preset, models: Optional[Models] = None):

@@ -5,6 +5,13 @@ validated into an :class:`Experiment`, and :func:`build_trials` turns it into th
 list of :class:`Trial` references that both the ROS graph (the sequencer node) and
 the batch engine (:func:`run_batch`) execute, so both run exactly the same trials.
 
+This module is also the one description of a run that campaigns share: a campaign's test
+condition *is* an experiment profile (``PointToPointTest.profile(cond)`` is a
+:class:`PointToPoint`, whose move is a :class:`Move`; ``CircleTest.profile(cond)`` a
+:class:`Circle`), its reference is :func:`reference`'s, and its trials start by
+:class:`Starts` (trial ``i`` of a campaign as the one trial of an experiment with
+``Starts.trial(i)``).
+
 Examples
 --------
 >>> exp = load_experiment("fi_p2p_5um")
@@ -28,13 +35,20 @@ from stage_sim.config import (ConfigError, Finite, NonNeg, Pos, Preset, _format,
 EXPERIMENT_DIR = Path(__file__).with_name("experiments")
 
 
-class PointToPoint(_Strict):
+class Move(_Strict):
+    """How a point-to-point move goes, whatever its size: an experiment's :class:`PointToPoint`
+    (one ``distance``) and a campaign's point-to-point test (its ``steps``) both are one."""
+    duration: Optional[Pos] = Field(None, description="move duration [s]; default from the seed's anchors "
+                                                      "(profiles.default_move_duration)")
+    dwell: Pos = Field(0.25, description="settling portion recorded after the reference stops [s]")
+    pre: NonNeg = Field(0.005, description="rest before the move [s]")
+    shape: Literal["cycloidal", "triangular", "step"] = Field("cycloidal", description="move profile")
+
+
+class PointToPoint(Move):
+    """One point-to-point move (:func:`experiment_runner.profiles.point_to_point`)."""
     kind: Literal["point_to_point"]
     distance: Finite = Field(description="move size [m] (sign = direction)")
-    duration: Optional[Pos] = Field(None, description="move duration [s]; default from the seed's anchors")
-    dwell: Pos = Field(0.25, description="settling portion after the move [s]")
-    pre: NonNeg = Field(0.005, description="rest before the move [s]")
-    shape: Literal["cycloidal", "triangular", "step"] = "cycloidal"
 
 
 class StepSequence(_Strict):
@@ -47,10 +61,11 @@ class StepSequence(_Strict):
 
 
 class Circle(_Strict):
+    """The x-axis reference of a circle (:func:`experiment_runner.profiles.circle_x`)."""
     kind: Literal["circle"]
     radius: Pos = Field(description="circle radius [m]")
     speed: Pos = Field(description="tangential speed [m/s]")
-    cycles: Pos = 1.0
+    cycles: Pos = Field(1.0, description="revolutions")
 
 
 class SineSweep(_Strict):
@@ -67,9 +82,39 @@ Profile = Union[PointToPoint, StepSequence, Circle, SineSweep]
 
 
 class Starts(_Strict):
-    """Start positions: uniformly random inside the travel (minus a margin), reproducible."""
-    margin: NonNeg = Field(0.005, description="distance kept from the travel ends [m]")
-    seed: int = Field(0, ge=0)
+    """Where trials start: uniformly at random inside the travel less ``margin`` at both ends and
+    less the reference's own extent, so that the whole reference stays inside; reproducible.
+
+    The one rule of start positions (:meth:`positions`): ``n`` trials draw theirs in order from one
+    generator seeded with ``seed``. A trial run on its own (each trial of a campaign, in any chunk,
+    process or machine) is the one trial of :meth:`trial`'s starts.
+
+    Examples
+    --------
+    >>> s = Starts(margin=5e-3, seed=1)
+    >>> x0 = s.positions(3, (-10e-3, 10e-3))
+    >>> bool(x0.min() >= -5e-3 and x0.max() < 5e-3), bool(s.positions(1, (-10e-3, 10e-3))[0] == x0[0])
+    (True, True)
+    >>> s.trial(2)
+    Starts(margin=0.005, seed=3)
+    """
+    margin: NonNeg = Field(0.003, description="distance kept from the travel ends [m]")
+    seed: int = Field(1, ge=0, description="seed of the generator the starts are drawn from")
+
+    def positions(self, n: int, travel, extent=(0.0, 0.0), where: str = "") -> np.ndarray:
+        """The starts [m] of ``n`` trials in ``travel`` (``(min, max)`` [m], or a preset's
+        ``stage.travel``) of a reference moving over ``extent`` (its lowest and highest position
+        relative to its start [m]): :func:`experiment_runner.profiles.random_starts`. A
+        :class:`~stage_sim.validation.ConfigError` (``where``: what it is about) when there is no room."""
+        lo, hi = (travel.min, travel.max) if hasattr(travel, "min") else travel
+        try:
+            return profiles.random_starts(n, (lo, hi), self.margin, self.seed, extent=extent)
+        except ConfigError as err:
+            raise ConfigError(f"{where}: {err}" if where else str(err)) from None
+
+    def trial(self, i: int) -> "Starts":
+        """The starts of trial ``i`` run on its own: the one trial of ``seed + i``."""
+        return Starts(margin=self.margin, seed=self.seed + i)
 
 
 class Experiment(_Strict):
@@ -133,16 +178,11 @@ def build_trials(exp: Experiment, preset: Preset | None = None) -> list[Trial]:
     """The trials of an experiment (seed of trial i = ``simulation.seed + i``, as the batch engine)."""
     preset = preset or experiment_preset(exp)
     ref = reference(exp.profile, 1.0 / preset.controller.rate)
-    travel = preset.stage.travel
     if exp.starts is None:
         x0 = np.zeros(exp.trials)
     else:
-        try:
-            x0 = profiles.random_starts(exp.trials, (travel.min, travel.max), exp.starts.margin, exp.starts.seed,
-                                        extent=(float(ref.x.min()), float(ref.x.max())))
-        except ConfigError as err:
-            raise ConfigError(f"experiment {exp.name} (profile {exp.profile.kind}, preset {preset.name}): "
-                              f"{err}") from None
+        x0 = exp.starts.positions(exp.trials, preset.stage.travel, extent=(float(ref.x.min()), float(ref.x.max())),
+                                  where=f"experiment {exp.name} (profile {exp.profile.kind}, preset {preset.name})")
     return [Trial(case=exp.name, index=i, x_ref=ref.x + x0[i], v_ref=np.asarray(ref.v), seed=preset.simulation.seed + i,
                   window=exp.window, segments=tuple(ref.segments)) for i in range(exp.trials)]
 

@@ -1369,7 +1369,8 @@ def sha256(path) -> str:
 
 # =========================================================================== writing
 def write_signals(sig: Signals, out, overwrite: bool = False, node: str = "convert") -> Path:
-    """Write :class:`Signals` as a contract recording; returns the MCAP file.
+    """Write :class:`Signals` as a contract recording of one trial
+    (:func:`experiment_runner.recording.write_trials`); returns the MCAP file.
 
     Written whole in a temporary folder beside ``out`` and moved into place
     (:mod:`experiment_runner.outputs`); an existing recording at ``out`` is replaced only with
@@ -1377,43 +1378,26 @@ def write_signals(sig: Signals, out, overwrite: bool = False, node: str = "conve
     """
     import yaml
 
-    from experiment_runner.recording import McapRecorder, _typestore, bag_layout
-    from msg_defs import cdr, convert
-    from msg_defs.topics import (BEARING, COMMAND, EVENTS, EXTERNAL_FORCE, MEASURED, MOTOR, REFERENCE,
-                                 SOURCE_CHANNELS, TABLE)
-    ts = _typestore()
-    case = sig.config["run"]["case"]
-    st = sig.stamp_ns
-    # per-sample topics: (topic, names, {field: (n, len(names)) values}), in write order
-    per_sample = []
+    from experiment_runner.recording import TrialSignals, bag_layout, write_trials
+    from msg_defs.topics import (BEARING, COMMAND, EXTERNAL_FORCE, MEASURED, MOTOR, REFERENCE, SOURCE_CHANNELS,
+                                 TABLE)
+    series = []                             # (topic, names, {field: values}, every sample), in write order
     if sig.x_ref is not None:
-        per_sample.append((REFERENCE.name, (TABLE,), {"position": sig.x_ref[:, None],
-                                                      "velocity": sig.v_ref[:, None]}))
-    per_sample.append((COMMAND.name, (MOTOR,), {"effort": sig.u[:, None]}))
+        series.append((REFERENCE.name, (TABLE,), {"position": sig.x_ref, "velocity": sig.v_ref}, None))
+    series.append((COMMAND.name, (MOTOR,), {"effort": sig.u}, None))
     if sig.y_bearing is not None:
-        per_sample.append((MEASURED.name, (TABLE, BEARING),
-                           {"position": np.column_stack([sig.y, sig.y_bearing])}))
+        series.append((MEASURED.name, (TABLE, BEARING), {"position": np.column_stack([sig.y, sig.y_bearing])}, None))
     else:
-        per_sample.append((MEASURED.name, (TABLE,), {"position": sig.y[:, None]}))
+        series.append((MEASURED.name, (TABLE,), {"position": sig.y}, None))
     if sig.f_ext is not None:
-        per_sample.append((EXTERNAL_FORCE.name, (TABLE,), {"effort": sig.f_ext[:, None]}))
+        series.append((EXTERNAL_FORCE.name, (TABLE,), {"effort": sig.f_ext}, None))
     if sig.extra:
         names = tuple(sig.extra)
-        per_sample.append((SOURCE_CHANNELS.name, names,
-                           {"position": np.column_stack([sig.extra[k] for k in names])}))
-    per_sample = [(topic, names, cdr.JointStateWriter(), {f: v.tolist() for f, v in fields.items()})
-                  for topic, names, fields in per_sample]
-    with McapRecorder(out, yaml.safe_dump(sig.config, sort_keys=False, allow_unicode=True),
-                      start_ns=int(st[0]), overwrite=overwrite, atomic=True) as rec:
-        w = rec.write
-        s0, s1 = int(st[0]), int(st[-1])
-        w(EVENTS.name, s0, convert.event_msg(ts, "run_start", stamp_ns=s0, case=case, node=node))
-        w(EVENTS.name, s0, convert.event_msg(ts, "trial_start", stamp_ns=s0, trial=0, case=case, node=node))
-        for i, s in enumerate(st.tolist()):
-            for topic, names, writer, fields in per_sample:
-                w(topic, s, writer.pack(s, names, **{f: v[i] for f, v in fields.items()}))
-        w(EVENTS.name, s1, convert.event_msg(ts, "trial_end", stamp_ns=s1, trial=0, case=case, node=node))
-        w(EVENTS.name, s1, convert.event_msg(ts, "run_end", stamp_ns=s1, case=case, node=node))
+        series.append((SOURCE_CHANNELS.name, names, {"position": np.column_stack([sig.extra[k] for k in names])},
+                       None))
+    write_trials(out, yaml.safe_dump(sig.config, sort_keys=False, allow_unicode=True),
+                 [TrialSignals(np.asarray(sig.stamp_ns, dtype=np.int64), series)], case=sig.config["run"]["case"],
+                 node=node, start_ns=int(sig.stamp_ns[0]), overwrite=overwrite, atomic=True)
     return bag_layout(out)[1]
 
 

@@ -306,6 +306,7 @@ def test_main_report_leads_with_the_headline(t42, t52):
     assert doc[0]["seed"] == pytest.approx(16 / 44) and doc[5]["seed"] == pytest.approx(33 / 77)
 
 
+@pytest.mark.slow
 def test_step_ii_learned_on_the_move_sees_the_locked_creep():
     """``step_ii: {learn: on_move}`` (not the seed's procedure, the counterfactual of docs/headline.md)
     learns from the error after the switch that ends the condition's own move: it contains the table's
@@ -334,6 +335,7 @@ def test_step_ii_learned_on_the_move_sees_the_locked_creep():
         learn_step_ii(camp_m, camp_m.case("sai"), preset)
 
 
+@pytest.mark.slow
 def test_table_3_3_findings(tmp_path):
     """VAN: dither with HC settles faster and has a larger in-position error (all four directions
     of Table 3.3 reproduced; the settling reductions, -16% / -6% at 50 trials, are much smaller than
@@ -345,6 +347,7 @@ def test_table_3_3_findings(tmp_path):
     assert _finding(cr, "dither_rms_larger_5mm")["agrees"] and _finding(cr, "dither_rms_larger_5um")["agrees"]
 
 
+@pytest.mark.slow
 def test_dahl_bearings_ratchet_out_of_position(tmp_path):
     """table_4_2_dahl: with the Table 4.3 Dahl bearings the No FI stage drifts after settling
     (single-state Dahl drift), so its in-position error exceeds the FI's: the seed's RMS finding
@@ -360,7 +363,7 @@ def test_dahl_bearings_ratchet_out_of_position(tmp_path):
 
 
 # --------------------------------------------------------------------------- graph and CLI
-@pytest.mark.slow
+@pytest.mark.ros
 def test_graph_runs_reproduce_the_batch_trials(tmp_path):
     """Representative trials through the ROS graph, incl. an SAI trial with its learned Step II
     correction, give the batch engine's measured positions exactly."""

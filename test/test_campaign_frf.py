@@ -124,6 +124,7 @@ def test_loop_margins_reference_values():
 
 
 # --------------------------------------------------------------------------- campaign files
+@pytest.mark.slow
 def test_frf_campaign_files_validate():
     for name in ("frf_fi", "frf_dob"):
         c = load_campaign(name)

@@ -1,5 +1,6 @@
 """Discretization helpers and the compiled state-space step."""
 import numpy as np
+import pytest
 from scipy import signal
 
 from stage_control.filters import dc_state, discretize, realize, ss_step
@@ -17,6 +18,7 @@ def run(ss, u, x=None):
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_ss_step_matches_scipy_any_order():
     rng = np.random.default_rng(1)
     u = rng.normal(size=300)

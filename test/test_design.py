@@ -29,6 +29,7 @@ def _requirements(sw):
     return np.unique(np.concatenate([r, (r[1:] + r[:-1]) / 2, [r[0] * 0.9, r[-1] * 1.1]]))
 
 
+@pytest.mark.slow
 def test_recommendation_meets_requirement_and_next_softer_does_not(sweep):
     reqs = _requirements(sweep)
     seen_inner = False
@@ -55,6 +56,7 @@ def test_recommendation_meets_requirement_and_next_softer_does_not(sweep):
     assert a.recommended is None and not a.ok and "no FI" in a.message
 
 
+@pytest.mark.slow
 def test_tighter_requirement_never_gives_softer_isolator(sweep):
     ks = []
     for req in _requirements(sweep)[::-1]:          # loosest first
@@ -64,6 +66,7 @@ def test_tighter_requirement_never_gives_softer_isolator(sweep):
     assert ks[0] < ks[-1]                           # and it does change over the range
 
 
+@pytest.mark.slow
 def test_sweep_contents(sweep):
     """Norms follow Sec. 6.3.2 on the grid; No FI lower G_d than any FI; Dahl-vs-GMS γ reported."""
     assert sweep.ts.shape == (K_GRID.size, C_GRID.size, 3)
@@ -185,6 +188,7 @@ def test_cli_fi_run_writes_report(tmp_path, capsys, monkeypatch):
                  "--out", str(out), "--no-plots"]) == 1
 
 
+@pytest.mark.slow
 def test_wired_in_nanostage_cli():
     from experiment_runner.cli import build_parser
     args = build_parser().parse_args(["design", "van_stage", "--vpp", "20"])

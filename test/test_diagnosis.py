@@ -152,6 +152,7 @@ def _fit_on(d, nominal, key, ctx=None, starts=None):
     return fit_effect(LIBRARY[key], spec, ev, ctx, starts=starts), ev.J(spec)
 
 
+@pytest.mark.slow
 def test_gms_effect_on_a_maxwell_slip_model_scales_its_own_blocks():
     """A Maxwell-slip nominal is one point of the GMS effect (x_scale 1, its own capacities): a
     stiffer contact (all block stiffnesses x1.25) is found as x_scale 0.8 with the capacities kept."""
@@ -172,6 +173,7 @@ def test_gms_effect_on_a_maxwell_slip_model_scales_its_own_blocks():
     assert f.J_held < 2 and J0 > 20
 
 
+@pytest.mark.slow
 def test_gms_fit_gets_past_rejected_damped_steps():
     """Twelve correlated capacities on an isolated stage (power-study case 006: a Maxwell-slip truth
     with a 13 um pre-motion length behind the isolator joints, Dahl nominal): from the start,
@@ -184,6 +186,7 @@ def test_gms_fit_gets_past_rejected_damped_steps():
     assert f.J_held < 10, f.J_held
 
 
+@pytest.mark.slow
 def test_a_start_the_simulator_refuses_is_a_bad_point_not_a_lost_candidate():
     """Power-study case 029: an isolator joint behind the bearings of a 1 kHz Coulomb stage. One
     of the joint's starts (from a located spectral peak) is too stiff for the simulator's

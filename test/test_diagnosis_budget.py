@@ -37,6 +37,7 @@ def _diagnose(record, out, *extra):
     return main(["diagnose", str(record), NOMINAL, "--out", str(out), "--no-plots", *extra])
 
 
+@pytest.mark.slow
 def test_tiny_budget_ends_early_with_the_statement_leading_the_report(record, tmp_path, capsys):
     """--max-seconds 1: the search stops (the record alone takes longer to read, predict and
     locate), nothing is adopted from the unfinished step, and report.md, report.json and stdout
@@ -59,6 +60,7 @@ def test_tiny_budget_ends_early_with_the_statement_leading_the_report(record, tm
     assert (out / "improved_preset.yaml").is_file()
 
 
+@pytest.mark.slow
 def test_progress_on_stderr_and_quiet_silences_it(record, tmp_path, capsys):
     """A progress line per stage with the elapsed seconds on stderr by default; none with --quiet
     (stdout, the answer, is the same)."""
@@ -106,6 +108,7 @@ def test_budget_refuses_a_bad_value_and_checkpoints_only_while_searching():
     assert b.summary()["reached"] and b.summary()["after_stage"] is None
 
 
+@pytest.mark.slow
 def test_a_step_cut_short_is_dropped_whole(record, tmp_path, capsys, monkeypatch):
     """The budget runs out while step 1's candidates are being fitted (after the first fit, with
     a generous budget otherwise): step 1 is not adopted from the candidates that were fitted, the
@@ -128,6 +131,7 @@ def test_a_step_cut_short_is_dropped_whole(record, tmp_path, capsys, monkeypatch
     assert "time budget of 600 s reached after stage prepare" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_interrupted_search_leaves_its_partial_report(record, tmp_path, capsys, monkeypatch):
     """SIGTERM during the search: the partial report is written (marked interrupted) and the
     command ends as interrupted (exit 128 + 15)."""

@@ -75,6 +75,7 @@ def test_each_truth_writer_writes_a_valid_preset_with_the_effects_parameters(key
         assert set(truth) <= names, (key, stage, law, truth)
 
 
+@pytest.mark.slow
 def test_selftest_cases_are_unique_and_valid():
     names = [c.name for c in CASES]
     assert len(names) == len(set(names)) == 47

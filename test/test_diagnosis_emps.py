@@ -7,8 +7,11 @@ asymmetry (Fv+ - Fv- = -73.7 N·s/m) within 30 %; the data-sheet force constant 
 its stated value; the improved model's held-out closed-loop replay stable and at least 5x
 better than the nominal's; printed values are the improved YAML's values.
 
-Skipped (with the reason) when the EMPS data are not under the shared data folder. One
-diagnosis of a 24.8 s record (~1 min): slow.
+The diagnosis is the suite's one diagnosis of the EMPS record (``conftest.emps_diagnosis``, shared
+with ``test_realdata.py``): ``nanostage realdata``'s, which runs ``nanostage diagnose``'s defaults
+(:func:`test_realdata_diagnoses_with_the_cli_defaults` keeps the two the same) and writes the
+report and the improved preset the CLI writes. Skipped (naming where it looked) when the EMPS data
+are not under the shared data folder.
 """
 from __future__ import annotations
 
@@ -17,38 +20,27 @@ import json
 
 import pytest
 
-from experiment_runner.diagnosis import add_diagnose_arguments, main_diagnose
+from experiment_runner.diagnosis import add_diagnose_arguments
 from experiment_runner.diagnosis import realdata as R
-from experiment_runner.diagnosis.datasets import DataMissing, data_root
-from experiment_runner.tabular import convert_emps
+from experiment_runner.diagnosis.cli import diagnose_options
+from experiment_runner.diagnosis.options import Options
 from stage_sim.config import load_preset
-
-pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def emps_cli(tmp_path_factory):
-    try:
-        mat = data_root() / "emps" / "DATA_EMPS.mat"
-    except DataMissing as err:
-        pytest.skip(f"EMPS data missing: {err}")
-    if not mat.is_file():
-        pytest.skip(f"EMPS data missing: {mat} is not a file")
-    d = tmp_path_factory.mktemp("emps_cli")
-    rec = convert_emps(mat, d / "rec")
+def emps_cli(emps_diagnosis):
+    out = emps_diagnosis["diagnosis"]
+    return json.loads((out / "report.json").read_text()), load_preset(out / "improved_preset.yaml")
+
+
+def test_realdata_diagnoses_with_the_cli_defaults():
+    """``nanostage diagnose REC emps_nominal.yaml --no-plots`` runs ``Options(plots=False)``, the
+    options of :func:`~experiment_runner.diagnosis.realdata.run_emps`'s diagnosis; the suite's one
+    (``conftest.emps_diagnosis``) lifts only the wall-clock budget (``max_seconds=None``: an answer
+    that must not depend on the machine's load)."""
     p = argparse.ArgumentParser()
     add_diagnose_arguments(p)
-    out = d / "diagnosis"
-    # the CLI's defaults except the wall-clock budget: the answer must not depend on the machine's load
-    # (a loaded CI machine); how long it takes is the bench's figure (diagnose_seconds_emps)
-    args = p.parse_args([str(rec), str(R.EMPS_NOMINAL), "--out", str(out), "--json", "--no-plots",
-                         "--max-seconds", "3600"])
-    import contextlib
-    import io
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        assert main_diagnose(args) == 0
-    return json.loads(buf.getvalue()), load_preset(out / "improved_preset.yaml")
+    assert diagnose_options(p.parse_args(["rec.mcap", str(R.EMPS_NOMINAL), "--no-plots"])) == Options(plots=False)
 
 
 def _param(rep, effect, name):
@@ -57,6 +49,8 @@ def _param(rep, effect, name):
     return next(p["value"] for p in f["params"] if p["name"] == name)
 
 
+@pytest.mark.realdata
+@pytest.mark.slow
 def test_emps_defaults_give_the_published_rigid_model(emps_cli):
     rep, p = emps_cli
     P, A = R.EMPS_PUBLISHED, R.EMPS_PUBLISHED_ASYM
@@ -70,6 +64,8 @@ def test_emps_defaults_give_the_published_rigid_model(emps_cli):
     assert fr.viscous_difference == pytest.approx(A["Fv+"] - A["Fv-"], rel=0.30)
 
 
+@pytest.mark.realdata
+@pytest.mark.slow
 def test_emps_printed_values_are_the_yaml_values(emps_cli):
     rep, p = emps_cli
     assert _param(rep, "mass", "m_table") == p.stage.table.mass
@@ -78,6 +74,8 @@ def test_emps_printed_values_are_the_yaml_values(emps_cli):
         assert _param(rep, "coulomb", "F_C") == pytest.approx(p.stage.table_friction.f_c, rel=1e-12)
 
 
+@pytest.mark.realdata
+@pytest.mark.slow
 def test_emps_replay_leads_and_improves(emps_cli):
     rep, _ = emps_cli
     r = rep["replay"]

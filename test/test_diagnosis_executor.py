@@ -7,7 +7,6 @@ first effect together with each candidate (selected fits travel to the workers t
 """
 import argparse
 import json
-import logging
 import pickle
 
 import pytest
@@ -70,13 +69,9 @@ def test_local_processes_same_report(case, threaded):
     assert _canon(rep) == _canon(threaded)
 
 
-@pytest.mark.slow
-def test_dask_local_cluster_same_report(case, threaded):
-    from distributed import LocalCluster
+def test_dask_local_cluster_same_report(case, threaded, dask_cluster):
     rec, nominal = case
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=logging.ERROR) as cluster:
-        rep = diagnose(rec, nominal, options=Options(plots=False, effects=EFFECTS, cluster=cluster))
+    rep = diagnose(rec, nominal, options=Options(plots=False, effects=EFFECTS, cluster=dask_cluster))
     assert _canon(rep) == _canon(threaded)
 
 
@@ -92,12 +87,14 @@ def test_a_library_object_selects_as_effect_keys_do(case, threaded):
     assert _canon(dict(d.report_, _improved_spec=d.model_)) == _canon(threaded)
 
 
+@pytest.mark.slow
 def test_bad_workers_named(case):
     rec, nominal = case
     with pytest.raises(ConfigError, match="--workers: must be >= 1"):
         diagnose(rec, nominal, options=Options(plots=False, effects=EFFECTS, workers=0))
 
 
+@pytest.mark.slow
 def test_cli_options():
     p = add_diagnose_arguments(argparse.ArgumentParser())
     opt = diagnose_options(p.parse_args(["rec.mcap", "--workers", "3", "--cluster", "tcp://h:8786"]))

@@ -255,6 +255,7 @@ def test_a_force_residual_that_rises_while_the_replay_improves_is_stated():
     assert verdict.explain_figures(data, r_nom, r_new, valid, 200.0, agree) == []
 
 
+@pytest.mark.slow
 def test_a_nominal_stating_no_drive_noise_takes_the_datas_level_before_judging():
     from experiment_runner.diagnosis import stages
     from experiment_runner.diagnosis.options import Options
@@ -277,6 +278,7 @@ def test_a_nominal_stating_no_drive_noise_takes_the_datas_level_before_judging()
     assert pred.replay_floor.sigma_u > 3 * sigma_before          # the floor is the data's, not a numerical nothing
 
 
+@pytest.mark.slow
 def test_a_deterministic_residual_is_not_taken_for_the_drive_noise_level():
     """A noise-free nominal that also misses half its Coulomb friction: the level read from its residual
     does not make its replay consistent with its recordings (the residual holds more than noise), so

@@ -64,6 +64,7 @@ def _judge(rec, nominal, drop_input=False):
     return j, spec, fl, j.floor_ratio(fl.replay, fl)
 
 
+@pytest.mark.slow
 def test_open_loop_judge_truth_at_its_floor_nominal_far_known_force_needed(tmp_path):
     """The open-loop judge on an open-loop record (1 kHz): the truth model's held-out window
     prediction is at its run-to-run floor (error/floor RMS ratio 1 +- 0.3, consistency z below
@@ -328,6 +329,7 @@ def test_mode_located_from_the_transfer_up_to_nyquist(tmp_path, rate):
     assert locate_modes(spec, load_data(rigid)) == []
 
 
+@pytest.mark.slow
 def test_open_loop_judge_prewhitened_sees_a_mode_the_drift_buries(tmp_path):
     """A 1.5 kHz mode of 20 % of the mass on a 10 kHz open-loop record (scipy): in RMS the rigid
     nominal's window errors are within their floor (0.93x: the re-initialised state's drift

@@ -35,6 +35,7 @@ def _record(spec, T_s, B=4, f_ext=None, seed0=300):
     return from_trials(rate, np.zeros(B), *cols, f_ext=None if f_ext is None else [f_ext[:, b] for b in range(B)])
 
 
+@pytest.mark.slow
 def test_known_force_instrument_locates_a_closed_loop_mode():
     """A 500 Hz (blocked) mode of 20 % of the mass, zeta 0.02, in a closed loop held in position and
     pushed by a known white table force: the command -> measurement ratio P_uy/P_uu over the model is
@@ -60,6 +61,7 @@ def test_known_force_instrument_locates_a_closed_loop_mode():
     assert m["source"] == "transfer (known force as instrument)"
 
 
+@pytest.mark.slow
 def test_noise_spectrum_locates_nothing_on_the_model_itself():
     """The rigid model's own closed-loop record (held in position, only its drive noise): no mode
     in its command's noise spectrum."""
@@ -95,6 +97,7 @@ def _moving(rate=1e4, T_s=2.0, stroke=4e-3):
     return from_trials(rate, [0.0], [x], [np.gradient(x) * rate], [0 * t], [x]), t, x
 
 
+@pytest.mark.slow
 def test_remaining_names_a_line_and_a_position_period_with_their_shares():
     """A residual of a 0.3 N line at 120 Hz, a 0.2 N sinusoid of period 0.5 mm in position and
     0.01 N white noise: the line (frequency within 1 Hz, amplitude within 10 %) and the period
@@ -122,6 +125,7 @@ def test_remaining_names_a_line_and_a_position_period_with_their_shares():
     assert "N·m" in rot[0]["text"] and "rad" in rot[1]["text"], rot
 
 
+@pytest.mark.slow
 def test_remaining_lists_nothing_in_white_noise():
     """A white residual: no line 10 dB above its spectrum, no position period or stroke level of
     10 % share, no regime concentration; the report says the residual is spread."""
@@ -167,6 +171,7 @@ def test_diagnosis_reports_what_it_could_not_explain(tmp_path):
 
 
 
+@pytest.mark.slow
 def test_a_single_bin_line_is_no_mode_a_mode_fits_inside_its_bounds():
     """The transfer-ratio fit of a true mode ratio (500 Hz, zeta 0.02, 20 %) lands inside its
     bounds; a ratio of 1 with one bin 2x (a line of the excitation: EMPS' reference gave a '2.44 Hz

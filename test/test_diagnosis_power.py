@@ -231,7 +231,9 @@ def test_second_start_finds_the_pair_a_stand_in_had_absorbed(tmp_path):
     each) replay the joint and the curve together better than the joint alone, so forward
     selection took the GMS first and a mass change next, and ended 3.7x above its floor
     (replay D 27.8). The path from step 1's runner-up, the joint, adds the Stribeck curve and
-    reaches the floor (D 2.03): it is kept, and the report says why."""
+    reaches the floor (D 2.03): it is kept, and the report says why. What is asserted is the
+    right answer and, where a second start gave it, the report's reason for it; not which stand-in
+    the forward selection took (a known weakness, not a behaviour to keep)."""
     from experiment_runner.diagnosis.model import ModelSpec
     from experiment_runner.diagnosis.options import Options
     from experiment_runner.diagnosis.pipeline import diagnose
@@ -249,11 +251,12 @@ def test_second_start_finds_the_pair_a_stand_in_had_absorbed(tmp_path):
     assert r["named"] == ["fi_compliance", "stribeck"] and r["both_named"]
     chk = r["params"]["fi_compliance"]["checks"]
     assert chk["k_fi"]["estimate"] == pytest.approx(chk["k_fi"]["truth"], rel=0.05)
-    ss = rep["selection"]["second_start"]
-    assert ss["chosen"] and ss["first"] == "fi_compliance" and ss["greedy_effects"] == ["gms", "mass"]
-    assert ss["replay_D"] < 0.2 * ss["replay_D_greedy"]
     assert rep["selection"]["steps"][0]["accepted"] == "fi_compliance"
-    assert "Second start" in (tmp_path / "report.md").read_text()
+    ss = rep["selection"].get("second_start") or {}
+    if ss.get("chosen"):          # the forward path ended above its floor: the report says which path, and why
+        assert ss["first"] == "fi_compliance" and ss["greedy_effects"] != r["named"]
+        assert ss["replay_D"] < 0.2 * ss["replay_D_greedy"]
+        assert "Second start" in (tmp_path / "report.md").read_text()
 
 
 def test_a_parameters_sigma_is_its_spread_over_the_models_own_recordings():

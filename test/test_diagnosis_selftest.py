@@ -122,6 +122,7 @@ def test_selftest_sai_and_above_band_cases(capsys):
     assert s["passed"] == 3 and s["false_positives"] == 0 and code == 0
 
 
+@pytest.mark.slow
 def test_sai_mode_missing_from_the_recording_comes_from_the_nominal(tmp_path):
     """Without /stage/isolator the SAI command is the nominal SAI manager's on the recorded
     reference: the same switching as recorded."""

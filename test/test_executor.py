@@ -4,7 +4,6 @@ A tiny campaign (Table 4.2's two cases at the 5 µm step, 6 trials, 50 ms dwell)
 exactly the per-trial metrics of one in-memory batch run of all trials, whatever runs it.
 """
 import json
-import logging
 import math
 import os
 import subprocess
@@ -50,14 +49,6 @@ def reference_metrics(camp) -> dict:
     return out
 
 
-@pytest.fixture(scope="module")
-def dask_cluster():
-    from distributed import LocalCluster
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=logging.ERROR) as cluster:
-        yield cluster
-
-
 def _canon(mets) -> str:
     """Exact, NaN-safe comparison form of a metrics list."""
     return json.dumps(mets, sort_keys=True)
@@ -77,6 +68,7 @@ def _check_same(cr, reference_metrics, camp):
         assert rr.trace.settling_time == rr.metrics[rr.rep]["settling_time_s"]
 
 
+@pytest.mark.slow
 def test_in_process_matches_one_batch_and_streams_every_trial(camp, reference_metrics, tmp_path):
     cr = _run(camp, tmp_path, workers=1)
     _check_same(cr, reference_metrics, camp)
@@ -97,11 +89,12 @@ def test_local_process_pool_gives_identical_metrics(camp, reference_metrics, tmp
     _check_same(_run(camp, tmp_path, workers=2), reference_metrics, camp)
 
 
-@pytest.mark.slow
+@pytest.mark.dask
 def test_dask_local_cluster_gives_identical_metrics(camp, reference_metrics, tmp_path, dask_cluster):
     _check_same(_run(camp, tmp_path, cluster=dask_cluster.scheduler_address), reference_metrics, camp)
 
 
+@pytest.mark.slow
 def test_resume_runs_only_the_missing_trials(camp, reference_metrics, tmp_path, monkeypatch):
     _run(camp, tmp_path)
     path = tmp_path / STREAM_NAME
@@ -126,6 +119,7 @@ def test_resume_runs_only_the_missing_trials(camp, reference_metrics, tmp_path, 
     assert len(recs) == len(camp.cases) * TRIALS           # no duplicate, no partial line
 
 
+@pytest.mark.slow
 def test_stream_of_other_settings_is_refused(camp, tmp_path):
     _run(camp, tmp_path)
     other = Campaign.model_validate({**camp.model_dump(), "trials": TRIALS - 1})
@@ -152,6 +146,7 @@ def test_worker_with_other_model_code_refuses_to_run(camp):
         stream_mod.chunk_task(*args, "0123456789abcdef")
 
 
+@pytest.mark.dask
 def test_executor_map_results_and_errors(dask_cluster):
     tasks = [(("t", i), (float(i),)) for i in range(5)]
     for ex in (make_executor(1), make_executor(2), make_executor(cluster=dask_cluster.scheduler_address)):

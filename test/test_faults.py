@@ -1,7 +1,7 @@
 """Faults in the node graph, and the safety limits in the loop.
 
-Each test runs the graph as separate processes (:class:`experiment_runner.graph.NodeProcesses`)
-on an isolated ROS domain and injects one fault mid-trial: a node killed (SIGKILL), stopped
+Each graph test runs the graph as separate processes (:class:`experiment_runner.ros.launch.NodeProcesses`,
+the ``node_graph`` fixture of ``conftest.py``) on a ROS domain leased to it and injects one fault mid-trial: a node killed (SIGKILL), stopped
 (SIGSTOP), restarted; messages on a topic dropped, delayed or made NaN (the test-only
 ``fault.*`` parameters of :class:`msg_defs.node_io.StageNode`); a reference outside the
 travel; the table leaving its travel. What is checked is what a user sees: the processes'
@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from test_graph import RUN_TIMEOUT, Listener, _domain, _ros_env
+from conftest import GRAPH_TIMEOUT as RUN_TIMEOUT
+from conftest import ros_environment
 
 from experiment_runner.experiment import EXPERIMENT_DIR, experiment_preset, load_experiment, run_batch
 from experiment_runner import outputs
 from experiment_runner.graph import EXIT_ABORTED, run_graph
-from experiment_runner.ros.launch import NodeProcesses
 from experiment_runner.ros.nodes import nodes_for
 from experiment_runner.recording import read_recording, write_run
 from stage_control.servo import build_servo, check_reference
@@ -76,15 +76,10 @@ def _params(*extra: dict) -> dict:
 class Run:
     """One graph run with a live listener; ``finish()`` waits for the sequencer, stops the rest."""
 
-    def __init__(self, tmp_path: Path, exp: Path, params: dict, nodes=FI_NODES):
-        self.domain = _domain()
-        self.tmp = tmp_path
-        self.listener = Listener(self.domain, defer_trajectory=True)
-        with _ros_env(self.domain):
-            self.graph = NodeProcesses(str(exp), tmp_path / "run", nodes=nodes, params=params,
-                                       stderr_dir=tmp_path)
+    def __init__(self, tmp_path: Path, graph, listener):
+        self.tmp, self.graph, self.listener = tmp_path, graph, listener
         self.seq = self.graph.procs["experiment_sequencer"]
-        self.listener.join_when_matched(event_publishers=len(nodes))
+        self.listener.join_when_matched(event_publishers=len(graph.procs))
 
     def events(self, kind: str) -> list[dict]:
         return [e for e in self.listener.events if e["event"] == kind]
@@ -100,9 +95,7 @@ class Run:
         """Sequencer's exit code (None if it did not end), every node's exit code."""
         code = self.graph.wait(timeout=timeout)
         self.listener.wait_for(lambda ev: any(e["event"] == "run_end" for e in ev), 15.0)   # returns when heard; a loaded machine may be slow
-        with _ros_env(self.domain):
-            codes = self.graph.stop()
-        self.listener.close()
+        codes = self.graph.stop()
         assert all(c != "hung" for c in codes.values()), codes      # nothing hangs
         return code, codes
 
@@ -111,18 +104,13 @@ class Run:
 
 
 @pytest.fixture
-def make_run():
-    made = []
-
-    def make(*args, **kw):
-        made.append(Run(*args, **kw))
-        return made[-1]
-    yield make
-    for r in made:                                   # a failed test leaves nothing running
-        if r.graph.procs and any(p.poll() is None for p in r.graph.procs.values()):
-            with _ros_env(r.domain):
-                r.graph.stop()
-            r.listener.close()
+def make_run(ros_domain, listener, node_graph):
+    """``make_run(tmp_path, exp, params, nodes=FI_NODES)``: a :class:`Run` on the test's domain (its
+    nodes stopped and its listener closed after the test by the fixtures)."""
+    def make(tmp_path: Path, exp: Path, params: dict, nodes=FI_NODES) -> Run:
+        lst = listener(ros_domain, defer_trajectory=True)
+        return Run(tmp_path, node_graph(exp, ros_domain, nodes=nodes, params=params), lst)
+    return make
 
 
 def _batch_y(exp: Path) -> np.ndarray:
@@ -155,7 +143,7 @@ def _recorded_abort(rec, node: str, trial=0) -> None:
 
 # =========================================================================== killed nodes
 # (a killed servo and a killed recorder: test_graph.py)
-@pytest.mark.slow
+@pytest.mark.ros
 @pytest.mark.parametrize("node", ["plant_sim", "experiment_sequencer"])
 def test_a_killed_node_ends_the_run_with_the_trial_aborted_naming_it(tmp_path, make_run, node):
     exp = _experiment(tmp_path, dwell=MID_TRIAL)
@@ -182,7 +170,7 @@ def test_a_killed_node_ends_the_run_with_the_trial_aborted_naming_it(tmp_path, m
 
 @pytest.mark.parametrize("base, node, nodes", [("van_asym_hc", "dither_generator", VAN_NODES),
                                                 ("sai_p2p_5um", "sai_manager", SAI_NODES)])
-@pytest.mark.slow
+@pytest.mark.ros
 def test_a_killed_dither_generator_or_sai_manager_trips_the_watchdog_naming_it(tmp_path, make_run, base, node,
                                                                                nodes):
     """The plant waits for their per-sample inputs: the watchdog names the silent node (and the
@@ -205,7 +193,7 @@ def test_a_killed_dither_generator_or_sai_manager_trips_the_watchdog_naming_it(t
     assert np.array_equal(rec.y[tr.slice], y[:tr.stop - tr.start])         # what was recorded is right
 
 
-@pytest.mark.slow
+@pytest.mark.ros
 def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applied(tmp_path, make_run):
     exp = _experiment(tmp_path, dwell=MID_TRIAL)
     run = make_run(tmp_path, exp, _params())
@@ -227,7 +215,7 @@ def test_a_stopped_servo_trips_the_watchdog_and_its_late_commands_are_not_applie
     assert rec.counts["/stage/measured"] == rec.counts["/stage/truth"] == k + 1 and len(rec) >= k
 
 
-@pytest.mark.slow
+@pytest.mark.ros
 def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
     """Nothing comes from a SIGSTOPped plant: the sequencer's sample timeout aborts the trial."""
     exp = _experiment(tmp_path, dwell=MID_TRIAL)
@@ -245,7 +233,7 @@ def test_a_stopped_plant_is_named_by_the_sequencer(tmp_path, make_run):
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
-@pytest.mark.slow
+@pytest.mark.ros
 def test_a_stopped_recorder_never_leaves_a_silently_incomplete_recording(tmp_path, make_run):
     """SIGSTOPped for 2 s the recorder falls behind (more than the topics' 0.1 s history, unless
     the machine is slow): the run goes on (the recorder is not in the loop); resumed, it takes
@@ -276,7 +264,7 @@ def test_a_stopped_recorder_never_leaves_a_silently_incomplete_recording(tmp_pat
 
 
 # =========================================================================== restarts
-@pytest.mark.slow
+@pytest.mark.ros
 def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new plant gets the trial's trajectory (latched) and starts it again from sample 0:
     the sequencer sees the sample index go back and refuses the mixed trial."""
@@ -295,7 +283,7 @@ def test_a_plant_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_r
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
-@pytest.mark.slow
+@pytest.mark.ros
 def test_a_servo_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_run):
     """The new servo gets the trial's trajectory (latched) and the plant's repeated sample k > 0:
     it refuses to start from rest in mid-motion."""
@@ -314,8 +302,8 @@ def test_a_servo_restarted_mid_trial_aborts_the_trial_naming_it(tmp_path, make_r
     assert np.array_equal(rec.y[tr.slice], _batch_y(exp)[0][:tr.stop - tr.start])
 
 
-@pytest.mark.slow
-def test_a_rerun_in_the_same_out_dir_starts_clean(tmp_path):
+@pytest.mark.ros
+def test_a_rerun_in_the_same_out_dir_starts_clean(tmp_path, ros_domain):
     """A previous run's recording is not read as the next one's, even if the next records nothing."""
     out = outputs.prepare_folder(tmp_path / "out")
     old_exp = load_experiment(_experiment(tmp_path, trials=2))
@@ -325,17 +313,16 @@ def test_a_rerun_in_the_same_out_dir_starts_clean(tmp_path):
     outputs.move_into(bag.parent / "metadata.yaml", out / "metadata.yaml")
     outputs.prepare_folder(out / "run_2")                                 # + a restarted recorder's part
     assert sorted(p.name for p in out.iterdir()) == [outputs.MANIFEST, "metadata.yaml", "run.mcap", "run_2"]
-    domain = _domain()
     never = {"experiment_sequencer": {"wait_for_nodes": 99, "start_timeout": 2.0}}  # aborts before it starts
-    with _ros_env(domain):
-        code = run_graph(str(_experiment(tmp_path)), out, processes=True, domain_id=domain,
+    with ros_environment(ros_domain):
+        code = run_graph(str(_experiment(tmp_path)), out, processes=True, domain_id=ros_domain,
                          timeout=RUN_TIMEOUT, params=never)
     assert code == EXIT_ABORTED
     assert sorted(p.name for p in out.iterdir()) == [outputs.MANIFEST]  # nothing of the last run is left
 
 
 # =========================================================================== messages
-@pytest.mark.slow
+@pytest.mark.ros
 def test_dropped_and_delayed_messages_are_recovered_and_change_nothing(tmp_path, make_run):
     """A lost lockstep message is sent again (the plant repeats its sample after 0.25 s, the
     servo its answer); a late one is waited for: the run is the batch engine's, bit for bit.
@@ -359,7 +346,7 @@ def test_dropped_and_delayed_messages_are_recovered_and_change_nothing(tmp_path,
     ("fi_p2p_5um", "plant_sim", "/stage/measured", FI_NODES),
     ("van_asym_hc", "dither_generator", "/stage/dither", VAN_NODES),
     ("sai_p2p_5um", "sai_manager", "/sai/command", SAI_NODES)])
-@pytest.mark.slow
+@pytest.mark.ros
 def test_dropped_lockstep_messages_of_every_node_are_recovered(tmp_path, make_run, base, node, topic, nodes):
     """3 messages in a row lost on each lockstep topic: the plant sends its sample again, the
     node answers again; the run is the batch engine's, bit for bit."""
@@ -377,7 +364,7 @@ def test_dropped_lockstep_messages_of_every_node_are_recovered(tmp_path, make_ru
 
 @pytest.mark.parametrize("node, topic", [("servo_controller", "/stage/reference"), ("plant_sim", "/stage/truth"),
                                          ("plant_sim", "/clock")])
-@pytest.mark.slow
+@pytest.mark.ros
 def test_lost_messages_outside_the_lockstep_are_recorded_as_lost(tmp_path, make_run, node, topic):
     """Messages no node waits for (the reference record, the truth, the clock) are lost for
     good: the loop runs on bit for bit. Without its reference record the trial's metrics
@@ -410,7 +397,7 @@ def test_lost_messages_outside_the_lockstep_are_recorded_as_lost(tmp_path, make_
     assert gap["lost"] == {topic: 5} and f"5 sample(s) of {topic}" in gap["reason"]
 
 
-@pytest.mark.slow
+@pytest.mark.ros
 def test_a_nan_command_stops_the_run_naming_the_servo(tmp_path, make_run):
     node, topic, catcher, sender = "servo_controller", "/stage/command", "plant_sim", "servo_controller"
     exp = _experiment(tmp_path)
@@ -433,7 +420,7 @@ def test_a_nan_command_stops_the_run_naming_the_servo(tmp_path, make_run):
 
 
 # =========================================================================== travel and divergence
-@pytest.mark.slow
+@pytest.mark.ros
 def test_the_table_leaving_its_travel_stops_the_run_and_keeps_the_recording(tmp_path, make_run):
     # the table overshoots the 5 um target by ~7 nm 0.06 s into the trial
     exp = _experiment(tmp_path, dwell=0.1, overrides={"stage.travel.max": 5.001e-6})
@@ -449,7 +436,7 @@ def test_the_table_leaving_its_travel_stops_the_run_and_keeps_the_recording(tmp_
     assert rec.salvaged is None and 0 < len(rec) < len(_batch_y(_experiment(tmp_path, dwell=0.1))[0])
 
 
-@pytest.mark.slow
+@pytest.mark.ros
 def test_a_reference_outside_the_travel_is_refused_before_the_trial_moves(tmp_path, make_run):
     exp = _experiment(tmp_path, overrides={"stage.travel.max": 4.0e-6})    # the 5 um target is beyond it
     # the fault comes at the trial's first sample: give discovery time to match the servo's events
@@ -485,7 +472,7 @@ def test_check_reference_names_the_first_sample_outside_the_travel():
 
 # =========================================================================== a controller node alone
 @pytest.fixture
-def servo_node():
+def servo_node(ros_domain):
     """A ``servo_controller`` in this process (own context, no graph), on the FI preset, with
     a 5 um point-to-point trial started; ``node.faults`` collects its fault events."""
     import rclpy
@@ -495,7 +482,7 @@ def servo_node():
     from msg_defs import convert
     from experiment_runner.ros.servo_node import ServoNode
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=_domain())
+    rclpy.init(context=ctx, domain_id=ros_domain)
     node = ServoNode(context=ctx, parameter_overrides=[Parameter("preset", value="fi_stage")])
     node.faults = []
     node.fault_event = lambda cause, reason, responsible, **kw: node.faults.append((cause, reason, responsible))
@@ -506,6 +493,7 @@ def servo_node():
     rclpy.shutdown(context=ctx)
 
 
+@pytest.mark.ros
 def test_the_servo_names_the_plant_for_a_nan_measurement(servo_node):
     for k in range(3):
         servo_node._put(k * DT_NS, "measured", 0.0)
@@ -517,6 +505,7 @@ def test_the_servo_names_the_plant_for_a_nan_measurement(servo_node):
     assert servo_node.last_k == 2
 
 
+@pytest.mark.ros
 def test_the_servo_reports_its_own_state_diverging(servo_node):
     servo_node._put(0, "measured", 0.0)
     servo_node.state[1, 0] = np.inf                                # the integrator blows up
@@ -525,6 +514,7 @@ def test_the_servo_reports_its_own_state_diverging(servo_node):
     assert cause == "diverged" and who == "servo_controller" and "sample 1" in reason
 
 
+@pytest.mark.ros
 def test_a_servo_joining_a_trial_after_its_first_sample_refuses_it(servo_node):
     servo_node._put(7 * DT_NS, "measured", 1e-6)
     (cause, reason, who), = servo_node.faults
@@ -532,7 +522,8 @@ def test_a_servo_joining_a_trial_after_its_first_sample_refuses_it(servo_node):
     assert servo_node.last_k == -1                                 # nothing was computed
 
 
-def test_a_second_sequencer_on_the_domain_refuses_to_start():
+@pytest.mark.ros
+def test_a_second_sequencer_on_the_domain_refuses_to_start(ros_domain):
     """Its latched trajectories would mix into the other run: the one that starts later aborts."""
     import rclpy
     from rclpy.context import Context
@@ -540,7 +531,7 @@ def test_a_second_sequencer_on_the_domain_refuses_to_start():
 
     from experiment_runner.ros.sequencer_node import SequencerNode
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=_domain())
+    rclpy.init(context=ctx, domain_id=ros_domain)
     try:
         seqs = [SequencerNode(context=ctx, experiment="fi_p2p_5um") for _ in range(2)]
         ex = SingleThreadedExecutor(context=ctx)
@@ -559,7 +550,8 @@ def test_a_second_sequencer_on_the_domain_refuses_to_start():
         rclpy.shutdown(context=ctx)
 
 
-def test_the_recorder_counts_samples_lost_before_it_heard_the_config(tmp_path):
+@pytest.mark.ros
+def test_the_recorder_counts_samples_lost_before_it_heard_the_config(tmp_path, ros_domain):
     """On a loaded machine the run's config (transient_local, matched on its own) may reach the
     recorder after the first per-sample messages: a gap among those is still counted (the
     control period comes with the config) and reported as ``recording_incomplete``."""
@@ -570,7 +562,7 @@ def test_the_recorder_counts_samples_lost_before_it_heard_the_config(tmp_path):
     from experiment_runner.ros.recorder_node import RecorderNode
     from msg_defs import cdr
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=_domain())
+    rclpy.init(context=ctx, domain_id=ros_domain)
     try:
         node = RecorderNode(out=str(tmp_path / "run"), context=ctx)
         truth = cdr.JointStateWriter()

@@ -89,6 +89,7 @@ def test_lugre_steady_state_is_stribeck_plus_viscous():
 
 @pytest.mark.parametrize("rate", [1000.0, 10000.0])
 @pytest.mark.parametrize("sigma1", [0.0, 1500.0])
+@pytest.mark.slow
 def test_lugre_on_a_mass_matches_an_independent_integrator(rate, sigma1):
     """The plant's LuGre element (2 kg, sigma0 2e6 N/m, F_C 5 N, 30 N·s/m) under force steps
     below and above F_C from rest, against RK4 in (x, v, z) on a 1 us grid (``independent.py``):
@@ -139,6 +140,7 @@ def _regularized_sim(f_c=2.0, v_reg=1e-5, viscous=4.0, mass=1.0, rate=10_000.0):
 
 
 @pytest.mark.parametrize("force", [0.5, 1.9, 3.0])
+@pytest.mark.slow
 def test_regularized_coulomb_steady_velocity(force):
     """Under a constant force the table reaches the velocity where the force balances
     ``F_C tanh(v/v_reg) + c v`` (a root found here with scipy), below F_C too: a smooth
@@ -158,6 +160,7 @@ def test_regularized_coulomb_steady_velocity(force):
 
 
 @pytest.mark.parametrize("rate", [1000.0, 10000.0])
+@pytest.mark.slow
 def test_regularized_coulomb_transients_match_an_independent_integrator(rate):
     """Force steps below and above F_C from rest (2 kg, F_C 5 N, v_reg 1 mm/s, 30 N·s/m: creep
     transients of 0.4 ms, a breakaway to 0.1 m/s) against classical RK4 on a 1 us grid
@@ -195,6 +198,7 @@ def test_stiff_regularized_coulomb_needs_no_substeps():
     assert err[:100].max() < 1e-11, err[:100].max()
 
 
+@pytest.mark.slow
 def test_regularized_coulomb_odd_and_zero_at_rest():
     """Reversing the force reverses the motion exactly; with no force it stays at rest."""
     a, b, rest = _regularized_sim(), _regularized_sim(), _regularized_sim()

@@ -141,6 +141,7 @@ def test_registry_entry_schema_and_bad_input():
                                                    "stage.bearings.0.friction.a": -0.1}, "x.yaml")
 
 
+@pytest.mark.slow
 def test_model_class_virgin_drive_peaks_then_slips_at_the_coulomb_share():
     """The Python model class (time-stepped) along a virgin motion at 1 mm/s after theta0 = 1 s at
     rest: elastic first (the GMS virgin curve), a static peak from aging above F_C, and after ~30

@@ -111,6 +111,7 @@ def _read_all(paths, seeds, reader=read_recording, seconds=CASE_SECONDS):
     return outcomes, failures
 
 
+@pytest.mark.slow
 def test_every_case_ends_in_a_recording_or_a_recording_error(corpus):
     paths, seeds = corpus
     outcomes, failures = _read_all(paths, seeds)
@@ -119,6 +120,7 @@ def test_every_case_ends_in_a_recording_or_a_recording_error(corpus):
     assert outcomes["error"] >= 100 and outcomes["salvaged"] >= 100 and outcomes["read"] >= 50, outcomes
 
 
+@pytest.mark.slow
 def test_the_guard_reports_hangs_crashes_and_wrong_data(corpus):
     """The checks of the fuzz run can fail: a reader that loops, raises or alters data is caught."""
     paths, seeds = corpus
@@ -143,6 +145,7 @@ def test_the_guard_reports_hangs_crashes_and_wrong_data(corpus):
         assert len(failures) == 1 and expected in failures[0], failures
 
 
+@pytest.mark.slow
 def test_salvage_notes_and_damage_messages(corpus):
     """Truncated cases say how much they salvaged; damaged ones say where, and why."""
     paths, _ = corpus

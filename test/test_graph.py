@@ -2,19 +2,17 @@
 
 Every node runs as its own process (the console scripts ``plant_sim``,
 ``servo_controller``, ``dither_generator``, ``sai_manager``, ``recorder``,
-``experiment_sequencer``) on an isolated ROS domain: a ROS_DOMAIN_ID in 1..100 that is
-unique per graph in this session (derived from the pid and a counter, never the
-default domain), localhost-only on 127.0.0.1 (``domain_env``). What a test checks is
-what went over the topics: the MCAP recording read back with ``read_recording``, the
-``/experiment/events`` heard by a listener in this process, parameter services.
-Every wait is bounded; no timing is asserted (speed is ``nanostage bench``'s job).
+``experiment_sequencer``: :class:`experiment_runner.ros.launch.NodeProcesses`, the
+``node_graph`` fixture) on a ROS domain leased to the test (``conftest.lease_domain``: never
+the default, never another running test's), localhost-only on 127.0.0.1 (``domain_env``).
+What a test checks is what went over the topics: the MCAP recording read back with
+``read_recording``, the ``/experiment/events`` heard by a listener in this process
+(``conftest.Listener``), parameter services. Every wait is bounded; no timing is asserted
+(speed is ``nanostage bench``'s job).
 """
 from __future__ import annotations
 
-import contextlib
-import itertools
 import json
-import os
 import shutil
 import signal
 import subprocess
@@ -24,186 +22,29 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+from conftest import GRAPH_TIMEOUT as RUN_TIMEOUT
+from conftest import lease_domain, ros_environment
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, String
 
 from experiment_runner.experiment import build_trials, experiment_preset, load_experiment, run_batch, trial_metrics
+from experiment_runner.recording import read_recording
 from experiment_runner.ros.launch import run_processes
 from experiment_runner.ros.nodes import NODE_NAMES
-from experiment_runner.recording import read_recording
-from msg_defs import convert
-from experiment_runner.ros.qos import qos_profile
-from experiment_runner.ros.run import domain_env, isolate
-from msg_defs.topics import COMMAND, EVENTS, TRAJECTORY
+from experiment_runner.ros.run import domain_env
+
+pytestmark = pytest.mark.ros
 
 BIN = Path(sys.executable).parent
-RUN_TIMEOUT = 90.0                   # s: a whole graph run, start-up included
 WITH_LISTENER = {"wait_for_nodes": 6}  # the five trajectory subscribers of the graph + the Listener
-_COUNTER = itertools.count()
 
-
-def _domain() -> int:
-    """A ROS domain in 1..100, different for every graph of this session (7 is prime to 100)."""
-    return 1 + (os.getpid() + 7 * next(_COUNTER)) % 100
-
-
-@contextlib.contextmanager
-def _ros_env(domain: int):
-    """This process's environment set to the isolated domain (restored afterwards)."""
-    saved = dict(os.environ)
-    isolate(domain)
-    try:
-        yield
-    finally:
-        os.environ.clear()
-        os.environ.update(saved)
-
-
-class Graph:
-    """The node processes of one run (console scripts), stderr of each kept in a file."""
-
-    def __init__(self, experiment: str, out: Path, domain: int, params: dict | None = None, nodes=NODE_NAMES,
-                 ros_args: dict | None = None):
-        self.out, self.domain = out, domain
-        out.mkdir(parents=True, exist_ok=True)
-        env = domain_env(domain)
-        self.procs: dict[str, subprocess.Popen] = {}
-        self.codes: dict[str, int] = {}
-        for name in nodes:
-            args = [str(BIN / name), "--ros-args"]
-            if name == "experiment_sequencer":
-                args += ["-p", f"experiment:={experiment}"]
-            if name == "recorder":
-                args += ["-p", f"out:={out / 'run'}"]
-            for key, val in (params or {}).get(name, {}).items():
-                args += ["-p", f"{key}:={val}"]
-            args += (ros_args or {}).get(name, [])
-            err = open(out / f"{name}.stderr", "w")
-            self.procs[name] = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=err)
-            err.close()
-
-    def kill(self, name: str):
-        self.procs[name].send_signal(signal.SIGKILL)
-        self.codes[name] = self.procs[name].wait(timeout=10)
-
-    def wait_sequencer(self, timeout: float = RUN_TIMEOUT) -> int:
-        return self.procs["experiment_sequencer"].wait(timeout=timeout)
-
-    def stop(self) -> dict[str, int]:
-        """SIGINT to every node still running, the recorder first (as ``nanostage graph`` does:
-        it drains while the publishers are up); each must exit within 15 s (else killed and
-        reported as ``"hung"``)."""
-        order = sorted(self.procs, key=lambda n: n != "recorder")
-        for group in (order[:1], order[1:]):
-            for name in group:
-                if self.procs[name].poll() is None:
-                    self.procs[name].send_signal(signal.SIGINT)
-            for name in group:
-                try:
-                    self.codes.setdefault(name, self.procs[name].wait(timeout=15))
-                except subprocess.TimeoutExpired:
-                    self.procs[name].send_signal(signal.SIGUSR1)      # its stacks to its stderr
-                    time.sleep(0.5)
-                    self.procs[name].kill()
-                    self.procs[name].wait()
-                    self.codes[name] = "hung"
-        return self.codes
-
-    def stderr(self, name: str) -> str:
-        return (self.out / f"{name}.stderr").read_text()
-
-
-class Listener:
-    """An rclpy node in this process (own context) on a graph's domain: hears
-    /experiment/events and can call parameter services. It also subscribes to
-    /experiment/trajectory, so a sequencer told to wait for one more subscriber
-    (``wait_for_nodes`` 6) starts only once the listener is matched: no event is missed."""
-
-    def __init__(self, domain: int, defer_trajectory: bool = False):
-        with _ros_env(domain):
-            self.ctx = Context()
-            rclpy.init(context=self.ctx, domain_id=domain)
-            self.node = Node("test_graph_listener", context=self.ctx)
-        self.events: list[dict] = []
-        self.sub_events = self.node.create_subscription(
-            String, EVENTS.name, lambda m: self.events.append(convert.parse_event(m.data)), qos_profile(EVENTS))
-        self.commands = 0                                    # /stage/command messages heard
-        self.sub_command = self.node.create_subscription(JointState, COMMAND.name, self._command,
-                                                         qos_profile(COMMAND))
-        self.ex = SingleThreadedExecutor(context=self.ctx)
-        self.ex.add_node(self.node)
-        if not defer_trajectory:
-            self._join()
-
-    def _join(self):
-        self.node.create_subscription(Float64MultiArray, TRAJECTORY.name, lambda m: None, qos_profile(TRAJECTORY))
-
-    def join_when_matched(self, event_publishers: int, timeout: float = 30.0) -> None:
-        """Subscribe to /experiment/trajectory (what the sequencer counts) only once this node's
-        command and event subscriptions are matched with the graph's publishers: discovery
-        matches each pair of endpoints on its own, and a short run could end before the
-        listener hears it."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and (self.sub_command.get_publisher_count() < 1
-                                                or self.sub_events.get_publisher_count() < event_publishers):
-            self.ex.spin_once(timeout_sec=0.02)
-        self._join()
-
-    def _command(self, msg):
-        self.commands += 1
-
-    def wait_for(self, predicate, timeout: float, alive=None) -> bool:
-        """Spin until ``predicate(events)`` (True) or ``timeout`` or ``alive()`` is False."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if predicate(self.events):
-                return True
-            if alive is not None and not alive():
-                return predicate(self.events)
-            self.ex.spin_once(timeout_sec=0.02)
-        return predicate(self.events)
-
-    def call(self, request, attempts: int = 4, timeout: float = 5.0):
-        """``request()`` (sends a service request, returns its future) until answered. A service
-        that discovery shows may not yet have matched this client's response reader (a ROS 2
-        race): the answer to the first request can be lost, so it is asked again. All calls here
-        are idempotent (get, or set to the same value)."""
-        for _ in range(attempts):
-            future = request()
-            self.ex.spin_until_future_complete(future, timeout_sec=timeout)
-            if future.done():
-                return future.result()
-        raise AssertionError(f"parameter service did not answer {attempts} requests of {timeout} s")
-
-    def close(self):
-        self.ex.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.ctx)
-
-
-@pytest.fixture
-def listener_factory():
-    made = []
-
-    def make(domain):
-        made.append(Listener(domain))
-        return made[-1]
-    yield make
-    for lst in made:
-        lst.close()
 
 
 def _graph_run(tmp_path_factory, experiment: str) -> dict:
     """A whole experiment, one process per node, through ``run_processes``."""
     out = tmp_path_factory.mktemp(experiment)
-    domain = _domain()
-    with _ros_env(domain):                       # run_processes sets the domain in os.environ
+    with lease_domain() as domain, ros_environment(domain):     # run_processes sets the domain in os.environ
         code = run_processes(experiment, out / "run", timeout=RUN_TIMEOUT, domain_id=domain)
     return {"code": code, "rec": read_recording(out / "run"), "out": out}
 
@@ -332,11 +173,10 @@ def test_dither_hc_removes_the_parasitic_vibration_of_an_asymmetric_van_stage(va
 
 # =========================================================================== 4. killed nodes
 @pytest.mark.slow
-def test_servo_killed_mid_trial_aborts_the_trial_naming_it(tmp_path, listener_factory):
-    domain = _domain()
-    lst = listener_factory(domain)
-    g = Graph("fi_p2p_5um", tmp_path, domain, params={"plant_sim": {"input_timeout": 3.0},
-                                                      "experiment_sequencer": WITH_LISTENER})
+def test_servo_killed_mid_trial_aborts_the_trial_naming_it(tmp_path, ros_domain, listener, node_graph):
+    lst = listener(ros_domain)
+    g = node_graph("fi_p2p_5um", ros_domain, params={"plant_sim": {"input_timeout": 3.0},
+                                                     "experiment_sequencer": WITH_LISTENER})
     try:
         seq = g.procs["experiment_sequencer"]
         # into the first trial: it started and the servo has sent 200 commands
@@ -344,13 +184,11 @@ def test_servo_killed_mid_trial_aborts_the_trial_naming_it(tmp_path, listener_fa
                              RUN_TIMEOUT, alive=lambda: seq.poll() is None)
         assert heard, f"no trial_start and 200 servo commands within the timeout ({lst.commands} heard)"
         g.kill("servo_controller")
-        t_kill = time.monotonic()
-        code = g.wait_sequencer(timeout=30)                        # the run stops by itself
+        code = g.wait(timeout=RUN_TIMEOUT)                         # the run stops by itself (None: it did not)
         lst.wait_for(lambda ev: any(e["event"] == "run_end" for e in ev), 5.0)
     finally:
         codes = g.stop()
     assert code == 1, "an aborted run exits non-zero"
-    assert time.monotonic() - t_kill < 30
     assert all(c != "hung" for c in codes.values()), codes
     assert codes["servo_controller"] == -signal.SIGKILL
     # what the test heard live
@@ -376,32 +214,26 @@ def test_servo_killed_mid_trial_aborts_the_trial_naming_it(tmp_path, listener_fa
 
 @pytest.mark.slow
 def test_recorder_killed_mid_run_leaves_a_salvageable_file_and_a_restarted_one_the_rest(
-        tmp_path, listener_factory):
-    domain = _domain()
-    lst = listener_factory(domain)
+        tmp_path, ros_domain, listener, node_graph):
+    lst = listener(ros_domain)
     params = {"experiment_sequencer": {**WITH_LISTENER, "sample_timeout": 120.0},
               "plant_sim": {"input_timeout": 120.0}}
-    g = Graph("fi_p2p_5um", tmp_path, domain, params=params)
+    g = node_graph("fi_p2p_5um", ros_domain, params=params)
     try:
         seq = g.procs["experiment_sequencer"]
         # trial 2 starts after 2454 samples: two 0.1 s chunks are closed by then
         heard = lst.wait_for(lambda ev: any(e["event"] == "trial_start" and e["trial"] == 2 for e in ev),
                              RUN_TIMEOUT, alive=lambda: seq.poll() is None)
         assert heard, "trial 2 did not start within the timeout"
-        g.procs["servo_controller"].send_signal(signal.SIGSTOP)   # hold the loop while the recorder restarts
-        g.kill("recorder")
-        again = Graph("fi_p2p_5um", tmp_path, domain, nodes=("recorder",))
-        g.procs.update(again.procs)
-        deadline = time.monotonic() + RUN_TIMEOUT                  # until it has the run's config
-        while "recording to" not in g.stderr("recorder") and time.monotonic() < deadline:
+        g.pause("servo_controller")                                # hold the loop while the recorder restarts
+        g.restart("recorder")
+        deadline = time.monotonic() + RUN_TIMEOUT                  # until the new one has the run's config
+        while "recording to" not in g.stderr("recorder") and time.monotonic() < deadline:   # the new one's line
             time.sleep(0.2)
         time.sleep(2.0)     # the loop is held: let discovery match the plant's publishers with it too
-        g.procs["servo_controller"].send_signal(signal.SIGCONT)
-        code = g.wait_sequencer(timeout=RUN_TIMEOUT)               # the recorder is not in the loop
+        g.resume("servo_controller")
+        code = g.wait(timeout=RUN_TIMEOUT)                         # the recorder is not in the loop
     finally:
-        for p in g.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGCONT)
         codes = g.stop()
     assert code == 0 and all(c != "hung" for c in codes.values()), codes
     # the restarted recorder did not replace the first part: it wrote the next free bag, the rest of the run
@@ -429,7 +261,8 @@ def test_recorder_killed_mid_run_leaves_a_salvageable_file_and_a_restarted_one_t
 
 
 @pytest.mark.slow
-def test_a_controller_that_joins_late_gets_the_sample_again_and_nothing_is_lost(tmp_path, listener_factory):
+def test_a_controller_that_joins_late_gets_the_sample_again_and_nothing_is_lost(tmp_path, ros_domain, listener,
+                                                                                node_graph):
     """A sample published before its subscriber was matched is lost even on a reliable
     topic (what a slow start-up does at random): here the servo starts only after the
     trial did. The plant sends the waiting sample again, the servo answers, and the run
@@ -440,19 +273,16 @@ def test_a_controller_that_joins_late_gets_the_sample_again_and_nothing_is_lost(
     doc.update(name="late_servo", trials=1)
     exp_file = tmp_path / "late_servo.yaml"
     exp_file.write_text(yaml.safe_dump(doc))
-    domain = _domain()
-    lst = listener_factory(domain)
+    lst = listener(ros_domain)
     params = {"plant_sim": {"input_timeout": 60.0},
               "experiment_sequencer": {"wait_for_nodes": 3, "sample_timeout": 60.0}}   # plant, recorder, listener
-    g = Graph(str(exp_file), tmp_path, domain, params=params,
-              nodes=("plant_sim", "recorder", "experiment_sequencer"))
+    g = node_graph(exp_file, ros_domain, params=params, nodes=("plant_sim", "recorder", "experiment_sequencer"))
     try:
         seq = g.procs["experiment_sequencer"]
         assert lst.wait_for(lambda ev: any(e["event"] == "trial_start" for e in ev), RUN_TIMEOUT,
                             alive=lambda: seq.poll() is None), "the trial did not start"
-        late = Graph(str(exp_file), tmp_path, domain, nodes=("servo_controller",))
-        g.procs.update(late.procs)
-        code = g.wait_sequencer()
+        g.start("servo_controller")
+        code = g.wait(timeout=RUN_TIMEOUT)
     finally:
         codes = g.stop()
     assert code == 0 and all(c != "hung" for c in codes.values()), codes     # 1 = aborted
@@ -491,12 +321,11 @@ def _run_refused(args, domain, timeout=60.0):
 
 
 @pytest.mark.slow
-def test_params_file_sets_a_node_parameter_and_bad_values_are_refused_at_run_time(tmp_path, listener_factory):
-    domain = _domain()
-    lst = listener_factory(domain)
+def test_params_file_sets_a_node_parameter_and_bad_values_are_refused_at_run_time(tmp_path, ros_domain, listener,
+                                                                                  node_graph):
+    lst = listener(ros_domain)
     pfile = _params_file(tmp_path / "plant.yaml", "plant_sim", input_timeout=0.75)
-    g = Graph("fi_p2p_5um", tmp_path, domain, nodes=("plant_sim",),
-              ros_args={"plant_sim": ["--params-file", str(pfile)]})
+    g = node_graph("fi_p2p_5um", ros_domain, nodes=("plant_sim",), ros_args={"plant_sim": ["--params-file", str(pfile)]})
     try:
         client = AsyncParameterClient(lst.node, "plant_sim")
         assert client.wait_for_services(timeout_sec=RUN_TIMEOUT), "plant_sim parameter services"
@@ -521,9 +350,9 @@ def test_params_file_sets_a_node_parameter_and_bad_values_are_refused_at_run_tim
     ("plant_sim", {"input_timeout": -1}, "input_timeout"),
     ("experiment_sequencer", {"experiment": "does_not_exist"}, "experiment"),
 ])
-def test_bad_parameter_in_a_params_file_is_refused_naming_it(tmp_path, node, values, name):
+def test_bad_parameter_in_a_params_file_is_refused_naming_it(tmp_path, ros_domain, node, values, name):
     pfile = _params_file(tmp_path / "bad.yaml", node, **values)
-    code, err = _run_refused([str(BIN / node), "--ros-args", "--params-file", str(pfile)], _domain())
+    code, err = _run_refused([str(BIN / node), "--ros-args", "--params-file", str(pfile)], ros_domain)
     assert code != 0
     assert name in err and str(values[name]) in err, err
     assert "Traceback" not in err, err
@@ -537,37 +366,38 @@ def test_bad_parameter_in_a_params_file_is_refused_naming_it(tmp_path, node, val
      "not valid YAML at line 4, column 5: found duplicate key 'input_timeout' (first at line 3)"),
     ("- plant_sim\n", "top level must be a mapping of node names, got list"),
 ])
-def test_a_params_file_that_is_not_valid_yaml_is_refused_in_one_line_naming_file_and_line(tmp_path, text, says):
+def test_a_params_file_that_is_not_valid_yaml_is_refused_in_one_line_naming_file_and_line(tmp_path, ros_domain, text,
+                                                                                          says):
     pfile = tmp_path / "plant.yaml"
     pfile.write_text(text)
-    code, err = _run_refused([str(BIN / "plant_sim"), "--ros-args", "--params-file", str(pfile)], _domain())
+    code, err = _run_refused([str(BIN / "plant_sim"), "--ros-args", "--params-file", str(pfile)], ros_domain)
     assert code == 2 and "Traceback" not in err, err
     assert err == f"error: plant_sim (params file {pfile}): {err.split('): ', 1)[1]}" and says in err, err
     assert err.count("\n") == 1, err                                  # one line
 
 
 @pytest.mark.slow
-def test_ros_arguments_rcl_refuses_are_one_error_line_and_exit_2(tmp_path):
+def test_ros_arguments_rcl_refuses_are_one_error_line_and_exit_2(tmp_path, ros_domain):
     """What YAML accepts but ROS does not (a value outside ``ros__parameters``, a list of mixed
     types, a ``-p`` value that is not YAML): rcl's reason with the file's line, no traceback."""
     pfile = tmp_path / "plant.yaml"
     pfile.write_text("plant_sim:\n  input_timeout: 1.0\n")
-    code, err = _run_refused([str(BIN / "plant_sim"), "--ros-args", "--params-file", str(pfile)], _domain())
+    code, err = _run_refused([str(BIN / "plant_sim"), "--ros-args", "--params-file", str(pfile)], ros_domain)
     assert code == 2 and "Traceback" not in err, err
     assert (f"error: plant_sim: Couldn't parse params file: '--params-file {pfile}'. Error: Cannot have a value "
             "before ros__parameters at line 2\n") in err and "/project/" not in err
-    code, err = _run_refused([str(BIN / "plant_sim"), "--ros-args", "-p", "input_timeout:=[1.0"], _domain())
+    code, err = _run_refused([str(BIN / "plant_sim"), "--ros-args", "-p", "input_timeout:=[1.0"], ros_domain)
     assert code == 2 and "Traceback" not in err, err
     assert "error: plant_sim: Couldn't parse parameter override rule: '-p input_timeout:=[1.0'" in err
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["--processes", "one process"])
-def test_a_graph_that_times_out_says_what_did_not_finish_in_one_line(tmp_path, mode):
+def test_a_graph_that_times_out_says_what_did_not_finish_in_one_line(tmp_path, ros_domain, mode):
     """``nanostage graph --timeout`` shorter than the nodes' start-up: exit 124, one line naming
     what did not finish, no traceback from a node stopped in the middle of its imports."""
     args = [str(BIN / "nanostage"), "graph", "fi_p2p_5um", "--out", str(tmp_path), "--timeout", "0.5",
-            "--domain-id", str(_domain())] + ([mode] if mode == "--processes" else [])
+            "--domain-id", str(ros_domain)] + ([mode] if mode == "--processes" else [])
     run = subprocess.run(args, capture_output=True, text=True, timeout=RUN_TIMEOUT)
     assert run.returncode == 124 and "Traceback" not in run.stderr, run.stderr
     lines = run.stderr.splitlines()
@@ -635,12 +465,12 @@ print(json.dumps(new))
 
 
 @pytest.mark.slow
-def test_a_node_that_warmed_up_loads_no_kernel_in_a_trial_of_any_preset(tmp_path):
+def test_a_node_that_warmed_up_loads_no_kernel_in_a_trial_of_any_preset(tmp_path, ros_domain):
     """What each node steps per sample is loaded by its ``warm_up`` (from one preset's models),
     before it joins a run: trials of every shipped preset, run through the nodes' own
     code, load or compile no further kernel and no further argument types. Run in a fresh
     interpreter: what this one has loaded already would hide a kernel that ``warm_up`` misses."""
-    run = subprocess.run([sys.executable, "-c", _WARM_UP_CHECK], env=domain_env(_domain()), capture_output=True,
+    run = subprocess.run([sys.executable, "-c", _WARM_UP_CHECK], env=domain_env(ros_domain), capture_output=True,
                          text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout.splitlines()[-1]) == {}, run.stdout
@@ -661,17 +491,16 @@ def _kernel_cache_without(tmp_path: Path, *kernels: str) -> Path:
 
 
 @pytest.mark.slow
-def test_a_node_stopped_while_it_compiles_its_kernels_ends_at_once_as_still_starting(tmp_path):
+def test_a_node_stopped_while_it_compiles_its_kernels_ends_at_once_as_still_starting(tmp_path, ros_domain, listener):
     """SIGTERM while the plant compiles its step (before it spins): it ends by the signal, as a node
     still importing does (``launch.STARTING``: ``nanostage graph`` says "still starting"), with
     its ROS node torn down, no traceback, and without waiting out ``EXIT_GRACE_S``."""
     cache = _kernel_cache_without(tmp_path, "plant.plant_step-*")
-    domain = _domain()
-    lst = Listener(domain, defer_trajectory=True)
+    lst = listener(ros_domain, defer_trajectory=True)
     err_path = tmp_path / "plant_sim.stderr"
     with open(err_path, "w") as err:
         proc = subprocess.Popen([str(BIN / "plant_sim")], stdout=subprocess.DEVNULL, stderr=err,
-                                env=dict(domain_env(domain), NUMBA_CACHE_DIR=str(cache)))
+                                env=dict(domain_env(ros_domain), NUMBA_CACHE_DIR=str(cache)))
     try:
         deadline = time.monotonic() + RUN_TIMEOUT     # the node is made (in the graph): it compiles now
         while "plant_sim" not in lst.node.get_node_names() and proc.poll() is None and time.monotonic() < deadline:
@@ -684,7 +513,6 @@ def test_a_node_stopped_while_it_compiles_its_kernels_ends_at_once_as_still_star
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-        lst.close()
     err = err_path.read_text()
     assert code == -signal.SIGTERM, err
     assert "Traceback" not in err and "did not finish" not in err, err
@@ -692,7 +520,7 @@ def test_a_node_stopped_while_it_compiles_its_kernels_ends_at_once_as_still_star
 
 
 @pytest.mark.slow
-def test_a_graph_whose_nodes_compile_their_kernels_first_runs(tmp_path, monkeypatch):
+def test_a_graph_whose_nodes_compile_their_kernels_first_runs(tmp_path, monkeypatch, ros_domain):
     """The compiled-kernel cache without the plant's and the servo's step functions (as a fresh
     clone, or any change to compiled code, leaves it: the first run compiles them). Each node
     compiles its kernels before it joins the run, never inside the lockstep: the run is the
@@ -709,9 +537,8 @@ def test_a_graph_whose_nodes_compile_their_kernels_first_runs(tmp_path, monkeypa
     doc.update(name="cold_kernels", trials=1)
     exp_file = tmp_path / "cold_kernels.yaml"
     exp_file.write_text(yaml.safe_dump(doc))
-    domain = _domain()
-    with _ros_env(domain):
-        code = run_processes(str(exp_file), tmp_path / "run", timeout=RUN_TIMEOUT, domain_id=domain,
+    with ros_environment(ros_domain):
+        code = run_processes(str(exp_file), tmp_path / "run", timeout=RUN_TIMEOUT, domain_id=ros_domain,
                              params={"experiment_sequencer": {"sample_timeout": 2.0}})
     assert code == 0
     assert list(cache.rglob("plant.plant_step-*.nbi")) and list(cache.rglob("servo.servo_step-*.nbi"))  # compiled
@@ -721,22 +548,22 @@ def test_a_graph_whose_nodes_compile_their_kernels_first_runs(tmp_path, monkeypa
 
 
 @pytest.mark.slow
-def test_a_node_that_is_there_but_has_not_joined_when_the_start_times_out_is_named_still_starting(tmp_path):
+def test_a_node_that_is_there_but_has_not_joined_when_the_start_times_out_is_named_still_starting(tmp_path, ros_domain,
+                                                                                                    listener,
+                                                                                                    node_graph):
     """The sequencer's start-up abort tells a node that is not in the graph ("missing") from one
     that is but has not joined the run yet ("still starting": e.g. still compiling its kernels).
     Here only the sequencer runs, and a node named plant_sim that never subscribes to
     /experiment/trajectory."""
-    domain = _domain()
-    lst = Listener(domain, defer_trajectory=True)
+    lst = listener(ros_domain, defer_trajectory=True)
     stand_in = Node("plant_sim", context=lst.ctx)
-    g = Graph("fi_p2p_5um", tmp_path, domain, nodes=("experiment_sequencer",),
-              params={"experiment_sequencer": {"start_timeout": 5.0}})
+    g = node_graph("fi_p2p_5um", ros_domain, nodes=("experiment_sequencer",),
+                   params={"experiment_sequencer": {"start_timeout": 5.0}})
     try:
-        code = g.wait_sequencer()
+        code = g.wait(timeout=RUN_TIMEOUT)
     finally:
         codes = g.stop()
         stand_in.destroy_node()
-        lst.close()
     assert code == 1 and all(c != "hung" for c in codes.values()), codes
     assert ("run aborted (trial None): only 0 of 5 nodes after 5.0 s; missing: servo_controller, dither_generator, "
             "sai_manager, recorder; still starting: plant_sim (node: plant_sim, servo_controller, dither_generator, "

@@ -390,6 +390,7 @@ def test_inf_command_never_agrees(tmp_path, capsys):
     assert chk["ok"] is False and chk["complete"] is False and chk["trials"][1]["complete"] is False
 
 
+@pytest.mark.slow
 def test_a_stamp_5_ms_backwards_never_agrees(tmp_path, capsys):
     """Before: "agrees". The message written 5 ms back is named (topic, time) and its trial
     is incomplete."""

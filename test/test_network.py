@@ -4,7 +4,7 @@ The real thing: ``nanostage graph`` (one process per node, and all in one proces
 ``nanostage replay`` and a node started by hand run from a shell that sets no ROS
 variable, and every UDP / TCP socket of their processes is read from ``/proc`` while they
 run (``/proc/<pid>/fd`` -> socket inodes -> ``/proc/<pid>/net/{udp,udp6,tcp,tcp6}``).
-Each run is on a ROS domain of its own in 201..232 (other tests use 1..200).
+Each run is on a ROS domain leased to it (``conftest.lease_domain``).
 """
 from __future__ import annotations
 
@@ -17,16 +17,13 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import lease_domain
 
 from experiment_runner.ros.run import (GRAPH_DEFAULTS, LOOPBACK_PROFILE, apply_graph_defaults, domain_env,
                                        loopback_env)
 
 BIN = Path(sys.executable).parent
 RUN_TIMEOUT = 180.0                      # s: a whole graph run, start-up included (a loaded machine)
-
-
-def _domain(k: int) -> int:
-    return 201 + (os.getpid() + 7 * k) % 32
 
 
 def _user_env() -> dict:
@@ -115,12 +112,13 @@ NODES = ("plant_sim", "servo_controller", "dither_generator", "sai_manager", "re
 @pytest.fixture(scope="module")
 def processes_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("graph_processes")
-    run, seen = watch([str(BIN / "nanostage"), "graph", "fi_p2p_5um", "--processes", "--out", str(out),
-                       "--domain-id", str(_domain(0))], _user_env())
+    with lease_domain() as domain:
+        run, seen = watch([str(BIN / "nanostage"), "graph", "fi_p2p_5um", "--processes", "--out", str(out),
+                           "--domain-id", str(domain)], _user_env())
     return run, seen, out
 
 
-@pytest.mark.slow
+@pytest.mark.ros
 def test_a_graph_of_node_processes_has_every_socket_on_loopback(processes_run):
     run, seen, _ = processes_run
     assert run.returncode == 0, run.stderr
@@ -129,20 +127,20 @@ def test_a_graph_of_node_processes_has_every_socket_on_loopback(processes_run):
     assert not_loopback(seen) == {}, seen
 
 
-@pytest.mark.slow
-def test_a_graph_in_one_process_has_every_socket_on_loopback(tmp_path):
+@pytest.mark.ros
+def test_a_graph_in_one_process_has_every_socket_on_loopback(tmp_path, ros_domain):
     run, seen = watch([str(BIN / "nanostage"), "graph", "fi_p2p_5um", "--out", str(tmp_path),
-                       "--domain-id", str(_domain(1))], _user_env())
+                       "--domain-id", str(ros_domain)], _user_env())
     assert run.returncode == 0, run.stderr
     assert any(socks for socks in seen.values()), seen
     assert not_loopback(seen) == {}, seen
 
 
-@pytest.mark.slow
-def test_replay_has_every_socket_on_loopback(processes_run):
+@pytest.mark.ros
+def test_replay_has_every_socket_on_loopback(processes_run, ros_domain):
     _, _, out = processes_run
     run, seen = watch([str(BIN / "nanostage"), "replay", str(out / "run.mcap"), "--rate", "2",
-                       "--domain-id", str(_domain(2))], _user_env())
+                       "--domain-id", str(ros_domain)], _user_env())
     assert run.returncode == 0, run.stderr
     assert any(socks for socks in seen.values()), seen
     assert not_loopback(seen) == {}, seen
@@ -168,13 +166,14 @@ def _hand_started(env: dict, settle: float = 1.5) -> set:
     return seen
 
 
-@pytest.mark.slow
-def test_a_node_started_by_hand_has_its_sockets_on_loopback_unless_the_graph_is_opened():
-    seen = _hand_started(dict(_user_env(), ROS_DOMAIN_ID=str(_domain(3))))
+@pytest.mark.ros
+def test_a_node_started_by_hand_has_its_sockets_on_loopback_unless_the_graph_is_opened(ros_domains):
+    seen = _hand_started(dict(_user_env(), ROS_DOMAIN_ID=str(ros_domains())))
     assert seen and not_loopback({"plant_sim": seen}) == {}, seen
     # opened the documented way: the middleware's own settings, sockets on every interface
-    seen = _hand_started(dict(_user_env(), ROS_DOMAIN_ID=str(_domain(4)), ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"))
-    assert ("udp", "0.0.0.0", 7400 + 250 * _domain(4)) in seen, seen      # the multicast discovery port
+    opened = ros_domains()
+    seen = _hand_started(dict(_user_env(), ROS_DOMAIN_ID=str(opened), ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"))
+    assert ("udp", "0.0.0.0", 7400 + 250 * opened) in seen, seen      # the multicast discovery port
 
 
 # --------------------------------------------------------------------------- which settings apply when

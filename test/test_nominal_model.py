@@ -120,6 +120,7 @@ def _recording(tmp_path, block, name="rec"):
     return write_run(tmp_path / name, res, pre, config_yaml=cfg)
 
 
+@pytest.mark.slow
 def test_convert_nominal_writes_the_preset_and_diagnose_takes_the_block(tmp_path):
     from experiment_runner.diagnosis.cli import _nominal_from_config
     rec = _recording(tmp_path, _block())
@@ -148,6 +149,7 @@ def test_convert_nominal_refuses_a_recording_without_the_block(tmp_path):
     assert not (tmp_path / "n.yaml").exists()
 
 
+@pytest.mark.slow
 def test_cli_refuses_a_bad_block_and_a_missing_recording_exit_2(tmp_path, capsys):
     from experiment_runner.cli import main
     from experiment_runner.recording import read_recording, write_run
@@ -198,6 +200,7 @@ def truthsim():
     return _import_independent("truthsim")
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 @pytest.mark.parametrize("friction", ["dahl", "coulomb"])
 def test_translation_replays_the_independent_simulator(truthsim, friction, monkeypatch):
@@ -233,6 +236,7 @@ def test_translation_replays_the_independent_simulator(truthsim, friction, monke
         assert du_w > 0.1 * kp_q, (wrong, du_w / kp_q)
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_a_corpus_negative_control_diagnosed_with_cli_defaults_names_nothing(tmp_path):
     """Case h02 of the independent corpus (Dahl nominal, 5 mm steps, truth = nominal), generated in-process

@@ -173,14 +173,15 @@ def test_graph_never_deletes_a_run_folder_it_did_not_make(tmp_path, capsys):
     assert (d / "run" / "data.txt").read_text() == "mine"
 
 
-@pytest.mark.slow
-def test_graph_run_keeps_a_users_files_and_run_folders(tmp_path):
+@pytest.mark.ros
+def test_graph_run_keeps_a_users_files_and_run_folders(tmp_path, ros_domain):
     """A graph run into a user's folder (--overwrite) writes its recording beside the user's
     ``run_notes/`` (before: every ``run_*`` folder was deleted), and a second run replaces only it."""
     d = tmp_path / "g"
     (d / "run_notes").mkdir(parents=True)
     (d / "run_notes" / "a.txt").write_text("mine")
-    code = subprocess.run([*CLI, "graph", "fi_p2p_5um", "--out", str(d), "--overwrite", "--timeout", "300"],
+    code = subprocess.run([*CLI, "graph", "fi_p2p_5um", "--out", str(d), "--overwrite", "--timeout", "300",
+                           "--domain-id", str(ros_domain)],
                           capture_output=True, text=True, timeout=600)
     assert code.returncode == 0, code.stderr
     assert (d / "run_notes" / "a.txt").read_text() == "mine"
@@ -228,12 +229,13 @@ def test_ctrl_c_in_selftest_gives_no_traceback(tmp_path):
     assert not list(tmp_path.glob("nanostage_selftest_*"))
 
 
-@pytest.mark.slow
-def test_ctrl_c_in_a_graph_run_gives_no_traceback(tmp_path):
+@pytest.mark.ros
+def test_ctrl_c_in_a_graph_run_gives_no_traceback(tmp_path, ros_domain):
     """SIGINT while ``graph`` runs its nodes in one process: one line, exit 130 -- raised between
     the executor's spins, never inside a node's callback (which rclpy logs as a fatal error)."""
     d = tmp_path / "g"
-    proc = subprocess.Popen([*CLI, "graph", "fi_p2p_5um", "--out", str(d)], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([*CLI, "graph", "fi_p2p_5um", "--out", str(d), "--domain-id", str(ros_domain)],
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     _wait_for(lambda: (d / "run" / "run.mcap").exists(), 120, proc)
     time.sleep(1.0)
@@ -414,6 +416,7 @@ def _run(op, out: Path) -> str | None:
                                                          LINK_DIR, NS_FILE, NS_DIR]) for n in NAMES}),
        partials=st.lists(st.sampled_from(["dead", "live", "legacy"]), max_size=3, unique=True),
        overwrite=st.booleans(), ops=st.lists(OPS, max_size=5))
+@pytest.mark.slow
 def test_property_nothing_outside_the_output_nor_a_users_entry_is_touched(out_kind, kinds, partials, overwrite,
                                                                           ops):
     """Over output folders holding users' files, folders, links to files and folders elsewhere,

@@ -8,6 +8,8 @@ import pytest
 from experiment_runner.paper import Claim
 from experiment_runner.paper.appendix_a import claims
 
+pytestmark = pytest.mark.slow              # the claims' simulations: ~8 s, shared by every test here
+
 
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):

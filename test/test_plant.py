@@ -56,6 +56,7 @@ def _sai_stage():
                            impact_impulse=0.0, impact_duration=1e-3))
 
 
+@pytest.mark.slow
 def test_sai_lock_stores_deflection_and_unlock_releases_it():
     sim = PlantSim(build_plant(_sai_stage()))
     _settle(sim, 1.0, 5000, mode=1.0)                       # compliant: flexure deflects

@@ -316,6 +316,7 @@ def test_loop_shape_pid_rejects_bad_input():
         loop_shape_pid(2.0, 200.0, phase_margin_deg=80.0, derivative_filter_ratio=2.0)
 
 
+@pytest.mark.slow
 def test_tuning_doctests():
     res = doctest.testmod(tuning)
     assert res.attempted > 0 and res.failed == 0
@@ -484,35 +485,34 @@ def test_yaml_is_loaded_safely_and_duplicate_keys_are_refused(tmp_path):
 
 
 # --------------------------------------------------------------------------- node parameter files
-def _run_node(node: str, pfile, values: dict):
-    """Start a node executable with a params file in its own domain; (exit code, stderr)."""
-    import os
+def _run_node(node: str, pfile, values: dict, domain: int):
+    """Start a node executable with a params file on ``domain``; (exit code, stderr)."""
     import subprocess
     import sys
     from pathlib import Path
 
     from experiment_runner.ros.run import domain_env
     pfile.write_text(yaml.safe_dump({node: {"ros__parameters": values}}))
-    env = domain_env(101 + os.getpid() % 100)          # a domain of its own (graph tests use 1..100)
+    env = domain_env(domain)
     proc = subprocess.run([str(Path(sys.executable).parent / node), "--ros-args", "--params-file", str(pfile)],
                           env=env, capture_output=True, text=True, timeout=120)
     return proc.returncode, proc.stderr
 
 
-@pytest.mark.slow
-def test_node_parameter_files_are_checked_like_every_other_file(tmp_path):
-    code, err = _run_node("plant_sim", tmp_path / "typo.yaml", {"input_timeot": 2.0})
+@pytest.mark.ros
+def test_node_parameter_files_are_checked_like_every_other_file(tmp_path, ros_domain):
+    code, err = _run_node("plant_sim", tmp_path / "typo.yaml", {"input_timeot": 2.0}, ros_domain)
     assert code == 2 and "Traceback" not in err
     assert f"error: plant_sim (params file {tmp_path / 'typo.yaml'}): invalid parameters\n" in err
     assert "  input_timeot: unknown parameter (got 2.0); allowed: " in err and "input_timeout" in err.split("allowed:")[1]
-    code, err = _run_node("plant_sim", tmp_path / "neg.yaml", {"input_timeout": -1.0})
+    code, err = _run_node("plant_sim", tmp_path / "neg.yaml", {"input_timeout": -1.0}, ros_domain)
     assert code == 2 and ("  input_timeout: got -1.0; expected a number from 0.01 to 3600.0 -- wall-clock time "
                           "to wait for a sample's inputs") in err
     bad = tmp_path / "bad_preset.yaml"
     data = yaml.safe_load((PRESET_DIR / "fi_stage.yaml").read_text())
     data["stage"]["bearings"][0]["joint"]["stiffness"] = 0.04135
     bad.write_text(yaml.safe_dump(data))
-    code, err = _run_node("plant_sim", tmp_path / "preset.yaml", {"preset": str(bad)})
+    code, err = _run_node("plant_sim", tmp_path / "preset.yaml", {"preset": str(bad)}, ros_domain)
     assert code == 2 and f"  preset: got '{bad}'; {bad}: implausible value(s)" in err
     assert "stage.bearings.0.joint.stiffness: got 0.04135 N/m" in err and "N/µm" in err
 

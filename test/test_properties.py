@@ -99,6 +99,7 @@ def test_every_preset_round_trips_through_yaml_and_the_recording_config(name):
 
 @SETTINGS
 @given(st.data())
+@pytest.mark.slow
 def test_random_valid_changes_round_trip(data):
     name, path, val, info = data.draw(st.sampled_from(PLAUSIBLE))
     _, lo, hi = plausible_range(info.json_schema_extra, model_axis(PRESETS[name]))
@@ -180,6 +181,7 @@ PREFIXES = (1e3, 1e6, 1e9, 1e-3, 1e-6, 1e-9)
 
 @SETTINGS
 @given(st.sampled_from(PLAUSIBLE), st.sampled_from(PREFIXES), st.floats(0.0, 1.0))
+@pytest.mark.slow
 def test_a_value_off_by_a_unit_prefix_is_refused_as_likely_a_wrong_unit(leaf, prefix, where):
     name, path, val, info = leaf
     unit_name, lo, hi = plausible_range(info.json_schema_extra, model_axis(PRESETS[name]))   # rotary: rotary
@@ -211,6 +213,7 @@ def test_shipped_values_are_plausible():
 
 
 @pytest.mark.parametrize("kind", ["experiment", "campaign"])
+@pytest.mark.slow
 def test_shipped_experiments_and_campaigns_round_trip_through_yaml(kind):
     from experiment_runner import experiment
     from experiment_runner.campaigns import spec as campaign
@@ -232,6 +235,7 @@ def _experiment_leaves():
 
 @SETTINGS
 @given(st.sampled_from(_experiment_leaves()), BAD.filter(lambda b: b is not None))
+@pytest.mark.slow
 def test_a_bad_number_in_an_experiment_file_is_refused_naming_file_and_field(tmp_path_factory, leaf, bad):
     from experiment_runner.experiment import load_experiment
     name, path = leaf
@@ -273,6 +277,7 @@ def _through_cdr(msg, family):
 
 @SETTINGS
 @given(FAMILIES, STAMP, NAMES, st.data())
+@pytest.mark.slow
 def test_joint_state_round_trips_bit_for_bit(family, stamp, names, data):
     n = len(names)
     arrays = {k: data.draw(st.one_of(st.just([]), st.lists(FLOATS, min_size=n, max_size=n)))
@@ -298,6 +303,7 @@ def test_joint_state_refuses_arrays_of_the_wrong_length(family, names, extra):
 
 @SETTINGS
 @given(FAMILIES, st.lists(FLOATS, max_size=50), st.data())
+@pytest.mark.slow
 def test_trajectory_round_trips(family, x, data):
     v = data.draw(st.lists(FLOATS, min_size=len(x), max_size=len(x)))
     trial = data.draw(st.integers(0, 2**31 - 1))
@@ -345,6 +351,7 @@ def _nan_to_none(obj):
 
 @SETTINGS
 @given(JSONABLE)
+@pytest.mark.slow
 def test_json_topics_write_nan_and_inf_as_null(obj):
     text = convert.to_json(obj)
     assert "NaN" not in text and "Infinity" not in text

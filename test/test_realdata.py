@@ -1,8 +1,8 @@
 """Real data (issue 5, item 7): the diagnosis recovers what the data sets' READMEs say is there.
 
-Reads the real files of ``../shared/data`` (resolved by
-:func:`experiment_runner.diagnosis.realdata.data_root`); a missing data set FAILS with the
-places looked in (it is never skipped).
+Reads the real files of ``../shared/data`` (``conftest.shared_data`` / ``shared_file``: resolved by
+:func:`experiment_runner.diagnosis.datasets.data_root`); where a data set is missing its tests are
+skipped naming the places looked in, and the core suite deselects them (``-m "not realdata"``).
 
 Tolerances (stated here, not tuned): EMPS, against the published IDIM-LS model
 (shared/data/emps/README.md): mass within 2 %, Coulomb and viscous within 10 %, the offset
@@ -11,7 +11,9 @@ Tolerances (stated here, not tuned): EMPS, against the published IDIM-LS model
 held-out strokes by more than 3x in RMS; its transition lengths within 25 % of the README's
 approximate values (sign change ~0.06 mm, 80 % of the new level ~0.10 mm).
 
-The EMPS diagnosis runs the whole effect library once (module fixture, ~1 min on a free core).
+The EMPS record is diagnosed once for the whole suite (``conftest.emps_diagnosis``, shared with
+``test_diagnosis_emps.py``): the whole effect library from the shipped nominal, and the
+published-structure fits.
 """
 from __future__ import annotations
 
@@ -24,32 +26,22 @@ from experiment_runner.tabular import convert_emps
 
 
 @pytest.fixture(scope="module")
-def root():
-    try:
-        return data_root()
-    except DataMissing as err:
-        pytest.fail(f"real data missing: {err}")
+def emps(shared_file):
+    return R.load_emps(shared_file("emps/DATA_EMPS.mat"))
 
 
 @pytest.fixture(scope="module")
-def emps(root):
-    path = root / "emps" / "DATA_EMPS.mat"
-    if not path.is_file():
-        pytest.fail(f"EMPS data missing: {path}")
-    return R.load_emps(path)
+def emps_run(emps_diagnosis):
+    return emps_diagnosis["summary"]
 
 
-@pytest.fixture(scope="module")
-def emps_run(root, tmp_path_factory):
-    return R.run_emps(root, tmp_path_factory.mktemp("emps"), structure_check=True, plots=False,
-                      max_seconds=None)        # an answer that must not depend on the load (timing: the bench)
-
-
+@pytest.mark.realdata
 @pytest.mark.slow
-def test_convert_emps_is_the_contract_mapping(emps, tmp_path):
+def test_convert_emps_is_the_contract_mapping(emps, emps_diagnosis):
+    """The suite's EMPS recording (``convert emps``, as the diagnosis read it)."""
     from experiment_runner.recording import read_recording
     from stage_control.cascaded import CascadedPP, cascaded_command
-    rec = read_recording(convert_emps(emps.path, tmp_path / "emps"))
+    rec = read_recording(emps_diagnosis["recording"])
     assert len(rec) == 24841
     np.testing.assert_array_equal(rec.u, emps.gtau * emps.vir)
     np.testing.assert_array_equal(rec.y, emps.qm)
@@ -69,6 +61,8 @@ def test_convert_refuses_a_bad_file(tmp_path):
         R.load_emps(tmp_path / "nothing.mat")
 
 
+@pytest.mark.realdata
+@pytest.mark.slow
 def test_cascaded_loop_on_the_published_model_reproduces_the_record(emps):
     from stage_control.cascaded import CascadedPP, RigidAxis, simulate_rigid
     ctrl = CascadedPP(emps.kp, emps.kv, emps.gtau)
@@ -82,12 +76,14 @@ def test_cascaded_loop_on_the_published_model_reproduces_the_record(emps):
     assert err["mass only"] > 5 * err["published"]
 
 
+@pytest.mark.realdata
 def test_idim_ls_recipe_matches_the_published_values(emps):
     v = R.idim_ls(emps)["values"]
     for k in ("M", "Fv", "Fc", "offset"):
         assert v[k] == pytest.approx(R.EMPS_PUBLISHED[k][0], rel=0.03), k
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_emps_diagnosis_names_the_published_physics(emps_run):
     """From the whole library (frictionless 70 kg nominal): the effects the README says are there."""
@@ -106,6 +102,7 @@ def test_emps_diagnosis_names_the_published_physics(emps_run):
     assert all(q[k]["sigma"] > 0 for k in ("M", "Fc", "Fv", "Fv-"))
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_emps_published_structure_fit_recovers_the_published_values(emps_run):
     """Like for like: restricted to the published rigid-body structures, the fitted values
@@ -123,6 +120,7 @@ def test_emps_published_structure_fit_recovers_the_published_values(emps_run):
     assert qa["M"]["value"] == pytest.approx(A["M"], rel=0.02)
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_emps_diagnosed_model_predicts_held_out_data(emps_run):
     val = emps_run["runs"]["diagnosis"]["validation"]["force_residual_rms_N"]
@@ -133,9 +131,10 @@ def test_emps_diagnosed_model_predicts_held_out_data(emps_run):
     assert emps_run["conversion"]["max_abs_command_diff_N"] == 0.0
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
-def test_tribometer_pre_sliding_beats_coulomb_on_held_out_strokes(root, tmp_path):
-    t = R.run_tribometer(root, tmp_path, plots=False)
+def test_tribometer_pre_sliding_beats_coulomb_on_held_out_strokes(shared_data, tmp_path):
+    t = R.run_tribometer(shared_data, tmp_path, plots=False)
     m = t["models"]
     assert t["reversals"] >= 90
     assert t["mu_moving_median"] == pytest.approx(0.43, abs=0.02)        # README's statistic
@@ -154,6 +153,8 @@ def test_data_root_names_where_it_looked(tmp_path):
         data_root(tmp_path)
 
 
+@pytest.mark.realdata
+@pytest.mark.slow
 def test_convert_command_line(emps, tmp_path, capsys):
     from experiment_runner.cli import main
     assert main(["convert", "emps", str(emps.path), "--out", str(tmp_path / "rec")]) == 0

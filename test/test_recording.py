@@ -23,8 +23,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from experiment_runner.batch import BatchResult
 from experiment_runner.outputs import OutputError
-from experiment_runner.recording import (McapRecorder, RecordingError, bag_layout, mcap_file, read_recording,
-                                         write_run)
+from experiment_runner.recording import (McapRecorder, RecordingError, TrialSignals, bag_layout, mcap_file,
+                                         read_recording, write_run, write_trials)
 from experiment_runner.metrics import trial_metrics
 from experiment_runner.replay import check_metrics, main_replay, add_replay_arguments
 from msg_defs import convert
@@ -165,6 +165,32 @@ def test_raw_fast_cdr_bytes_read_back(tmp_path):
     assert _same_bits(r.y, sig["y"]) and _same_bits(r.y_bearing, sig["yb"]) and _same_bits(r.x_ref, sig["x_ref"])
 
 
+def test_write_trials_is_the_one_writer_of_signals(tmp_path):
+    """Two trials in stage time (the second failed), a series written on some samples only, the
+    clock first: what is read back is what was given, events and results in order."""
+    n, dt = 50, 1_000_000
+    x = np.linspace(0.0, 1e-6, 2 * n)
+    trials = [TrialSignals(np.arange(k * n, (k + 1) * n, dtype=np.int64) * dt,
+                           [("/stage/isolator", ("isolator",), {"position": np.full(n, float(k))}, [0, 7]),
+                            ("/stage/reference", ("table",), {"position": x[k * n:(k + 1) * n],
+                                                              "velocity": np.zeros(n)}, None),
+                            ("/stage/command", ("motor",), {"effort": -x[k * n:(k + 1) * n]}, None),
+                            ("/stage/measured", ("table",), {"position": x[k * n:(k + 1) * n] + 1e-9}, None)],
+                           {"window_m": 2e-8}, fault="diverged" if k else None, results={"score": float(k)},
+                           clock=True)
+              for k in range(2)]
+    path = write_trials(tmp_path / "rec", "recording_contract: 1\n", trials, case="c", node="n")
+    r = read_recording(path)
+    np.testing.assert_array_equal(r.x_ref, x)
+    np.testing.assert_array_equal(r.u, -x)
+    np.testing.assert_array_equal(r.y, x + 1e-9)
+    assert r.counts["/stage/isolator"] == 4 and r.counts["/clock"] == 2 * n
+    assert [e["event"] for e in r.events] == ["run_start", "trial_start", "trial_end", "trial_start", "fault",
+                                              "trial_end", "run_end"]
+    assert r.events[1]["window_m"] == 2e-8 and r.events[4]["reason"] == "diverged"
+    assert [(q["trial"], q["score"], q["node"]) for q in r.results] == [(0, 0.0, "n"), (1, 1.0, "n")]
+
+
 def test_recording_written_by_rosbags_directly(tmp_path):
     """Another tool's contract recording (rosbags' own writer, default chunking, bearing
     listed first, an unknown topic): read_recording reads it."""
@@ -265,6 +291,7 @@ def _chunks(data: bytes):
     return list(zip(ends, counts)), summary
 
 
+@pytest.mark.slow
 def test_truncated_file_is_salvaged_up_to_its_last_complete_chunk(synthetic, tmp_path):
     rec, sig = synthetic
     data = rec.path.read_bytes()
@@ -300,6 +327,7 @@ def test_truncated_file_is_salvaged_up_to_its_last_complete_chunk(synthetic, tmp
         read_recording(path)
 
 
+@pytest.mark.slow
 def test_killed_recorder_leaves_a_readable_file(tmp_path):
     """A recorder process killed with SIGKILL: every flushed chunk is read back."""
     script = textwrap.dedent(f"""
@@ -466,6 +494,7 @@ def simulated(tmp_path_factory):
     return preset, ref, res, path
 
 
+@pytest.mark.slow
 def test_write_run_round_trip_of_a_simulation(simulated):
     preset, ref, res, path = simulated
     r = read_recording(path)
@@ -493,6 +522,7 @@ def test_write_run_round_trip_of_a_simulation(simulated):
         assert np.isfinite(row["settling_time_s"])
 
 
+@pytest.mark.slow
 def test_check_metrics_catches_a_wrong_result(simulated, tmp_path, capsys):
     preset, ref, res, _ = simulated
     path = write_run(tmp_path / "tampered", res, preset, trials=[0], reference=ref, window=25e-9, results=False)
@@ -560,11 +590,12 @@ PROBE = textwrap.dedent("""
 """)
 
 
-def test_replay_republishes_with_clock(tmp_path):
+@pytest.mark.ros
+def test_replay_republishes_with_clock(tmp_path, ros_domain):
     sig = _signals(300, seed=9)
     rec = _write_synthetic(tmp_path / "small", sig, family=TS)
     from experiment_runner.ros.run import domain_env
-    env = domain_env(20 + os.getpid() % 70)             # a graph's settings, before the probe's participant
+    env = domain_env(ros_domain)                        # a graph's settings, before the probe's participant
     proc = subprocess.run([sys.executable, "-c", PROBE, str(rec.bag_dir), "0"], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -130,6 +130,7 @@ WRITERS = [w_savetxt_csv, w_savetxt_commented_header, w_savetxt_tsv_headerless, 
 
 @pytest.mark.parametrize("rate", [1000.0, 10000.0])
 @pytest.mark.parametrize("writer", WRITERS, ids=lambda w: w.__name__[2:])
+@pytest.mark.slow
 def test_round_trip_of_files_written_by_other_tools(writer, rate, tmp_path, capsys):
     d = closed_loop(rate)
     src, names, scale = writer(d, tmp_path)
@@ -251,6 +252,7 @@ def test_mapping_file_equals_flags_and_flags_override_it(tmp_path, capsys):
     assert read_recording(tmp_path / "c").events[1]["case"] == "other"
 
 
+@pytest.mark.slow
 def test_irregular_stamps_are_refused_or_resampled_on_request(tmp_path, capsys):
     rng = np.random.default_rng(3)
     n = 400
@@ -423,17 +425,11 @@ def test_a_conversion_failing_while_writing_leaves_nothing_half_written(tmp_path
 
 # --------------------------------------------------------------------------- EMPS
 @pytest.fixture(scope="module")
-def emps_file():
-    from experiment_runner.diagnosis.realdata import DataMissing, data_root
-    try:
-        path = data_root() / "emps" / "DATA_EMPS.mat"
-    except DataMissing as err:
-        pytest.skip(f"EMPS data not available: {err}")
-    if not path.is_file():
-        pytest.skip(f"EMPS data not available: {path} does not exist")
-    return path
+def emps_file(shared_file):
+    return shared_file("emps/DATA_EMPS.mat")
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_convert_emps_is_the_table_importer_and_gives_the_same_recording(emps_file, tmp_path, capsys):
     from scipy.io import loadmat

@@ -146,6 +146,7 @@ def test_two_loggers_at_1khz_and_250hz_are_joined_by_interpolation_within_the_ov
     assert cfg["warnings"] and "250 Hz" in cfg["warnings"][0]
 
 
+@pytest.mark.slow
 def test_a_joined_held_command_and_the_refusals(tmp_path, capsys):
     d, pos, force, t2, f2, tname = _two_loggers(tmp_path)
     base = [str(pos), "--time", "t", "--reference", "x_ref", "--measured", "y", "--command", "F"]
@@ -181,6 +182,7 @@ def test_a_joined_held_command_and_the_refusals(tmp_path, capsys):
     assert rc == 2 and "force.csv: column 'time [ms]' (time of force.csv) does not increase at line 12" in err
 
 
+@pytest.mark.slow
 def test_join_from_a_mapping_file_with_sources(tmp_path):
     d, pos, force, t2, f2, tname = _two_loggers(tmp_path)
     mp = tmp_path / "rig.yaml"
@@ -210,6 +212,7 @@ def test_join_from_a_mapping_file_with_sources(tmp_path):
 
 
 # --------------------------------------------------------------------------- time unit
+@pytest.mark.slow
 def test_a_time_column_in_ms_is_warned_about_and_read_right_with_time_unit(tmp_path, capsys):
     n = 12000
     d = record(n)
@@ -350,15 +353,8 @@ def test_a_small_rotary_servo_record_converts_in_rotary_units(tmp_path, capsys):
 
 # --------------------------------------------------------------------------- EMPS with force pulses
 @pytest.fixture(scope="module")
-def pulses_file():
-    from experiment_runner.diagnosis.datasets import DataMissing, data_root
-    try:
-        path = data_root() / "emps" / "DATA_EMPS_PULSES.mat"
-    except DataMissing as err:
-        pytest.skip(f"EMPS data not available (../shared/data missing): {err}")
-    if not path.is_file():
-        pytest.skip(f"EMPS data not available: {path} does not exist")
-    return path
+def pulses_file(shared_file):
+    return shared_file("emps/DATA_EMPS_PULSES.mat")
 
 
 @pytest.mark.slow

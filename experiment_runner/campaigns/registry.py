@@ -2,7 +2,8 @@
 
 Every metric a campaign measures (per trial: :func:`experiment_runner.experiment.trial_metrics`;
 per frequency response: :mod:`experiment_runner.campaigns.frf`) is listed here once; the
-report, ``results.csv`` / ``results.json`` and the findings name and format metrics through it.
+report, ``results.csv`` / ``results.json`` and the findings name and format metrics through it,
+and the campaign schema's metric type (:data:`Metric`) and :data:`TRIAL_METRICS` are derived from it.
 
 Examples
 --------
@@ -10,17 +11,31 @@ Examples
 ('44.1 ms', '1.6 nm', '–')
 >>> METRICS["phase_margin_deg"].compact(45.25)
 '45.2°'
+
+The schema's metric type and the per-trial metrics are derived from the table:
+
+>>> typing.get_args(Metric) == tuple(METRICS)
+True
+>>> TRIAL_METRICS
+('settling_time_s', 'rms_in_position_m', 'peak_tracking_error_m', 'rms_tracking_error_m')
+
+... and are the metrics the core measures of a trial:
+
+>>> from experiment_runner import metrics
+>>> TRIAL_METRICS == metrics.METRICS
+True
 """
 from __future__ import annotations
 
 import math
+import typing
 from typing import Literal, NamedTuple, Optional
 
 __all__ = ["MetricInfo", "METRICS", "Metric", "TRIAL_METRICS", "fmt_metric", "fmt_change"]
 
 
 class MetricInfo(NamedTuple):
-    """How a metric is named and shown.
+    """How a metric is named and shown, and what it is measured on.
 
     Parameters
     ----------
@@ -32,11 +47,14 @@ class MetricInfo(NamedTuple):
         Display value = SI value x ``scale``.
     short : str, optional
         Format of a compact table cell (``"{:.1f}°"``); default: :func:`fmt_metric`'s.
+    per : {"trial", "frequency_response"}, optional
+        Measured on every simulated trial, or on a case's FRF at an amplitude.
     """
     label: str                       # e.g. "settling time"
     unit: str                        # display unit, e.g. "ms"
     scale: float                     # display value = SI value x scale
     short: Optional[str] = None      # compact format of a table cell ("{:.1f}°"); default: fmt_metric
+    per: Literal["trial", "frequency_response"] = "trial"   # every simulated trial, or a case's FRF at an amplitude
 
     def compact(self, v: Optional[float]) -> str:
         """A table cell: ``short`` (or :func:`fmt_metric`'s ``3 significant digits unit``), ``–`` if undefined.
@@ -62,19 +80,20 @@ METRICS: dict[str, MetricInfo] = {
     "peak_tracking_error_m": MetricInfo("peak tracking error", "µm", 1e6),
     "rms_tracking_error_m": MetricInfo("RMS tracking error", "µm", 1e6),
     # per case and amplitude (frequency response)
-    "bandwidth_hz": MetricInfo("-3 dB closed-loop bandwidth", "Hz", 1.0, "{:.3g} Hz"),
-    "gain_margin_db": MetricInfo("gain margin", "dB", 1.0, "{:.1f} dB"),
-    "phase_margin_deg": MetricInfo("phase margin", "°", 1.0, "{:.1f}°"),
+    "bandwidth_hz": MetricInfo("-3 dB closed-loop bandwidth", "Hz", 1.0, "{:.3g} Hz", "frequency_response"),
+    "gain_margin_db": MetricInfo("gain margin", "dB", 1.0, "{:.1f} dB", "frequency_response"),
+    "phase_margin_deg": MetricInfo("phase margin", "°", 1.0, "{:.1f}°", "frequency_response"),
     # Table C.1: Z / (s (s + P)) fitted to the plant FRF below 100 Hz (campaigns.frf.nominal_fit)
-    "nominal_pole_per_s": MetricInfo("nominal-model pole P (Table C.1)", "1/s", 1.0, "{:.0f} 1/s"),
-    "nominal_gain": MetricInfo("nominal-model gain Z (Table C.1)", "N/(A·kg)", 1.0, "{:.2f} N/(A·kg)"),
+    "nominal_pole_per_s": MetricInfo("nominal-model pole P (Table C.1)", "1/s", 1.0, "{:.0f} 1/s",
+                                     "frequency_response"),
+    "nominal_gain": MetricInfo("nominal-model gain Z (Table C.1)", "N/(A·kg)", 1.0, "{:.2f} N/(A·kg)",
+                               "frequency_response"),
 }
 
-Metric = Literal["settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m",
-                 "bandwidth_hz", "gain_margin_db", "phase_margin_deg", "nominal_pole_per_s", "nominal_gain"]
-"""A metric name (the schema's type; the keys of :data:`METRICS`)."""
+Metric = Literal[tuple(METRICS)]
+"""A metric name (the schema's type): a key of :data:`METRICS`."""
 
-TRIAL_METRICS = ("settling_time_s", "rms_in_position_m", "peak_tracking_error_m", "rms_tracking_error_m")
+TRIAL_METRICS = tuple(name for name, info in METRICS.items() if info.per == "trial")
 """The metrics of one simulated trial (a failed trial has them all None)."""
 
 

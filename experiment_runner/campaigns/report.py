@@ -158,7 +158,7 @@ def save_figure(plt, fig, path: Path) -> Path:
 
 
 def _plot_distribution(plt, cr, metric, cases, cols, out):
-    label, unit, scale, _ = METRICS[metric]
+    label, unit, scale = METRICS[metric][:3]
     n = len(cr.conditions)
     fig, axs = plt.subplots(1, n, figsize=(max(4.0, 2.2 + 1.3 * len(cases)) * n, 4.5), squeeze=False)
     rng = np.random.default_rng(0)
@@ -220,7 +220,7 @@ def _plot_calibration(plt, cr, out):
     fig, axs = plt.subplots(1, len(params), figsize=(5.2 * len(params), 4), squeeze=False)
     for ax, p in zip(axs[0], params):
         metric = p["target"]["metric"]
-        _, unit, scale, _ = METRICS[metric]
+        unit, scale = METRICS[metric][1:3]
         prof = [q for q in p.get("profile", []) if q["metric"] is not None and math.isfinite(q["metric"])]
         if prof:
             ax.plot([q["value"] for q in prof], [q["metric"] * scale for q in prof], "o-", color="C0", ms=4,

@@ -55,8 +55,9 @@ from typing import Annotated, ClassVar, Literal, Optional, Union
 import numpy as np
 from pydantic import ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
-from experiment_runner import profiles
+from experiment_runner import experiment, profiles
 from experiment_runner.campaigns.registry import Metric
+from experiment_runner.experiment import Move, Starts
 from stage_sim.config import (ConfigError, Finite, Fraction, NonNeg, Pos, Preset, _format, _Strict,
                               load_preset, read_yaml_file, with_overrides)
 
@@ -123,14 +124,15 @@ class Condition:
 
 
 # =========================================================================== tests (one schema per campaign kind)
-class PointToPointTest(_Strict):
-    """Point-to-point moves (seed Sec. 3.4.1, Fig. 3.13): one condition per step size."""
+# A trial kind's condition is an experiment profile (:mod:`experiment_runner.experiment`, the one
+# description of a run): ``profile(cond)``; its reference is that profile's.
+class PointToPointTest(Move):
+    """Point-to-point moves (seed Sec. 3.4.1, Fig. 3.13): one condition per step size, each an
+    experiment's :class:`~experiment_runner.experiment.PointToPoint` of this :class:`~experiment_runner.experiment.Move`."""
     kind: Literal["point_to_point"]
     steps: list[Finite] = Field(min_length=1, description="step sizes [m] (signed), one condition each")
-    dwell: Pos = Field(1.0, description="settling portion after the reference stops [s]")
-    pre: NonNeg = Field(0.005, description="rest before the move [s]")
-    duration: Optional[Pos] = Field(None, description="move duration [s]; default from the seed's anchors")
-    shape: Literal["cycloidal", "triangular", "step"] = "cycloidal"
+    dwell: Pos = Field(1.0, description="settling portion recorded after the reference stops [s] (the seed's "
+                                        "tables: 1 s)")
     window: Pos = Field(25e-9, description="settling window half-width [m]")
 
     METRICS: ClassVar[tuple] = ("settling_time_s", "rms_in_position_m")
@@ -148,21 +150,17 @@ class PointToPointTest(_Strict):
         """One condition per step size."""
         return [Condition(_slug(fmt_length(s)), fmt_length(s), step=float(s)) for s in self.steps]
 
+    def profile(self, cond: Condition) -> experiment.PointToPoint:
+        """The experiment profile of a condition: its step, moved as this test moves."""
+        return experiment.PointToPoint(kind="point_to_point", distance=cond.step,
+                                       **self.model_dump(include=set(Move.model_fields)))
+
     def reference(self, cond: Condition, rate: float) -> profiles.Reference:
         """The shared (start-at-0) reference of a condition at the control rate."""
-        return profiles.point_to_point(cond.step, duration=self.duration, dwell=self.dwell, dt=1.0 / rate,
-                                       pre=self.pre, shape=self.shape)
-
-    def graph_profile(self, cond: Condition) -> dict:
-        """The experiment file's ``profile`` (:mod:`experiment_runner.experiment`) of a condition."""
-        prof = {"kind": "point_to_point", "distance": cond.step, "dwell": self.dwell, "pre": self.pre,
-                "shape": self.shape}
-        if self.duration is not None:
-            prof["duration"] = self.duration
-        return prof
+        return experiment.reference(self.profile(cond), 1.0 / rate)
 
 
-class Circle(_Strict):
+class CircleSpeeds(_Strict):
     """One radius and the tangential speeds run at it."""
     radius: Pos = Field(description="circle radius [m]")
     speeds: list[Pos] = Field(min_length=1, description="tangential speeds [m/s]")
@@ -177,7 +175,7 @@ class CircleTest(_Strict):
     kind: Literal["circle"]
     radii: Optional[list[Pos]] = Field(None, min_length=1, description="circle radii [m] (x speeds)")
     speeds: Optional[list[Pos]] = Field(None, min_length=1, description="tangential speeds [m/s] (x radii)")
-    circles: Optional[list[Circle]] = Field(None, min_length=1, description="radii with their own speeds")
+    circles: Optional[list[CircleSpeeds]] = Field(None, min_length=1, description="radii with their own speeds")
     cycles: Pos = Field(1.0, description="revolutions")
     window: Pos = Field(25e-9, description="(recorded only) [m]")
 
@@ -206,13 +204,13 @@ class CircleTest(_Strict):
         return [Condition(_slug(f"r{fmt_length(r)}_v{fmt_length(v)}s"), f"R {fmt_length(r)}, {fmt_length(v)}/s",
                           radius=r, speed=v) for r, v in self.pairs()]
 
+    def profile(self, cond: Condition) -> experiment.Circle:
+        """The experiment profile of a condition: its radius and speed."""
+        return experiment.Circle(kind="circle", radius=cond.radius, speed=cond.speed, cycles=self.cycles)
+
     def reference(self, cond: Condition, rate: float) -> profiles.Reference:
         """The shared (start-at-0) reference of a condition at the control rate."""
-        return profiles.circle_x(cond.radius, cond.speed, cycles=self.cycles, dt=1.0 / rate)
-
-    def graph_profile(self, cond: Condition) -> dict:
-        """The experiment file's ``profile`` of a condition."""
-        return {"kind": "circle", "radius": cond.radius, "speed": cond.speed, "cycles": self.cycles}
+        return experiment.reference(self.profile(cond), 1.0 / rate)
 
 
 
@@ -285,12 +283,6 @@ def frequency_grid(test: FrequencyResponseTest) -> np.ndarray:
 
 
 Test = Annotated[Union[PointToPointTest, CircleTest, FrequencyResponseTest], Field(discriminator="kind")]
-
-
-class Starts(_Strict):
-    """Trial ``i`` starts uniformly at random inside the travel minus ``margin`` (rng seed ``seed + i``)."""
-    margin: NonNeg = Field(0.003, description="distance kept from the travel ends [m]")
-    seed: int = Field(1, ge=0, description="rng seed of trial 0")
 
 
 class StepII(_Strict):
@@ -514,7 +506,7 @@ class Campaign(_Strict):
     description: str = ""
     test: Test
     trials: int = Field(ge=1, le=10_000, description="trials per case and condition")
-    starts: Starts = Starts()
+    starts: Starts = Field(Starts(), description="where trials start (trial i: starts.trial(i), on its own)")
     overrides: dict = Field(default_factory=dict, description="dotted-path overrides for every case")
     cases: list[Case] = Field(min_length=1)
     baseline: str

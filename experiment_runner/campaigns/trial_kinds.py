@@ -348,7 +348,7 @@ def _plot_vs_step(plt, cr, cases, cols, out):
     conds = sorted(cr.conditions, key=lambda c: abs(c.step))
     x = np.array([abs(c.step) for c in conds])
     for ax, metric in zip(axs, ("settling_time_s", "rms_in_position_m")):
-        label, unit, scale, _ = METRICS[metric]
+        label, unit, scale = METRICS[metric][:3]
         for case, col in zip(cases, cols):
             st = [cr.runs[(case.name, c.key)].stats[metric] for c in conds]
             m = np.array([s.mean for s in st]) * scale

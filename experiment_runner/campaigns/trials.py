@@ -1,7 +1,8 @@
 """The trials of a campaign: the one place they are built, simulated and judged.
 
-Trial ``i`` of a case at a condition starts at ``random_starts(1, travel, margin, starts.seed + i)``
-(inside the travel that the whole reference keeps within) with noise seed
+Trial ``i`` of a case at a condition starts where the one trial of an experiment with the campaign's
+``starts.trial(i)`` starts (:class:`experiment_runner.experiment.Starts`: inside the travel that the
+whole reference keeps within) with noise seed
 ``simulation.seed + i``: every trial is reproducible on its own and the same in every case
 (common random numbers make the case comparisons paired), in every chunk, process or
 machine that runs it. The one-trial experiment file written for the ROS graph
@@ -16,9 +17,9 @@ from experiment_runner import profiles
 from experiment_runner.batch import Models, simulate
 from experiment_runner.campaigns.registry import TRIAL_METRICS
 from experiment_runner.campaigns.spec import Campaign, Case, Condition, case_overrides, case_preset
-from experiment_runner.experiment import Trial, trial_metrics
+from experiment_runner.experiment import Starts, Trial, trial_metrics
 from stage_control.sai import ilc_update
-from stage_sim.config import ConfigError, Preset
+from stage_sim.config import Preset
 from stage_sim.plant import STATUS_TEXT
 
 __all__ = ["reference", "start_position", "make_trials", "simulate_trials", "metric_record", "plain",
@@ -46,7 +47,7 @@ def reference(camp: Campaign, cond: Condition, rate: float) -> profiles.Referenc
 
 def start_position(camp: Campaign, preset: Preset, ref: profiles.Reference, i: int) -> float:
     """Start of trial ``i``: as :func:`experiment_runner.experiment.build_trials` for a one-trial
-    experiment with ``starts.seed = campaign starts.seed + i``.
+    experiment with the starts ``camp.starts.trial(i)``.
 
     Parameters
     ----------
@@ -64,12 +65,9 @@ def start_position(camp: Campaign, preset: Preset, ref: profiles.Reference, i: i
     float
         Start position [m], drawn inside the stage's travel less the campaign's margin.
     """
-    travel = preset.stage.travel
-    try:
-        return float(profiles.random_starts(1, (travel.min, travel.max), camp.starts.margin, camp.starts.seed + i,
-                                            extent=(float(ref.x.min()), float(ref.x.max())))[0])
-    except ConfigError as err:
-        raise ConfigError(f"campaign {camp.name} (test {camp.test.kind}, preset {preset.name}): {err}") from None
+    return float(camp.starts.trial(i).positions(1, preset.stage.travel, extent=(float(ref.x.min()), float(ref.x.max())),
+                                                where=f"campaign {camp.name} (test {camp.test.kind}, "
+                                                      f"preset {preset.name})")[0])
 
 
 def make_trials(camp: Campaign, case: Case, preset: Preset, ref: profiles.Reference, indices) -> list[Trial]:
@@ -221,8 +219,8 @@ def graph_experiment(camp: Campaign, case: Case, cond: Condition, trial: int, ca
     t = camp.test
     return {"name": f"{camp.name}_{case.name}_{cond.key}_t{trial}",
             "description": f"{camp.title}: {case.label}, {cond.label}, trial {trial} (written by nanostage campaign)",
-            "preset": case.preset, "overrides": ov, "profile": t.graph_profile(cond), "trials": 1,
-            "starts": {"margin": camp.starts.margin, "seed": camp.starts.seed + trial}, "window": t.window}
+            "preset": case.preset, "overrides": ov, "profile": t.profile(cond).model_dump(mode="json", exclude_none=True), "trials": 1,
+            "starts": camp.starts.trial(trial).model_dump(mode="json"), "window": t.window}
 
 
 def learn_step_ii(camp: Campaign, case: Case, preset: Preset, progress=None, cond: Condition | None = None) -> dict:
@@ -272,7 +270,7 @@ def learn_step_ii(camp: Campaign, case: Case, preset: Preset, progress=None, con
         v = np.zeros_like(x)
         v[n_pre:n_pre + n_comp] = 1e-12       # p2p rule: compliant while v_ref != 0 (no feedforward uses it)
         lo, hi = travel.min, travel.max
-    x0 = profiles.random_starts(spec.trials, (lo, hi), camp.starts.margin, camp.starts.seed + 100_000)
+    x0 = Starts(margin=camp.starts.margin, seed=camp.starts.seed + 100_000).positions(spec.trials, (lo, hi))
     seeds = preset.simulation.seed + 100_000 + np.arange(spec.trials)
     models = Models.from_preset(preset)
     iterations = ilc.iterations if spec.iterations is None else spec.iterations

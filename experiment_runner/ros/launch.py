@@ -50,15 +50,23 @@ class NodeProcesses:
         ``fault.*`` parameters of :class:`experiment_runner.ros.node.StageNode`).
     stderr_dir : Path, optional
         Write each node's stderr to ``stderr_dir/<node>.stderr`` (default: inherited).
+    env : mapping, optional
+        The node processes' environment, which holds the run's domain (default: this process's,
+        as :func:`~experiment_runner.ros.run.isolate` set it; e.g.
+        :func:`~experiment_runner.ros.run.domain_env`); kept for restarts.
+    ros_args : dict, optional
+        ``{node: [argument, ...]}``: more ROS arguments of a node after ``--ros-args``, e.g.
+        ``["--params-file", "plant.yaml"]``.
     """
 
     def __init__(self, experiment: str, out: Path, nodes=NODE_NAMES, params: dict | None = None,
-                 stderr_dir: Path | None = None):
+                 stderr_dir: Path | None = None, env=None, ros_args: dict | None = None):
         self.experiment, self.out = experiment, Path(out)
         self.params = params or {}
+        self.ros_args = {name: list(args) for name, args in (ros_args or {}).items()}
         self.stderr_dir = stderr_dir
         self.bindir = Path(sys.executable).parent
-        self.env = os.environ.copy()             # the domain of the run, also for restarts
+        self.env = dict(os.environ if env is None else env)    # the domain of the run, also for restarts
         self.procs: dict[str, subprocess.Popen] = {}
         self.codes: dict[str, object] = {}       # exit code of every process that ended ("hung": killed)
         self.stopped: set[str] = set()           # sent SIGSTOP, not continued yet
@@ -73,6 +81,7 @@ class NodeProcesses:
         values = {**run_args(self.experiment, self.out, self.params).get(name, {}), **(params or {})}
         for key, val in values.items():
             args += ["-p", f"{key}:={_param_text(val)}"]
+        args += self.ros_args.get(name, [])
         err = None
         if self.stderr_dir is not None:
             self.stderr_dir.mkdir(parents=True, exist_ok=True)
@@ -107,6 +116,10 @@ class NodeProcesses:
         """Kill node ``name`` and start it again (a crash and a supervisor's restart)."""
         self.kill(name)
         self.start(name, params)
+
+    def stderr(self, name: str) -> str:
+        """What node ``name`` wrote to its stderr file so far (every start of it; needs ``stderr_dir``)."""
+        return (self.stderr_dir / f"{name}.stderr").read_text()
 
     def dead(self) -> dict[str, int]:
         """Nodes whose process has ended, with their exit codes."""
