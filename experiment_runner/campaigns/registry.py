@@ -14,6 +14,7 @@ Examples
 
 The schema's metric type and the per-trial metrics are derived from the table:
 
+>>> import typing
 >>> typing.get_args(Metric) == tuple(METRICS)
 True
 >>> TRIAL_METRICS
@@ -28,7 +29,6 @@ True
 from __future__ import annotations
 
 import math
-import typing
 from typing import Literal, NamedTuple, Optional
 
 __all__ = ["MetricInfo", "METRICS", "Metric", "TRIAL_METRICS", "fmt_metric", "fmt_change"]

@@ -151,7 +151,18 @@ class PointToPointTest(Move):
         return [Condition(_slug(fmt_length(s)), fmt_length(s), step=float(s)) for s in self.steps]
 
     def profile(self, cond: Condition) -> experiment.PointToPoint:
-        """The experiment profile of a condition: its step, moved as this test moves."""
+        """The experiment profile of a condition: its step, moved as this test moves.
+
+        Parameters
+        ----------
+        cond : Condition
+            One of :meth:`conditions`.
+
+        Returns
+        -------
+        experiment_runner.experiment.PointToPoint
+            The step ``cond.step`` with this test's move (dwell, profile, limits).
+        """
         return experiment.PointToPoint(kind="point_to_point", distance=cond.step,
                                        **self.model_dump(include=set(Move.model_fields)))
 
@@ -205,15 +216,23 @@ class CircleTest(_Strict):
                           radius=r, speed=v) for r, v in self.pairs()]
 
     def profile(self, cond: Condition) -> experiment.Circle:
-        """The experiment profile of a condition: its radius and speed."""
+        """The experiment profile of a condition: its radius and speed.
+
+        Parameters
+        ----------
+        cond : Condition
+            One of :meth:`conditions`.
+
+        Returns
+        -------
+        experiment_runner.experiment.Circle
+            The circle of radius ``cond.radius`` at ``cond.speed``, this test's cycles.
+        """
         return experiment.Circle(kind="circle", radius=cond.radius, speed=cond.speed, cycles=self.cycles)
 
     def reference(self, cond: Condition, rate: float) -> profiles.Reference:
         """The shared (start-at-0) reference of a condition at the control rate."""
         return experiment.reference(self.profile(cond), 1.0 / rate)
-
-
-
 
 
 class FrequencyResponseTest(_Strict):
