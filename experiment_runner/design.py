@@ -51,6 +51,7 @@ import numpy as np
 
 from experiment_runner import outputs, profiles
 from experiment_runner.batch import Models, simulate
+from experiment_runner.errors import DesignError
 from experiment_runner.cliargs import nonnegative_float, nonzero_float, positive_float, positive_int
 from experiment_runner.executor import make_executor
 from experiment_runner.metrics import rms_in_position, settling_time
@@ -71,10 +72,6 @@ GRIDS = {            # stage-total k_fi [N/m] x c_fi [N·s/m]
     "fine": (np.logspace(4, 7, 31), np.logspace(0, 4, 21)),
 }
 RIGID = math.inf     # k_fi of the No FI stage
-
-
-class DesignError(ValueError):
-    """Bad input to the design advisor (message names the value)."""
 
 
 def _preset(preset) -> Preset:

@@ -68,6 +68,7 @@ from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Iterator
 
+from experiment_runner.errors import OutputError
 from stage_sim.validation import ConfigError
 
 __all__ = ["MANIFEST", "OutputError", "Interrupted", "prepare_folder", "check_recording", "prepare_recording",
@@ -82,10 +83,6 @@ _PARTIAL = re.compile(r"^\.(?P<name>.+)\.partial-(?P<pid>\d+)-[0-9a-f]{6}$")
 """A temporary of :func:`replacing` / :func:`replacing_folder`: target name, writing process."""
 _LEGACY = re.compile(r"^\..+\.partial-[a-z0-9_]{8}(\.old)?$")
 """A temporary of nanostage before this module (no process id): reported, never removed."""
-
-
-class OutputError(ConfigError):
-    """An output nanostage must not write or remove there; the message says why and what to do."""
 
 
 class Interrupted(KeyboardInterrupt):

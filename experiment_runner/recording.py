@@ -48,6 +48,7 @@ from typing import ClassVar
 import numpy as np
 
 from experiment_runner import outputs
+from experiment_runner.errors import RecordingError
 from msg_defs import cdr, convert
 from msg_defs.topics import (BEARING, CLOCK, COMMAND, COMMAND_KINDS, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS,
                              EXTERNAL_FORCE, ISOLATOR, ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS,
@@ -75,10 +76,6 @@ def _size_problem(compression: str, compressed: int, uncompressed: int) -> str |
     if uncompressed > limit or (not compression and uncompressed != compressed):
         return f"claiming {uncompressed} bytes uncompressed from {compressed} bytes ({compression or 'none'})"
     return None
-
-
-class RecordingError(ValueError):
-    """A file is not a readable nanostage recording; the message says why."""
 
 
 # =========================================================================== writing
