@@ -22,13 +22,13 @@ import numpy as np
 from pydantic import Field, ValidationError
 
 from experiment_runner import metrics, profiles
-from stage_sim.config import (ConfigError, Finite, NonNeg, Pos, Preset, _format, _Strict,
+from stage_sim.config import (ConfigError, Finite, NonNeg, Pos, Preset, schema_error_message, StrictModel,
                               load_preset, read_yaml_file, with_overrides)
 
 EXPERIMENT_DIR = Path(__file__).with_name("experiments")
 
 
-class PointToPoint(_Strict):
+class PointToPoint(StrictModel):
     kind: Literal["point_to_point"]
     distance: Finite = Field(description="move size [m] (sign = direction)")
     duration: Optional[Pos] = Field(None, description="move duration [s]; default from the seed's anchors")
@@ -37,7 +37,7 @@ class PointToPoint(_Strict):
     shape: Literal["cycloidal", "triangular", "step"] = "cycloidal"
 
 
-class StepSequence(_Strict):
+class StepSequence(StrictModel):
     kind: Literal["step_sequence"]
     distance: Finite
     n_forward: int = Field(8, ge=0)
@@ -46,14 +46,14 @@ class StepSequence(_Strict):
     dwell: Pos = 0.25
 
 
-class Circle(_Strict):
+class Circle(StrictModel):
     kind: Literal["circle"]
     radius: Pos = Field(description="circle radius [m]")
     speed: Pos = Field(description="tangential speed [m/s]")
     cycles: Pos = 1.0
 
 
-class SineSweep(_Strict):
+class SineSweep(StrictModel):
     """Stepped sine (:func:`experiment_runner.profiles.sine_sweep`): one constant-amplitude
     position sine per frequency, phase continuous."""
     kind: Literal["sine_sweep"]
@@ -66,13 +66,13 @@ class SineSweep(_Strict):
 Profile = Union[PointToPoint, StepSequence, Circle, SineSweep]
 
 
-class Starts(_Strict):
+class Starts(StrictModel):
     """Start positions: uniformly random inside the travel (minus a margin), reproducible."""
     margin: NonNeg = Field(0.005, description="distance kept from the travel ends [m]")
     seed: int = Field(0, ge=0)
 
 
-class Experiment(_Strict):
+class Experiment(StrictModel):
     name: str
     description: str = ""
     preset: str = Field(description="preset name or path")
@@ -101,7 +101,7 @@ def load_experiment(name_or_path) -> Experiment:
     try:
         return Experiment.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_format(err, str(path))) from None
+        raise ConfigError(schema_error_message(err, str(path))) from None
 
 
 def list_experiments() -> list[str]:

@@ -173,7 +173,7 @@ def _temp_name(name: str) -> str:
     return f".{name}.partial-{os.getpid()}-{secrets.token_hex(3)}"
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -214,7 +214,7 @@ def _clean_partials(folder: Path, target: str | None = None) -> None:
             continue
         if stat.S_ISLNK(st.st_mode) or st.st_uid != os.getuid():
             _report(path, "named like a nanostage partial, but not one this user's nanostage made")
-        elif _alive(pid):
+        elif process_alive(pid):
             _report(path, f"the partial of a running process (pid {pid})")
         elif stat.S_ISDIR(st.st_mode):
             shutil.rmtree(path, ignore_errors=True)

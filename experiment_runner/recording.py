@@ -80,7 +80,7 @@ def _size_problem(compression: str, compressed: int, uncompressed: int) -> str |
 
 # =========================================================================== writing
 @lru_cache(maxsize=None)
-def _typestore():
+def typestore():
     from rosbags.typesys import Stores, get_typestore
     return get_typestore(Stores.ROS2_JAZZY)
 
@@ -190,7 +190,7 @@ class McapRecorder:
             outputs.prepare_recording(self.bag_dir, overwrite)
             where = self.bag_dir
         writer_cls, plugin = _writer_classes()
-        self._store = _typestore()
+        self._store = typestore()
         self._conns: dict = {}
         self.counts: Counter = Counter()
         self._closed = False
@@ -690,7 +690,7 @@ def _salvage(path: Path, f, size: int, indexed_error: Exception) -> _Raw:
     return _Raw(path, "", schemas, channels, messages, note, backwards)
 
 
-def _load(path) -> _Raw:
+def load_raw(path) -> _Raw:
     """Schemas, channels and messages of an MCAP file: indexed, else salvaged."""
     from mcap.reader import SeekingReader
     path = mcap_file(path)
@@ -709,7 +709,7 @@ def _load(path) -> _Raw:
                 if problem:
                     raise _IndexMismatch(f"the index has a chunk {problem}")
             schemas, channels = {}, {}
-            messages = _indexed_messages(f, summary, validate_crcs=True)
+            messages = indexed_messages(f, summary, validate_crcs=True)
             if messages is None:
                 messages = []
                 for schema, channel, message in reader.iter_messages(log_time_order=False):
@@ -764,7 +764,7 @@ _MESSAGE_HEAD = struct.Struct("<HIQQ")              # channel id, sequence, log 
 _OP_MESSAGE = 0x05
 
 
-def _indexed_messages(f, summary, validate_crcs: bool = True) -> list | None:
+def indexed_messages(f, summary, validate_crcs: bool = True) -> list | None:
     """The messages of an indexed MCAP file in the order ``SeekingReader.iter_messages(
     log_time_order=False)`` yields them (chunk index order, then record order in the chunk),
     as the same ``mcap.records.Message`` objects; ``None`` where that reader would not use
@@ -781,7 +781,7 @@ def _indexed_messages(f, summary, validate_crcs: bool = True) -> list | None:
     >>> for t in (3, 1, 2): w.add_message(ch, log_time=t, data=bytes([t]), publish_time=t)
     >>> w.finish()
     >>> _ = buf.seek(0); reader = make_reader(buf)
-    >>> ours = _indexed_messages(buf, reader.get_summary())
+    >>> ours = indexed_messages(buf, reader.get_summary())
     >>> ours == [m for _, _, m in reader.iter_messages(log_time_order=False)]
     True
     """
@@ -903,7 +903,7 @@ def read_recording(path, require_reference: bool = True) -> Recording:
         type, or messages that do not decode.
     """
     from mcap_ros2.decoder import DecoderFactory
-    raw = _load(path)
+    raw = load_raw(path)
     where = f"{raw.path}" + (f" ({raw.salvaged})" if raw.salvaged else "")
     for c in raw.channels.values():
         if not c.topic or not c.topic.isprintable():
@@ -1202,7 +1202,7 @@ def _find_damage(rec: Recording, series: dict, items: dict, back: dict) -> list[
 def run_config_yaml(preset, **run) -> str:
     """``/experiment/config`` YAML: the preset (as validated) and the run's parameters."""
     import yaml
-    doc = {"recording_contract": 1, "run": convert._clean(run), "preset": preset.model_dump(mode="json")}
+    doc = {"recording_contract": 1, "run": convert.strict_json(run), "preset": preset.model_dump(mode="json")}
     return yaml.safe_dump(doc, sort_keys=False)
 
 
@@ -1250,7 +1250,7 @@ def write_run(path, result, preset, *, trials=None, reference=None, window: floa
     """
     from experiment_runner.metrics import trial_metrics
     from stage_sim.plant import OK, STATUS_TEXT
-    ts = _typestore()
+    ts = typestore()
     rate = float(preset.controller.rate)
     n_trials, T = result.y.shape
     trials = list(range(n_trials)) if trials is None else [int(i) for i in trials]

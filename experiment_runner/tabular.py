@@ -1377,11 +1377,11 @@ def write_signals(sig: Signals, out, overwrite: bool = False, node: str = "conve
     """
     import yaml
 
-    from experiment_runner.recording import McapRecorder, _typestore, bag_layout
+    from experiment_runner.recording import McapRecorder, typestore, bag_layout
     from msg_defs import cdr, convert
     from msg_defs.topics import (BEARING, COMMAND, EVENTS, EXTERNAL_FORCE, MEASURED, MOTOR, REFERENCE,
                                  SOURCE_CHANNELS, TABLE)
-    ts = _typestore()
+    ts = typestore()
     case = sig.config["run"]["case"]
     st = sig.stamp_ns
     # per-sample topics: (topic, names, {field: (n, len(names)) values}), in write order

@@ -51,7 +51,7 @@ def _string(text: str, off: int) -> tuple[bytes, int]:
 
 
 @lru_cache(maxsize=256)
-def _layout(names: tuple[str, ...], lengths: tuple[int, int, int], frame_id: str = "") -> tuple:
+def joint_state_layout(names: tuple[str, ...], lengths: tuple[int, int, int], frame_id: str = "") -> tuple:
     """The Struct of a JointState with these names and array lengths; its fields are the
     encapsulation, sec, nanosec, the static part (frame_id and names), then count and
     values of each array."""
@@ -95,7 +95,7 @@ class JointStateWriter:
     True
     """
 
-    __slots__ = ("_frame", "_key", "_layout", "_static")
+    __slots__ = ("_frame", "_key", "joint_state_layout", "_static")
 
     def __init__(self, frame_id: str = ""):
         self._frame, self._key = frame_id, None
@@ -107,7 +107,7 @@ class JointStateWriter:
             for field, n in zip(_FIELDS, key[1:]):
                 if n not in (0, len(names)):
                     raise ValueError(f"JointState {field} has {n} values for {len(names)} names {list(names)}")
-            self._layout, self._static = _layout(tuple(names), key[1:], self._frame)
+            self._layout, self._static = joint_state_layout(tuple(names), key[1:], self._frame)
             self._key = key
         sec, nanosec = divmod(int(stamp), _NS)
         return self._layout.pack(_ENC[True], sec, nanosec, self._static, key[1], *position, key[2], *velocity,
@@ -180,14 +180,14 @@ class JointStateReader:
     True
     """
 
-    __slots__ = ("_layout", "_size", "_static", "_end", "_names", "_cuts", "_pads")
+    __slots__ = ("joint_state_layout", "_size", "_static", "_end", "_names", "_cuts", "_pads")
 
     def __init__(self):
         self._layout = None
 
     def _learn(self, fields) -> None:
         stamp, names, pos, vel, eff, frame = fields
-        layout, static = _layout(names, (len(pos), len(vel), len(eff)), frame)
+        layout, static = joint_state_layout(names, (len(pos), len(vel), len(eff)), frame)
         self._layout, self._size, self._static = layout, layout.size, static
         self._end = 12 + len(static)
         self._names = names

@@ -246,8 +246,8 @@ def history(step, a, b=None, preset=PRESET, prev_moves=PREV_MOVES, dwell=DWELL):
 
 
 def _two_moves(first, second, dwell):
-    from experiment_runner.profiles import DT, _steps
-    return _steps([first, second], 0.0, 0.005, dwell, DT, None, "triangular")
+    from experiment_runner.profiles import DT, steps_reference
+    return steps_reference([first, second], 0.0, 0.005, dwell, DT, None, "triangular")
 
 
 def _fmt(s):
