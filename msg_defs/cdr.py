@@ -95,7 +95,7 @@ class JointStateWriter:
     True
     """
 
-    __slots__ = ("_frame", "_key", "joint_state_layout", "_static")
+    __slots__ = ("_frame", "_key", "_layout", "_static")
 
     def __init__(self, frame_id: str = ""):
         self._frame, self._key = frame_id, None
@@ -180,7 +180,7 @@ class JointStateReader:
     True
     """
 
-    __slots__ = ("joint_state_layout", "_size", "_static", "_end", "_names", "_cuts", "_pads")
+    __slots__ = ("_layout", "_size", "_static", "_end", "_names", "_cuts", "_pads")
 
     def __init__(self):
         self._layout = None
