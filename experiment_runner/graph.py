@@ -18,8 +18,7 @@ from experiment_runner.ros.launch import EXIT_ABORTED, EXIT_RECORDING_CUT, EXIT_
 from experiment_runner.ros.run import check_domain_id
 from stage_sim.config import ConfigError
 
-__all__ = ["run_graph", "check_run", "run_one_process", "run_processes", "EXIT_ABORTED", "EXIT_TIMEOUT",
-           "EXIT_RECORDING_CUT"]
+__all__ = ["run_graph", "check_run"]
 
 
 def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id=None,

@@ -22,8 +22,8 @@ from test_graph import RUN_TIMEOUT, Listener, _domain, _ros_env
 
 from experiment_runner.experiment import EXPERIMENT_DIR, experiment_preset, load_experiment, run_batch
 from experiment_runner import outputs
-from experiment_runner.graph import EXIT_ABORTED, run_graph
-from experiment_runner.ros.launch import NodeProcesses
+from experiment_runner.graph import run_graph
+from experiment_runner.ros.launch import EXIT_ABORTED, NodeProcesses
 from experiment_runner.ros.nodes import nodes_for
 from experiment_runner.recording import read_recording, write_run
 from stage_control.servo import build_servo, check_reference
