@@ -51,14 +51,15 @@ import numpy as np
 
 from experiment_runner import outputs, profiles
 from experiment_runner.batch import Models, simulate
-from experiment_runner.errors import DesignError
 from experiment_runner.cliargs import nonnegative_float, nonzero_float, positive_float, positive_int
-from experiment_runner.executor import make_executor
+from experiment_runner.errors import DesignError
+from experiment_runner.executor import add_executor_arguments, default_workers, make_executor
 from experiment_runner.metrics import rms_in_position, settling_time
 from stage_control import isolator
 from stage_sim.config import GmsFriction, Preset, load_preset, with_overrides
 from stage_sim.friction import initial_stiffness
 from stage_sim.plant import build_plant
+from stage_sim.validation import load_yaml
 
 # ----------------------------------------------------------------------------- defaults
 STEP = 5e-6          # Sec. 6.3.1: 5 um steps show the settling/in-position trade-off (Table 6.3)
@@ -818,14 +819,12 @@ def add_design_arguments(parser):
                         help="preset override, e.g. stage.drive.noise_current_rms=7e-4 (YAML value; repeatable)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     outputs.add_overwrite_argument(parser)
-    from experiment_runner.executor import add_executor_arguments, default_workers
     add_executor_arguments(parser, "sweep", default_workers(), "default: one per core; 1 = this process")
     return parser
 
 
 def _overridden(p: Preset, sets) -> Preset:
     """Apply ``PATH=VALUE`` overrides (VALUE parsed as YAML) to a preset."""
-    from stage_sim.validation import load_yaml
     over = {}
     for item in sets:
         path, eq, value = item.partition("=")

@@ -49,10 +49,13 @@ import numpy as np
 
 from experiment_runner import outputs
 from experiment_runner.errors import RecordingError
+from experiment_runner.metrics import trial_metrics
 from msg_defs import cdr, convert
 from msg_defs.topics import (BEARING, CLOCK, COMMAND, COMMAND_KINDS, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS,
                              EXTERNAL_FORCE, ISOLATOR, ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS,
                              SOURCE_CHANNELS, TABLE, TOPICS, TRUTH, Qos, qos_yaml)
+from stage_sim.plant import OK, STATUS_TEXT
+from stage_sim.validation import ConfigError, input_file_problem, load_yaml, load_yaml_file
 
 __all__ = ["RecordingError", "McapRecorder", "Recording", "JointSeries", "Trial", "Damage", "read_recording",
            "write_run", "run_config_yaml", "mcap_file", "bag_layout", "LIMITS", "beyond_limits"]
@@ -382,7 +385,6 @@ class Recording:
         mapping, ``{}`` when the recording carries none. A damaged configuration (not YAML, a
         tag, a NUL byte, not a mapping) raises :class:`~stage_sim.validation.ConfigError`
         naming the recording and the topic."""
-        from stage_sim.validation import ConfigError, load_yaml
         source = f"{self.path}: {CONFIG.name}"
         doc = load_yaml(self.config, source) if self.config else None
         if doc is None:
@@ -412,7 +414,6 @@ class Recording:
         without it (every simulated one, and any written before the key existed) is ``drive``.
         A value other than these two raises :class:`~stage_sim.validation.ConfigError` naming
         the recording and the key: the kind decides which physics a diagnosis may consider."""
-        from stage_sim.validation import ConfigError
         cmd = self.config_doc().get("command")
         if cmd is None:
             return "drive"
@@ -479,7 +480,6 @@ def mcap_file(path) -> Path:
                                  f"({', '.join(f.name for f in files)}); a recording is one MCAP file")
         return files[0]
     if p.exists():
-        from stage_sim.validation import input_file_problem
         problem = input_file_problem(p)
         if problem is not None:
             raise RecordingError(f"{p}: {problem}")
@@ -619,7 +619,6 @@ def _chunk_records(off: int, chunk) -> list:
 def _recorded_count(path: Path) -> int | None:
     """Messages the bag's ``metadata.yaml`` says the file holds (None if unknown or unreadable;
     read by the project's bounded loader, :func:`stage_sim.validation.load_yaml_file`)."""
-    from stage_sim.validation import load_yaml_file
     meta = path.parent / "metadata.yaml"
     if not meta.exists():
         return None
@@ -1248,8 +1247,6 @@ def write_run(path, result, preset, *, trials=None, reference=None, window: floa
     overwrite, atomic : bool
         As :class:`McapRecorder`'s (default: written whole, then moved into place).
     """
-    from experiment_runner.metrics import trial_metrics
-    from stage_sim.plant import OK, STATUS_TEXT
     ts = typestore()
     rate = float(preset.controller.rate)
     n_trials, T = result.y.shape
