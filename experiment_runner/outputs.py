@@ -46,7 +46,7 @@ True
 >>> (top / "link.md").symlink_to(top / "notes.txt")
 >>> write_text(top / "link.md", "x")
 Traceback (most recent call last):
-experiment_runner.outputs.OutputError: .../out/link.md: a symbolic link (to .../out/notes.txt); ...
+experiment_runner.errors.OutputError: .../out/link.md: a symbolic link (to .../out/notes.txt); ...
 >>> remove(top)                            # nanostage's own files go, the user's stay
 [PosixPath('.../out/link.md'), PosixPath('.../out/notes.txt')]
 >>> sorted(p.name for p in top.iterdir()), listed(top)
