@@ -14,10 +14,9 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=[p for m in MODULES for p in (m, f"{m}.*")]),
-    package_data={"stage_sim": ["presets/*.yaml"],
-                  "experiment_runner": ["experiments/*.yaml", "diagnosis/nominal/*.yaml", "mappings/*.yaml",
-                                        "ros/fastdds_loopback.xml"],
-                  "experiment_runner.campaigns": ["*.yaml"]},
+    # the data files beside the modules (presets, experiments, campaigns, nominal models, mappings, the
+    # Fast DDS profile): every package's *.yaml / *.xml and those of its data folders, whatever the layout
+    package_data={"": ["*.yaml", "*.xml", "*/*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

@@ -1,6 +1,6 @@
 """Batch engine: many closed-loop trials of one preset as a single compiled loop.
 
-Each control sample ``k`` runs, in this order (written once, in :func:`_run`; the ROS graph uses the same order
+Each control sample ``k`` runs, in this order (written once, in :func:`run_chunks`; the ROS graph uses the same order
 and the same compiled step functions, so both give identical trajectories):
 
 1. the SAI manager reads the reference (and its look-ahead) -> isolator mode and
@@ -110,7 +110,7 @@ class BatchResult:
 
 
 @njit(cache=True, parallel=True)
-def _run(pm, sm, dm, am, lead, x_ref, v_ref, f_ext, seeds, correction, plant, ss, ds, sa, out, o_dither,
+def run_chunks(pm, sm, dm, am, lead, x_ref, v_ref, f_ext, seeds, correction, plant, ss, ds, sa, out, o_dither,
          status, fail):
     """The trials in chunks of ``size = status.shape[1]``, one chunk per task (``prange``).
 
@@ -190,7 +190,7 @@ def _run_chunk(pm, sm, dm, am, lead, x_ref, v_ref, f_ext, off, seeds, correction
                 fail[b] = k
 
 
-def _chunked(a, n_chunks, size):
+def chunked(a, n_chunks, size):
     """(B, ...) -> (n_chunks, ..., size): pad by repeating the last trial, trial axis last."""
     a = np.asarray(a)
     pad = n_chunks * size - a.shape[0]
@@ -200,7 +200,7 @@ def _chunked(a, n_chunks, size):
     return np.ascontiguousarray(np.moveaxis(a, 1, -1))
 
 
-def _unchunked(a, n_trials):
+def unchunked(a, n_trials):
     """(n_chunks, ..., size) -> (B, ...) without the padding."""
     a = np.moveaxis(a, -1, 1)
     return a.reshape((-1,) + a.shape[2:])[:n_trials]
@@ -230,7 +230,7 @@ def _arg(a, dtype=float) -> np.ndarray:
     """``a`` as the kernel takes it: C-contiguous, aligned, writable, of ``dtype`` (copied only when
     it is not). numba compiles one specialization per argument type, read-only included: a
     reference shared by one trial is a read-only broadcast view, by two a copy, and without this
-    the first chunk of one trial and the next of forty each compiled (and cached) ``_run``, about a
+    the first chunk of one trial and the next of forty each compiled (and cached) ``run_chunks``, about a
     minute each on a fresh machine.
 
     >>> v = np.broadcast_to(np.zeros(3), (1, 3))
@@ -302,7 +302,7 @@ def simulate(preset: Preset, x_ref, v_ref, n_trials: int | None = None, x0=None,
     status = np.zeros((n_chunks, size), np.int64)
     fail = -np.ones((n_chunks, size), np.int64)
     fe = _arg(np.zeros((0, 0)) if f_ext is None else f_ext)
-    _run(pm, models.servo, models.dither, models.sai, models.lead, _arg(x_ref), _arg(v_ref), fe, seeds, corr,
+    run_chunks(pm, models.servo, models.dither, models.sai, models.lead, _arg(x_ref), _arg(v_ref), fe, seeds, corr,
          plant, *states, out, o_dither, status, fail)
     xr, y, yb, u, xt, xb, mode = (o[:n_trials] for o in out)
     res = BatchResult(t=np.arange(T) / preset.controller.rate, x_ref=xr, x_correction=xr - x_ref,

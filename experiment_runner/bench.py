@@ -58,8 +58,10 @@ import numba
 import numpy as np
 
 from experiment_runner.batch import Models, simulate
+from experiment_runner.campaigns.runner import main_job
 from experiment_runner.campaigns.spec import Campaign, case_preset, conditions, load_campaign
 from experiment_runner.campaigns.stream import TrialStream, chunk_task, code_fingerprint, run_trial_jobs
+from experiment_runner.diagnosis.selftest import diagnose_seconds
 from experiment_runner.executor import default_workers, local_cluster, make_executor
 from experiment_runner.profiles import point_to_point
 from stage_sim.config import load_preset
@@ -216,7 +218,6 @@ def campaign_trials_per_s(workers: int, trials: int = 40, campaign: str = "table
 def main_job_seconds() -> float:
     """Wall time [s] of the README's main job (``nanostage campaign --main``: calibration,
     every trial, the graph runs, report and plots) in a temporary folder."""
-    from experiment_runner.campaigns.runner import main_job
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         main_job(tmp, progress=False, resume=False, workers=default_workers())     # as the CLI runs it
@@ -274,7 +275,6 @@ def run_bench(as_json: bool = False, quick: bool = False, graph: bool = True, ma
     all_threads = campaign_trials_per_s(1, n_camp, threads=cores)
     result["campaign_trials_per_s_all_cores_1"] = round(all_threads, 1)
     result["threads_scale_all_cores"] = round(all_threads / one, 2)
-    from experiment_runner.diagnosis.selftest import diagnose_seconds
     diagnose_seconds(1.0)         # warm-up: numba's compile / cache load is not timed (as for the core figures)
     result[f"diagnose_seconds_{sizes.diagnose_seconds:g}s"] = round(diagnose_seconds(sizes.diagnose_seconds), 1)
     emps = diagnose_seconds_emps() if sizes.emps else None

@@ -1,7 +1,7 @@
 """``nanostage`` command line: one entry point, one subcommand per job.
 
-Bad input has one path: a command raises one of :func:`user_errors` (a configuration,
-recording, design or missing-data error naming the file, field, value and what is allowed) or
+Bad input has one path: a command raises one of :data:`experiment_runner.errors.USER_ERRORS` (a
+configuration, recording, design or missing-data error naming the file, field, value and what is allowed) or
 exits with a message (``SystemExit("...")``); :func:`main` prints ``nanostage COMMAND: message``
 and returns 2, never a traceback. Bad arguments are argparse's one-line error (exit 2). SIGINT
 and SIGTERM end a command like an error (:func:`experiment_runner.outputs.interrupts_as_errors`):
@@ -21,20 +21,8 @@ import os
 import signal
 import sys
 
+from experiment_runner.errors import USER_ERRORS, ConfigError
 from experiment_runner.outputs import add_overwrite_argument, interrupts_as_errors
-from experiment_runner.recording import RecordingError
-from stage_sim.config import ConfigError
-
-_COMMAND_ERRORS = (("experiment_runner.design", "DesignError"), ("experiment_runner.diagnosis.realdata", "DataMissing"))
-"""Input errors of one command's module: (module, exception class)."""
-
-
-def user_errors() -> tuple:
-    """Exceptions that are the user's input, not a fault of nanostage (a message and exit 2):
-    configuration and recording errors, and those of :data:`_COMMAND_ERRORS` whose module was
-    imported (only then can they be raised)."""
-    extra = tuple(getattr(sys.modules[m], name) for m, name in _COMMAND_ERRORS if m in sys.modules)
-    return (ConfigError, RecordingError) + extra
 
 
 def _paper(args):
@@ -196,7 +184,7 @@ def main(argv=None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141                        # 128 + SIGPIPE, as a shell reports it
     except Exception as err:
-        if not isinstance(err, user_errors()):
+        if not isinstance(err, USER_ERRORS):
             raise
         print(f"{prefix}{err}", file=sys.stderr)
         return 2

@@ -13,9 +13,9 @@ bearings; an SAI lock is removed, Sec. 6.2 runs the SAI as a passive FI) and, pe
   measures settling time into ``±window`` and RMS in-position error after settling
   (:mod:`experiment_runner.metrics`), mean over trials;
 * computes the band 2-norms ``||G_e||_[1,50 Hz]`` and ``||G_d||_[1,500 Hz]`` of Eq. 6.1/6.3 on the
-  Fig. 6.2 model (:func:`experiment_runner.paper.fi_design.norm_maps`) lumped from the preset:
+  Fig. 6.2 model (:func:`stage_control.isolator.norm_maps`) lumped from the preset:
   ``m_t`` = table incl. mode masses (+ rigid bearings), ``m_b`` = jointed bearings, ``k_f`` = their
-  pre-motion tangent stiffness, ``c_f`` = 5 % of critical (the fi_design estimate).
+  pre-motion tangent stiffness, ``c_f`` = 5 % of critical (:func:`stage_control.isolator.c_f_estimate`).
 
 :func:`recommend` applies Sec. 6.3.2 ("designed to meet the RMS in-position error requirements
 with the smallest stiffness and damping coefficient"). **Rule:** a grid point is feasible when
@@ -24,9 +24,9 @@ the recommendation is the feasible point with the smallest ``k_fi`` and, at that
 smallest ``c_fi``. It reports the settling time this buys against the same stage with the
 bearings bolted rigidly (No FI) and the FF accuracy at that stiffness (Sec. 6.4.2): ``γ`` = RMS
 difference of the Dahl and GMS friction forces over one 5 mm circle cycle with ``η = k_fi/k_f``
-(:func:`experiment_runner.paper.fi_design.gamma_curve`; GMS blocks of the preset when its
+(:func:`stage_control.isolator.gamma_curve`; GMS blocks of the preset when its
 bearings use GMS, else Table 6.5's block distribution scaled to the preset's initial stiffness, as
-:func:`experiment_runner.paper.fi_design.gms_consistent` does for Fig. 6.8) and ``κ`` of Eq. 4.2.
+:func:`stage_control.isolator.gms_consistent` does for Fig. 6.8) and ``κ`` of Eq. 4.2.
 
 Caveat: with Dahl bearings (``fi_stage``) a stiff FI or No FI drifts out of the window after
 settling (the single-state Dahl ratchet under drive noise, see the ``table_4_2`` campaign), so the
@@ -52,13 +52,15 @@ import numpy as np
 from experiment_runner import outputs, profiles
 from experiment_runner.batch import Models, simulate
 from experiment_runner.cliargs import nonnegative_float, nonzero_float, positive_float, positive_int
-from experiment_runner.executor import make_executor
+from experiment_runner.errors import DesignError
+from experiment_runner.executor import add_executor_arguments, default_workers, make_executor
 from experiment_runner.experiment import Starts
 from experiment_runner.metrics import rms_in_position, settling_time
-from experiment_runner.paper import fi_design
+from stage_control import isolator
 from stage_sim.config import GmsFriction, Preset, load_preset, with_overrides
 from stage_sim.friction import initial_stiffness
 from stage_sim.plant import build_plant
+from stage_sim.validation import load_yaml
 
 # ----------------------------------------------------------------------------- defaults
 STEP = 5e-6          # Sec. 6.3.1: 5 um steps show the settling/in-position trade-off (Table 6.3)
@@ -74,10 +76,6 @@ GRIDS = {            # stage-total k_fi [N/m] x c_fi [N·s/m]
 RIGID = math.inf     # k_fi of the No FI stage
 
 
-class DesignError(ValueError):
-    """Bad input to the design advisor (message names the value)."""
-
-
 def _preset(preset) -> Preset:
     return preset if isinstance(preset, Preset) else load_preset(preset)
 
@@ -89,7 +87,7 @@ class LumpedStage:
     m_t: float            # table incl. structural-mode masses and rigid bearings [kg]
     m_b: float            # bearings on joints [kg]
     k_f: float            # pre-motion tangent stiffness of the jointed bearings [N/m]
-    c_f: float            # pre-motion damping, fi_design estimate (5 % of critical) [N·s/m]
+    c_f: float            # pre-motion damping, isolator.c_f_estimate (5 % of critical) [N·s/m]
     f_c: float            # Coulomb force of the jointed bearings [N]
     n_joints: int         # jointed bearings (k_fi, c_fi are split equally over them)
     k_fi: float           # the preset's own total FI stiffness [N/m]
@@ -126,10 +124,10 @@ def lumped_stage(preset) -> LumpedStage:
         src = f"{p.name} GMS blocks"
     else:
         # the seed identifies Dahl and GMS from the same FRFs: they share the initial stiffness
-        # (fi_design.gms_consistent), so Table 6.5's block distribution is scaled to the preset's k_f
-        gk = list(fi_design.gms_consistent(k_f)) if k_f else list(fi_design.GMS_K)
-        ga, src = list(fi_design.GMS_ALPHA), "Table 6.5 distribution, Σk_i = k_f"
-    return LumpedStage(m_t=m_t, m_b=m_b, k_f=k_f, c_f=fi_design.c_f_estimate(m_t, m_b, k_f=k_f) if k_f else 0.0,
+        # (isolator.gms_consistent), so Table 6.5's block distribution is scaled to the preset's k_f
+        gk = list(isolator.gms_consistent(k_f)) if k_f else list(isolator.GMS_K)
+        ga, src = list(isolator.GMS_ALPHA), "Table 6.5 distribution, Σk_i = k_f"
+    return LumpedStage(m_t=m_t, m_b=m_b, k_f=k_f, c_f=isolator.c_f_estimate(m_t, m_b, k_f=k_f) if k_f else 0.0,
                        f_c=f_c, n_joints=len(jointed), k_fi=sum(b.joint.stiffness for b in jointed),
                        c_fi=sum(b.joint.damping for b in jointed), pid=p.controller.pid.model_dump(),
                        gms_k=gk, gms_alpha=ga, gms_source=src)
@@ -284,7 +282,7 @@ def sweep_isolator(preset, k_grid=None, c_grid=None, step=STEP, window=WINDOW, d
             if progress and not left[i]:
                 progress(f"k_fi = {k_grid[i]:.3g} N/m: {np.isfinite(ts[i]).all(-1).sum()}/{c_grid.size} "
                          "points settled")
-    ge, gd, ge0, gd0 = fi_design.norm_maps(lump.m_t, lump.m_b, lump.pid, lump.k_f, lump.c_f, k_grid, c_grid)
+    ge, gd, ge0, gd0 = isolator.norm_maps(lump.m_t, lump.m_b, lump.pid, lump.k_f, lump.c_f, k_grid, c_grid)
     nofi = _summary(*moves.run(isolator_preset(p, RIGID, 0.0)))
     design = _summary(*moves.run(isolator_preset(p, lump.k_fi, lump.c_fi)))
     return Sweep(preset=p.name, k_grid=k_grid, c_grid=c_grid, moves=moves, ts=ts, rms=rms, ge=ge, gd=gd,
@@ -339,16 +337,16 @@ class Advice:
 
 def _point(sw: Sweep, k, c, ts, rms, index=()) -> Point:
     lp = sw.lumped
-    ge, gd = fi_design.point_norms(lp.m_t, lp.m_b, lp.pid, k, c, lp.k_f, lp.c_f) if not index else (
+    ge, gd = isolator.point_norms(lp.m_t, lp.m_b, lp.pid, k, c, lp.k_f, lp.c_f) if not index else (
         float(sw.ge[index]), float(sw.gd[index]))
     eta = k / lp.k_f if lp.k_f else math.inf
-    gam, bias, _ = fi_design.gamma_curve(np.array([eta]), lp.k_f, lp.f_c, lp.gms_k, lp.gms_alpha)
+    gam, bias, _ = isolator.gamma_curve(np.array([eta]), lp.k_f, lp.f_c, lp.gms_k, lp.gms_alpha)
     ts0 = sw.nofi["settling_time_s"]
     zeta = float(c) / (2.0 * math.sqrt(k * lp.m_t * lp.m_b / (lp.m_t + lp.m_b)))
     return Point(k_fi=float(k), c_fi=float(c), k_fi_per_bearing=float(k) / lp.n_joints,
                  c_fi_per_bearing=float(c) / lp.n_joints, settling_time_s=float(ts),
                  rms_in_position_m=float(rms), zeta_fi=zeta, ge_norm=ge, gd_norm=gd, eta=float(eta),
-                 gamma_n=float(gam[0]), gamma_bias_n=float(bias[0]), kappa=float(fi_design.kappa_eq42(eta)),
+                 gamma_n=float(gam[0]), gamma_bias_n=float(bias[0]), kappa=float(isolator.kappa_eq42(eta)),
                  settling_reduction_vs_nofi=float(1.0 - ts / ts0) if math.isfinite(ts0) else math.nan,
                  index=tuple(int(v) for v in index))
 
@@ -730,7 +728,7 @@ def write_plots(a: Advice, out: Path) -> list[Path]:
     lp = sw.lumped
     kf = np.logspace(np.log10(sw.k_grid[0]), np.log10(sw.k_grid[-1]), 61)
     cf = np.logspace(np.log10(cg[0]), np.log10(cg[-1]), 41)
-    E, D, e0, d0 = fi_design.norm_maps(lp.m_t, lp.m_b, lp.pid, lp.k_f, lp.c_f, kf, cf)
+    E, D, e0, d0 = isolator.norm_maps(lp.m_t, lp.m_b, lp.pid, lp.k_f, lp.c_f, kf, cf)
     fig, axes = plt.subplots(1, 2, figsize=(13, 5))
     for ax, M, ref, lab in ((axes[0], E, e0, "||G_e||_[1,50 Hz] / No FI (Eq. 6.1: settling)"),
                             (axes[1], D, d0, "||G_d||_[1,500 Hz] / No FI (Eq. 6.3: in-position)")):
@@ -743,14 +741,14 @@ def write_plots(a: Advice, out: Path) -> list[Path]:
     files.append(_save_maps(fig, axes, out / "design_norms.png"))
 
     etas = np.logspace(-3, 1, 41)
-    gam, bias, _ = fi_design.gamma_curve(etas, lp.k_f, lp.f_c, lp.gms_k, lp.gms_alpha)
+    gam, bias, _ = isolator.gamma_curve(etas, lp.k_f, lp.f_c, lp.gms_k, lp.gms_alpha)
     fig, ax = plt.subplots(figsize=(7, 4.5))
     ax.semilogx(etas, gam, "k-", label="γ: RMS(F_Dahl − F_GMS), one 5 mm circle cycle")
     for p, style, lab in ((a.recommended, "r*", "recommended"), (a.preset_design, "kX", f"{a.preset} as is")):
         if p is not None:
             ax.semilogx(p.eta, p.gamma_n, style, ms=11, mec="k", label=f"{lab}: η = {p.eta:.3g}, γ = {p.gamma_n:.3g} N")
     ax2 = ax.twinx()
-    ax2.loglog(etas, fi_design.kappa_eq42(etas), "b:")
+    ax2.loglog(etas, isolator.kappa_eq42(etas), "b:")
     ax2.set_ylabel("κ = (η/(1+η))², Eq. 4.2 (dotted)", color="b")
     ax.axvspan(0.05, 0.1, color="0.9", label="seed optimum 0.05-0.1 (Sec. 6.4.2)")
     ax.set_xlabel("η = k_fi / k_f"), ax.set_ylabel("γ [N]")
@@ -821,14 +819,12 @@ def add_design_arguments(parser):
                         help="preset override, e.g. stage.drive.noise_current_rms=7e-4 (YAML value; repeatable)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     outputs.add_overwrite_argument(parser)
-    from experiment_runner.executor import add_executor_arguments, default_workers
     add_executor_arguments(parser, "sweep", default_workers(), "default: one per core; 1 = this process")
     return parser
 
 
 def _overridden(p: Preset, sets) -> Preset:
     """Apply ``PATH=VALUE`` overrides (VALUE parsed as YAML) to a preset."""
-    from stage_sim.validation import load_yaml
     over = {}
     for item in sets:
         path, eq, value = item.partition("=")

@@ -50,6 +50,7 @@ from typing import Callable, Hashable, Iterable, Iterator, Optional
 
 import numba
 
+from experiment_runner.cliargs import dask_address, positive_int
 from stage_sim.config import ConfigError
 
 __all__ = ["Executor", "make_executor", "local_cluster", "default_workers", "cgroup_cpu_limit"]
@@ -332,7 +333,6 @@ def add_executor_arguments(parser, what: str, workers_default: Optional[int] = N
                            workers_help: str = "default: this process") -> None:
     """``--workers N`` and ``--cluster ADDRESS`` of a command that runs ``what`` through
     :func:`make_executor`."""
-    from experiment_runner.cliargs import dask_address, positive_int
     parser.add_argument("--workers", type=positive_int, default=workers_default,
                         help=f"local worker processes for the {what} ({workers_help})")
     parser.add_argument("--cluster", type=dask_address, default=None, metavar="ADDRESS",

@@ -29,13 +29,13 @@ import numpy as np
 from pydantic import Field, ValidationError
 
 from experiment_runner import metrics, profiles
-from stage_sim.config import (ConfigError, Finite, NonNeg, Pos, Preset, _format, _Strict,
+from stage_sim.config import (ConfigError, Finite, NonNeg, Pos, Preset, schema_error_message, StrictModel,
                               load_preset, read_yaml_file, with_overrides)
 
 EXPERIMENT_DIR = Path(__file__).with_name("experiments")
 
 
-class Move(_Strict):
+class Move(StrictModel):
     """How a point-to-point move goes, whatever its size: an experiment's :class:`PointToPoint`
     (one ``distance``) and a campaign's point-to-point test (its ``steps``) both are one."""
     duration: Optional[Pos] = Field(None, description="move duration [s]; default from the seed's anchors "
@@ -51,7 +51,7 @@ class PointToPoint(Move):
     distance: Finite = Field(description="move size [m] (sign = direction)")
 
 
-class StepSequence(_Strict):
+class StepSequence(StrictModel):
     kind: Literal["step_sequence"]
     distance: Finite
     n_forward: int = Field(8, ge=0)
@@ -60,7 +60,7 @@ class StepSequence(_Strict):
     dwell: Pos = 0.25
 
 
-class Circle(_Strict):
+class Circle(StrictModel):
     """The x-axis reference of a circle (:func:`experiment_runner.profiles.circle_x`)."""
     kind: Literal["circle"]
     radius: Pos = Field(description="circle radius [m]")
@@ -68,7 +68,7 @@ class Circle(_Strict):
     cycles: Pos = Field(1.0, description="revolutions")
 
 
-class SineSweep(_Strict):
+class SineSweep(StrictModel):
     """Stepped sine (:func:`experiment_runner.profiles.sine_sweep`): one constant-amplitude
     position sine per frequency, phase continuous."""
     kind: Literal["sine_sweep"]
@@ -81,7 +81,7 @@ class SineSweep(_Strict):
 Profile = Union[PointToPoint, StepSequence, Circle, SineSweep]
 
 
-class Starts(_Strict):
+class Starts(StrictModel):
     """Where trials start: uniformly at random inside the travel less ``margin`` at both ends and
     less the reference's own extent, so that the whole reference stays inside; reproducible.
 
@@ -117,7 +117,7 @@ class Starts(_Strict):
         return Starts(margin=self.margin, seed=self.seed + i)
 
 
-class Experiment(_Strict):
+class Experiment(StrictModel):
     name: str
     description: str = ""
     preset: str = Field(description="preset name or path")
@@ -146,7 +146,7 @@ def load_experiment(name_or_path) -> Experiment:
     try:
         return Experiment.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_format(err, str(path))) from None
+        raise ConfigError(schema_error_message(err, str(path))) from None
 
 
 def list_experiments() -> list[str]:

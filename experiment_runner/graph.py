@@ -14,12 +14,12 @@ from pathlib import Path
 
 from experiment_runner import outputs
 from experiment_runner.experiment import load_experiment
+from experiment_runner.recording import bag_layout, read_recording
 from experiment_runner.ros.launch import EXIT_ABORTED, EXIT_RECORDING_CUT, EXIT_TIMEOUT, run_one_process, run_processes
 from experiment_runner.ros.run import check_domain_id
 from stage_sim.config import ConfigError
 
-__all__ = ["run_graph", "check_run", "run_one_process", "run_processes", "EXIT_ABORTED", "EXIT_TIMEOUT",
-           "EXIT_RECORDING_CUT"]
+__all__ = ["run_graph", "check_run"]
 
 
 def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id=None,
@@ -49,7 +49,6 @@ def run_graph(experiment: str, out_dir: Path, processes: bool = False, domain_id
         elif code:
             print(f"run timed out after {timeout:g} s (--timeout): {len(summary['results'])} of "
                   f"{summary['trials']} trials done; every node is stopped", file=sys.stderr)
-    from experiment_runner.recording import bag_layout, read_recording
     bag_dir, mcap = bag_layout(bag)
     final = out_dir / "run.mcap"
     if mcap.exists():                      # make out_dir itself the rosbag2 bag: run.mcap + metadata.yaml

@@ -65,7 +65,11 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from stage_sim.validation import ConfigError
+from experiment_runner import outputs
+from experiment_runner.outputs import add_overwrite_argument
+from experiment_runner.recording import read_recording
+from stage_sim.config import preset_from_dict
+from stage_sim.validation import ConfigError, load_yaml, plausibility_problems
 
 __all__ = ["has_nominal_model", "preset_from_nominal", "nominal_preset_from_config", "nominal_preset_from_doc", "preset_yaml",
            "add_convert_nominal_arguments", "main_convert_nominal"]
@@ -161,8 +165,6 @@ def preset_from_nominal(block: dict, source: str | None = None, name: str = "nom
     ConfigError
         A term that cannot be expressed, missing or not a number, naming ``nominal_model.<field>``.
     """
-    from stage_sim.config import preset_from_dict
-    from stage_sim.validation import plausibility_problems
 
     block = _mapping(block, "", source)
     _unknown(block, BLOCK_FIELDS, "", source)
@@ -237,7 +239,6 @@ def nominal_preset_from_config(config_text: str | None, source: str | None = Non
     >>> nominal_preset_from_config("run: {case: x}") is None
     True
     """
-    from stage_sim.validation import load_yaml
     if not config_text:
         return None
     doc = load_yaml(config_text, source or "/experiment/config")
@@ -267,7 +268,6 @@ def add_convert_nominal_arguments(p):
     p.add_argument("recording", help="contract recording (MCAP file or bag directory) whose /experiment/config "
                                      "carries a nominal_model block")
     p.add_argument("--out", required=True, help="preset YAML to write")
-    from experiment_runner.outputs import add_overwrite_argument
     add_overwrite_argument(p)
     return p
 
@@ -276,8 +276,6 @@ def main_convert_nominal(args) -> int:
     """``nanostage convert nominal REC --out preset.yaml``: write the translated preset
     (:mod:`experiment_runner.outputs`: atomic, never through a link, an existing file that
     nanostage did not write only with ``--overwrite``)."""
-    from experiment_runner import outputs
-    from experiment_runner.recording import read_recording
     rec = read_recording(args.recording, require_reference=False)
     preset = nominal_preset_from_doc(rec.config_doc(), source=str(args.recording))
     if preset is None:

@@ -46,7 +46,7 @@ True
 >>> (top / "link.md").symlink_to(top / "notes.txt")
 >>> write_text(top / "link.md", "x")
 Traceback (most recent call last):
-experiment_runner.outputs.OutputError: .../out/link.md: a symbolic link (to .../out/notes.txt); ...
+experiment_runner.errors.OutputError: .../out/link.md: a symbolic link (to .../out/notes.txt); ...
 >>> remove(top)                            # nanostage's own files go, the user's stay
 [PosixPath('.../out/link.md'), PosixPath('.../out/notes.txt')]
 >>> sorted(p.name for p in top.iterdir()), listed(top)
@@ -68,7 +68,7 @@ from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Iterator
 
-from stage_sim.validation import ConfigError
+from experiment_runner.errors import OutputError
 
 __all__ = ["MANIFEST", "OutputError", "Interrupted", "prepare_folder", "check_recording", "prepare_recording",
            "replacing", "write_text", "savefig", "open_stream", "replacing_folder", "record", "move_into",
@@ -82,10 +82,6 @@ _PARTIAL = re.compile(r"^\.(?P<name>.+)\.partial-(?P<pid>\d+)-[0-9a-f]{6}$")
 """A temporary of :func:`replacing` / :func:`replacing_folder`: target name, writing process."""
 _LEGACY = re.compile(r"^\..+\.partial-[a-z0-9_]{8}(\.old)?$")
 """A temporary of nanostage before this module (no process id): reported, never removed."""
-
-
-class OutputError(ConfigError):
-    """An output nanostage must not write or remove there; the message says why and what to do."""
 
 
 class Interrupted(KeyboardInterrupt):
@@ -176,7 +172,7 @@ def _temp_name(name: str) -> str:
     return f".{name}.partial-{os.getpid()}-{secrets.token_hex(3)}"
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -217,7 +213,7 @@ def _clean_partials(folder: Path, target: str | None = None) -> None:
             continue
         if stat.S_ISLNK(st.st_mode) or st.st_uid != os.getuid():
             _report(path, "named like a nanostage partial, but not one this user's nanostage made")
-        elif _alive(pid):
+        elif process_alive(pid):
             _report(path, f"the partial of a running process (pid {pid})")
         elif stat.S_ISDIR(st.st_mode):
             shutil.rmtree(path, ignore_errors=True)

@@ -201,7 +201,7 @@ SHAPES = ("cycloidal", "triangular", "step")
 """Point-to-point move shapes (see :func:`point_to_point`)."""
 
 
-def _steps(distances, start, pre, dwell, dt, duration, shape) -> Reference:
+def steps_reference(distances, start, pre, dwell, dt, duration, shape) -> Reference:
     """Concatenate rest, then per step a move and a dwell at rest."""
     if shape not in SHAPES:
         raise ValueError(f"unknown shape {shape!r}")
@@ -284,7 +284,7 @@ def point_to_point(distance: float, duration: float | None = None,
     >>> (move.stop - move.start) * ref.dt, float(ref.x[settle.start])
     (0.125, 0.005)
     """
-    return _steps([distance], start, pre, dwell, dt, duration, shape)
+    return steps_reference([distance], start, pre, dwell, dt, duration, shape)
 
 
 def step_sequence(distance: float, n_forward: int = 8, n_backward: int = 8,
@@ -330,7 +330,7 @@ def step_sequence(distance: float, n_forward: int = 8, n_backward: int = 8,
     """
     _check_length(n_forward + n_backward, dt, f"{n_forward} + {n_backward} steps (one sample each at least)")
     distances = [distance] * n_forward + [-distance] * n_backward
-    return _steps(distances, start, pre, dwell, dt, duration, shape)
+    return steps_reference(distances, start, pre, dwell, dt, duration, shape)
 
 
 def random_starts(n: int, travel: tuple[float, float], margin: float = 0.0,

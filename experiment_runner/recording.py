@@ -50,10 +50,14 @@ from typing import ClassVar
 import numpy as np
 
 from experiment_runner import outputs
+from experiment_runner.errors import RecordingError
+from experiment_runner.metrics import trial_metrics
 from msg_defs import cdr, convert
 from msg_defs.topics import (BEARING, CLOCK, COMMAND, COMMAND_KINDS, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS,
                              EXTERNAL_FORCE, ISOLATOR, ISOLATOR_JOINT, MEASURED, MOTOR, PIEZOS, REFERENCE, RESULTS,
                              SOURCE_CHANNELS, TABLE, TOPICS, TRUTH, Qos, qos_yaml)
+from stage_sim.plant import OK, STATUS_TEXT
+from stage_sim.validation import ConfigError, input_file_problem, load_yaml, load_yaml_file
 
 __all__ = ["RecordingError", "McapRecorder", "Recording", "JointSeries", "Trial", "Damage", "read_recording",
            "TrialSignals", "write_trials", "write_run", "run_config_yaml", "mcap_file", "bag_layout", "LIMITS", "beyond_limits"]
@@ -79,13 +83,9 @@ def _size_problem(compression: str, compressed: int, uncompressed: int) -> str |
     return None
 
 
-class RecordingError(ValueError):
-    """A file is not a readable nanostage recording; the message says why."""
-
-
 # =========================================================================== writing
 @lru_cache(maxsize=None)
-def _typestore():
+def typestore():
     from rosbags.typesys import Stores, get_typestore
     return get_typestore(Stores.ROS2_JAZZY)
 
@@ -195,7 +195,7 @@ class McapRecorder:
             outputs.prepare_recording(self.bag_dir, overwrite)
             where = self.bag_dir
         writer_cls, plugin = _writer_classes()
-        self._store = _typestore()
+        self._store = typestore()
         self._conns: dict = {}
         self.counts: Counter = Counter()
         self._closed = False
@@ -387,7 +387,6 @@ class Recording:
         mapping, ``{}`` when the recording carries none. A damaged configuration (not YAML, a
         tag, a NUL byte, not a mapping) raises :class:`~stage_sim.validation.ConfigError`
         naming the recording and the topic."""
-        from stage_sim.validation import ConfigError, load_yaml
         source = f"{self.path}: {CONFIG.name}"
         doc = load_yaml(self.config, source) if self.config else None
         if doc is None:
@@ -417,7 +416,6 @@ class Recording:
         without it (every simulated one, and any written before the key existed) is ``drive``.
         A value other than these two raises :class:`~stage_sim.validation.ConfigError` naming
         the recording and the key: the kind decides which physics a diagnosis may consider."""
-        from stage_sim.validation import ConfigError
         cmd = self.config_doc().get("command")
         if cmd is None:
             return "drive"
@@ -484,7 +482,6 @@ def mcap_file(path) -> Path:
                                  f"({', '.join(f.name for f in files)}); a recording is one MCAP file")
         return files[0]
     if p.exists():
-        from stage_sim.validation import input_file_problem
         problem = input_file_problem(p)
         if problem is not None:
             raise RecordingError(f"{p}: {problem}")
@@ -624,7 +621,6 @@ def _chunk_records(off: int, chunk) -> list:
 def _recorded_count(path: Path) -> int | None:
     """Messages the bag's ``metadata.yaml`` says the file holds (None if unknown or unreadable;
     read by the project's bounded loader, :func:`stage_sim.validation.load_yaml_file`)."""
-    from stage_sim.validation import load_yaml_file
     meta = path.parent / "metadata.yaml"
     if not meta.exists():
         return None
@@ -695,7 +691,7 @@ def _salvage(path: Path, f, size: int, indexed_error: Exception) -> _Raw:
     return _Raw(path, "", schemas, channels, messages, note, backwards)
 
 
-def _load(path) -> _Raw:
+def load_raw(path) -> _Raw:
     """Schemas, channels and messages of an MCAP file: indexed, else salvaged."""
     from mcap.reader import SeekingReader
     path = mcap_file(path)
@@ -714,7 +710,7 @@ def _load(path) -> _Raw:
                 if problem:
                     raise _IndexMismatch(f"the index has a chunk {problem}")
             schemas, channels = {}, {}
-            messages = _indexed_messages(f, summary, validate_crcs=True)
+            messages = indexed_messages(f, summary, validate_crcs=True)
             if messages is None:
                 messages = []
                 for schema, channel, message in reader.iter_messages(log_time_order=False):
@@ -769,7 +765,7 @@ _MESSAGE_HEAD = struct.Struct("<HIQQ")              # channel id, sequence, log 
 _OP_MESSAGE = 0x05
 
 
-def _indexed_messages(f, summary, validate_crcs: bool = True) -> list | None:
+def indexed_messages(f, summary, validate_crcs: bool = True) -> list | None:
     """The messages of an indexed MCAP file in the order ``SeekingReader.iter_messages(
     log_time_order=False)`` yields them (chunk index order, then record order in the chunk),
     as the same ``mcap.records.Message`` objects; ``None`` where that reader would not use
@@ -786,7 +782,7 @@ def _indexed_messages(f, summary, validate_crcs: bool = True) -> list | None:
     >>> for t in (3, 1, 2): w.add_message(ch, log_time=t, data=bytes([t]), publish_time=t)
     >>> w.finish()
     >>> _ = buf.seek(0); reader = make_reader(buf)
-    >>> ours = _indexed_messages(buf, reader.get_summary())
+    >>> ours = indexed_messages(buf, reader.get_summary())
     >>> ours == [m for _, _, m in reader.iter_messages(log_time_order=False)]
     True
     """
@@ -908,7 +904,7 @@ def read_recording(path, require_reference: bool = True) -> Recording:
         type, or messages that do not decode.
     """
     from mcap_ros2.decoder import DecoderFactory
-    raw = _load(path)
+    raw = load_raw(path)
     where = f"{raw.path}" + (f" ({raw.salvaged})" if raw.salvaged else "")
     for c in raw.channels.values():
         if not c.topic or not c.topic.isprintable():
@@ -1207,7 +1203,7 @@ def _find_damage(rec: Recording, series: dict, items: dict, back: dict) -> list[
 def run_config_yaml(preset, **run) -> str:
     """``/experiment/config`` YAML: the preset (as validated) and the run's parameters."""
     import yaml
-    doc = {"recording_contract": 1, "run": convert._clean(run), "preset": preset.model_dump(mode="json")}
+    doc = {"recording_contract": 1, "run": convert.strict_json(run), "preset": preset.model_dump(mode="json")}
     return yaml.safe_dump(doc, sort_keys=False)
 
 
@@ -1258,7 +1254,7 @@ def write_trials(path, config_yaml: str, trials, *, case: str = "", node: str = 
     ``trial_end``, its results; ``run_end`` after the last trial. Written by :class:`McapRecorder`
     (``overwrite``, ``atomic`` as its own).
     """
-    ts = _typestore()
+    ts = typestore()
     with McapRecorder(path, config_yaml, start_ns=start_ns, overwrite=overwrite, atomic=atomic) as rec:
         w = rec.write
         end = None
@@ -1335,8 +1331,6 @@ def write_run(path, result, preset, *, trials=None, reference=None, window: floa
     overwrite, atomic : bool
         As :class:`McapRecorder`'s (default: written whole, then moved into place).
     """
-    from experiment_runner.metrics import trial_metrics
-    from stage_sim.plant import OK, STATUS_TEXT
     rate = float(preset.controller.rate)
     n_trials, T = result.y.shape
     trials = list(range(n_trials)) if trials is None else [int(i) for i in trials]

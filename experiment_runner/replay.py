@@ -160,7 +160,7 @@ def main_replay(args) -> int:
     if args.check:
         out["check"] = check_metrics(args.path)
     if args.json:
-        print(json.dumps(convert._clean(out)))
+        print(json.dumps(convert.strict_json(out)))
     else:
         if "published" in out:
             total = sum(out["published"].values())

@@ -126,7 +126,13 @@ from pathlib import Path
 
 import numpy as np
 
-from msg_defs.topics import COMMAND_KINDS
+from experiment_runner.nominal_model import add_convert_nominal_arguments, main_convert_nominal
+from experiment_runner.outputs import add_overwrite_argument, check_recording
+from experiment_runner.recording import (LIMITS, TrialSignals, bag_layout, beyond_limits, read_recording,
+                                         write_trials)
+from msg_defs.topics import (BEARING, COMMAND, COMMAND_KINDS, EXTERNAL_FORCE, MEASURED, MOTOR, REFERENCE,
+                             SOURCE_CHANNELS, TABLE)
+from stage_sim.config import read_yaml_file
 from stage_sim.validation import ConfigError, ConfigWarning, input_file_problem, read_text_file
 
 __all__ = ["Table", "read_table", "Mapping", "load_mapping", "mapping_from_dict", "Signals", "prepare",
@@ -926,7 +932,6 @@ def mapping_from_dict(data: dict, source: str = "mapping", base: Path | None = N
 def load_mapping(path, overrides: dict | None = None) -> Mapping:
     """A mapping YAML file (keys of :class:`Mapping`; a bare name is a shipped mapping of
     ``mappings/``, e.g. ``emps``), ``overrides`` (flags) on top."""
-    from stage_sim.config import read_yaml_file
     data, path = read_yaml_file(path, EMPS_MAPPING.parent, "mapping")
     data = dict(data)
     source = str(path)
@@ -972,7 +977,6 @@ def _within_limits(tab: Table, name: str, label: str, role: str, a: np.ndarray, 
     """Refuse values a recording cannot hold: beyond :data:`~experiment_runner.recording.LIMITS`
     (the reader's rule of damage: absurd for any stage, a wrong scale or a corrupt value), or a
     time beyond :data:`MAX_TIME`."""
-    from experiment_runner.recording import LIMITS, beyond_limits
     if role == "time":
         bad, limit, u = ~(np.abs(a) <= MAX_TIME), MAX_TIME, "s"
     elif role in _FIELDS:
@@ -1378,9 +1382,6 @@ def write_signals(sig: Signals, out, overwrite: bool = False, node: str = "conve
     """
     import yaml
 
-    from experiment_runner.recording import TrialSignals, bag_layout, write_trials
-    from msg_defs.topics import (BEARING, COMMAND, EXTERNAL_FORCE, MEASURED, MOTOR, REFERENCE, SOURCE_CHANNELS,
-                                 TABLE)
     series = []                             # (topic, names, {field: values}, every sample), in write order
     if sig.x_ref is not None:
         series.append((REFERENCE.name, (TABLE,), {"position": sig.x_ref, "velocity": sig.v_ref}, None))
@@ -1408,8 +1409,6 @@ def convert_table(path, mapping: Mapping | dict, out, overwrite: bool = False, s
     Raises :class:`~stage_sim.validation.ConfigError` (one line) on any bad input; nothing is
     written then.
     """
-    from experiment_runner.outputs import check_recording
-    from experiment_runner.recording import bag_layout
     m = mapping if isinstance(mapping, Mapping) else mapping_from_dict(mapping)
     check_recording(bag_layout(out)[0], overwrite)          # refused before any work
     tab = read_table(path, m.skip_rows)
@@ -1452,7 +1451,6 @@ _HELP = {"time": "column of the sample times [s after --scale]",
 
 
 def add_convert_arguments(parser):
-    from experiment_runner.outputs import add_overwrite_argument
     sub = parser.add_subparsers(dest="kind", required=True, metavar="KIND")
     p = sub.add_parser(
         "table", help="a CSV/TSV/whitespace text, JSON, MATLAB .mat (v5, v7.3), HDF5, .npz/.npy table",
@@ -1514,7 +1512,6 @@ def add_convert_arguments(parser):
     p.add_argument("source", metavar="FILE", help="DATA_EMPS.mat or DATA_EMPS_PULSES.mat")
     p.add_argument("--out", required=True, metavar="REC.mcap", help="recording to write")
     add_overwrite_argument(p)
-    from experiment_runner.nominal_model import add_convert_nominal_arguments
     add_convert_nominal_arguments(sub.add_parser(
         "nominal", help="a recording's nominal_model block (/experiment/config) as a preset YAML",
         description="Translate the nominal_model block of a recording's /experiment/config (plant, PID, Ts, "
@@ -1573,7 +1570,6 @@ def _flags(args) -> dict:
 
 def _summary(path: Path) -> str:
     """The line ``convert`` prints: what the recording holds and where the columns went."""
-    from experiment_runner.recording import read_recording
     rec = read_recording(path, require_reference=False)
     rate = 1.0 / float(np.median(np.diff(rec.stamp_ns)) * 1e-9)
     kind = ("open-loop record (no reference column: /stage/reference not written; the recorded command drove "
@@ -1591,7 +1587,6 @@ def _summary(path: Path) -> str:
 
 def main_convert(args) -> int:
     if args.kind == "nominal":
-        from experiment_runner.nominal_model import main_convert_nominal
         return main_convert_nominal(args)
     if args.kind == "emps":
         print(_summary(convert_emps(args.source, args.out, overwrite=args.overwrite)))

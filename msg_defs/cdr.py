@@ -51,7 +51,7 @@ def _string(text: str, off: int) -> tuple[bytes, int]:
 
 
 @lru_cache(maxsize=256)
-def _layout(names: tuple[str, ...], lengths: tuple[int, int, int], frame_id: str = "") -> tuple:
+def joint_state_layout(names: tuple[str, ...], lengths: tuple[int, int, int], frame_id: str = "") -> tuple:
     """The Struct of a JointState with these names and array lengths; its fields are the
     encapsulation, sec, nanosec, the static part (frame_id and names), then count and
     values of each array."""
@@ -107,7 +107,7 @@ class JointStateWriter:
             for field, n in zip(_FIELDS, key[1:]):
                 if n not in (0, len(names)):
                     raise ValueError(f"JointState {field} has {n} values for {len(names)} names {list(names)}")
-            self._layout, self._static = _layout(tuple(names), key[1:], self._frame)
+            self._layout, self._static = joint_state_layout(tuple(names), key[1:], self._frame)
             self._key = key
         sec, nanosec = divmod(int(stamp), _NS)
         return self._layout.pack(_ENC[True], sec, nanosec, self._static, key[1], *position, key[2], *velocity,
@@ -187,7 +187,7 @@ class JointStateReader:
 
     def _learn(self, fields) -> None:
         stamp, names, pos, vel, eff, frame = fields
-        layout, static = _layout(names, (len(pos), len(vel), len(eff)), frame)
+        layout, static = joint_state_layout(names, (len(pos), len(vel), len(eff)), frame)
         self._layout, self._size, self._static = layout, layout.size, static
         self._end = 12 + len(static)
         self._names = names

@@ -297,12 +297,12 @@ def correction_from_msg(msg) -> Correction:
 
 
 # --------------------------------------------------------------------------- JSON topics
-def _clean(obj):
+def strict_json(obj):
     """Replace NaN/inf by None and numpy scalars by Python ones, recursively (strict JSON)."""
     if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
+        return {str(k): strict_json(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
+        return [strict_json(v) for v in obj]
     if isinstance(obj, (np.integer,)):
         return int(obj)
     if isinstance(obj, (float, np.floating)):
@@ -312,7 +312,7 @@ def _clean(obj):
 
 def to_json(obj) -> str:
     """Strict JSON (NaN/inf -> null) for ``/experiment/events`` and ``/experiment/results``."""
-    return json.dumps(_clean(obj), allow_nan=False, separators=(",", ":"))
+    return json.dumps(strict_json(obj), allow_nan=False, separators=(",", ":"))
 
 
 def from_json(text: str):
@@ -346,7 +346,7 @@ def event(kind: str, *, stamp_ns: int, trial: int | None = None, case: str | Non
            "step_index": None if step_index is None else int(step_index), "stamp_ns": int(stamp_ns),
            "window_m": None if window_m is None else float(window_m),
            "reason": None if reason is None else str(reason), "node": str(node)}
-    rec.update(_clean(extra))
+    rec.update(strict_json(extra))
     return rec
 
 

@@ -91,7 +91,7 @@ def legacy(stream_mod):
         def old_size(n, samples, workers, total=None, threads=1):
             key = samples                      # one size per job (the jobs of one condition share it)
             if key not in first:
-                cap = max(1, int(stream_mod.CHUNK_BYTES // (samples * stream_mod._BYTES_PER_SAMPLE)))
+                cap = max(1, int(stream_mod.CHUNK_BYTES // (samples * stream_mod.STREAM_BYTES_PER_SAMPLE)))
                 want = max(1, min(cap, n, math.ceil((total or n) / (2 * workers))))
                 first[key] = math.ceil(n / math.ceil(n / want))
             return min(n, first[key])
@@ -150,7 +150,7 @@ def campaign_part(rep: Report, cores: int, per_case: int, deadline: float) -> No
 def threads_part(rep: Report, cores: int, per_case: int) -> None:
     from experiment_runner import batch, bench
     from experiment_runner.campaigns import stream as stream_mod
-    kernel, jobs = batch._run, bench.run_trial_jobs
+    kernel, jobs = batch.run_chunks, bench.run_trial_jobs
     spent, wall = [0.0], [0.0]
 
     def timed_kernel(*args):
@@ -168,7 +168,7 @@ def threads_part(rep: Report, cores: int, per_case: int) -> None:
         finally:
             wall[0] = time.perf_counter() - t0
 
-    batch._run, bench.run_trial_jobs = timed_kernel, timed_jobs
+    batch.run_chunks, bench.run_trial_jobs = timed_kernel, timed_jobs
     try:
         base = {}
         for mode in ("now", "legacy"):
@@ -185,7 +185,7 @@ def threads_part(rep: Report, cores: int, per_case: int) -> None:
                     "kernel_share": round(spent[0] / wall[0], 3), "kernel_s": round(spent[0], 2),
                     "other_s": round(wall[0] - spent[0], 2)})
     finally:
-        batch._run, bench.run_trial_jobs = kernel, jobs
+        batch.run_chunks, bench.run_trial_jobs = kernel, jobs
 
 
 # =========================================================================== kernel hypotheses

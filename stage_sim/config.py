@@ -27,7 +27,7 @@ from pydantic import Field, ValidationError, model_validator
 
 from stage_sim.friction import FRICTION
 from stage_sim.friction import CoulombFriction, DahlFriction, GmsFriction, LugreFriction  # noqa: F401  (re-exported)
-from stage_sim.schema import Finite, Fraction, NonNeg, Pos, _Number, _Strict  # noqa: F401  (re-exported)
+from stage_sim.schema import Finite, Fraction, NonNeg, Pos, Number, StrictModel  # noqa: F401  (re-exported)
 from stage_sim.validation import (ConfigError, check_plausible, format_validation_error, load_yaml_file, model_axis,
                                   unit)
 
@@ -42,36 +42,36 @@ Friction = FRICTION
 
 
 # --------------------------------------------------------------------------- stage
-class Table(_Strict):
+class Table(StrictModel):
     mass: Pos = Field(description="moving table mass [kg] (rotary: inertia [kg·m²])",
                       json_schema_extra=unit("kg", 1e-4, 1e3))
 
 
-class Joint(_Strict):
+class Joint(StrictModel):
     """Compliant joint (FI flexure, VAN flexure, SAI flexure) between table and bearing."""
     stiffness: Pos = Field(description="axial stiffness [N/m]", json_schema_extra=unit("N/m", 1.0, 1e10))
     damping: NonNeg = Field(0.0, description="axial damping [N·s/m]", json_schema_extra=unit("N·s/m", 1e-3, 1e5))
 
 
-class Bearing(_Strict):
+class Bearing(StrictModel):
     """A bearing carriage. Without ``joint`` it is rigidly bolted to the table (No FI)."""
     mass: Pos = Field(description="bearing (carriage + joint outer platform) mass [kg]",
                       json_schema_extra=unit("kg", 1e-4, 1e3))
     joint: Optional[Joint] = None
     friction: Friction
-    dither_channel: Optional[Annotated[Literal[0, 1], _Number]] = Field(None, description="piezo driving it (VAN)")
+    dither_channel: Optional[Annotated[Literal[0, 1], Number]] = Field(None, description="piezo driving it (VAN)")
     force_noise_rms: NonNeg = Field(0.0, description="random friction force, per control sample [N]",
                                     json_schema_extra=unit("N", 1e-6, 1e2))
 
 
-class StructuralMode(_Strict):
+class StructuralMode(StrictModel):
     """Lightly damped mode: a mass ``mass_ratio*m_table`` on a spring-damper to the table."""
     frequency: Pos = Field(description="blocked natural frequency [Hz]", json_schema_extra=unit("Hz", 1.0, 1e5))
-    damping_ratio: Annotated[float, _Number, Field(gt=0, lt=1, allow_inf_nan=False)]
+    damping_ratio: Annotated[float, Number, Field(gt=0, lt=1, allow_inf_nan=False)]
     mass_ratio: Pos = Field(description="modal mass / table mass [-]")
 
 
-class Drive(_Strict):
+class Drive(StrictModel):
     force_constant: Pos = Field(description="motor force constant [N/A]", json_schema_extra=unit("N/A", 1e-2, 1e3))
     force_constant_ratio: Pos = Field(1.0, description="true / nominal force constant [-]")
     peak_force: Pos = Field(description="peak force limit [N]", json_schema_extra=unit("N", 1e-2, 1e5))
@@ -83,8 +83,8 @@ class Drive(_Strict):
                                       json_schema_extra=unit("A", 1e-7, 1e1))
     noise_cutoff: Optional[Pos] = Field(None, description="noise low-pass corner [Hz]; None = white at the control rate",
                                         json_schema_extra=unit("Hz", 1e-1, 1e6))
-    delay_samples: Annotated[int, _Number, Field(ge=0, le=100)] = 0
-    delay_fraction: Annotated[float, _Number, Field(ge=0, lt=1, allow_inf_nan=False)] = Field(
+    delay_samples: Annotated[int, Number, Field(ge=0, le=100)] = 0
+    delay_fraction: Annotated[float, Number, Field(ge=0, lt=1, allow_inf_nan=False)] = Field(
         0.0, description="fractional part of the drive delay [samples]: the command of sample k acts over "
         "[k + delay_samples + delay_fraction, k + 1 + delay_samples + delay_fraction) control periods "
         "(exact delayed zero-order hold)")
@@ -96,12 +96,12 @@ class Drive(_Strict):
         return self
 
 
-class Sensor(_Strict):
+class Sensor(StrictModel):
     resolution: NonNeg = Field(description="quantization step [m]; 0 = ideal",
                                json_schema_extra=unit("m", 1e-12, 1e-3))
 
 
-class Travel(_Strict):
+class Travel(StrictModel):
     min: Finite
     max: Finite
 
@@ -112,7 +112,7 @@ class Travel(_Strict):
         return self
 
 
-class SaiJoint(_Strict):
+class SaiJoint(StrictModel):
     """Semi-active isolator lock (Ch. 5): solenoids + PMs lock the flexure by contact friction.
 
     Applies to bearing 0, whose ``joint`` is the compliant flexure. In stiff mode a
@@ -136,7 +136,7 @@ class SaiJoint(_Strict):
     cushioning: Fraction = Field(0.0, description="fraction of the impact removed by the rubber sheets [-]")
 
 
-class ForceRipple(_Strict):
+class ForceRipple(StrictModel):
     """Position-periodic force on the table (motor cogging / commutation ripple):
     ``F = amplitude sin(2 pi x / period + phase)``."""
     amplitude: Finite = Field(description="force amplitude [N]")
@@ -144,7 +144,7 @@ class ForceRipple(_Strict):
     phase: Finite = Field(0.0, description="phase at x = 0 [rad]")
 
 
-class PeriodicForce(_Strict):
+class PeriodicForce(StrictModel):
     """Force on the table at a fixed frequency (e.g. net force of imbalanced dither piezos, a
     disturbance): ``F = amplitude sin(2 pi frequency t + phase)``, ``t`` = time since the trial start."""
     amplitude: Finite = Field(description="force amplitude [N]")
@@ -152,7 +152,7 @@ class PeriodicForce(_Strict):
     phase: Finite = Field(0.0, description="phase at t = 0 [rad]")
 
 
-class Stage(_Strict):
+class Stage(StrictModel):
     kind: Literal["linear", "rotary"] = "linear"
     table: Table
     bearings: list[Bearing] = Field(default_factory=list, max_length=2)
@@ -177,7 +177,7 @@ class Stage(_Strict):
 
 
 # --------------------------------------------------------------------------- control
-class Pid(_Strict):
+class Pid(StrictModel):
     """PID with filtered derivative and clamping anti-windup, C = kp + ki/s + kd s/(s/wd + 1).
 
     ``derivative_discretization`` says how the filtered derivative becomes a difference equation
@@ -203,7 +203,7 @@ class Pid(_Strict):
                                         json_schema_extra=unit("N", 1e-3, 1e5))
 
 
-class Dob(_Strict):
+class Dob(StrictModel):
     """Inverse-model disturbance observer (Eq. C.1-C.5): G_n = gain / (s (s + pole))."""
     pole: NonNeg = Field(description="P of Eq. C.1 [1/s]", json_schema_extra=unit("1/s", 1e-3, 1e6))
     gain: Pos = Field(description="Z of Eq. C.1 for a force input [1/kg] (= Z[N/(A·kg)] / K_f)",
@@ -212,10 +212,10 @@ class Dob(_Strict):
                           json_schema_extra=unit("Hz", 1e-1, 1e6))
 
 
-class Feedforward(_Strict):
+class Feedforward(StrictModel):
     """Feedforward friction compensation from the reference (Fig. 4.15)."""
     friction: Friction
-    stiffness_error: Annotated[float, _Number, Field(gt=-1, allow_inf_nan=False)] = 0.0
+    stiffness_error: Annotated[float, Number, Field(gt=-1, allow_inf_nan=False)] = 0.0
 
     @model_validator(mode="after")
     def _no_variation(self):
@@ -226,14 +226,14 @@ class Feedforward(_Strict):
         return self
 
 
-class Niasa(_Strict):
+class Niasa(StrictModel):
     """NIASA (Eq. A.1): nonlinear integral gain following a nominal Dahl model."""
     tau_d: Pos = Field(description="design time constant [s]", json_schema_extra=unit("s", 1e-6, 1e1))
     k_sigma: Pos = Field(description="nominal Dahl stiffness [N/m]", json_schema_extra=unit("N/m", 1e2, 1e10))
     f_c: Pos = Field(description="nominal Coulomb force [N]", json_schema_extra=unit("N", 1e-3, 1e3))
 
 
-class Controller(_Strict):
+class Controller(StrictModel):
     rate: Pos = Field(10_000.0, description="control rate [Hz]", json_schema_extra=unit("Hz", 1e1, 1e6))
     pid: Pid
     dob: Optional[Dob] = None
@@ -241,7 +241,7 @@ class Controller(_Strict):
     niasa: Optional[Niasa] = None
 
 
-class Dither(_Strict):
+class Dither(StrictModel):
     """Dither generator and harmonic-cancelling (HC) controller for a VAN stage (Ch. 3)."""
     amplitude: NonNeg = Field(description="dither force amplitude A per piezo [N]",
                               json_schema_extra=unit("N", 1e-3, 1e4))
@@ -255,16 +255,16 @@ class Dither(_Strict):
                                json_schema_extra=unit("s", 1e-6, 1e3))
 
 
-class Ilc(_Strict):
+class Ilc(StrictModel):
     """P-type ILC of Eq. 5.2 with a Butterworth low-pass."""
-    iterations: Annotated[int, _Number, Field(ge=0, le=100)] = 10
+    iterations: Annotated[int, Number, Field(ge=0, le=100)] = 10
     cutoff: Pos = Field(200.0, description="LPF corner [Hz]", json_schema_extra=unit("Hz", 1e-1, 1e6))
-    order: Annotated[int, _Number, Field(ge=1, le=8)] = 4
+    order: Annotated[int, Number, Field(ge=1, le=8)] = 4
     length: Pos = Field(0.1, description="length of the learned correction after a switch [s]",
                         json_schema_extra=unit("s", 1e-5, 1e2))
 
 
-class SaiManager(_Strict):
+class SaiManager(StrictModel):
     """SAI switching rules (Ch. 5) and two-step error mitigation."""
     rule: Literal["point_to_point", "tracking", "always_compliant", "always_stiff"] = "point_to_point"
     release_lead: NonNeg = Field(0.005, description="p2p: go compliant this long before a move [s]",
@@ -274,11 +274,11 @@ class SaiManager(_Strict):
     ilc: Optional[Ilc] = None
 
 
-class Simulation(_Strict):
-    max_omega_h: Annotated[float, _Number, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
+class Simulation(StrictModel):
+    max_omega_h: Annotated[float, Number, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
         0.25, description="largest (stiffest-mode angular frequency x sub-step) allowed [-]")
-    max_substeps: Annotated[int, _Number, Field(ge=1, le=1000)] = 200
-    seed: Annotated[int, _Number, Field(ge=0)] = 0
+    max_substeps: Annotated[int, Number, Field(ge=1, le=1000)] = 200
+    seed: Annotated[int, Number, Field(ge=0)] = 0
 
 
 NO_CONTROLLER = {"rate": 10_000.0, "pid": {"kp": 0.0}}
@@ -287,7 +287,7 @@ identification run): no feedback (zero command), the default rate. A closed-loop
 preset runs its plant with zero command; the diagnosis refuses it for a record with a reference."""
 
 
-class Preset(_Strict):
+class Preset(StrictModel):
     name: str
     description: str = ""
     stage: Stage
@@ -303,7 +303,7 @@ class Preset(_Strict):
 
 # --------------------------------------------------------------------------- loading
 def _model_named(name: str, cls=None):
-    for sub in (cls or _Strict).__subclasses__():
+    for sub in (cls or StrictModel).__subclasses__():
         if sub.__name__ == name:
             return sub
         found = _model_named(name, sub)
@@ -312,9 +312,9 @@ def _model_named(name: str, cls=None):
     return None
 
 
-def _format(err: ValidationError, source: str, kind: str = "configuration") -> str:
+def schema_error_message(err: ValidationError, source: str, kind: str = "configuration") -> str:
     """The message of :func:`stage_sim.validation.format_validation_error` for a schema of this
-    package or one built on :class:`_Strict` (experiments, campaigns), found by name."""
+    package or one built on :class:`StrictModel` (experiments, campaigns), found by name."""
     return str(format_validation_error(err, source, kind if kind != "configuration" else err.title.lower(),
                                        _model_named(err.title)))
 

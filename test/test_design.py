@@ -199,9 +199,9 @@ def test_gamma_gms_shares_the_dahl_initial_stiffness():
     """Without GMS bearings in the preset, γ's GMS is Table 6.5's block distribution with the
     preset's initial stiffness k_f (the seed identifies both from the same FRFs), not Table 6.5's
     printed Σk_i = 6.17e5 N/m."""
-    from experiment_runner.paper import fi_design
+    from stage_control import isolator
     lp = design.lumped_stage("fi_stage")                           # Dahl bearings (Table 4.3)
     assert math.isclose(sum(lp.gms_k), lp.k_f, rel_tol=1e-12)
-    np.testing.assert_allclose(np.array(lp.gms_k) / lp.k_f, np.array(fi_design.GMS_K) / sum(fi_design.GMS_K),
+    np.testing.assert_allclose(np.array(lp.gms_k) / lp.k_f, np.array(isolator.GMS_K) / sum(isolator.GMS_K),
                                rtol=1e-12)
-    assert lp.gms_alpha == list(fi_design.GMS_ALPHA)
+    assert lp.gms_alpha == list(isolator.GMS_ALPHA)

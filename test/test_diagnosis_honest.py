@@ -305,7 +305,7 @@ def test_a_deterministic_residual_is_not_taken_for_the_drive_noise_level():
 
 
 def test_a_candidate_replaying_closer_than_its_own_recordings_replays_the_noise():
-    from experiment_runner.diagnosis.selection import JudgedRow, _consistent_from_below
+    from experiment_runner.diagnosis.selection import JudgedRow, consistent_from_below
     z = {"mass": -5.0, "coulomb": 0.4, "delay": -1.0}
 
     def rows():
@@ -315,12 +315,12 @@ def test_a_candidate_replaying_closer_than_its_own_recordings_replays_the_noise(
                             consistency=lambda rp, fl: z[fl.spec])
     # data as noisy as the model: a lighter mass whose replay is closer to the data than its own
     # recordings are (z far below 0) replays this realisation's noise, not a physics
-    kept, floors = _consistent_from_below(SimpleNamespace(judge=judge, noise_ratio=1.0), rows())
+    kept, floors = consistent_from_below(SimpleNamespace(judge=judge, noise_ratio=1.0), rows())
     assert [j.fit.key for j in kept] == ["coulomb", "delay"] and len(floors) == 3
     gone = [j for j in rows() if j.fit.key == "mass"]
-    _consistent_from_below(SimpleNamespace(judge=judge, noise_ratio=1.0), gone)
+    consistent_from_below(SimpleNamespace(judge=judge, noise_ratio=1.0), gone)
     assert not gone[0].ok and gone[0].why.startswith("replays the noise")
     # data quieter than the model (or the level not read): every candidate, the truth too, replays closer
     for ratio in (0.5, None):
-        kept, _ = _consistent_from_below(SimpleNamespace(judge=judge, noise_ratio=ratio), rows())
+        kept, _ = consistent_from_below(SimpleNamespace(judge=judge, noise_ratio=ratio), rows())
         assert len(kept) == 3

@@ -129,7 +129,7 @@ def test_remaining_names_a_line_and_a_position_period_with_their_shares():
 def test_remaining_lists_nothing_in_white_noise():
     """A white residual: no line 10 dB above its spectrum, no position period or stroke level of
     10 % share, no regime concentration; the report says the residual is spread."""
-    from experiment_runner.diagnosis.report import _md_noise
+    from experiment_runner.diagnosis.report import md_noise
     from experiment_runner.diagnosis.signatures import remaining
     d, t, x = _moving()
     r = np.random.default_rng(1).normal(0, 0.05, (t.size, 1))
@@ -137,7 +137,7 @@ def test_remaining_lists_nothing_in_white_noise():
     assert out["signatures"] == [], out["signatures"]
     out.pop("arrays")
     rep = {"stochastic": {"quantization": {}, "noise_level": {}}, "remaining": out, "timing_s": {"total_s": 1.0}}
-    md = "\n".join(_md_noise(rep))
+    md = "\n".join(md_noise(rep))
     assert "What the improved model leaves" in md and "the residual is spread" in md
 
 
@@ -176,10 +176,10 @@ def test_a_single_bin_line_is_no_mode_a_mode_fits_inside_its_bounds():
     """The transfer-ratio fit of a true mode ratio (500 Hz, zeta 0.02, 20 %) lands inside its
     bounds; a ratio of 1 with one bin 2x (a line of the excitation: EMPS' reference gave a '2.44 Hz
     mode' of zeta 1e-4 and 0.05 % of the mass) ends at a bound and is not located."""
-    from experiment_runner.diagnosis.frf import _fit_mode
+    from experiment_runner.diagnosis.frf import fit_mode
     f = np.linspace(250, 1000, 200)
-    fit = _fit_mode(f, mode_ratio(f, F_B, ZETA, FRACTION), 560.0, "resonance")
+    fit = fit_mode(f, mode_ratio(f, F_B, ZETA, FRACTION), 560.0, "resonance")
     assert fit["at_bound"] == [] and abs(fit["f_hz"] / F_B - 1) < 0.01, fit
     R = np.ones(len(f), complex)
     R[100] = 2.0
-    assert _fit_mode(f, R, float(f[100]), "resonance")["at_bound"], "a one-bin line fitted as a mode"
+    assert fit_mode(f, R, float(f[100]), "resonance")["at_bound"], "a one-bin line fitted as a mode"

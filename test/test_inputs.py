@@ -23,12 +23,12 @@ import yaml
 from experiment_runner.cli import main
 from experiment_runner.diagnosis.data import load_data
 from experiment_runner.metrics import trial_metrics
-from experiment_runner.recording import McapRecorder, RecordingError, _typestore, read_recording
+from experiment_runner.recording import McapRecorder, RecordingError, typestore, read_recording
 from msg_defs import convert
 from stage_sim.config import ConfigError, load_preset
 from stage_sim.validation import load_yaml
 
-TS = _typestore()
+TS = typestore()
 DT_NS = 100_000                                    # 10 kHz
 
 

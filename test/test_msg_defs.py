@@ -206,9 +206,9 @@ def test_cdr_joint_state_is_rosbags_canonical_cdr_and_reads_any_cdr(names, array
 def test_cdr_reader_canonical_clears_unset_alignment_bytes(names, arrays):
     """Fast CDR leaves the alignment bytes before the arrays of doubles unset (they may hold
     anything): a message of the learned layout with non-zero padding is still made canonical."""
-    from msg_defs.cdr import _layout
+    from msg_defs.cdr import joint_state_layout
     mine = cdr.joint_state(42, names, **arrays)
-    layout, static = _layout(tuple(names), tuple(len(arrays.get(k, [])) for k in ("position", "velocity", "effort")))
+    layout, static = joint_state_layout(tuple(names), tuple(len(arrays.get(k, [])) for k in ("position", "velocity", "effort")))
     packed = layout.pack(*layout.unpack_from(mine))
     assert packed == mine
     dirty = bytearray(mine)

@@ -122,7 +122,7 @@ def _recording(tmp_path, block, name="rec"):
 
 @pytest.mark.slow
 def test_convert_nominal_writes_the_preset_and_diagnose_takes_the_block(tmp_path):
-    from experiment_runner.diagnosis.cli import _nominal_from_config
+    from experiment_runner.diagnosis.cli import nominal_from_config
     rec = _recording(tmp_path, _block())
     out = tmp_path / "p" / "nominal.yaml"
     args = argparse.Namespace(recording=str(rec), out=str(out), overwrite=False)
@@ -133,7 +133,7 @@ def test_convert_nominal_writes_the_preset_and_diagnose_takes_the_block(tmp_path
     with pytest.raises(ConfigError, match="exists; pass --overwrite"):
         main_convert_nominal(args)
     from experiment_runner.recording import read_recording
-    nominal = _nominal_from_config(read_recording(rec, require_reference=False))   # `diagnose REC` without NOMINAL
+    nominal = nominal_from_config(read_recording(rec, require_reference=False))   # `diagnose REC` without NOMINAL
     assert nominal == preset_from_nominal(_block(), source=str(rec), name="t01_nominal",
                                           conventions={"units": "SI"})
 

@@ -284,7 +284,7 @@ _DEAD = []
 
 def _dead_pid() -> int:
     """The process id of a process that has ended (one, checked again before each use)."""
-    if not _DEAD or outputs._alive(_DEAD[0]):
+    if not _DEAD or outputs.process_alive(_DEAD[0]):
         p = subprocess.Popen(["true"])
         p.wait()
         _DEAD[:] = [p.pid]

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from experiment_runner.paper import fi_design, rotary
+from stage_control import isolator
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +31,7 @@ def rot_out(tmp_path_factory):
 def test_plant_matches_equations_of_motion():
     """G(s) of Fig. 6.2 equals the direct solution of the 2-DOF equations at a few s."""
     m_t, m_b, k, c, kf, cf = 0.8, 0.6, 3.3e4, 240.0, 2.19e6, 175.0
-    G = fi_design.plant_fi(m_t, m_b, k, c, kf, cf)
+    G = isolator.plant_fi(m_t, m_b, k, c, kf, cf)
     for w in (3.0, 300.0, 3000.0):
         s = 1j * w
         z, f = c * s + k, cf * s + kf
@@ -38,44 +39,44 @@ def test_plant_matches_equations_of_motion():
         xt = np.linalg.solve(A, np.array([1.0, 0.0]))[0]
         assert abs(G(s) / xt - 1) < 1e-9
     # rigid limit -> No FI
-    G_rigid = fi_design.plant_fi(m_t, m_b, 1e12, 0.0, kf, cf)
-    G0 = fi_design.plant_nofi(m_t, m_b, kf, cf)
+    G_rigid = isolator.plant_fi(m_t, m_b, 1e12, 0.0, kf, cf)
+    G0 = isolator.plant_nofi(m_t, m_b, kf, cf)
     assert abs(G_rigid(100j) / G0(100j) - 1) < 1e-4
 
 
 def test_series_solver_linear_and_gms_limits():
     # linear spring: k_c = Eq. 4.1
     for eta in (1e-3, 0.1, 1.0, 10.0):
-        kc = fi_design.combined_stiffness(eta * 2.19e6, 2.19e6)
+        kc = isolator.combined_stiffness(eta * 2.19e6, 2.19e6)
         assert math.isclose(kc, eta * 2.19e6 / (1 + eta), rel_tol=1e-9)
     # very stiff FI: series GMS -> plain GMS driven by the table
     from stage_sim.friction import GMS
-    _, xt = fi_design.circle_x_path(n=2000)
-    f_series, _ = fi_design._series_gms(xt, 1e14, fi_design.GMS_K, fi_design.GMS_ALPHA, 5.31)
-    f_plain = GMS(fi_design.GMS_K, fi_design.GMS_ALPHA, 5.31).drive(xt)
+    _, xt = isolator.circle_x_path(n=2000)
+    f_series, _ = isolator.series_gms(xt, 1e14, isolator.GMS_K, isolator.GMS_ALPHA, 5.31)
+    f_plain = GMS(isolator.GMS_K, isolator.GMS_ALPHA, 5.31).drive(xt)
     assert np.max(np.abs(f_series - f_plain)) < 1e-6
     # equilibrium: spring force = friction force at every sample
     k_fi = 0.05 * 2.19e6
-    f, xb = fi_design._series_gms(xt, k_fi, fi_design.GMS_K, fi_design.GMS_ALPHA, 5.31)
+    f, xb = isolator.series_gms(xt, k_fi, isolator.GMS_K, isolator.GMS_ALPHA, 5.31)
     assert np.max(np.abs(k_fi * (xt - xb) - f)) < 1e-9
 
 
 def test_series_construction_reproduces_table_4_5():
     """The seed's FI-case GMS (Table 4.5) is the virgin curve of Table 4.4 in series with k_fi."""
-    dev_series, dev_per_block = fi_design.table_4_5_check()
+    dev_series, dev_per_block = isolator.table_4_5_check()
     assert dev_series < 0.01            # 0.5 % of F_C over 0..400 um
     assert dev_per_block > 0.2          # each block with its own k_fi: not the seed's table
     # Table 4.5's initial stiffness = k_sigma,FI of Table 4.3 (8.08e4 N/m), within rounding
-    assert math.isclose(fi_design.GMS45_K.sum(), 8.08e4, rel_tol=0.01)
-    assert math.isclose(fi_design.GMS4_K.sum(), 2.19e6, rel_tol=0.005)   # Table 4.4 = Table 4.3's k_sigma
+    assert math.isclose(isolator.GMS45_K.sum(), 8.08e4, rel_tol=0.01)
+    assert math.isclose(isolator.GMS4_K.sum(), 2.19e6, rel_tol=0.005)   # Table 4.4 = Table 4.3's k_sigma
 
 
 def test_gamma_optimum_scale_invariant_and_consistency_matters():
     """Fig. 6.8 on a coarse grid: same optimum for any common k_sigma = sum k_i, not for the printed pair."""
     etas = np.logspace(-2, 0, 9)
-    g1, _, _ = fi_design.gamma_curve(etas, gms_k=fi_design.gms_consistent())
-    g2, _, _ = fi_design.gamma_curve(etas, k_f=float(fi_design.GMS_K.sum()), gms_k=fi_design.GMS_K)
-    g3, _, _ = fi_design.gamma_curve(etas)                                  # Tables 6.4/6.5 as printed
+    g1, _, _ = isolator.gamma_curve(etas, gms_k=isolator.gms_consistent())
+    g2, _, _ = isolator.gamma_curve(etas, k_f=float(isolator.GMS_K.sum()), gms_k=isolator.GMS_K)
+    g3, _, _ = isolator.gamma_curve(etas)                                  # Tables 6.4/6.5 as printed
     assert np.argmin(g1) == np.argmin(g2)
     assert 0.05 <= etas[np.argmin(g1)] <= 0.2
     assert etas[np.argmin(g3)] <= 0.04

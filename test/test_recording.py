@@ -240,13 +240,13 @@ def test_recording_written_by_mcap_ros2_writer(tmp_path):
 
 
 def test_indexed_fast_path_gives_the_mcap_librarys_messages(synthetic, tmp_path):
-    """The reader's own chunk loop (:func:`_indexed_messages`) against ``mcap``'s
+    """The reader's own chunk loop (:func:`indexed_messages`) against ``mcap``'s
     ``SeekingReader.iter_messages``: same messages, same order, same bytes, on our recorder's
     file (uncompressed, CRCs) and on another writer's zstd chunks; a flipped byte inside a
     chunk fails the CRC check as in the library."""
     from mcap_ros2.writer import Writer as Ros2Writer
 
-    from experiment_runner.recording import _indexed_messages
+    from experiment_runner.recording import indexed_messages
     msgdef, _ = TS.generate_msgdef("sensor_msgs/msg/JointState", ros_version=2)
     foreign = tmp_path / "zstd.mcap"
     with open(foreign, "wb") as f:
@@ -263,7 +263,7 @@ def test_indexed_fast_path_gives_the_mcap_librarys_messages(synthetic, tmp_path)
             summary = reader.get_summary()
             assert len(summary.chunk_indexes) > 1
             lib = [m for _, _, m in reader.iter_messages(log_time_order=False)]
-            ours = _indexed_messages(f, summary)
+            ours = indexed_messages(f, summary)
         assert len(ours) == len(lib) > 100 and ours == lib
     data = bytearray(mcap_file(synthetic[0].path).read_bytes())
     with open(mcap_file(synthetic[0].path), "rb") as f:
@@ -273,7 +273,7 @@ def test_indexed_fast_path_gives_the_mcap_librarys_messages(synthetic, tmp_path)
 
     from mcap.stream_reader import CRCValidationError
     with pytest.raises(CRCValidationError):
-        _indexed_messages(_io.BytesIO(bytes(data)), make_reader(_io.BytesIO(bytes(data))).get_summary())
+        indexed_messages(_io.BytesIO(bytes(data)), make_reader(_io.BytesIO(bytes(data))).get_summary())
 
 
 # --------------------------------------------------------------------------- salvage

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from experiment_runner.cli import main
-from experiment_runner.recording import McapRecorder, _typestore, read_recording
+from experiment_runner.recording import McapRecorder, typestore, read_recording
 from experiment_runner.tabular import convert_table, read_table
 from msg_defs.convert import joint_state
 from stage_sim.validation import ConfigError, ConfigWarning
@@ -299,7 +299,7 @@ def test_command_kind_round_trips_and_an_old_recording_reads_as_drive(tmp_path, 
     rc, out, err = _convert([str(src), *FLAGS, "--command-kind", "force", "--out", str(tmp_path / "x")], capsys)
     assert rc == 2 and "--command-kind: got 'force'; expected drive (a command to a drive with a force constant" in err
     # a recording written without the key (as every one before it, and every simulated one)
-    ts = _typestore()
+    ts = typestore()
 
     def old(path, config):
         with McapRecorder(path, config) as w:

@@ -20,7 +20,7 @@ def test_one_batch_kernel_specialization_whatever_the_trials_and_the_inputs():
     models = Models.from_preset(preset)
     ref = point_to_point(5e-6, dwell=0.002, dt=1.0 / preset.controller.rate)
     simulate(preset, ref.x, ref.v, n_trials=3, models=models, check=False)
-    before = set(batch._run.signatures)
+    before = set(batch.run_chunks.signatures)
     simulate(preset, ref.x, ref.v, n_trials=1, models=models, check=False)    # one trial: a read-only broadcast
     x, v = np.tile(ref.x, (2, 1)), np.tile(ref.v, (2, 1))
     corr = np.zeros(4)
@@ -28,7 +28,7 @@ def test_one_batch_kernel_specialization_whatever_the_trials_and_the_inputs():
         a.flags.writeable = False
     simulate(preset, x, v, models=models, check=False, correction=corr,
              f_ext=np.broadcast_to(np.zeros(1), ref.x.shape), seeds=np.array([3.0, 4.0]))
-    assert set(batch._run.signatures) == before
+    assert set(batch.run_chunks.signatures) == before
 
 
 @pytest.mark.slow

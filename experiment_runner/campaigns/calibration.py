@@ -52,7 +52,7 @@ from scipy.optimize import brentq
 
 from experiment_runner.batch import Models
 from experiment_runner.campaigns.base import Stat
-from experiment_runner.campaigns.spec import (Campaign, _expand, _py, calibration_source, case_preset, conditions,
+from experiment_runner.campaigns.spec import (Campaign, expand_path, to_python, calibration_source, case_preset, conditions,
                                               resolve)
 from experiment_runner.campaigns.trials import metric_record, simulate_trials
 from experiment_runner.metrics import finite_or_none
@@ -314,7 +314,7 @@ def calibrate(camp: Campaign, n_trials: int, bar=None) -> dict:
             preset_values[p.name] = 1.0
         else:
             vals = {v if not isinstance(v, list) else tuple(v) for v in
-                    (old for _, old in _expand(preset0.model_dump(), p.paths[0]))}
+                    (old for _, old in expand_path(preset0.model_dump(), p.paths[0]))}
             v0 = next(iter(vals))
             start[p.name] = float(v0) if v0 is not None else float(p.bounds[0])
             preset_values[p.name] = v0
@@ -359,7 +359,7 @@ def calibrate(camp: Campaign, n_trials: int, bar=None) -> dict:
         per_case = {c.name: resolve(case_preset(camp, c), p.paths, p.mode, pf.value) for c in camp.cases}
         params.append({
             "name": p.name, "description": p.description, "paths": p.paths, "mode": p.mode, "unit": p.unit,
-            "bounds": list(p.bounds), "log": p.log, "preset_value": _py(preset_values[p.name]),
+            "bounds": list(p.bounds), "log": p.log, "preset_value": to_python(preset_values[p.name]),
             "start": pf.start, "value": pf.value, "at_bound": pf.at_bound, "applied": per_case,
             "target": {"case": camp.baseline, **p.target.at(), "metric": p.target.metric, "form": p.target.form,
                        "seed_floor": p.target.seed_floor, "seed": pf.seed_value, "seed_effective": pf.seed_effective,

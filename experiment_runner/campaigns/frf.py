@@ -46,7 +46,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from experiment_runner.batch import Models, _chunked, _unchunked, simulate
+from experiment_runner.batch import Models, chunked, unchunked, simulate
 from experiment_runner.campaigns.spec import FrequencyResponseTest, frequency_grid
 from experiment_runner.metrics import sine_phasor
 from stage_control.servo import build_servo
@@ -260,10 +260,10 @@ def plant_frf(preset, test: FrequencyResponseTest, amplitudes=None, models=None)
         plant = chunk_state(init_plant_state(pm, n_chunks * size, 0.0, sai_mode=1.0), n_chunks)
         out_y = np.zeros((n_chunks, T, size))
         stat = np.zeros((n_chunks, size), np.int64)
-        _open_loop(pm, _chunked(amp, n_chunks, size), _chunked(om, n_chunks, size), _chunked(nr, n_chunks, size),
-                   _chunked(seeds, n_chunks, size), test.sensor == "true", plant, out_y, stat)
-        y = _unchunked(out_y, B)
-        stat = _unchunked(stat, B)
+        _open_loop(pm, chunked(amp, n_chunks, size), chunked(om, n_chunks, size), chunked(nr, n_chunks, size),
+                   chunked(seeds, n_chunks, size), test.sensor == "true", plant, out_y, stat)
+        y = unchunked(out_y, B)
+        stat = unchunked(stat, B)
         samples += B * T
         for col, (i, j) in enumerate(grp):
             if stat[col] != OK:

@@ -1,7 +1,7 @@
 """Representative campaign trials through the ROS 2 node graph, on spawned processes.
 
 Each job is a one-trial experiment file (:func:`experiment_runner.campaigns.trials.graph_experiment`)
-run by :func:`experiment_runner.graph.run_one_process` in a worker process on its own ROS domain,
+run by :func:`experiment_runner.ros.launch.run_one_process` in a worker process on its own ROS domain,
 a learned SAI Step II correction given to the SAI manager node as its ``initial_correction``
 parameter; :func:`compare_graph` sets the recording beside the batch engine's same trial.
 """
@@ -17,14 +17,14 @@ import numpy as np
 
 from experiment_runner.campaigns.base import RunResult
 from experiment_runner.campaigns.registry import TRIAL_METRICS
-from experiment_runner.graph import run_one_process
 from experiment_runner.recording import read_recording
+from experiment_runner.ros.launch import run_one_process
 
 __all__ = ["run_graph_jobs", "compare_graph"]
 
 
 def _run_graph_with_correction(experiment: str, out: Path, timeout: float, domain_id, correction) -> dict:
-    """:func:`experiment_runner.graph.run_one_process` with a learned Step II correction held by the
+    """:func:`experiment_runner.ros.launch.run_one_process` with a learned Step II correction held by the
     SAI manager node from its start (its ``initial_correction`` parameter)."""
     corr = [float(v) for v in np.asarray(correction, float).ravel()]
     return run_one_process(experiment, out, timeout, domain_id,

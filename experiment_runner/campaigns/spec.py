@@ -58,7 +58,7 @@ from pydantic import ConfigDict, Discriminator, Field, Tag, ValidationError, mod
 from experiment_runner import experiment, profiles
 from experiment_runner.campaigns.registry import Metric
 from experiment_runner.experiment import Move, Starts
-from stage_sim.config import (ConfigError, Finite, Fraction, NonNeg, Pos, Preset, _format, _Strict,
+from stage_sim.config import (ConfigError, Finite, Fraction, NonNeg, Pos, Preset, schema_error_message, StrictModel,
                               load_preset, read_yaml_file, with_overrides)
 
 __all__ = ["Campaign", "Case", "Condition", "PointToPointTest", "CircleTest", "FrequencyResponseTest",
@@ -171,13 +171,13 @@ class PointToPointTest(Move):
         return experiment.reference(self.profile(cond), 1.0 / rate)
 
 
-class CircleSpeeds(_Strict):
+class CircleSpeeds(StrictModel):
     """One radius and the tangential speeds run at it."""
     radius: Pos = Field(description="circle radius [m]")
     speeds: list[Pos] = Field(min_length=1, description="tangential speeds [m/s]")
 
 
-class CircleTest(_Strict):
+class CircleTest(StrictModel):
     """x-axis reference of circles (seed Sec. 3.4.2 / 4.4.2): one condition per radius and speed.
 
     Either ``radii`` x ``speeds`` (every speed at every radius) or ``circles`` (each radius
@@ -235,7 +235,7 @@ class CircleTest(_Strict):
         return experiment.reference(self.profile(cond), 1.0 / rate)
 
 
-class FrequencyResponseTest(_Strict):
+class FrequencyResponseTest(StrictModel):
     """Stepped-sine FRFs at several force amplitudes (seed Sec. 4.3): one condition per amplitude.
 
     Every amplitude x frequency is an independent column starting at rest: a sine force of
@@ -304,7 +304,7 @@ def frequency_grid(test: FrequencyResponseTest) -> np.ndarray:
 Test = Annotated[Union[PointToPointTest, CircleTest, FrequencyResponseTest], Field(discriminator="kind")]
 
 
-class StepII(_Strict):
+class StepII(StrictModel):
     """SAI Step II (Sec. 5.3): learn the reference correction with the ILC of Eq. 5.2 at rest.
 
     The stage holds position; the SAI goes compliant for ``compliant_time`` (the p2p rule
@@ -322,7 +322,7 @@ class StepII(_Strict):
     iterations: Optional[int] = Field(None, ge=0, le=100, description="default: preset sai_manager.ilc.iterations")
 
 
-class Case(_Strict):
+class Case(StrictModel):
     name: Name
     label: str = Field(description="as in the seed's table, e.g. 'No FI'")
     description: str = ""
@@ -339,7 +339,7 @@ class Case(_Strict):
 SweepMode = Literal["value", "scale", "series_scale"]
 
 
-class SweepTarget(_Strict):
+class SweepTarget(StrictModel):
     """Where the sweep value goes in some of the cases (see :class:`Sweep`)."""
     cases: list[str] = Field(min_length=1, description="cases this target applies to")
     paths: list[str] = Field(min_length=1, description="dotted paths ('*' matches every list item)")
@@ -353,7 +353,7 @@ class SweepTarget(_Strict):
         return self
 
 
-class Sweep(_Strict):
+class Sweep(StrictModel):
     """One more axis: a parameter set to each of ``values``.
 
     ``mode: value`` sets the paths to the value, ``scale`` multiplies the preset's value by
@@ -394,7 +394,7 @@ class Sweep(_Strict):
         return SweepTarget(cases=[case], paths=self.paths, mode=self.mode, series=self.series)
 
 
-class _At(_Strict):
+class _At(StrictModel):
     """Condition selector: the step (point-to-point) or radius and speed (circle), and sweep value."""
     step: Optional[Finite] = None
     radius: Optional[Pos] = None
@@ -451,7 +451,7 @@ class Finding(_At):
         return self
 
 
-class SeedData(_Strict):
+class SeedData(StrictModel):
     source: str
     notes: str = ""
     values: list[SeedValue] = Field(default_factory=list)
@@ -464,7 +464,7 @@ class CalTarget(_At):
     seed_floor: NonNeg = Field(0.0, description="quadrature_excess: deterministic floor of the seed value [SI]")
 
 
-class CalParameter(_Strict):
+class CalParameter(StrictModel):
     name: Name
     description: str = Field(description="what it is physically and why it is not known from the seed")
     paths: list[str] = Field(min_length=1, description="dotted paths ('*' matches every list item)")
@@ -487,7 +487,7 @@ class CalParameter(_Strict):
         return self
 
 
-class Calibration(_Strict):
+class Calibration(StrictModel):
     """Fit ``parameters`` on this campaign's baseline (:mod:`experiment_runner.campaigns.calibration`)."""
     trials: int = Field(16, ge=1, le=1000, description="baseline trials per evaluation (the first of the campaign's)")
     rounds: int = Field(3, ge=1, le=10, description="Gauss-Seidel rounds at most")
@@ -495,7 +495,7 @@ class Calibration(_Strict):
     parameters: list[CalParameter] = Field(min_length=1, max_length=3)
 
 
-class CalibrationFrom(_Strict):
+class CalibrationFrom(StrictModel):
     """Reuse the baseline calibration of another campaign on the same stage and PID.
 
     ``from: table_4_2`` applies that campaign's calibrated parameters (its paths and modes)
@@ -519,7 +519,7 @@ CalibrationSpec = Annotated[Union[Annotated[Calibration, Tag("fit")], Annotated[
                             Discriminator(_calibration_kind)]
 
 
-class Campaign(_Strict):
+class Campaign(StrictModel):
     name: Name
     title: str
     description: str = ""
@@ -705,7 +705,7 @@ def load_campaign(name_or_path, check_presets: bool = True) -> Campaign:
     try:
         camp = Campaign.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_format(err, str(path), "campaign")) from None
+        raise ConfigError(schema_error_message(err, str(path), "campaign")) from None
     if check_presets:
         check_campaign(camp, str(path))
     return camp
@@ -754,7 +754,7 @@ def check_campaign(camp: Campaign, source: str = "<campaign>") -> None:
 
 
 # =========================================================================== overrides
-def _expand(data, path: str) -> list[tuple[str, object]]:
+def expand_path(data, path: str) -> list[tuple[str, object]]:
     """Dotted path with '*' wildcards -> [(concrete path, value)] in ``data`` (a model_dump)."""
     nodes = [(data, [])]
     for part in path.split("."):
@@ -834,19 +834,19 @@ def resolve(preset: Preset, paths, mode: str, value, series: Optional[float] = N
     data = preset.model_dump()
     out = {}
     for path in paths:
-        for concrete, old in _expand(data, path):
+        for concrete, old in expand_path(data, path):
             out[concrete] = (_scaled(old, value, concrete, series if mode == "series_scale" else None)
-                             if mode in ("scale", "series_scale") else _py(value))
+                             if mode in ("scale", "series_scale") else to_python(value))
     return out
 
 
-def _py(v):
+def to_python(v):
     if isinstance(v, np.generic):
         return v.item()
     if isinstance(v, (list, tuple)):
-        return [_py(x) for x in v]
+        return [to_python(x) for x in v]
     if isinstance(v, dict):
-        return {k: _py(x) for k, x in v.items()}
+        return {k: to_python(x) for k, x in v.items()}
     return v
 
 
@@ -885,7 +885,7 @@ def case_overrides(camp: Campaign, case: Case, cal_values: Optional[dict] = None
     target = camp.sweep.target(case.name) if camp.sweep is not None else None
     if cond is not None and cond.sweep is not None and target is not None:
         flat.update(resolve(preset, target.paths, target.mode, cond.sweep, target.series))
-    return _py(flat)
+    return to_python(flat)
 
 
 def calibration_source(camp: Campaign, source: str = "<campaign>") -> Optional[Campaign]:

@@ -71,7 +71,7 @@ MIN_CHUNK = 8
 """Fewest trials of a chunk that :func:`chunk_size` makes smaller to balance the workers' last tasks."""
 SYNC_SECONDS = 1.0
 """Longest time a streamed trial stays in the operating system's cache before it is on disk (fsync)."""
-_BYTES_PER_SAMPLE = 13 * 8 * 2    # signals x float64 x 2 (the engine's buffers were copied into the
+STREAM_BYTES_PER_SAMPLE = 13 * 8 * 2    # signals x float64 x 2 (the engine's buffers were copied into the
                                   # BatchResult; since it returns them, the 2 is headroom: kept, so chunks stay)
 
 
@@ -401,7 +401,7 @@ def chunk_size(n: int, samples: int, workers: int, total: Optional[int] = None, 
     >>> chunk_size(500, 11_300, 1), chunk_size(500, 11_300, 1, threads=16)      # one worker of 1 / 16 threads
     (50, 250)
     """
-    cap = max(1, int(CHUNK_BYTES * max(1, threads) // (samples * _BYTES_PER_SAMPLE)))
+    cap = max(1, int(CHUNK_BYTES * max(1, threads) // (samples * STREAM_BYTES_PER_SAMPLE)))
     want = max(1, min(cap, n, max(MIN_CHUNK, math.ceil((total or n) / (2 * workers)))))
     return math.ceil(n / math.ceil(n / want))
 

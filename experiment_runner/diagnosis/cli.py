@@ -99,7 +99,7 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
     return parser
 
 
-def _nominal_from_config(rec):
+def nominal_from_config(rec):
     """The nominal of the recording's ``/experiment/config`` (read by the project's YAML loader
     and validated: errors name the recording, the topic and the field): its ``preset``, or its
     ``nominal_model`` block (a rig's model in its own terms) translated
@@ -191,7 +191,7 @@ def main_diagnose(args) -> int:
     out = Path(args.out) if args.out else Path("out/diagnose") / Path(args.recording).with_suffix("").name
     nominal = args.nominal
     if nominal is None:
-        nominal = _nominal_from_config(rec)
+        nominal = nominal_from_config(rec)
         if nominal is None:
             raise SystemExit("nanostage diagnose: the recording carries no preset (nor a nominal_model block) "
                              "in /experiment/config; give the NOMINAL model")

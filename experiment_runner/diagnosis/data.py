@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import signal
 
+from experiment_runner.recording import Recording, RecordingError, beyond_limits, read_recording
 from msg_defs.topics import ISOLATOR_JOINT, PIEZOS
 
 __all__ = ["DiagData", "load_data", "from_trials", "smooth"]
@@ -238,7 +239,6 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
     experiment_runner.recording.RecordingError
         Fewer than 10 control samples, or a damaged recording.
     """
-    from experiment_runner.recording import Recording, RecordingError, read_recording
     rec = source if isinstance(source, Recording) else read_recording(source, require_reference=False)
     n = len(rec)
     if n < 10:
@@ -301,7 +301,6 @@ def load_data(source, burn_in: float = 0.005, min_trial: float = 0.02, max_trial
 def _bridged(a: np.ndarray, fld: str) -> np.ndarray:
     """``a`` with its damaged values (:func:`~experiment_runner.recording.beyond_limits`)
     interpolated from the good ones (an absent, all-nan signal as it is)."""
-    from experiment_runner.recording import beyond_limits
     bad = beyond_limits(a, fld)
     if not bad.any() or bad.all():
         return a
@@ -312,7 +311,6 @@ def _bridged(a: np.ndarray, fld: str) -> np.ndarray:
 def _undamaged(rec, slices) -> tuple[list, list[str]]:
     """``slices`` without the trials that hold damage (:attr:`Damage.unusable`), and why each
     was left out; :class:`RecordingError` if none is left."""
-    from experiment_runner.recording import RecordingError
     bad = [d for d in rec.damage if d.unusable]
     keep, excluded = [], []
     for tid, s0, s1 in slices:

@@ -4,11 +4,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from experiment_runner.errors import DataMissing
+
 __all__ = ["DataMissing", "data_root", "need_file"]
-
-
-class DataMissing(FileNotFoundError):
-    """A real data set is not where it should be; the message says where it was looked for."""
 
 
 def data_root(explicit=None) -> Path:

@@ -284,7 +284,7 @@ def locate_modes(spec: ModelSpec, data: DiagData, min_coherence: float = 0.8, ma
         band = (fo >= fk / 2) & (fo <= fk * 2)
         used |= (fo >= fk / 1.3) & (fo <= fk * 1.3)
         kind = "antiresonance" if dev[i] < 0 else "resonance"
-        fit = _fit_mode(fo[band], R[band], fk, kind)
+        fit = fit_mode(fo[band], R[band], fk, kind)
         # a lightly damped mode of a fraction of the mass, fitting the ratio to 15 % (log units), no
         # parameter at its bound: else a broad misfit of the model (friction, the loop through which a
         # closed-loop transfer is seen) or a line of the excitation (a mode of zeta 1e-4, 0.05 % of the mass)
@@ -523,7 +523,7 @@ def noise_band_modes(f, S_data, S_sims, S_det, X, D, rate: float, max_modes: int
     return modes, info
 
 
-def _fit_mode(f, R, fk, kind):
+def fit_mode(f, R, fk, kind):
     """Least squares of ``log R - log(c mode_ratio)`` over ``(log f_b, log zeta, logit phi)`` and a
     complex gain ``c`` (solved in closed form per evaluation)."""
     lR = np.log(R)

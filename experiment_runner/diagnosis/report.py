@@ -353,7 +353,7 @@ def _md_candidates(rep: dict) -> list[str]:
     return L
 
 
-def _md_noise(rep: dict) -> list[str]:
+def md_noise(rep: dict) -> list[str]:
     """Noise, quantization, sparse regression and the files."""
     L = []
     U = rep.get("units") or axis_units("linear")
@@ -404,7 +404,7 @@ def to_markdown(rep: dict) -> str:
         Markdown, leading with the held-out replay headline.
     """
     L = []
-    for section in (_md_headline, _md_found, _md_findings, _md_proof, _md_locate, _md_candidates, _md_noise):
+    for section in (_md_headline, _md_found, _md_findings, _md_proof, _md_locate, _md_candidates, md_noise):
         L += section(rep)
     b = rep.get("budget") or {}
     if b.get("reached"):       # what was not examined leads, under the title

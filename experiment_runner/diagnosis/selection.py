@@ -31,7 +31,7 @@ __all__ = ["Problem", "Candidate", "JudgedRow", "Path", "FirstStep", "judge_rows
 NOISE_QUIETER = 0.8
 """Data whose drive-noise level (read from the residual spectrum) is below this fraction of the
 model's are quieter than the model: no candidate is refused for replaying closer to them than its
-own recordings (:func:`_consistent_from_below`)."""
+own recordings (:func:`consistent_from_below`)."""
 
 NOMINAL_Z = 2.0
 """An effect whose every parameter is within this many standard errors of the current model's value
@@ -542,7 +542,7 @@ def choose(problem: Problem, judged: list, floor: Floor) -> tuple:
     """
     judge, known = problem.judge, problem.library.known
     ok = sorted([j for j in judged if j.ok], key=lambda j: rank(j, problem.options.complexity))
-    ok, floors = _consistent_from_below(problem, ok)
+    ok, floors = consistent_from_below(problem, ok)
     best = conf = None
     alts = []
     if ok:
@@ -578,7 +578,7 @@ def choose(problem: Problem, judged: list, floor: Floor) -> tuple:
     return best, conf, alts
 
 
-def _consistent_from_below(problem: Problem, ok: list) -> tuple:
+def consistent_from_below(problem: Problem, ok: list) -> tuple:
     """The adoptable rows whose held-out data could be a recording of their own model: a candidate
     whose noise-free replay is closer to the data than its own simulated recordings are to that replay
     (consistency z below minus the critical value, each against its own run-to-run floor) replays the

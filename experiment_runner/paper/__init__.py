@@ -14,6 +14,8 @@ import textwrap
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from experiment_runner import outputs
+from stage_sim.config import ConfigError
 
 #: claim groups, in the order of the dissertation
 GROUPS = ("appendix_a", "van", "appendix_b", "fi_design", "rotary")
@@ -70,7 +72,6 @@ def selected_groups(only=None) -> list[str]:
     """
     unknown = [o for o in only or () if not any(name.startswith(o) for name in GROUPS)]
     if unknown:
-        from stage_sim.config import ConfigError
         raise ConfigError(f"--only {' '.join(unknown)}: no claim group starts with "
                           f"{'it' if len(unknown) == 1 else 'them'}; groups: {', '.join(GROUPS)}")
     return [name for name in GROUPS if not only or any(name.startswith(o) for o in only)]
@@ -98,7 +99,6 @@ def collect(out: Path, only=None, progress=print) -> list[Claim]:
 def run_paper(out="out/paper", as_json: bool = False, only=None, overwrite: bool = False) -> int:
     """Run every claim group; print the table (or JSON); write claims.md/json and plots
     (:mod:`experiment_runner.outputs`: ``overwrite`` lets ``out`` be a folder nanostage did not write)."""
-    from experiment_runner import outputs
     selected_groups(only)                  # a bad --only is refused before anything is written
     out = outputs.prepare_folder(out, overwrite, files=("claims.json", "claims.md"), option="--out")
     import sys

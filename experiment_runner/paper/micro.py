@@ -52,8 +52,9 @@ import numpy as np
 from numba import njit
 
 from experiment_runner.batch import simulate
+from experiment_runner.campaigns.spec import load_campaign
 from experiment_runner.metrics import settling_time
-from experiment_runner.profiles import point_to_point, step_sequence
+from experiment_runner.profiles import DT, point_to_point, step_sequence, steps_reference
 from stage_sim.config import load_preset, with_overrides
 from stage_sim.friction.gms_rate_state import slider_step
 
@@ -184,7 +185,6 @@ def rate_state_overrides(a=None):
     campaign ``table_4_2_aging`` (its home, with the value's derivation); ``a`` replaces its ``a``.
     Only the law's own fields: the campaign's other overrides (the main job's gross-motion viscous
     friction) are not part of the law."""
-    from experiment_runner.campaigns.spec import load_campaign
     law = ("friction.model", "friction.a", "friction.b", "friction.v_r", "friction.theta0")
     ov = {k: v for k, v in load_campaign("table_4_2_aging", check_presets=False).overrides.items()
           if k.endswith(law)}
@@ -246,8 +246,7 @@ def history(step, a, b=None, preset=PRESET, prev_moves=PREV_MOVES, dwell=DWELL):
 
 
 def _two_moves(first, second, dwell):
-    from experiment_runner.profiles import DT, _steps
-    return _steps([first, second], 0.0, 0.005, dwell, DT, None, "triangular")
+    return steps_reference([first, second], 0.0, 0.005, dwell, DT, None, "triangular")
 
 
 def _fmt(s):

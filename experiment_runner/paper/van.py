@@ -34,10 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
+from experiment_runner import outputs
 from experiment_runner.batch import Models, simulate
 from experiment_runner.metrics import settling_time
-from experiment_runner import outputs
 from experiment_runner.paper import Claim
+from stage_control.dither import build_dither
 from stage_sim.config import Dither, load_preset, with_overrides
 
 STEPS = (50e-9, 500e-9)                     # App. A test steps [m]
@@ -103,7 +104,6 @@ def _dither_models(preset, frequency):
     The generator is built once per frequency and only its amplitude is replaced (the
     HC resonator depends on f alone); checked against a full build for one amplitude.
     """
-    from stage_control.dither import build_dither
     rate = preset.controller.rate
     ref = build_dither(Dither(**{**preset.dither.model_dump(), "frequency": frequency}), rate)
     out = [ref._replace(amplitude=float(A)) for A in A_GRID]

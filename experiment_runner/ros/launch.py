@@ -17,8 +17,9 @@ import sys
 import time
 from pathlib import Path
 
+from experiment_runner.outputs import interrupts_deferred
 from experiment_runner.ros.nodes import NODE_NAMES, NODES, node
-from experiment_runner.ros.run import isolate
+from experiment_runner.ros.run import isolate, make_executor, spin_for, teardown
 
 EXIT_ABORTED, EXIT_TIMEOUT, EXIT_RECORDING_CUT = 1, 124, 3
 """Exit codes of a graph run besides 0 (every trial complete, recording intact): a trial
@@ -201,7 +202,6 @@ def run_one_process(experiment: str, out: Path, timeout: float = 600.0, domain_i
 
     args = run_args(experiment, out, params)
     args["recorder"]["overwrite"] = True
-    from experiment_runner.outputs import interrupts_deferred
     # SIGINT / SIGTERM: noted and raised between spins (an error for the CLI: one line), never inside
     # a callback, nor rclpy's own shutdown
     with interrupts_deferred() as interrupted:
@@ -216,7 +216,6 @@ def _run_nodes(args: dict, timeout: float, interrupted) -> dict:
     import rclpy
     from rclpy.parameter import Parameter
 
-    from experiment_runner.ros.run import make_executor, spin_for, teardown
     try:
         made = {}
         for spec in NODES:

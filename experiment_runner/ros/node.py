@@ -24,11 +24,13 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from experiment_runner.batch import Models
 from experiment_runner.ros.qos import qos_profile, subscription_qos
 from experiment_runner.ros.run import params_source
 from msg_defs import cdr, convert
 from msg_defs.topics import FAULT_CAUSES, TRAJECTORY, Topic, get_topic
 from stage_sim.config import ConfigError, load_preset
+from stage_sim.validation import field_line
 
 FAULT_MODES = ("drop", "delay", "nan")
 """What the test-only ``fault.*`` parameters can do to the messages of one topic."""
@@ -179,7 +181,6 @@ class StageNode(Node):
         """The one input-error format (:func:`stage_sim.validation.field_line`): source, then the line."""
         import sys
 
-        from stage_sim.validation import field_line
         return (f"{self.get_name()} ({params_source(sys.argv)}): invalid parameters\n"
                 + field_line(name, value, problem))
 
@@ -213,7 +214,6 @@ class StageNode(Node):
 def warm_up_models():
     """The models of :data:`WARM_UP_PRESET` (:class:`experiment_runner.batch.Models`), for a
     node's :meth:`StageNode.warm_up`."""
-    from experiment_runner.batch import Models
     return Models.from_preset(load_preset(WARM_UP_PRESET))
 
 

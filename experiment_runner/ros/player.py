@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 
-from experiment_runner.recording import RecordingError, _load
+from experiment_runner.recording import RecordingError, load_raw
 from experiment_runner.ros.run import apply_graph_defaults, check_domain_id
 from experiment_runner.ros.qos import qos_profile
 from msg_defs import convert
@@ -76,7 +76,7 @@ def replay(path, rate: float = 1.0, *, domain_id: int | None = None,
     from rclpy.duration import Duration
     from rclpy.node import Node
 
-    raw = _load(path)
+    raw = load_raw(path)
     wanted = None if topics is None else set(topics)
     present = {ch.topic for ch in raw.channels.values()}
     if wanted is not None and wanted - present:

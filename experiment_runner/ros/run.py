@@ -23,6 +23,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
+from stage_sim.validation import ConfigError, load_yaml
 
 __all__ = ["domain_env", "isolate", "GRAPH_DEFAULTS", "LOOPBACK_PROFILE", "loopback_env", "apply_graph_defaults",
            "DOMAIN_IDS", "check_domain_id", "executor_kind", "make_executor", "run_node", "params_source",
@@ -178,7 +179,6 @@ def check_params_files(argv, node: str = "node") -> None:
     ...
     stage_sim.validation.ConfigError: plant_sim (params file ...): not valid YAML at line 4, column 1: ...
     """
-    from stage_sim.validation import ConfigError, load_yaml
     for name in params_files(argv):
         path, source = Path(name), f"{node} (params file {name})"
         if not path.exists():

@@ -12,6 +12,13 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from experiment_runner.experiment import EXPERIMENT_DIR, build_trials, load_experiment
+from experiment_runner.recording import read_recording
+from experiment_runner.ros.launch import run_one_process, run_processes
+from experiment_runner.ros.qos import qos_profile
+from experiment_runner.ros.run import isolate, make_executor
+from msg_defs import cdr, convert
+from msg_defs.topics import EVENTS, MEASURED
 
 
 def _bench_domain() -> int:
@@ -34,10 +41,6 @@ def rclpy_roundtrip_hz(n: int = 5000, executor: str | None = None, domain_id: in
     from rclpy.task import Future
     from sensor_msgs.msg import JointState
 
-    from experiment_runner.ros.qos import qos_profile
-    from experiment_runner.ros.run import isolate, make_executor
-    from msg_defs import cdr
-    from msg_defs.topics import MEASURED
 
     domain_id = domain_id or _bench_domain()
     isolate(domain_id)
@@ -98,9 +101,6 @@ class _EventClock:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
 
-        from experiment_runner.ros.qos import qos_profile
-        from msg_defs import convert
-        from msg_defs.topics import EVENTS
         self.events: list[tuple[float, dict]] = []
         self.ctx = Context()
         rclpy.init(context=self.ctx, domain_id=domain_id)
@@ -153,9 +153,6 @@ def graph_loop_hz(processes: bool, trials: int = 6, domain_id: int | None = None
     ``/sai/command``, which the FI stage does not use), over all trials."""
     import yaml
 
-    from experiment_runner.experiment import EXPERIMENT_DIR, build_trials, load_experiment
-    from experiment_runner.ros.launch import run_one_process, run_processes
-    from experiment_runner.ros.run import isolate
     domain_id = domain_id or _bench_domain()
     isolate(domain_id)
     with tempfile.TemporaryDirectory(prefix="nanostage_bench_") as tmp:
@@ -177,7 +174,6 @@ def graph_loop_hz(processes: bool, trials: int = 6, domain_id: int | None = None
         hz, samples = clock.rate(lengths)
         per_sample = None
         if ok:
-            from experiment_runner.recording import read_recording
             rec = read_recording(Path(tmp) / "run")
             per_sample = sum(rec.counts.values()) / sum(lengths.values())
     return {"hz": hz if ok and samples else None, "samples": samples, "ok": ok, "messages_per_sample": per_sample}

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field, model_validator
 
-from stage_sim.schema import Finite, _Strict
+from stage_sim.schema import Finite, StrictModel
 
 __all__ = ["FrictionVariation", "Model", "virgin_curve", "variation_entries"]
 
 
-class FrictionVariation(_Strict):
+class FrictionVariation(StrictModel):
     """Optional variations of a friction element's force (all default off = exactly the base model).
 
     The element's force (pre-motion and sliding alike) is multiplied by
