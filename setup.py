@@ -21,8 +21,8 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/presets", glob("stage_sim/presets/*.yaml")),
-        (f"share/{PACKAGE}/experiments", glob("experiment_runner/experiments/*.yaml")),
-        (f"share/{PACKAGE}/campaigns", glob("experiment_runner/campaigns/*.yaml")),
+        (f"share/{PACKAGE}/experiments", glob("experiment_runner/core/experiments/*.yaml")),
+        (f"share/{PACKAGE}/campaigns", glob("experiment_runner/apps/campaigns/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=False,
@@ -32,7 +32,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "nanostage = experiment_runner.cli:main",
+            "nanostage = experiment_runner.apps.cli:main",
             *NODE_SCRIPTS,
         ],
     },

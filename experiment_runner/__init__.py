@@ -1,2 +1,2 @@
 """nanostage: experiment_runner."""
-from stage_sim import _cache  # noqa: F401  (numba's cache keyed by the compiled code: before any kernel)
+from stage_sim import numba_cache  # noqa: F401  (numba's cache keyed by the compiled code: before any kernel)

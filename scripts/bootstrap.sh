@@ -14,5 +14,5 @@ fi
 # compile the numba kernels once, with progress (minutes on a fresh machine, seconds when cached);
 # NANOSTAGE_NO_WARMUP=1 skips it (the first run then compiles what it needs)
 if [ -z "${NANOSTAGE_NO_WARMUP:-}" ]; then
-  .venv/bin/python -m experiment_runner.warmup
+  .venv/bin/python -m experiment_runner.apps.warmup
 fi

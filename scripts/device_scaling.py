@@ -1,6 +1,6 @@
 """Scaling experiments for a many-core machine (issue 27); run by ``scripts/device_scaling.sh``.
 
-Measures, with the bench's own functions (:func:`experiment_runner.bench.campaign_trials_per_s`):
+Measures, with the bench's own functions (:func:`experiment_runner.apps.bench.campaign_trials_per_s`):
 
 * ``campaign``: Table 4.2 campaign trials/s on 1, 2, 4, ... local worker processes of one thread
   each and on a Dask ``LocalCluster`` of as many; on all cores also with the chunking of before
@@ -9,7 +9,7 @@ Measures, with the bench's own functions (:func:`experiment_runner.bench.campaig
   chunks (a memory budget per thread) and the legacy ones, and the share of the wall time spent
   inside the compiled batch kernel (the rest is Python between kernel calls: Amdahl);
 * ``kernel``: the hypotheses for the threads' scaling, on the batch engine alone
-  (:func:`experiment_runner.batch.simulate`, Table 4.2's No FI case, 5 mm): for ``size`` trials
+  (:func:`experiment_runner.core.batch.simulate`, Table 4.2's No FI case, 5 mm): for ``size`` trials
   per thread, the time of ``size`` trials on one thread against ``N * size`` trials on ``N``
   threads (efficiency 1 = perfect), with each threading layer numba has here (a process each),
   and against ``N`` processes each running ``size`` trials at once (no shared memory). The
@@ -111,8 +111,8 @@ def _cpu_s() -> float:
 
 # =========================================================================== campaign on workers
 def campaign_part(rep: Report, cores: int, per_case: int, deadline: float) -> None:
-    from experiment_runner.bench import campaign_trials_per_s
-    from experiment_runner.campaigns import stream as stream_mod
+    from experiment_runner.apps.bench import campaign_trials_per_s
+    from experiment_runner.apps.campaigns import stream as stream_mod
     widths = [w for w in (1, 2, 4, 8, 16, 32, 64) if w <= cores]
     if widths[-1] != cores:
         widths.append(cores)
@@ -148,8 +148,9 @@ def campaign_part(rep: Report, cores: int, per_case: int, deadline: float) -> No
 
 # =========================================================================== threads in one process
 def threads_part(rep: Report, cores: int, per_case: int) -> None:
-    from experiment_runner import batch, bench
-    from experiment_runner.campaigns import stream as stream_mod
+    from experiment_runner.apps import bench
+    from experiment_runner.apps.campaigns import stream as stream_mod
+    from experiment_runner.core import batch
     kernel, jobs = batch.run_chunks, bench.run_trial_jobs
     spent, wall = [0.0], [0.0]
 
@@ -190,9 +191,9 @@ def threads_part(rep: Report, cores: int, per_case: int) -> None:
 
 # =========================================================================== kernel hypotheses
 def _job():
-    from experiment_runner.batch import Models
-    from experiment_runner.campaigns.spec import case_preset, conditions, load_campaign
-    from experiment_runner.campaigns.trials import reference
+    from experiment_runner.apps.campaigns.spec import case_preset, conditions, load_campaign
+    from experiment_runner.apps.campaigns.trials import reference
+    from experiment_runner.core.batch import Models
     camp = load_campaign("table_4_2")
     cond = conditions(camp)[0]
     preset = case_preset(camp, camp.cases[0], None, cond)
@@ -201,7 +202,7 @@ def _job():
 
 def _best(n: int, reps: int) -> tuple[float, int]:
     """Best wall time of ``simulate`` of ``n`` trials, and the minor page faults of one call."""
-    from experiment_runner.batch import simulate
+    from experiment_runner.core.batch import simulate
     preset, models, ref = _JOB
     best, faults = math.inf, 0
     for _ in range(reps):
@@ -272,7 +273,7 @@ def kernel_part(rep: Report, cores: int, sizes: list, reps: int, deadline: float
         rep.put("kernel", f"threads_{layer}", val)
     if time.monotonic() > deadline:
         return
-    from experiment_runner.executor import make_executor
+    from experiment_runner.core.executor import make_executor
     with make_executor(cores) as ex:                  # one thread each
         ex.warm_all(_proc_task, (sizes[0], 1, 0.0))
         res = {}
@@ -351,7 +352,7 @@ def main() -> int:
     args = ap.parse_args()
     import numba
     import numpy
-    from experiment_runner.executor import default_workers
+    from experiment_runner.core.executor import default_workers
     out = Path(os.environ.get("OUT") or "out/device_scaling")
     out.mkdir(parents=True, exist_ok=True)
     cores = default_workers()

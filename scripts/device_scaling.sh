@@ -42,7 +42,7 @@ uptime
 
 echo "== warm-up: compiling the batch engine (limit ${WARM_LIMIT:-200} s)"
 t0=$(date +%s)
-timeout "${WARM_LIMIT:-200}" "$PY" -m experiment_runner.warmup batch
+timeout "${WARM_LIMIT:-200}" "$PY" -m experiment_runner.apps.warmup batch
 rc=$?
 warm=$(( $(date +%s) - t0 ))
 [ $rc -eq 0 ] || echo "device_scaling: warm-up exit $rc after ${warm} s (124: its time limit); measuring anyway"

@@ -5,7 +5,7 @@ The corpus (``../shared/independent``: ``python generate.py OUTDIR`` writes ``OU
 contract recording each, and ``OUTDIR/manifest.json`` with the truths) is a servo stage simulated
 by code written apart from nanostage; each recording's ``/experiment/config`` states only the
 nominal model, in that simulator's terms (``nominal_model``), which ``nanostage diagnose``
-translates itself (:mod:`experiment_runner.nominal_model`). Each case runs
+translates itself (:mod:`experiment_runner.core.nominal_model`). Each case runs
 
     nanostage diagnose CORPUS/hNN --out OUT/cases/hNN          (CLI defaults, only --out)
 
@@ -258,7 +258,7 @@ def score_folder(cid: str, case: dict, folder: Path) -> dict:
         except (OSError, json.JSONDecodeError):
             rep = None
     improved = _load_yaml(folder / "improved_preset.yaml")
-    from experiment_runner.nominal_model import preset_from_nominal
+    from experiment_runner.core.nominal_model import preset_from_nominal
     nominal = preset_from_nominal(case["nominal"])
     s = score_case(case, rep, improved, nominal)
     if rep is not None:

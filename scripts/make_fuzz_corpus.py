@@ -2,7 +2,7 @@
 """Build the fuzz corpus of the recording reader, deterministically.
 
 Two tiny valid contract recordings are the seeds: one written by
-:class:`~experiment_runner.recording.McapRecorder` (rosbags, uncompressed chunks, as
+:class:`~experiment_runner.core.recording.McapRecorder` (rosbags, uncompressed chunks, as
 the recorder node writes) and one written by ``mcap_ros2`` (zstd-compressed chunks, as
 other tools write). From each, mutations of these kinds are derived with a seeded
 random generator (same bytes on every run):
@@ -54,7 +54,7 @@ def _seed_recorder(path: Path) -> bytes:
     """Contract recording by McapRecorder: config, events, 3 contract topics, chunk every 3 ms."""
     from rosbags.typesys import Stores, get_typestore
 
-    from experiment_runner.recording import McapRecorder
+    from experiment_runner.core.recording import McapRecorder
     from msg_defs import convert
     ts = get_typestore(Stores.ROS2_JAZZY)
     with tempfile.TemporaryDirectory() as tmp:

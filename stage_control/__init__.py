@@ -1,2 +1,2 @@
 """nanostage: stage_control."""
-from stage_sim import _cache  # noqa: F401  (numba's cache keyed by the compiled code: before any kernel)
+from stage_sim import numba_cache  # noqa: F401  (numba's cache keyed by the compiled code: before any kernel)

@@ -1,8 +1,8 @@
 """The friction isolator (FI) of Ch. 6 as a model: the Fig. 6.2 plant, its closed-loop error and
 disturbance norms over ``k_fi, c_fi`` (Sec. 6.3.2) and the quasi-static series solver of the FI with
 the bearing's GMS / Dahl friction (Sec. 6.4.2), with the seed's table values. Used by the design
-advisor (:mod:`experiment_runner.design`) and by the reproduction of the chapter's claims
-(:mod:`experiment_runner.paper.fi_design`).
+advisor (:mod:`experiment_runner.apps.design`) and by the reproduction of the chapter's claims
+(:mod:`experiment_runner.apps.paper.fi_design`).
 Frequency-domain analysis (Sec. 6.3.2, Fig. 6.2-6.4, Eq. 6.1-6.3)
 ------------------------------------------------------------------
 Fig. 6.2 model: table ``m_t`` driven by ``F_a``, FI spring-damper ``k_fi, c_fi`` to the

@@ -3,7 +3,7 @@
 :func:`build_plant` compiles a validated :class:`stage_sim.config.Stage` into a
 :class:`PlantModel` (plain arrays), and :func:`plant_step` advances a batch of trials
 (:class:`PlantState`, trial axis last) under :class:`PlantInputs` by one control period. The
-same compiled step is called by the batch engine (``experiment_runner.batch``), the ROS plant
+same compiled step is called by the batch engine (``experiment_runner.core.batch``), the ROS plant
 node (a batch of one) and :func:`run_open_loop` (the open-loop driver of the diagnosis, the FRF
 campaign and the paper's Appendix B), so all produce the same trajectories.
 

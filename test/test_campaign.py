@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 import yaml
 
-from experiment_runner.campaigns import headline, mechanism
-from experiment_runner.campaigns.calibration import ParamSpec, fit
-from experiment_runner.campaigns.cli import add_campaign_arguments, main_campaign
-from experiment_runner.campaigns.report import write_index
-from experiment_runner.campaigns.runner import MAIN_JOB, run_campaign
-from experiment_runner.campaigns.spec import (CAMPAIGN_DIR, Campaign, cal_parameters, calibration_source, case_preset,
+from experiment_runner.apps.campaigns import headline, mechanism
+from experiment_runner.apps.campaigns.calibration import ParamSpec, fit
+from experiment_runner.apps.campaigns.cli import add_campaign_arguments, main_campaign
+from experiment_runner.apps.campaigns.report import write_index
+from experiment_runner.apps.campaigns.runner import MAIN_JOB, run_campaign
+from experiment_runner.apps.campaigns.spec import (CAMPAIGN_DIR, Campaign, cal_parameters, calibration_source, case_preset,
                                               conditions, list_campaigns, load_campaign, resolve)
-from experiment_runner.campaigns.trials import graph_experiment, learn_step_ii, make_trials, reference
-from experiment_runner.experiment import Experiment, build_trials, experiment_preset
+from experiment_runner.apps.campaigns.trials import graph_experiment, learn_step_ii, make_trials, reference
+from experiment_runner.core.experiment import Experiment, build_trials, experiment_preset
 from stage_sim.config import ConfigError, load_preset
 
 # Calibrated values of the full main job (50 / 20 trials, dwell 1 s), reused so that the
@@ -210,7 +210,7 @@ def test_outputs_are_written(t42):
     pngs = {p.name for p in (out / "plots").glob("*.png")}
     assert {"settling_5mm.png", "settling_5um.png", "distribution_settling_time_s.png",
             "distribution_rms_in_position_m.png", "spectrum_5um.png"} <= pngs
-    from experiment_runner.recording import read_recording
+    from experiment_runner.core.recording import read_recording
     rec = read_recording(out / "recordings" / "fi_5um_batch")
     rr = t42.runs[("fi", "5um")]
     assert np.array_equal(rec.y, rr.trace.y)

@@ -19,11 +19,11 @@ import math
 import pytest
 import yaml
 
-from experiment_runner.campaigns.calibration import calibration_fingerprint
-from experiment_runner.campaigns.kinds import KINDS, kind_of, schemas
-from experiment_runner.campaigns.registry import METRICS
-from experiment_runner.campaigns.runner import run_campaign
-from experiment_runner.campaigns.spec import (CAMPAIGN_DIR, Calibration, CalibrationFrom, Campaign, cal_parameters,
+from experiment_runner.apps.campaigns.calibration import calibration_fingerprint
+from experiment_runner.apps.campaigns.kinds import KINDS, kind_of, schemas
+from experiment_runner.apps.campaigns.registry import METRICS
+from experiment_runner.apps.campaigns.runner import run_campaign
+from experiment_runner.apps.campaigns.spec import (CAMPAIGN_DIR, Calibration, CalibrationFrom, Campaign, cal_parameters,
                                               calibration_source, case_preset, conditions, list_campaigns,
                                               load_campaign)
 from stage_sim.config import ConfigError

@@ -11,14 +11,14 @@ import scipy.signal
 import yaml
 from scipy.optimize import brentq
 
-from experiment_runner.campaigns.findings import seed_bound_check
-from experiment_runner.campaigns.frf import loop_frfs, nominal_fit, plant_frf
-from experiment_runner.campaigns.kinds import kind_of
-from experiment_runner.campaigns.runner import run_campaign
-from experiment_runner.campaigns.spec import (Campaign, FrequencyResponseTest, case_preset, conditions,
+from experiment_runner.apps.campaigns.findings import seed_bound_check
+from experiment_runner.apps.campaigns.frf import loop_frfs, nominal_fit, plant_frf
+from experiment_runner.apps.campaigns.kinds import kind_of
+from experiment_runner.apps.campaigns.runner import run_campaign
+from experiment_runner.apps.campaigns.spec import (Campaign, FrequencyResponseTest, case_preset, conditions,
                                               frequency_grid, load_campaign)
-from experiment_runner.batch import simulate
-from experiment_runner.metrics import sine_phasor
+from experiment_runner.core.batch import simulate
+from experiment_runner.core.metrics import sine_phasor
 from stage_control.tuning import loop_margins
 from stage_sim.config import ConfigError, load_preset, with_overrides
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from experiment_runner.cli import main
+from experiment_runner.apps.cli import main
 
 
 def test_bad_preset_file_names_field_and_exits_2(tmp_path, capsys):
@@ -66,8 +66,8 @@ def test_graph_bad_input_exits_2_naming_it(tmp_path, capsys, monkeypatch):
 
 
 def test_replay_bad_input_exits_2_naming_it(tmp_path, capsys):
-    from experiment_runner.experiment import experiment_preset, load_experiment, run_batch
-    from experiment_runner.recording import write_run
+    from experiment_runner.core.experiment import experiment_preset, load_experiment, run_batch
+    from experiment_runner.core.recording import write_run
     _fails(["replay", str(tmp_path / "missing.mcap")], capsys, "missing.mcap: no such file or directory")
     yml = tmp_path / "exp.yaml"
     yml.write_text("preset: fi_stage\n")
@@ -166,7 +166,7 @@ def test_every_command_has_a_bad_input_test():
     import re
     from pathlib import Path
 
-    from experiment_runner.cli import build_parser
+    from experiment_runner.apps.cli import build_parser
     commands = set(build_parser()._subparsers._group_actions[0].choices)
     tested = set(re.findall(r'\(\["(\w+)"', Path(__file__).read_text()))
     assert commands <= tested, f"no bad-input test for: {sorted(commands - tested)}"
@@ -177,7 +177,7 @@ def test_a_closed_output_pipe_is_not_a_traceback():
     import subprocess
     import sys
     # far more output than a pipe holds (64 KiB), so the writer meets the closed pipe for sure
-    child = ("import sys\nfrom experiment_runner.cli import main\n"
+    child = ("import sys\nfrom experiment_runner.apps.cli import main\n"
              "for _ in range(400):\n    rc = main(['presets'])\n    if rc:\n        sys.exit(rc)\n")
     proc = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     proc.stdout.readline()               # take one line, then stop listening (as `| head -1` does)
@@ -192,8 +192,8 @@ def test_a_command_imports_only_its_own_module():
     simulator, the diagnosis or the plotting stack: it starts in what reading a preset takes."""
     import subprocess
     import sys
-    code = ("import sys\nfrom experiment_runner.cli import main\nrc = main(['presets', 'fi_stage'])\n"
-            "heavy = [m for m in ('experiment_runner.batch', 'experiment_runner.design', 'experiment_runner.diagnosis',"
+    code = ("import sys\nfrom experiment_runner.apps.cli import main\nrc = main(['presets', 'fi_stage'])\n"
+            "heavy = [m for m in ('experiment_runner.core.batch', 'experiment_runner.apps.design', 'experiment_runner.apps.diagnosis',"
             " 'matplotlib', 'control') if m in sys.modules]\nprint(rc, heavy, file=sys.stderr)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.stderr.strip().splitlines()[-1] == "0 []", out.stderr
@@ -207,7 +207,7 @@ def test_json_stdout_carries_only_what_python_prints():
     import subprocess
     import sys
     code = ("import os, json\n"
-            "from experiment_runner.cli import python_only_stdout\n"
+            "from experiment_runner.apps.cli import python_only_stdout\n"
             "with python_only_stdout(True):\n"
             "    os.write(1, b' ** On entry to DLASCL parameter number  4 had an illegal value\\n')\n"
             "    print(json.dumps({'ok': 1}))\n"
@@ -226,7 +226,7 @@ def test_bench_json_is_one_json_object_with_every_figure(capsys):
     figures: the bench's own code on tiny sizes (its timings are ``nanostage bench``'s, never a test's)."""
     import json
 
-    from experiment_runner.bench import Sizes, run_bench
+    from experiment_runner.apps.bench import Sizes, run_bench
     assert run_bench(as_json=True, graph=False, sizes=Sizes(repeats=1, campaign_trials=2, diagnose_seconds=1.0, emps=False)) == 0
     res = json.loads(capsys.readouterr().out)
     for key in ("core_single_rtf", "core_batch_rtf", "core_substeps_per_sample", "core_ns_per_substep_per_trial",

@@ -1,4 +1,4 @@
-"""Design advisor (experiment_runner.design, ``nanostage design``): FI recommendation rule, VAN checks, CLI.
+"""Design advisor (experiment_runner.apps.design, ``nanostage design``): FI recommendation rule, VAN checks, CLI.
 
 One coarse, short sweep of ``fi_stage`` (module fixture) serves the rule tests; requirements are
 chosen from the sweep's own range so every branch (feasible, edge, infeasible) is exercised.
@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from experiment_runner import design
-from experiment_runner.design import (DesignError, Flexure, advise_isolator, check_van, main_design, recommend,
+from experiment_runner.apps import design
+from experiment_runner.apps.design import (DesignError, Flexure, advise_isolator, check_van, main_design, recommend,
                                       sweep_isolator)
 
 K_GRID = np.logspace(4, 6.5, 6)        # stage totals [N/m]
@@ -146,7 +146,7 @@ def test_van_bad_input():
 def _cli(argv):
     """``nanostage design argv``: bad input is the CLI's message (or argparse's, for a bad
     option value) and exit 2."""
-    from experiment_runner.cli import main
+    from experiment_runner.apps.cli import main
     try:
         return main(["design", *argv])
     except SystemExit as exc:
@@ -190,7 +190,7 @@ def test_cli_fi_run_writes_report(tmp_path, capsys, monkeypatch):
 
 @pytest.mark.slow
 def test_wired_in_nanostage_cli():
-    from experiment_runner.cli import build_parser
+    from experiment_runner.apps.cli import build_parser
     args = build_parser().parse_args(["design", "van_stage", "--vpp", "20"])
     assert args.func is main_design and args.vpp == 20.0
 

@@ -1,4 +1,4 @@
-"""Model diagnosis (experiment_runner.diagnosis): kernels, predict, locate, fit, report, synth.
+"""Model diagnosis (experiment_runner.apps.diagnosis): kernels, predict, locate, fit, report, synth.
 
 The end-to-end concealed-data cases (synth -> MCAP -> diagnose) are in
 test_diagnosis_selftest.py; here the pieces, on short in-memory batches.
@@ -9,18 +9,18 @@ import numpy as np
 import pytest
 import yaml
 
-from experiment_runner import profiles
-from experiment_runner.batch import simulate
-from experiment_runner.diagnosis import power
-from experiment_runner.diagnosis.data import DiagData
-from experiment_runner.diagnosis.fit import (Evaluator, estimate_lattice, fit_effect, gauss_newton,
+from experiment_runner.apps.diagnosis import power
+from experiment_runner.apps.diagnosis.context import Context
+from experiment_runner.apps.diagnosis.data import DiagData
+from experiment_runner.apps.diagnosis.effects import LIBRARY
+from experiment_runner.apps.diagnosis.effects.friction import virgin_x50
+from experiment_runner.apps.diagnosis.fit import (Evaluator, estimate_lattice, fit_effect, gauss_newton,
                                              sparse_regression)
-from experiment_runner.diagnosis.context import Context
-from experiment_runner.diagnosis.effects import LIBRARY
-from experiment_runner.diagnosis.effects.friction import virgin_x50
-from experiment_runner.diagnosis.locate import REGIMES, regimes
-from experiment_runner.diagnosis.model import ModelSpec, load_model
-from experiment_runner.diagnosis.predict import NoiseFloor, Observer, closed_loop, force_resolution, sim_batch, sim_data
+from experiment_runner.apps.diagnosis.locate import REGIMES, regimes
+from experiment_runner.apps.diagnosis.model import ModelSpec, load_model
+from experiment_runner.apps.diagnosis.predict import NoiseFloor, Observer, closed_loop, force_resolution, sim_batch, sim_data
+from experiment_runner.core import profiles
+from experiment_runner.core.batch import simulate
 from stage_sim.config import ConfigError, load_preset, preset_from_dict, with_overrides
 
 NOM = load_preset("fi_stage_nofi")
@@ -70,7 +70,7 @@ def test_observer_residual_is_the_missing_force():
 
 
 def test_open_loop_windows_drift_small_for_exact_model():
-    from experiment_runner.diagnosis.predict import open_loop_windows
+    from experiment_runner.apps.diagnosis.predict import open_loop_windows
     d = _data(NOM)
     ob = Observer(d)
     spec = ModelSpec(NOM)
@@ -313,7 +313,7 @@ def test_regimes_of_steps_and_circle():
 
 def test_experiment_sine_sweep_profile():
     """The experiment schema's stepped sine is profiles.sine_sweep; its trials start inside the travel."""
-    from experiment_runner.experiment import Experiment, build_trials, reference
+    from experiment_runner.core.experiment import Experiment, build_trials, reference
     exp = Experiment.model_validate({"name": "s", "preset": "fi_stage_nofi", "trials": 2,
                                      "starts": {"margin": 0.005, "seed": 1},
                                      "profile": {"kind": "sine_sweep", "frequencies": [8.0, 25.0],
@@ -333,7 +333,7 @@ def test_noise_floor_of_a_model_that_leaves_no_residual():
     measurement never changes) still give a floor: the white lower bound of one encoder step's force
     at the observer bandwidth. Whitening is finite; a 1 N residual is far above it, a residual at
     that bound is at it (without the bound the scale was 1/0 and every observer fit undefined)."""
-    from experiment_runner.diagnosis.predict import force_resolution
+    from experiment_runner.apps.diagnosis.predict import force_resolution
     rate, T = 1000.0, 4000
     mask = np.ones((T, 1), bool)
     f_min = force_resolution(ModelSpec(NOM), 40.0)

@@ -1,5 +1,5 @@
 """Issue 25 item 5: a diagnosis in bounded time with visible progress (``nanostage diagnose
---max-seconds``, ``--quiet``; :mod:`experiment_runner.diagnosis.budget`).
+--max-seconds``, ``--quiet``; :mod:`experiment_runner.apps.diagnosis.budget`).
 
 Each test synthesises a short concealed-effect record (the self-test's ``coulomb_+30%`` truth on
 three quarter-second circle trials; a full diagnosis adopts ``coulomb``) and runs the command
@@ -13,12 +13,12 @@ import signal
 import pytest
 import yaml
 
-from experiment_runner.cli import main
-from experiment_runner.diagnosis import tasks
-from experiment_runner.diagnosis.budget import Budget, BudgetReached, checkpoint, halt_search
-from experiment_runner.diagnosis.effects.base import NOMINAL
-from experiment_runner.diagnosis.selftest import CASES, EXPERIMENTS
-from experiment_runner.diagnosis.synth import synth
+from experiment_runner.apps.cli import main
+from experiment_runner.apps.diagnosis import tasks
+from experiment_runner.apps.diagnosis.budget import Budget, BudgetReached, checkpoint, halt_search
+from experiment_runner.apps.diagnosis.effects.base import NOMINAL
+from experiment_runner.apps.diagnosis.selftest import CASES, EXPERIMENTS
+from experiment_runner.apps.diagnosis.synth import synth
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
 """The effect library: every effect declares what the diagnosis, the power study and the self-test
-need of it, in its own class (``experiment_runner/diagnosis/effects``)."""
+need of it, in its own class (``experiment_runner/apps/diagnosis/effects``)."""
 from __future__ import annotations
 
 import importlib
@@ -9,13 +9,13 @@ import pkgutil
 import numpy as np
 import pytest
 
-from experiment_runner.diagnosis import effects as effects_pkg
-from experiment_runner.diagnosis import power
-from experiment_runner.diagnosis.context import Context
-from experiment_runner.diagnosis.effects import LIBRARY, SHIPPED, Draw, Effect, Library
-from experiment_runner.diagnosis.model import ModelSpec
-from experiment_runner.diagnosis.selftest import CASES, EXPERIMENTS
-from experiment_runner.diagnosis.units import unit_for
+from experiment_runner.apps.diagnosis import effects as effects_pkg
+from experiment_runner.apps.diagnosis import power
+from experiment_runner.apps.diagnosis.context import Context
+from experiment_runner.apps.diagnosis.effects import LIBRARY, SHIPPED, Draw, Effect, Library
+from experiment_runner.apps.diagnosis.model import ModelSpec
+from experiment_runner.apps.diagnosis.selftest import CASES, EXPERIMENTS
+from experiment_runner.apps.diagnosis.units import unit_for
 from stage_sim.config import preset_from_dict
 
 SETTINGS = [(stage, law) for stage in ("rigid", "isolated", "sai") for law in ("dahl", "gms", "coulomb")]

@@ -12,14 +12,14 @@ import pickle
 import pytest
 import yaml
 
-from experiment_runner.diagnosis import add_diagnose_arguments
-from experiment_runner.diagnosis.cli import diagnose_options
-from experiment_runner.diagnosis.model import load_model
-from experiment_runner.diagnosis.options import Options
-from experiment_runner.diagnosis.pipeline import diagnose
-from experiment_runner.diagnosis.report import jsonable
-from experiment_runner.diagnosis.selftest import CASES, EXPERIMENTS
-from experiment_runner.diagnosis.synth import synth
+from experiment_runner.apps.diagnosis import add_diagnose_arguments
+from experiment_runner.apps.diagnosis.cli import diagnose_options
+from experiment_runner.apps.diagnosis.model import load_model
+from experiment_runner.apps.diagnosis.options import Options
+from experiment_runner.apps.diagnosis.pipeline import diagnose
+from experiment_runner.apps.diagnosis.report import jsonable
+from experiment_runner.apps.diagnosis.selftest import CASES, EXPERIMENTS
+from experiment_runner.apps.diagnosis.synth import synth
 from stage_sim.config import ConfigError
 
 EFFECTS = ["coulomb", "viscous", "offset"]
@@ -79,8 +79,8 @@ def test_dask_local_cluster_same_report(case, threaded, dask_cluster):
 def test_a_library_object_selects_as_effect_keys_do(case, threaded):
     """``Diagnosis(library=...)`` proposes the candidates of the library it is given: the library of
     the three effects gives the report that selecting their keys from the default library gives."""
-    from experiment_runner.diagnosis.effects import LIBRARY
-    from experiment_runner.diagnosis.estimator import Diagnosis
+    from experiment_runner.apps.diagnosis.effects import LIBRARY
+    from experiment_runner.apps.diagnosis.estimator import Diagnosis
     rec, nominal = case
     d = Diagnosis(library=LIBRARY.select(EFFECTS), plots=False).fit(rec, nominal)
     assert d.effects_ == ["coulomb", "viscous"]

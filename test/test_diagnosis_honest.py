@@ -14,15 +14,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from experiment_runner.diagnosis import power, verdict
-from experiment_runner.diagnosis.context import Context
-from experiment_runner.diagnosis.effects import LIBRARY
-from experiment_runner.diagnosis.effects.base import Param, Parameter
-from experiment_runner.diagnosis.fit import FitResult
-from experiment_runner.diagnosis.forward import ForwardSelection
-from experiment_runner.diagnosis.judge import ReplayJudge, noise_free, own_resolution
-from experiment_runner.diagnosis.model import ModelSpec
-from experiment_runner.diagnosis.selection import Path, identification
+from experiment_runner.apps.diagnosis import power, verdict
+from experiment_runner.apps.diagnosis.context import Context
+from experiment_runner.apps.diagnosis.effects import LIBRARY
+from experiment_runner.apps.diagnosis.effects.base import Param, Parameter
+from experiment_runner.apps.diagnosis.fit import FitResult
+from experiment_runner.apps.diagnosis.forward import ForwardSelection
+from experiment_runner.apps.diagnosis.judge import ReplayJudge, noise_free, own_resolution
+from experiment_runner.apps.diagnosis.model import ModelSpec
+from experiment_runner.apps.diagnosis.selection import Path, identification
 from stage_sim.config import preset_from_dict
 
 
@@ -257,8 +257,8 @@ def test_a_force_residual_that_rises_while_the_replay_improves_is_stated():
 
 @pytest.mark.slow
 def test_a_nominal_stating_no_drive_noise_takes_the_datas_level_before_judging():
-    from experiment_runner.diagnosis import stages
-    from experiment_runner.diagnosis.options import Options
+    from experiment_runner.apps.diagnosis import stages
+    from experiment_runner.apps.diagnosis.options import Options
     case = power.PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
                            quantiles=(), seed=4242, profile={"kind": "point_to_point", "distance": 1e-4,
                                                              "dwell": 0.06}, trials=4)
@@ -284,8 +284,8 @@ def test_a_deterministic_residual_is_not_taken_for_the_drive_noise_level():
     does not make its replay consistent with its recordings (the residual holds more than noise), so
     no drive-noise level is taken before judging (taken, it would put the floor above the missing
     friction: the EMPS nominal read 1.5 A and named a 0.16 Hz 'periodic force' instead of friction)."""
-    from experiment_runner.diagnosis import stages
-    from experiment_runner.diagnosis.options import Options
+    from experiment_runner.apps.diagnosis import stages
+    from experiment_runner.apps.diagnosis.options import Options
     case = power.PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
                            quantiles=(), seed=4242, profile={"kind": "point_to_point", "distance": 1e-4,
                                                              "dwell": 0.06}, trials=4)
@@ -305,7 +305,7 @@ def test_a_deterministic_residual_is_not_taken_for_the_drive_noise_level():
 
 
 def test_a_candidate_replaying_closer_than_its_own_recordings_replays_the_noise():
-    from experiment_runner.diagnosis.selection import JudgedRow, consistent_from_below
+    from experiment_runner.apps.diagnosis.selection import JudgedRow, consistent_from_below
     z = {"mass": -5.0, "coulomb": 0.4, "delay": -1.0}
 
     def rows():

@@ -10,13 +10,13 @@ import pytest
 import yaml
 from scipy import signal
 
-from experiment_runner.diagnosis.data import load_data
-from experiment_runner.diagnosis.model import load_model
-from experiment_runner.diagnosis.openloop import OpenLoopJudge
-from experiment_runner.diagnosis.options import Options
-from experiment_runner.diagnosis.pipeline import diagnose
-from experiment_runner.diagnosis.predict import Observer
-from experiment_runner.tabular import convert_table
+from experiment_runner.apps.diagnosis.data import load_data
+from experiment_runner.apps.diagnosis.model import load_model
+from experiment_runner.apps.diagnosis.openloop import OpenLoopJudge
+from experiment_runner.apps.diagnosis.options import Options
+from experiment_runner.apps.diagnosis.pipeline import diagnose
+from experiment_runner.apps.diagnosis.predict import Observer
+from experiment_runner.core.tabular import convert_table
 from independent import lugre_rk4, regularized_coulomb_rk4
 from stage_sim.config import ConfigError
 
@@ -86,7 +86,7 @@ def test_open_loop_judge_truth_at_its_floor_nominal_far_known_force_needed(tmp_p
 def test_nominal_without_controller_refused_for_a_closed_loop_record(tmp_path):
     """A nominal that states no controller models open-loop data only: on a record with a
     reference the diagnosis says so (ConfigError naming the field), before any work."""
-    from experiment_runner.diagnosis.synth import synth
+    from experiment_runner.apps.diagnosis.synth import synth
     rec = tmp_path / "cl.mcap"
     synth("fi_stage_nofi", "fi_p2p_5um", rec, trials=1)
     nom = _nominal(m=load_model("fi_stage_nofi").preset.stage.table.mass)
@@ -119,7 +119,7 @@ def test_rotary_axis_diagnosed_in_rotary_units(tmp_path, rate, capsys):
     nominal lacks), converted with --units rotary: the diagnosis finds the viscous term within
     3 % and reports every unit as rotary -- the parameter [N·m·s/rad], report.json's units,
     report.md's tables and stdout ([rad], N·m)."""
-    from experiment_runner.cli import main
+    from experiment_runner.apps.cli import main
     rec = _record(tmp_path, rate, T=3.0 if rate < 5000 else 1.5, m=0.05, c=0.4, q=1e-7, noise=0.002, shaker=0.1,
                   units="rotary")
     nom = tmp_path / "rotary_nominal.yaml"
@@ -181,9 +181,9 @@ def test_fractional_delay_shift_ends_at_no_delay(delay, lo):
     """The fractional delay's shift cannot take the model's total delay below zero: there the
     model is flat in it (a shift of -0.31 on a model without delay was the same model as no
     shift, and the observer's fit wandered there); the end at zero delay is a physical one."""
-    from experiment_runner.diagnosis.context import Context
-    from experiment_runner.diagnosis.effects import LIBRARY
-    from experiment_runner.diagnosis.model import ModelSpec
+    from experiment_runner.apps.diagnosis.context import Context
+    from experiment_runner.apps.diagnosis.effects import LIBRARY
+    from experiment_runner.apps.diagnosis.model import ModelSpec
     from stage_sim.config import preset_from_dict
     d = _nominal(m=2.0, c=30.0, q=1e-9, noise=0.002)
     d["stage"]["drive"].update(delay_samples=int(delay), delay_fraction=delay - int(delay))
@@ -255,7 +255,7 @@ def test_isolator_hypothesis_in_any_rigid_nominal_same_candidate():
     """fi_compliance applies to a table with friction (its friction becomes the bearing's behind the
     joint) and to a table with bolted bearings; the same parameters give the same plant in both
     writings (every DOF mass, joint, friction), the rigid mass kept."""
-    from experiment_runner.diagnosis.effects import LIBRARY
+    from experiment_runner.apps.diagnosis.effects import LIBRARY
     from stage_sim.plant import build_plant
     e = LIBRARY["fi_compliance"]
     a, b = (load_model(x).with_changes({"controller.rate": 1000.0}) for x in _rigid_nominals())
@@ -316,7 +316,7 @@ def test_mode_located_from_the_transfer_up_to_nyquist(tmp_path, rate):
     observer's rate/25), 20 % of the table's mass: located and fitted from the command ->
     measurement transfer against the rigid nominal (csd/welch): frequency within 3 %, mass fraction
     within 20 %, damping within a factor 1.5; the rigid truth shows no mode."""
-    from experiment_runner.diagnosis.frf import locate_modes
+    from experiment_runner.apps.diagnosis.frf import locate_modes
     f_b = 0.15 * rate
     rec = _mode_record(tmp_path, rate, T=2.0 if rate < 5000 else 0.5, f_b=f_b)
     d = load_data(rec)
@@ -335,7 +335,7 @@ def test_open_loop_judge_prewhitened_sees_a_mode_the_drift_buries(tmp_path):
     nominal's window errors are within their floor (0.93x: the re-initialised state's drift
     dominates); prewhitened by the floor's own AR filter the rigid nominal is far above it (> 10x)
     while the truth stays at its floor (1 +- 0.2), and the judge adopts the truth over the nominal."""
-    from experiment_runner.diagnosis.effects import LIBRARY
+    from experiment_runner.apps.diagnosis.effects import LIBRARY
     rate = 10000.0
     rec = _mode_record(tmp_path, rate, T=0.5, f_b=1500.0)
     d = load_data(rec)
@@ -470,10 +470,10 @@ def test_known_force_applied_in_the_closed_loop_replay():
     of its held-out trial applies it -- the truth is at its run-to-run floor (error/floor
     RMS ratio 0.5 ... 1.5; measured 0.79) -- and without the known force the same model is far
     off (> 5x; measured 16.1x). Before, the replay applied no external force."""
-    from experiment_runner.batch import simulate
-    from experiment_runner.diagnosis.data import from_trials
-    from experiment_runner.diagnosis.judge import ReplayJudge
-    from experiment_runner.profiles import point_to_point
+    from experiment_runner.apps.diagnosis.data import from_trials
+    from experiment_runner.apps.diagnosis.judge import ReplayJudge
+    from experiment_runner.core.batch import simulate
+    from experiment_runner.core.profiles import point_to_point
     spec = load_model("fi_stage_nofi")
     rate = spec.preset.controller.rate
     ref = point_to_point(5e-6, dt=1.0 / rate, dwell=0.1)

@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from experiment_runner.diagnosis.judge import ReplayJudge, controller_check, equivalent_reference
-from experiment_runner.diagnosis.model import ModelSpec
-from experiment_runner.diagnosis.power import PowerCase, build_case
+from experiment_runner.apps.diagnosis.judge import ReplayJudge, controller_check, equivalent_reference
+from experiment_runner.apps.diagnosis.model import ModelSpec
+from experiment_runner.apps.diagnosis.power import PowerCase, build_case
 
 
 def _case(effects=(), q=()):

@@ -8,12 +8,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from experiment_runner.diagnosis.data import from_trials
-from experiment_runner.diagnosis.effects import LIBRARY
-from experiment_runner.diagnosis.frf import locate_modes, measured_frf, mode_ratio, model_frf, transfer_ratio
-from experiment_runner.diagnosis.locate import noise_spectrum_modes
-from experiment_runner.diagnosis.model import ModelSpec
-from experiment_runner.diagnosis.predict import closed_loop
+from experiment_runner.apps.diagnosis.data import from_trials
+from experiment_runner.apps.diagnosis.effects import LIBRARY
+from experiment_runner.apps.diagnosis.frf import locate_modes, measured_frf, mode_ratio, model_frf, transfer_ratio
+from experiment_runner.apps.diagnosis.locate import noise_spectrum_modes
+from experiment_runner.apps.diagnosis.model import ModelSpec
+from experiment_runner.apps.diagnosis.predict import closed_loop
 from stage_sim.config import load_preset
 
 F_B, ZETA, FRACTION = 500.0, 0.02, 0.2
@@ -104,7 +104,7 @@ def test_remaining_names_a_line_and_a_position_period_with_their_shares():
     (within 5 %, amplitude within 15 %) are listed, with shares adding to about the whole
     (0.045 / 0.02 of 0.065 N^2: 69 % and 31 % within 8 points), in N and m on a linear axis, N·m
     and rad on a rotary one."""
-    from experiment_runner.diagnosis.signatures import remaining
+    from experiment_runner.apps.diagnosis.signatures import remaining
     d, t, x = _moving()
     rng = np.random.default_rng(0)
     r = (0.3 * np.sin(2 * np.pi * 120 * t) + 0.2 * np.sin(2 * np.pi * x / 0.5e-3 + 0.4)
@@ -129,8 +129,8 @@ def test_remaining_names_a_line_and_a_position_period_with_their_shares():
 def test_remaining_lists_nothing_in_white_noise():
     """A white residual: no line 10 dB above its spectrum, no position period or stroke level of
     10 % share, no regime concentration; the report says the residual is spread."""
-    from experiment_runner.diagnosis.report import md_noise
-    from experiment_runner.diagnosis.signatures import remaining
+    from experiment_runner.apps.diagnosis.report import md_noise
+    from experiment_runner.apps.diagnosis.signatures import remaining
     d, t, x = _moving()
     r = np.random.default_rng(1).normal(0, 0.05, (t.size, 1))
     out = remaining(d, r, d.valid, 1000.0, floor_rms=0.01)
@@ -147,9 +147,9 @@ def test_diagnosis_reports_what_it_could_not_explain(tmp_path):
     nothing is adopted, the improved model stays far beyond its floor, and the report says what is
     left (period within 2 %, amplitude within 10 %, most of the residual) in report.md and
     remaining.png instead of stopping silently."""
-    from experiment_runner import profiles
-    from experiment_runner.diagnosis.options import Options
-    from experiment_runner.diagnosis.pipeline import diagnose
+    from experiment_runner.apps.diagnosis.options import Options
+    from experiment_runner.apps.diagnosis.pipeline import diagnose
+    from experiment_runner.core import profiles
     nom = ModelSpec(load_preset("fi_stage_nofi"))
     truth = LIBRARY["ripple"].apply(nom, [0.3, 0.0, 0.5e-3])
     ref = profiles.circle_x(1e-3, 20e-3, cycles=1)
@@ -165,7 +165,7 @@ def test_diagnosis_reports_what_it_could_not_explain(tmp_path):
     assert abs(pp["period_m"] / 0.5e-3 - 1) < 0.02 and abs(pp["amplitude_N"] / 0.3 - 1) < 0.1, pp
     assert left["signatures"][0]["kind"] == "periodic in position" and left["signatures"][0]["share"] > 0.7
     assert "What the improved model leaves" in (tmp_path / "out" / "report.md").read_text()
-    from experiment_runner.diagnosis.cli import remaining_line
+    from experiment_runner.apps.diagnosis.cli import remaining_line
     assert remaining_line(rep).startswith("left, located but not explained: period 0.000"), remaining_line(rep)
     assert (tmp_path / "out" / "remaining.png").stat().st_size > 0
 
@@ -176,7 +176,7 @@ def test_a_single_bin_line_is_no_mode_a_mode_fits_inside_its_bounds():
     """The transfer-ratio fit of a true mode ratio (500 Hz, zeta 0.02, 20 %) lands inside its
     bounds; a ratio of 1 with one bin 2x (a line of the excitation: EMPS' reference gave a '2.44 Hz
     mode' of zeta 1e-4 and 0.05 % of the mass) ends at a bound and is not located."""
-    from experiment_runner.diagnosis.frf import fit_mode
+    from experiment_runner.apps.diagnosis.frf import fit_mode
     f = np.linspace(250, 1000, 200)
     fit = fit_mode(f, mode_ratio(f, F_B, ZETA, FRACTION), 560.0, "resonance")
     assert fit["at_bound"] == [] and abs(fit["f_hz"] / F_B - 1) < 0.01, fit

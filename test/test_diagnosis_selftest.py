@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import yaml
 
-from experiment_runner.batch import simulate
-from experiment_runner.diagnosis import add_diagnose_arguments, add_synth_arguments, main_diagnose, main_synth
-from experiment_runner.recording import mcap_file, read_recording
+from experiment_runner.apps.diagnosis import add_diagnose_arguments, add_synth_arguments, main_diagnose, main_synth
+from experiment_runner.core.batch import simulate
+from experiment_runner.core.recording import mcap_file, read_recording
 from stage_sim.config import load_preset, with_overrides
 
 EXPERIMENT = {"name": "diag_test_circle", "preset": "fi_stage_nofi",
@@ -128,12 +128,12 @@ def test_sai_mode_missing_from_the_recording_comes_from_the_nominal(tmp_path):
     reference: the same switching as recorded."""
     import dataclasses
 
-    from experiment_runner.diagnosis.data import load_data
-    from experiment_runner.diagnosis.model import ModelSpec
-    from experiment_runner.diagnosis.predict import replay
-    from experiment_runner.diagnosis.stages import fill_plant_inputs
-    from experiment_runner.diagnosis.selftest import EXPERIMENTS
-    from experiment_runner.diagnosis.synth import synth
+    from experiment_runner.apps.diagnosis.data import load_data
+    from experiment_runner.apps.diagnosis.model import ModelSpec
+    from experiment_runner.apps.diagnosis.predict import replay
+    from experiment_runner.apps.diagnosis.selftest import EXPERIMENTS
+    from experiment_runner.apps.diagnosis.stages import fill_plant_inputs
+    from experiment_runner.apps.diagnosis.synth import synth
     truth = load_preset("sai_stage").model_dump(mode="json")
     truth["sai_manager"]["ilc"] = None
     (tmp_path / "truth.yaml").write_text(yaml.safe_dump(truth))

@@ -1,7 +1,7 @@
 """Speed mechanisms of the diagnosis that must not change its answer (issue 27 item 1).
 
 - A second forward walk that adopts the greedy walk's effects has joined it and stops there
-  (:class:`experiment_runner.diagnosis.forward.ForwardSelection`): scripted steps, no simulation.
+  (:class:`experiment_runner.apps.diagnosis.forward.ForwardSelection`): scripted steps, no simulation.
 - The replay refinements of a step run on parallel threads (:func:`.refining.refine_rows`): one
   thread and two give the same report, bit for bit.
 - ``nanostage bench``'s EMPS figure is left out, saying why, when the EMPS data are missing.
@@ -12,13 +12,13 @@ from types import SimpleNamespace
 import pytest
 import yaml
 
-from experiment_runner.diagnosis.budget import Budget
-from experiment_runner.diagnosis.forward import ForwardSelection
+from experiment_runner.apps.diagnosis.budget import Budget
+from experiment_runner.apps.diagnosis.forward import ForwardSelection
 
 
 def _canon(rep: dict) -> str:
     """Exact comparison form of a report without its wall times."""
-    from experiment_runner.diagnosis.report import jsonable
+    from experiment_runner.apps.diagnosis.report import jsonable
 
     def strip(o):
         if isinstance(o, dict):
@@ -105,10 +105,10 @@ def test_a_second_walk_that_never_joins_walks_to_its_end():
 
 @pytest.mark.slow
 def test_parallel_refinement_gives_the_same_report(tmp_path):
-    from experiment_runner.diagnosis.options import Options
-    from experiment_runner.diagnosis.pipeline import diagnose
-    from experiment_runner.diagnosis.selftest import CASES, EXPERIMENTS
-    from experiment_runner.diagnosis.synth import synth
+    from experiment_runner.apps.diagnosis.options import Options
+    from experiment_runner.apps.diagnosis.pipeline import diagnose
+    from experiment_runner.apps.diagnosis.selftest import CASES, EXPERIMENTS
+    from experiment_runner.apps.diagnosis.synth import synth
     c = next(c for c in CASES if c.name == "coulomb+viscous")
     exp = dict(EXPERIMENTS[c.experiment], preset=c.nominal)
     (tmp_path / "truth.yaml").write_text(yaml.safe_dump(c.truth_doc(), sort_keys=False))
@@ -126,7 +126,7 @@ def test_parallel_refinement_gives_the_same_report(tmp_path):
 
 
 def test_bench_emps_figure_skipped_without_the_data(tmp_path, monkeypatch, capsys):
-    from experiment_runner.bench import diagnose_seconds_emps
+    from experiment_runner.apps.bench import diagnose_seconds_emps
     monkeypatch.setenv("NANOSTAGE_DATA", str(tmp_path))
     assert diagnose_seconds_emps() is None
     err = capsys.readouterr().err

@@ -1,7 +1,7 @@
 """Docs as reference: numpydoc validation of ``diagnosis`` and ``campaigns``, and ruff over the repo.
 
 The numpydoc check walks every public module, class, function and method of
-:mod:`experiment_runner.diagnosis` and :mod:`experiment_runner.campaigns` (public: no leading
+:mod:`experiment_runner.apps.diagnosis` and :mod:`experiment_runner.apps.campaigns` (public: no leading
 underscore in the name or in any package on its path, and defined in that module, not imported
 into it) and runs :func:`numpydoc.validate.validate` on it, keeping the codes in :data:`CHECKS`.
 A method without a docstring of its own that overrides a documented method of a base class
@@ -32,7 +32,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = Path(__file__).with_name("docs_baseline.txt")
-PACKAGES = ("experiment_runner.diagnosis", "experiment_runner.campaigns")
+PACKAGES = ("experiment_runner.apps.diagnosis", "experiment_runner.apps.campaigns")
 
 #: numpydoc codes checked, and why. Not checked, deliberately: wording and layout (SS02-SS06,
 #: GL01-GL03, PR05-PR10, RT02-RT05), and sections numpydoc wants everywhere that would only be
@@ -159,8 +159,8 @@ def test_numpydoc_on_diagnosis_and_campaigns():
 def test_public_object_walk_sees_methods_and_skips_private():
     """The walk the numpydoc check relies on reaches methods and leaves private names out."""
     names = dict(public_objects())
-    assert "experiment_runner.diagnosis" in names
-    assert any(n.startswith("experiment_runner.campaigns.") for n in names)
+    assert "experiment_runner.apps.diagnosis" in names
+    assert any(n.startswith("experiment_runner.apps.campaigns.") for n in names)
     assert not [n for n in names if any(part.startswith("_") for part in n.split("."))]
     methods = [n for n, o in names.items() if not inspect.ismodule(o) and n.count(".") >= 4
                and inspect.isclass(names.get(n.rsplit(".", 1)[0]))]

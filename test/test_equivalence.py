@@ -3,8 +3,8 @@ same trajectories, bit for bit: one implementation of each algorithm, two driver
 import numpy as np
 import pytest
 
-from experiment_runner.batch import Models, simulate
-from experiment_runner.profiles import point_to_point
+from experiment_runner.core.batch import Models, simulate
+from experiment_runner.core.profiles import point_to_point
 from stage_control.dither import dither_step
 from stage_control.sai import sai_step
 from stage_control.servo import servo_step

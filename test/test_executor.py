@@ -11,13 +11,13 @@ import sys
 
 import pytest
 
-from experiment_runner.campaigns import stream as stream_mod
-from experiment_runner.campaigns.runner import run_campaign
-from experiment_runner.campaigns.spec import Campaign, case_preset, conditions, load_campaign
-from experiment_runner.campaigns.stream import STREAM_NAME
-from experiment_runner.campaigns.trials import metric_record, simulate_trials
-from experiment_runner import executor as executor_mod
-from experiment_runner.executor import Executor, cgroup_cpu_limit, default_workers, make_executor
+from experiment_runner.apps.campaigns import stream as stream_mod
+from experiment_runner.apps.campaigns.runner import run_campaign
+from experiment_runner.apps.campaigns.spec import Campaign, case_preset, conditions, load_campaign
+from experiment_runner.apps.campaigns.stream import STREAM_NAME
+from experiment_runner.apps.campaigns.trials import metric_record, simulate_trials
+from experiment_runner.core import executor as executor_mod
+from experiment_runner.core.executor import Executor, cgroup_cpu_limit, default_workers, make_executor
 from stage_sim.config import ConfigError
 
 STEP = 5e-6
@@ -194,9 +194,9 @@ def test_default_workers_is_the_affinity_capped_by_the_quota(monkeypatch):
 def test_the_commands_default_to_every_core(monkeypatch):
     """campaign and design sweeps: one worker process per core; the diagnosis: one thread per core."""
     import argparse
-    from experiment_runner.campaigns.cli import add_campaign_arguments
-    from experiment_runner.design import add_design_arguments
-    from experiment_runner.diagnosis.pipeline import Options
+    from experiment_runner.apps.campaigns.cli import add_campaign_arguments
+    from experiment_runner.apps.design import add_design_arguments
+    from experiment_runner.apps.diagnosis.pipeline import Options
     monkeypatch.setattr(executor_mod.os, "sched_getaffinity", lambda pid: set(range(7)), raising=False)
     monkeypatch.setattr(executor_mod, "cgroup_cpu_limit", lambda: None)
     for add, argv in ((add_campaign_arguments, ["table_4_2"]), (add_design_arguments, ["fi_stage"])):
@@ -242,7 +242,7 @@ def test_a_killed_run_keeps_its_streamed_trials(tmp_path):
     """SIGKILL right after an append (no close, no fsync): a resume finds every appended trial."""
     code = f"""
 import os, signal
-from experiment_runner.campaigns.stream import TrialStream
+from experiment_runner.apps.campaigns.stream import TrialStream
 s = TrialStream({str(tmp_path / STREAM_NAME)!r}, "x", "k", "c", resume=False)
 for i in range(5):
     s.append([{{"case": "a", "condition": "c", "trial": i, "x0_m": 0.0, "metrics": {{}}}}])

@@ -21,11 +21,11 @@ import yaml
 from conftest import GRAPH_TIMEOUT as RUN_TIMEOUT
 from conftest import ros_environment
 
-from experiment_runner.experiment import EXPERIMENT_DIR, experiment_preset, load_experiment, run_batch
-from experiment_runner import outputs
-from experiment_runner.graph import EXIT_ABORTED, run_graph
+from experiment_runner.apps.graph import EXIT_ABORTED, run_graph
+from experiment_runner.core import outputs
+from experiment_runner.core.experiment import EXPERIMENT_DIR, experiment_preset, load_experiment, run_batch
+from experiment_runner.core.recording import read_recording, write_run
 from experiment_runner.ros.nodes import nodes_for
-from experiment_runner.recording import read_recording, write_run
 from stage_control.servo import build_servo, check_reference
 from stage_sim.config import load_preset, with_overrides
 
@@ -479,8 +479,8 @@ def servo_node(ros_domain):
     from rclpy.context import Context
     from rclpy.parameter import Parameter
 
-    from msg_defs import convert
     from experiment_runner.ros.servo_node import ServoNode
+    from msg_defs import convert
     ctx = Context()
     rclpy.init(context=ctx, domain_id=ros_domain)
     node = ServoNode(context=ctx, parameter_overrides=[Parameter("preset", value="fi_stage")])
@@ -578,7 +578,7 @@ def test_the_recorder_counts_samples_lost_before_it_heard_the_config(tmp_path, r
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
-    from experiment_runner.recording import bag_layout
+    from experiment_runner.core.recording import bag_layout
     from msg_defs.convert import parse_event
     with open(bag_layout(tmp_path / "run")[1], "rb") as f:
         events = [parse_event(m.data) for *_, m in make_reader(f, decoder_factories=[DecoderFactory()])

@@ -223,8 +223,8 @@ def test_regularized_coulomb_in_the_registry():
     assert friction.law(cfg).virgin(cfg, np.array([1e-9, 1e-3])).tolist() == [3.0, 3.0]
     with pytest.raises(ConfigError, match="v_reg"):
         with_overrides(p, {"stage.bearings.0.friction.v_reg": 0.0}, source="test")
-    from experiment_runner.batch import simulate
-    from experiment_runner.profiles import point_to_point
+    from experiment_runner.core.batch import simulate
+    from experiment_runner.core.profiles import point_to_point
     ref = point_to_point(5e-6, dt=1e-4)
     r = simulate(p, ref.x, ref.v)                    # the closed loop runs with it
     assert abs(r.y[0, -1] - 5e-6) < 1e-7
@@ -235,19 +235,19 @@ def test_numba_cache_is_keyed_by_the_compiled_code(tmp_path):
     into the batch engine) must not run stale from numba's cache after its source changes:
     the cache directory is named by a hash over every source file using numba."""
     import shutil
-    from stage_sim import _cache
-    for pkg in _cache.PACKAGES:
-        shutil.copytree(_cache.ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
-    h0 = _cache.code_hash(tmp_path)
-    assert h0 == _cache.code_hash(_cache.ROOT)
+    from stage_sim import numba_cache
+    for pkg in numba_cache.PACKAGES:
+        shutil.copytree(numba_cache.ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    h0 = numba_cache.code_hash(tmp_path)
+    assert h0 == numba_cache.code_hash(numba_cache.ROOT)
     law = tmp_path / "stage_sim" / "friction" / "regularized.py"
     law.write_text(law.read_text().replace("1.0 - th * th", "1.0 - th ** 2"))
-    assert _cache.code_hash(tmp_path) != h0
+    assert numba_cache.code_hash(tmp_path) != h0
     doc = tmp_path / "stage_sim" / "validation.py"            # no compiled code: same cache
     law.write_text(law.read_text().replace("1.0 - th ** 2", "1.0 - th * th"))
     doc.write_text(doc.read_text() + "\n# comment\n")
-    assert _cache.code_hash(tmp_path) == h0
-    caller = tmp_path / "experiment_runner" / "bench.py"      # calls kernels, sets numba's threads: same cache
+    assert numba_cache.code_hash(tmp_path) == h0
+    caller = tmp_path / "experiment_runner" / "apps" / "bench.py"      # calls kernels, sets numba's threads: same cache
     assert b"numba" in caller.read_bytes()
     caller.write_text(caller.read_text() + "\n# comment\n")
-    assert _cache.code_hash(tmp_path) == h0
+    assert numba_cache.code_hash(tmp_path) == h0

@@ -10,10 +10,10 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
 
-from experiment_runner.batch import simulate
-from experiment_runner.metrics import settling_time
-from experiment_runner.paper import micro
-from experiment_runner.profiles import point_to_point, step_sequence
+from experiment_runner.apps.paper import micro
+from experiment_runner.core.batch import simulate
+from experiment_runner.core.metrics import settling_time
+from experiment_runner.core.profiles import point_to_point, step_sequence
 from stage_sim import friction
 from stage_sim.config import ConfigError, load_preset, with_overrides
 from stage_sim.friction import gms_rate_state as rs

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from experiment_runner.recording import RecordingError, read_recording
+from experiment_runner.core.recording import RecordingError, read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 CORPUS = Path(__file__).with_name("fuzz_corpus")

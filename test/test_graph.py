@@ -28,8 +28,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
-from experiment_runner.experiment import build_trials, experiment_preset, load_experiment, run_batch, trial_metrics
-from experiment_runner.recording import read_recording
+from experiment_runner.core.experiment import build_trials, experiment_preset, load_experiment, run_batch, trial_metrics
+from experiment_runner.core.recording import read_recording
 from experiment_runner.ros.launch import run_processes
 from experiment_runner.ros.nodes import NODE_NAMES
 from experiment_runner.ros.run import domain_env
@@ -268,7 +268,7 @@ def test_a_controller_that_joins_late_gets_the_sample_again_and_nothing_is_lost(
     trial did. The plant sends the waiting sample again, the servo answers, and the run
     is the batch engine's, sample for sample (nothing computed twice, nothing recorded twice)."""
     import yaml
-    from experiment_runner.experiment import EXPERIMENT_DIR
+    from experiment_runner.core.experiment import EXPERIMENT_DIR
     doc = yaml.safe_load((EXPERIMENT_DIR / "fi_p2p_5um.yaml").read_text())
     doc.update(name="late_servo", trials=1)
     exp_file = tmp_path / "late_servo.yaml"
@@ -293,7 +293,7 @@ def test_a_controller_that_joins_late_gets_the_sample_again_and_nothing_is_lost(
     # machine) loses more, possibly all of this short trial: whatever it has is right.
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
-    from experiment_runner.recording import bag_layout
+    from experiment_runner.core.recording import bag_layout
     with open(bag_layout(tmp_path / "run")[1], "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         msgs = [(ch.topic, raw.log_time, m) for _, ch, raw, m in
@@ -530,7 +530,7 @@ def test_a_graph_whose_nodes_compile_their_kernels_first_runs(tmp_path, monkeypa
     5.0 s (node: plant_sim)"; the plant was stopped before it saved its kernel, so the next
     runs did the same.)"""
     import yaml
-    from experiment_runner.experiment import EXPERIMENT_DIR
+    from experiment_runner.core.experiment import EXPERIMENT_DIR
     cache = _kernel_cache_without(tmp_path, "plant.plant_step-*", "servo.servo_step-*")
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
     doc = yaml.safe_load((EXPERIMENT_DIR / "fi_p2p_5um.yaml").read_text())

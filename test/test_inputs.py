@@ -5,7 +5,7 @@ experiments, campaigns, mappings, model files and the configuration stored in a 
 alias bombs, deep nesting, long numbers, huge files and files that are not regular files are
 refused with one line naming the file. Values: schema ranges the code can run, CLI options.
 Damage inside recordings (non-finite or absurd values, missing, misordered samples, aborted
-trials) is reported by the reader (:class:`experiment_runner.recording.Damage`), never
+trials) is reported by the reader (:class:`experiment_runner.core.recording.Damage`), never
 "agrees" in ``replay --check``, and is excluded (or refused) by the diagnosis. Every input is
 built in the test.
 """
@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 import yaml
 
-from experiment_runner.cli import main
-from experiment_runner.diagnosis.data import load_data
-from experiment_runner.metrics import trial_metrics
-from experiment_runner.recording import McapRecorder, RecordingError, typestore, read_recording
+from experiment_runner.apps.cli import main
+from experiment_runner.apps.diagnosis.data import load_data
+from experiment_runner.core.metrics import trial_metrics
+from experiment_runner.core.recording import McapRecorder, RecordingError, typestore, read_recording
 from msg_defs import convert
 from stage_sim.config import ConfigError, load_preset
 from stage_sim.validation import load_yaml
@@ -127,10 +127,10 @@ def test_a_fifo_or_kernel_file_given_as_input_is_refused_before_it_is_opened(tmp
         for pseudo in ("/proc/self/status", "/proc/kmsg"):
             if os.path.exists(pseudo):
                 _cli_error(["presets", pseudo], capsys, f"{pseudo}: a kernel pseudo-file (under /proc)")
-        from experiment_runner.diagnosis.model import load_model
+        from experiment_runner.apps.diagnosis.model import load_model
         with pytest.raises(ConfigError, match="not a regular file"):
             load_model(fifo)
-        from experiment_runner.tabular import load_mapping, read_table
+        from experiment_runner.core.tabular import load_mapping, read_table
         with pytest.raises(ConfigError, match="not a regular file"):
             load_mapping(fifo)
         with pytest.raises(ConfigError, match="a kernel pseudo-file"):
@@ -273,7 +273,7 @@ def test_a_1000_m_move_is_refused_naming_the_move_and_the_travel(tmp_path, capsy
 def test_dwell_1e9_is_refused_by_a_size_estimate_before_allocation(tmp_path, capsys):
     """Before: numpy tried to allocate 72.8 TiB (``--dwell 1e9``, a traceback). The reference's
     length is checked before anything is allocated, naming the value and the limit."""
-    from experiment_runner.profiles import MAX_SAMPLES, point_to_point
+    from experiment_runner.core.profiles import MAX_SAMPLES, point_to_point
     with pytest.raises(ConfigError, match=r"dwell 1e\+09 s at 10000 Hz is 1e\+13 samples .*at most 5e\+07 samples"):
         point_to_point(5e-6, dwell=1e9)
     assert MAX_SAMPLES == 50_000_000
@@ -286,7 +286,7 @@ def test_dwell_1e9_is_refused_by_a_size_estimate_before_allocation(tmp_path, cap
 
 
 def test_batch_memory_estimate_refuses_what_cannot_fit():
-    from experiment_runner.batch import BYTES_PER_SAMPLE, check_memory
+    from experiment_runner.core.batch import BYTES_PER_SAMPLE, check_memory
     have = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     check_memory(10, 10_000, 1e4)                                         # 10 MB: fine
     with pytest.raises(ConfigError, match=r"100000 trial\(s\) of .* GiB of memory"):
@@ -323,7 +323,7 @@ def test_cli_options_are_checked_before_any_work(tmp_path, capsys, monkeypatch, 
 
 
 def test_effect_keys_are_those_of_list_effects(capsys):
-    from experiment_runner.diagnosis.cli import effect_keys
+    from experiment_runner.apps.diagnosis.cli import effect_keys
     assert main(["diagnose", "--list-effects", "--json"]) == 0
     listed = [e["key"] for e in json.loads(capsys.readouterr().out) if e["kind"] != "fallback"]
     assert len(listed) > 10 and effect_keys(",".join(listed)) == listed
@@ -472,7 +472,7 @@ def test_diagnose_with_a_nan_sample_excludes_its_trial_in_report_and_stdout(tmp_
     """End to end: ``nanostage diagnose`` on a simulated 3-trial recording with one NaN
     measured sample finishes (report.md written), and report.md and stdout say which trial
     was excluded and why. Before: a TypeError after report.json."""
-    from experiment_runner.diagnosis.synth import synth
+    from experiment_runner.apps.diagnosis.synth import synth
     src = read_recording(synth("fi_stage", "fi_p2p_5um", tmp_path / "clean", trials=3))
     path = tmp_path / "nan"
     with McapRecorder(path, src.config) as rec:

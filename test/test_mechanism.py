@@ -1,14 +1,14 @@
-"""Settling mechanism analysis (experiment_runner.campaigns.mechanism): turning points, the friction-free twin,
+"""Settling mechanism analysis (experiment_runner.apps.campaigns.mechanism): turning points, the friction-free twin,
 and the seed's mechanism on a small campaign."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from experiment_runner.campaigns.runner import run_campaign
-from experiment_runner.campaigns.spec import Campaign, case_preset, conditions, load_campaign
-from experiment_runner.campaigns import mechanism as mech
-from experiment_runner.campaigns.frequency_response import frf_lines
+from experiment_runner.apps.campaigns import mechanism as mech
+from experiment_runner.apps.campaigns.frequency_response import frf_lines
+from experiment_runner.apps.campaigns.runner import run_campaign
+from experiment_runner.apps.campaigns.spec import Campaign, case_preset, conditions, load_campaign
 from stage_sim.config import load_preset
 
 

@@ -1,4 +1,4 @@
-"""Tests of experiment_runner.metrics."""
+"""Tests of experiment_runner.core.metrics."""
 
 import math
 
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy import optimize, signal
 
-from experiment_runner.metrics import (
+from experiment_runner.core.metrics import (
     cross_spectra, error_spectrum, sine_phasor, rms_in_position, settling_time, tracking_errors)
-from experiment_runner.profiles import sine_sweep
+from experiment_runner.core.profiles import sine_sweep
 from stage_control.tuning import closed_loop_bandwidth, loop_margins
 
 DT = 1e-4

@@ -1,5 +1,5 @@
 """A recording's ``nominal_model`` block (a rig's model in its own terms) translated into a preset
-(experiment_runner.nominal_model), the PID's matched-pole derivative (Pid.derivative_discretization),
+(experiment_runner.core.nominal_model), the PID's matched-pole derivative (Pid.derivative_discretization),
 and -- where ../shared/independent is present -- the translation against that independent simulator."""
 import argparse
 import math
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from experiment_runner.batch import simulate
-from experiment_runner.nominal_model import main_convert_nominal, nominal_preset_from_config, preset_from_nominal
+from experiment_runner.core.batch import simulate
+from experiment_runner.core.nominal_model import main_convert_nominal, nominal_preset_from_config, preset_from_nominal
 from stage_control.servo import build_servo, init_servo_state, servo_step
 from stage_sim.config import ConfigError, load_preset, preset_from_dict, with_overrides
 
@@ -111,7 +111,7 @@ def test_derivative_discretization_is_validated():
 
 # --------------------------------------------------------------------------- the recording's block, end to end
 def _recording(tmp_path, block, name="rec"):
-    from experiment_runner.recording import write_run
+    from experiment_runner.core.recording import write_run
     pre = preset_from_dict(preset_from_nominal(block))
     t = np.arange(3000) * 1e-4
     x = 2e-6 * (1 - np.cos(2 * np.pi * 5 * t))
@@ -122,7 +122,7 @@ def _recording(tmp_path, block, name="rec"):
 
 @pytest.mark.slow
 def test_convert_nominal_writes_the_preset_and_diagnose_takes_the_block(tmp_path):
-    from experiment_runner.diagnosis.cli import nominal_from_config
+    from experiment_runner.apps.diagnosis.cli import nominal_from_config
     rec = _recording(tmp_path, _block())
     out = tmp_path / "p" / "nominal.yaml"
     args = argparse.Namespace(recording=str(rec), out=str(out), overwrite=False)
@@ -132,14 +132,14 @@ def test_convert_nominal_writes_the_preset_and_diagnose_takes_the_block(tmp_path
     assert written.stage.table_friction.k_sigma == 2.19e6
     with pytest.raises(ConfigError, match="exists; pass --overwrite"):
         main_convert_nominal(args)
-    from experiment_runner.recording import read_recording
+    from experiment_runner.core.recording import read_recording
     nominal = nominal_from_config(read_recording(rec, require_reference=False))   # `diagnose REC` without NOMINAL
     assert nominal == preset_from_nominal(_block(), source=str(rec), name="t01_nominal",
                                           conventions={"units": "SI"})
 
 
 def test_convert_nominal_refuses_a_recording_without_the_block(tmp_path):
-    from experiment_runner.recording import write_run
+    from experiment_runner.core.recording import write_run
     pre = load_preset("fi_stage_nofi")
     res = simulate(pre, np.zeros(200), np.zeros(200), seeds=[0])
     rec = write_run(tmp_path / "plain", res, pre)
@@ -151,8 +151,8 @@ def test_convert_nominal_refuses_a_recording_without_the_block(tmp_path):
 
 @pytest.mark.slow
 def test_cli_refuses_a_bad_block_and_a_missing_recording_exit_2(tmp_path, capsys):
-    from experiment_runner.cli import main
-    from experiment_runner.recording import read_recording, write_run
+    from experiment_runner.apps.cli import main
+    from experiment_runner.core.recording import read_recording, write_run
     good = _recording(tmp_path, _block(), "good")
     # the same run, its config's block changed to a law the conventions do not define
     rec = read_recording(good)
@@ -248,7 +248,7 @@ def test_a_corpus_negative_control_diagnosed_with_cli_defaults_names_nothing(tmp
     floor; :func:`test_translation_replays_the_independent_simulator` tells the two apart.)"""
     import json
 
-    from experiment_runner.cli import main
+    from experiment_runner.apps.cli import main
     gen = _import_independent("generate")
     ts = _import_independent("truthsim")
     nom, adds, exp, seed = gen.CASES[gen.CASE_IDS.index("h02")]

@@ -1,4 +1,4 @@
-"""Outputs are safe by construction (:mod:`experiment_runner.outputs`, issue 24): every command writes
+"""Outputs are safe by construction (:mod:`experiment_runner.core.outputs`, issue 24): every command writes
 atomically, never through a link, never over or away what nanostage did not write, and SIGTERM /
 SIGINT clean up like an error. Each test builds its inputs in ``tmp_path``; the property-based test
 drives the helper directly over output folders holding users' files, folders, links and partials."""
@@ -18,12 +18,12 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from experiment_runner import outputs
-from experiment_runner.cli import main
-from experiment_runner.outputs import MANIFEST, OutputError, listed
-from experiment_runner.recording import read_recording
+from experiment_runner.apps.cli import main
+from experiment_runner.core import outputs
+from experiment_runner.core.outputs import MANIFEST, OutputError, listed
+from experiment_runner.core.recording import read_recording
 
-CLI = [sys.executable, "-m", "experiment_runner.cli"]
+CLI = [sys.executable, "-m", "experiment_runner.apps.cli"]
 
 
 def _csv(path: Path, n: int = 200) -> Path:
@@ -248,8 +248,8 @@ def test_ctrl_c_in_a_graph_run_gives_no_traceback(tmp_path, ros_domain):
 _WRITE_RUN = """
 import sys
 import numpy as np
-from experiment_runner.batch import BatchResult
-from experiment_runner.recording import write_run
+from experiment_runner.core.batch import BatchResult
+from experiment_runner.core.recording import write_run
 from stage_sim.config import load_preset
 n = 400_000
 z = np.zeros((1, n))

@@ -5,8 +5,8 @@ from dataclasses import asdict
 
 import pytest
 
-from experiment_runner.paper import Claim
-from experiment_runner.paper.appendix_a import claims
+from experiment_runner.apps.paper import Claim
+from experiment_runner.apps.paper.appendix_a import claims
 
 pytestmark = pytest.mark.slow              # the claims' simulations: ~8 s, shared by every test here
 

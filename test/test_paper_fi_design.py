@@ -1,6 +1,6 @@
 """Chapter 6 FI design analysis (Sec. 6.3.2, 6.4.2) and Appendix D rotary FI claims.
 
-Module-scoped fixtures run ``experiment_runner.paper.fi_design`` and ``...rotary`` once.
+Module-scoped fixtures run ``experiment_runner.apps.paper.fi_design`` and ``...rotary`` once.
 Claims that reproduce assert ``agrees``; for the one that does not (Fig. 6.3(b) stiffness
 trend) the test pins the honest property we find instead and its first-order explanation.
 """
@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from experiment_runner.paper import fi_design, rotary
+from experiment_runner.apps.paper import fi_design, rotary
 from stage_control import isolator
 
 

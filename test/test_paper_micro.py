@@ -1,4 +1,4 @@
-"""Micrometre settling study (experiment_runner.paper.micro): the standalone loop and the App. C.1
+"""Micrometre settling study (experiment_runner.apps.paper.micro): the standalone loop and the App. C.1
 evidence it was built to test. The slider kernels are the law's: test/test_friction_rate_state.py."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from experiment_runner.paper import micro
+from experiment_runner.apps.paper import micro
 
 
 def test_saturated_force_grows_with_same_direction_travel():

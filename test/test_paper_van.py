@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from experiment_runner.paper import Claim, appendix_b, van
+from experiment_runner.apps.paper import Claim, appendix_b, van
 
 
 @pytest.fixture(scope="module")

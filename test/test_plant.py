@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from experiment_runner.batch import simulate
-from experiment_runner.profiles import point_to_point
+from experiment_runner.core.batch import simulate
+from experiment_runner.core.profiles import point_to_point
 from stage_sim.config import Stage, load_preset, with_overrides
 from stage_sim.plant import PlantSim, SimulationError, build_plant
 

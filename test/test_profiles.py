@@ -1,11 +1,11 @@
-"""Tests of experiment_runner.profiles."""
+"""Tests of experiment_runner.core.profiles."""
 
 import math
 
 import numpy as np
 import pytest
 
-from experiment_runner.profiles import (
+from experiment_runner.core.profiles import (
     Segment, circle_x, default_move_duration, point_to_point, random_starts,
     sine_sweep, step_sequence)
 

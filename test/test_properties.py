@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from pydantic import BaseModel
 from rosbags.typesys import Stores, get_typestore
 
-from experiment_runner.recording import run_config_yaml
+from experiment_runner.core.recording import run_config_yaml
 from msg_defs import convert
 from stage_sim.config import ConfigError, Preset, list_presets, load_preset, preset_from_dict, with_overrides
 from stage_sim.validation import ConfigWarning, load_yaml, model_axis, plausible_range
@@ -215,8 +215,8 @@ def test_shipped_values_are_plausible():
 @pytest.mark.parametrize("kind", ["experiment", "campaign"])
 @pytest.mark.slow
 def test_shipped_experiments_and_campaigns_round_trip_through_yaml(kind):
-    from experiment_runner import experiment
-    from experiment_runner.campaigns import spec as campaign
+    from experiment_runner.apps.campaigns import spec as campaign
+    from experiment_runner.core import experiment
     if kind == "experiment":
         items = [(experiment.Experiment, experiment.load_experiment(n)) for n in experiment.list_experiments()]
     else:
@@ -228,7 +228,7 @@ def test_shipped_experiments_and_campaigns_round_trip_through_yaml(kind):
 
 
 def _experiment_leaves():
-    from experiment_runner.experiment import list_experiments, load_experiment
+    from experiment_runner.core.experiment import list_experiments, load_experiment
     return [(name, path) for name in list_experiments()
             for path, _, _ in _leaves(load_experiment(name)) if not path.startswith("overrides")]
 
@@ -237,7 +237,7 @@ def _experiment_leaves():
 @given(st.sampled_from(_experiment_leaves()), BAD.filter(lambda b: b is not None))
 @pytest.mark.slow
 def test_a_bad_number_in_an_experiment_file_is_refused_naming_file_and_field(tmp_path_factory, leaf, bad):
-    from experiment_runner.experiment import load_experiment
+    from experiment_runner.core.experiment import load_experiment
     name, path = leaf
     data = load_experiment(name).model_dump(mode="json")
     parent, _, key = path.rpartition(".")

@@ -1,7 +1,7 @@
 """Real data (issue 5, item 7): the diagnosis recovers what the data sets' READMEs say is there.
 
 Reads the real files of ``../shared/data`` (``conftest.shared_data`` / ``shared_file``: resolved by
-:func:`experiment_runner.diagnosis.datasets.data_root`); where a data set is missing its tests are
+:func:`experiment_runner.apps.diagnosis.datasets.data_root`); where a data set is missing its tests are
 skipped naming the places looked in, and the core suite deselects them (``-m "not realdata"``).
 
 Tolerances (stated here, not tuned): EMPS, against the published IDIM-LS model
@@ -20,9 +20,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from experiment_runner.diagnosis import realdata as R
-from experiment_runner.diagnosis.datasets import DataMissing, data_root
-from experiment_runner.tabular import convert_emps
+from experiment_runner.apps.diagnosis import realdata as R
+from experiment_runner.apps.diagnosis.datasets import DataMissing, data_root
+from experiment_runner.core.tabular import convert_emps
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +39,7 @@ def emps_run(emps_diagnosis):
 @pytest.mark.slow
 def test_convert_emps_is_the_contract_mapping(emps, emps_diagnosis):
     """The suite's EMPS recording (``convert emps``, as the diagnosis read it)."""
-    from experiment_runner.recording import read_recording
+    from experiment_runner.core.recording import read_recording
     from stage_control.cascaded import CascadedPP, cascaded_command
     rec = read_recording(emps_diagnosis["recording"])
     assert len(rec) == 24841
@@ -156,7 +156,7 @@ def test_data_root_names_where_it_looked(tmp_path):
 @pytest.mark.realdata
 @pytest.mark.slow
 def test_convert_command_line(emps, tmp_path, capsys):
-    from experiment_runner.cli import main
+    from experiment_runner.apps.cli import main
     assert main(["convert", "emps", str(emps.path), "--out", str(tmp_path / "rec")]) == 0
     assert capsys.readouterr().out.startswith(f"{tmp_path / 'rec' / 'rec.mcap'}: 24841 samples at 1000 Hz")
     # a bad input is one line on stderr and exit 2, nothing written

@@ -21,12 +21,12 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from experiment_runner.batch import BatchResult
-from experiment_runner.outputs import OutputError
-from experiment_runner.recording import (McapRecorder, RecordingError, TrialSignals, bag_layout, mcap_file,
+from experiment_runner.apps.replay import check_metrics, main_replay, add_replay_arguments
+from experiment_runner.core.batch import BatchResult
+from experiment_runner.core.metrics import trial_metrics
+from experiment_runner.core.outputs import OutputError
+from experiment_runner.core.recording import (McapRecorder, RecordingError, TrialSignals, bag_layout, mcap_file,
                                          read_recording, write_run, write_trials)
-from experiment_runner.metrics import trial_metrics
-from experiment_runner.replay import check_metrics, main_replay, add_replay_arguments
 from msg_defs import convert
 from msg_defs.topics import CONTRACT_TOPICS, TOPICS, offered_qos_yaml
 from stage_sim.config import load_preset
@@ -82,7 +82,7 @@ def _same_bits(a, b):
 def test_layout_is_a_rosbag2_bag_with_one_mcap_file(synthetic):
     rec, _ = synthetic
     assert rec.path == rec.bag_dir / "run.mcap" and bag_layout("x/run") == bag_layout("x/run.mcap")
-    # + nanostage's manifest of what it wrote there (experiment_runner.outputs)
+    # + nanostage's manifest of what it wrote there (experiment_runner.core.outputs)
     assert sorted(p.name for p in rec.bag_dir.iterdir()) == [".nanostage-output.json", "metadata.yaml", "run.mcap"]
     meta = yaml.safe_load((rec.bag_dir / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert meta["version"] == 9 and meta["storage_identifier"] == "mcap" and meta["relative_file_paths"] == ["run.mcap"]
@@ -246,7 +246,7 @@ def test_indexed_fast_path_gives_the_mcap_librarys_messages(synthetic, tmp_path)
     chunk fails the CRC check as in the library."""
     from mcap_ros2.writer import Writer as Ros2Writer
 
-    from experiment_runner.recording import indexed_messages
+    from experiment_runner.core.recording import indexed_messages
     msgdef, _ = TS.generate_msgdef("sensor_msgs/msg/JointState", ros_version=2)
     foreign = tmp_path / "zstd.mcap"
     with open(foreign, "wb") as f:
@@ -333,7 +333,7 @@ def test_killed_recorder_leaves_a_readable_file(tmp_path):
     script = textwrap.dedent(f"""
         import sys
         from rosbags.typesys import Stores, get_typestore
-        from experiment_runner.recording import McapRecorder
+        from experiment_runner.core.recording import McapRecorder
         from msg_defs import convert
         ts = get_typestore(Stores.ROS2_JAZZY)
         rec = McapRecorder(sys.argv[1], "a: 1\\n", chunk_ns=10_000_000)
@@ -484,8 +484,8 @@ def test_write_run_with_dither_sai_and_a_failed_trial(tmp_path):
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
-    from experiment_runner.batch import simulate
-    from experiment_runner.profiles import point_to_point
+    from experiment_runner.core.batch import simulate
+    from experiment_runner.core.profiles import point_to_point
     preset = load_preset("fi_stage")
     ref = point_to_point(5e-6)
     res = simulate(preset, ref.x, ref.v, n_trials=2, x0=[0.0, 1e-3])
@@ -561,7 +561,7 @@ PROBE = textwrap.dedent("""
     from rclpy.node import Node
     from msg_defs import convert
     from msg_defs.topics import CLOCK, MEASURED
-    from experiment_runner.replay import check_metrics
+    from experiment_runner.apps.replay import check_metrics
     from experiment_runner.ros.player import replay
     from experiment_runner.ros.qos import qos_profile
 

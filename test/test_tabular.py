@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 import yaml
 
-from experiment_runner.cli import main
-from experiment_runner.recording import RecordingError, read_recording
-from experiment_runner.tabular import EMPS_MAPPING, convert_table, load_mapping, read_table
+from experiment_runner.apps.cli import main
+from experiment_runner.core.recording import RecordingError, read_recording
+from experiment_runner.core.tabular import EMPS_MAPPING, convert_table, load_mapping, read_table
 from stage_sim.validation import ConfigError
 
 T0 = 12.5            # source time of the first sample [s]: stamps start at 0, the offset goes to the config
@@ -158,7 +158,7 @@ def test_round_trip_of_files_written_by_other_tools(writer, rate, tmp_path, caps
     assert cfg["provenance"]["file"] == src.name and len(cfg["provenance"]["sha256"]) == 64
     assert "central difference" in cfg["mapping"]["/stage/reference.velocity"]
     # the diagnosis' own reader takes it: one trial at the file's rate, the same signals
-    from experiment_runner.diagnosis.data import load_data
+    from experiment_runner.apps.diagnosis.data import load_data
     dd = load_data(rec)
     assert dd.rate == pytest.approx(rate, rel=1e-12) and dd.u.shape == (N, 1)
     np.testing.assert_array_equal(dd.u[:, 0], d["u"])
@@ -400,7 +400,7 @@ def test_existing_output_is_kept_unless_overwrite(tmp_path, capsys):
 
 
 def test_a_conversion_failing_while_writing_leaves_nothing_half_written(tmp_path, monkeypatch):
-    from experiment_runner import recording
+    from experiment_runner.core import recording
     src = _table(tmp_path)
     mapping = {"time": "time", "reference": "x_ref", "command": "u", "measured": "y_um"}
     good = convert_table(src, mapping, tmp_path / "rec")
@@ -469,7 +469,7 @@ def test_convert_emps_is_the_table_importer_and_gives_the_same_recording(emps_fi
 def test_external_force_topic_is_read_per_control_sample(tmp_path):
     """``/stage/external_force`` written by any writer (here McapRecorder message by message)
     comes back aligned with the control samples; a sample without it is nan, with a warning."""
-    from experiment_runner.recording import McapRecorder, typestore
+    from experiment_runner.core.recording import McapRecorder, typestore
     from msg_defs.convert import joint_state
     from msg_defs.topics import EXTERNAL_FORCE, TOPICS
     assert EXTERNAL_FORCE.units.startswith("N") and TOPICS["/stage/external_force"] is EXTERNAL_FORCE

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import yaml
 
-from experiment_runner.cli import main
-from experiment_runner.recording import McapRecorder, typestore, read_recording
-from experiment_runner.tabular import convert_table, read_table
+from experiment_runner.apps.cli import main
+from experiment_runner.core.recording import McapRecorder, typestore, read_recording
+from experiment_runner.core.tabular import convert_table, read_table
 from msg_defs.convert import joint_state
 from stage_sim.validation import ConfigError, ConfigWarning
 
@@ -188,7 +188,7 @@ def test_join_from_a_mapping_file_with_sources(tmp_path):
     mp = tmp_path / "rig.yaml"
     mp.write_text(yaml.safe_dump({"time": "t", "reference": "x_ref", "measured": "y", "command": "F",
                                   "sources": [{"file": "force.csv", "time": tname, "time_unit": "ms"}]}))
-    from experiment_runner.tabular import load_mapping
+    from experiment_runner.core.tabular import load_mapping
     with pytest.warns(ConfigWarning, match="joined at 250 Hz"):
         rec = read_recording(convert_table(pos, load_mapping(mp), tmp_path / "m"))
     np.testing.assert_allclose(rec.u[::4], f2[:len(rec.u[::4])], rtol=0, atol=1e-12)

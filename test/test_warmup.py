@@ -9,9 +9,10 @@ import json
 import numpy as np
 import pytest
 
-from experiment_runner import batch, warmup
-from experiment_runner.batch import Models, simulate
-from experiment_runner.profiles import point_to_point
+from experiment_runner.apps import warmup
+from experiment_runner.core import batch
+from experiment_runner.core.batch import Models, simulate
+from experiment_runner.core.profiles import point_to_point
 from stage_sim.config import load_preset
 
 

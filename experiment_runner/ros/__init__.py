@@ -8,8 +8,8 @@ module:
 - ``servo_node``: ``servo_controller`` around :func:`stage_control.servo.servo_step`;
 - ``dither_node``: ``dither_generator`` around :func:`stage_control.dither.dither_step`;
 - ``sai_node``: ``sai_manager`` around :func:`stage_control.sai.sai_step` and the ILC;
-- ``sequencer_node``: ``experiment_sequencer`` (trials of :mod:`experiment_runner.experiment`);
-- ``recorder_node``: ``recorder`` (MCAP through :mod:`experiment_runner.recording`).
+- ``sequencer_node``: ``experiment_sequencer`` (trials of :mod:`experiment_runner.core.experiment`);
+- ``recorder_node``: ``recorder`` (MCAP through :mod:`experiment_runner.core.recording`).
 
 What they share: ``nodes`` (the table of nodes, read by ``setup.py``, the launcher, the
 sequencer and the tests), ``node`` (base class: topics, parameters, fault injection,

@@ -3,8 +3,8 @@
 :mod:`stage_control.servo`, :mod:`stage_control.dither` and :mod:`stage_control.sai`.
 
 Each is called with one-trial arrays in the same order as the batch engine, from the
-same models and initial state (:meth:`experiment_runner.batch.Models.from_preset`,
-:meth:`~experiment_runner.batch.Models.initial_state`), so the graph reproduces the
+same models and initial state (:meth:`experiment_runner.core.batch.Models.from_preset`,
+:meth:`~experiment_runner.core.batch.Models.initial_state`), so the graph reproduces the
 batch engine's trajectories bit for bit. Each trial starts from
 ``/experiment/trajectory`` (state reset); each sample is computed once its inputs
 (measurement, SAI command) are in.
@@ -19,7 +19,7 @@ lies outside the stage's travel (refused before the trial starts).
 from __future__ import annotations
 
 
-from experiment_runner.batch import Models
+from experiment_runner.core.batch import Models
 from experiment_runner.ros.node import Lockstep, StageNode, check_preset, finite
 from experiment_runner.ros.nodes import publisher_of
 from msg_defs import convert

@@ -5,7 +5,7 @@ under one executor in this process; :func:`run_processes` starts each node's con
 script as its own process. Both run on an explicit ROS domain with localhost-only
 discovery. :class:`NodeProcesses` starts, signals (kill, stop/continue, restart) and
 reaps the node processes of one run; every wait is bounded, so a run never hangs.
-``nanostage graph`` (:mod:`experiment_runner.graph`) is built on these.
+``nanostage graph`` (:mod:`experiment_runner.apps.graph`) is built on these.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiment_runner.outputs import interrupts_deferred
+from experiment_runner.core.outputs import interrupts_deferred
 from experiment_runner.ros.nodes import NODE_NAMES, NODES, node
 from experiment_runner.ros.run import isolate, make_executor, spin_for, teardown
 

@@ -24,7 +24,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from experiment_runner.batch import Models
+from experiment_runner.core.batch import Models
 from experiment_runner.ros.qos import qos_profile, subscription_qos
 from experiment_runner.ros.run import params_source
 from msg_defs import cdr, convert
@@ -212,7 +212,7 @@ class StageNode(Node):
 
 
 def warm_up_models():
-    """The models of :data:`WARM_UP_PRESET` (:class:`experiment_runner.batch.Models`), for a
+    """The models of :data:`WARM_UP_PRESET` (:class:`experiment_runner.core.batch.Models`), for a
     node's :meth:`StageNode.warm_up`."""
     return Models.from_preset(load_preset(WARM_UP_PRESET))
 

@@ -25,12 +25,12 @@ import time
 
 import numpy as np
 
+from experiment_runner.core.batch import Models
 from experiment_runner.ros.node import JointStateOut, Lockstep, StageNode, check_preset, finite, warm_up_models
 from experiment_runner.ros.nodes import publisher_of
 from experiment_runner.ros.run import run_node
 from msg_defs import cdr, convert
 from msg_defs.topics import SAI_COMMAND
-from experiment_runner.batch import Models
 from stage_sim.config import load_preset, preset_from_dict
 from stage_sim.plant import DIVERGED, OUT_OF_TRAVEL, STATUS_TEXT, plant_inputs, plant_step
 
@@ -49,7 +49,7 @@ topic; the controllers answer a repeated sample by repeating their answer."""
 class PlantTrial:
     """One trial of the plant, stepped one control period at a time with
     :func:`stage_sim.plant.plant_step` (one-trial arrays, allocated once), from the batch
-    engine's initial state (:meth:`experiment_runner.batch.Models.initial_state`)."""
+    engine's initial state (:meth:`experiment_runner.core.batch.Models.initial_state`)."""
 
     def __init__(self, models: Models, x0: float, seed: int):
         init = models.initial_state([x0])

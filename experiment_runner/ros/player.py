@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import time
 
-from experiment_runner.recording import RecordingError, load_raw
-from experiment_runner.ros.run import apply_graph_defaults, check_domain_id
+from experiment_runner.core.recording import RecordingError, load_raw
 from experiment_runner.ros.qos import qos_profile
+from experiment_runner.ros.run import apply_graph_defaults, check_domain_id
 from msg_defs import convert
 from msg_defs.topics import CLOCK, CONTRACT_TOPICS, TOPICS, Qos
 
@@ -54,7 +54,7 @@ def replay(path, rate: float = 1.0, *, domain_id: int | None = None,
         ROS domain (default: ``ROS_DOMAIN_ID`` of the environment, else 42); ``ValueError``
         outside 0..232.
     topics : iterable of str, optional
-        Only these topics (default all); a :class:`~experiment_runner.recording.RecordingError`
+        Only these topics (default all); a :class:`~experiment_runner.core.recording.RecordingError`
         names those the recording does not have.
     clock : bool
         Publish ``rosgraph_msgs/Clock`` at each new log time (recorded ``/clock``

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import yaml
 
-from experiment_runner.recording import McapRecorder, bag_layout
+from experiment_runner.core.recording import McapRecorder, bag_layout
 from experiment_runner.ros.node import StageNode
 from experiment_runner.ros.run import run_node
 from msg_defs import cdr, convert

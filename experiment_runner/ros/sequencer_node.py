@@ -1,7 +1,7 @@
 """``experiment_sequencer`` node: runs an experiment file through the graph.
 
 It publishes the run configuration, then each trial's trajectory (the same
-:func:`experiment_runner.experiment.build_trials` the batch engine uses), cuts the
+:func:`experiment_runner.core.experiment.build_trials` the batch engine uses), cuts the
 run into trials with ``/experiment/events``, computes each trial's metrics from
 what it hears on the contract topics and publishes them on ``/experiment/results``.
 If samples stop coming (a node died or hangs), the plant goes back to an earlier
@@ -19,7 +19,7 @@ import time
 import numpy as np
 import yaml
 
-from experiment_runner.experiment import build_trials, experiment_preset, load_experiment, trial_metrics
+from experiment_runner.core.experiment import build_trials, experiment_preset, load_experiment, trial_metrics
 from experiment_runner.ros.node import StageNode
 from experiment_runner.ros.nodes import JOINING, publisher_of
 from experiment_runner.ros.run import run_node

@@ -12,8 +12,8 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from experiment_runner.experiment import EXPERIMENT_DIR, build_trials, load_experiment
-from experiment_runner.recording import read_recording
+from experiment_runner.core.experiment import EXPERIMENT_DIR, build_trials, load_experiment
+from experiment_runner.core.recording import read_recording
 from experiment_runner.ros.launch import run_one_process, run_processes
 from experiment_runner.ros.qos import qos_profile
 from experiment_runner.ros.run import isolate, make_executor

@@ -16,7 +16,7 @@ exactly ``lim_i`` at any speed, as the seed's Coulomb gross-motion friction (Sec
 ``v_r`` drops out. ``L_i`` is the block's own pre-sliding distance (no new parameter).
 ``a = 0`` is the seed's GMS (:mod:`.gms`), bit for bit. The study that found it and its
 evidence (App. C.1 step-sequence growth, Table 4.2 No FI 5 mm) and cost (in-position RMS) are
-in :mod:`experiment_runner.paper.micro` and docs/headline.md, "Micrometre physics".
+in :mod:`experiment_runner.apps.paper.micro` and docs/headline.md, "Micrometre physics".
 
 Discretisation (per plant sub-step ``h`` with bearing displacement ``dx``): backward Euler in
 the block force, ``f = f_old + k dx - k h w(f, theta_old)``, solved to machine precision by a
@@ -66,7 +66,7 @@ class GmsRateStateFriction(GmsFriction):
     a: NonNeg = Field(description=(
         "direct effect of the rate-and-state sliders [-]: a slipping block's force changes by "
         "a lim_i ln(w2/w1) between slip rates; not in the seed. issue 13 study "
-        "(experiment_runner/paper/micro.py): a = b = 0.02 is bracketed by two seed numbers (App. C.1 "
+        "(experiment_runner/apps/paper/micro.py): a = b = 0.02 is bracketed by two seed numbers (App. C.1 "
         "eighth 5 um step 85 ms, Table 4.2 No FI 5 mm 44 ms), NOT identified"),
         json_schema_extra=unit("1", 1e-3, 0.2))
     b: Optional[NonNeg] = Field(None, description=(

@@ -1,0 +1,802 @@
+"""Judge: a model by its closed-loop replay of held-out data against its run-to-run floor.
+
+What the user gets from a model is its replay: the recorded reference through the model and
+its controller in closed loop (:func:`experiment_runner.core.batch.simulate`), the recorded
+command and measurement compared in physical units (N and m) on the *held-out* samples.
+This module decides with it (the force observer of :mod:`.predict` only locates and
+proposes):
+
+Replay
+    ``R(M)``: the noise-free replay of model ``M`` (drive and bearing noise off; the
+    sensor's quantization kept: it is deterministic) on the held-out trials.
+Run-to-run floor
+    ``K`` recordings simulated from ``M`` itself on the same reference with fixed noise
+    seeds (one batch call): their replay errors ``S_k - R(M)`` are what a perfect model
+    leaves. Its RMS per channel (``sigma_u`` [N], ``sigma_y`` [m]) normalises the two
+    channels; ``D(X)`` = mean over held-out samples of ``(e_u/sigma_u)^2 + (e_y/sigma_y)^2``
+    (2 = at the floor).
+Adoption test (:meth:`ReplayJudge.compare`)
+    Effect ``E`` fitted on the fit samples is adopted on top of ``M`` only if its replay is
+    stable and ``T = D(M) - D(M+E)`` on the held-out samples is (i) positive, (ii) beyond
+    the run-to-run floor: above ``mean + t * sd`` of the same statistic on the ``K``
+    simulated recordings of ``M`` (``t``: Student quantile, one-sided ``alpha``, ``K - 1``
+    degrees of freedom: a likelihood-ratio test calibrated by simulation, the noise model
+    being the model's own), and (iii) beyond the data's own noise: above ``z_block``
+    standard errors of its noise part computed from the data's residual over held-out blocks
+    (:meth:`ReplayJudge._score_se`; robust when the model's noise is not the data's). No
+    random draw is involved: same data, same decision.
+Stochastic changes (drive noise, quantization)
+    do not move the noise-free replay much; they move the floor. :meth:`consistency` says
+    how far the data's replay error is from each model's floor (a z-score of
+    ``log D`` over the ``K`` simulated recordings).
+
+Controller check
+    The replay needs the recording's controller. :func:`controller_check` runs the
+    model's servo on the recorded reference and measurement; if it does not reproduce the
+    recorded command (a loop the preset cannot express, e.g. the EMPS benchmark's
+    velocity feedback on the measurement only), :func:`equivalent_reference` finds the
+    reference for which it does (sample by sample, the servo's feedthrough inverted), and
+    the replay follows that one (said so in the report).
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from experiment_runner.core.batch import Models, simulate
+from stage_control.servo import build_servo, init_servo_state, servo_step
+
+from .budget import checkpoint
+from .data import DiagData
+from .model import ModelSpec
+
+__all__ = ["Replay", "Floor", "ReplayJudge", "Comparison", "controller_check", "equivalent_reference",
+           "noise_free"]
+
+_TOKENS = itertools.count()
+FLOOR_SEEDS = tuple(70001 + 1000 * i for i in range(16))
+"""Noise seeds of the simulated recordings of the run-to-run floor (fixed: same data, same decision)."""
+
+
+def own_resolution(a: np.ndarray, mask: np.ndarray) -> float:
+    """The finest difference a recorded signal ``a`` (T, B) resolves on the samples ``mask``: the
+    white part of its sample-to-sample roughness (robust SD of its fourth differences / sqrt(70):
+    a smooth motion's part of them is its fourth derivative times the sample time to the fourth,
+    nothing), 0 where it is smooth to the last digit. A floor below it carries no information.
+    Quantization on a lattice is the encoder's step (:func:`.fit.estimate_lattice`, taken into
+    the model before judging): a signal at rest on its lattice reads 0 here.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        (T, B) recorded signal.
+    mask : numpy.ndarray
+        (T, B) bool: the samples to use (a column needs more than 5).
+
+    Returns
+    -------
+    float
+        In ``a``'s unit.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> t = np.linspace(0.0, 1.0, 4000)[:, None]
+    >>> x = 1e-3 * np.sin(2 * np.pi * t) + 1e-8 * rng.normal(size=t.shape)
+    >>> bool(abs(own_resolution(x, np.ones_like(x, bool)) / 1e-8 - 1) < 0.1)
+    True
+    """
+    d = []
+    for b in range(a.shape[1]):
+        col = a[mask[:, b], b]
+        if len(col) > 5:
+            d.append(np.diff(col, 4))
+    if not d:
+        return 0.0
+    d = np.concatenate(d)
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(70.0))
+
+
+def noise_free(spec: ModelSpec) -> ModelSpec:
+    """``spec`` without its random parts (drive current noise, random bearing friction).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+
+    Returns
+    -------
+    ModelSpec
+        ``spec`` itself when it has none.
+    """
+    p = spec.preset
+    if p.stage.drive.noise_current_rms == 0 and all(b.force_noise_rms == 0 for b in p.stage.bearings):
+        return spec
+    ch = {"stage.drive.noise_current_rms": 0.0}
+    ch.update({f"stage.bearings.{i}.force_noise_rms": 0.0 for i in range(len(p.stage.bearings))})
+    return spec.with_changes(ch)
+
+
+@dataclass
+class Replay:
+    """A closed-loop replay on the judge's trials: (T, B) arrays, ``ok`` if every trial ran
+    through (no divergence, inside the travel) and the command did not sit at its limit more
+    than the recording's does.
+
+    Parameters
+    ----------
+    u : numpy.ndarray
+        (T, B) command [N].
+    y : numpy.ndarray
+        (T, B) measured position [m].
+    ok : bool
+        Every trial ran through.
+    why : str
+        Why not, when not ``ok``.
+    """
+    u: np.ndarray
+    y: np.ndarray
+    ok: bool
+    why: str = ""
+
+
+@dataclass
+class Floor:
+    """Run-to-run floor of one model: ``K`` simulated recordings and its noise-free replay.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model.
+    replay : Replay
+        Its noise-free replay.
+    u, y : numpy.ndarray
+        (K, T, B) simulated commands [N] and measurements [m].
+    sigma_u, sigma_y : float
+        RMS command [N] and position [m] error of a simulated recording against the replay.
+    white : numpy.ndarray, optional
+        Prewhitening filter of the errors (open-loop judge), else None.
+    """
+    spec: ModelSpec
+    replay: Replay
+    u: np.ndarray            # (K, T, B) simulated commands
+    y: np.ndarray            # (K, T, B) simulated measurements
+    sigma_u: float           # RMS command error of a simulated recording vs the replay [N]
+    sigma_y: float           # RMS position error [m]
+    white: np.ndarray | None = None     # prewhitening filter of the errors (open-loop judge), else None
+
+
+@dataclass
+class Comparison:
+    """Outcome of :meth:`ReplayJudge.compare` (all ``D`` per held-out sample, floor units).
+
+    Parameters
+    ----------
+    D_before, D_after : float
+        The data's replay error before and after the change.
+    T : float
+        ``D_before - D_after``.
+    threshold_sim : float
+        Mean + t standard deviations of ``T`` over the simulated recordings.
+    se_block : float
+        Standard error of ``T``'s noise part from the data, over held-out blocks.
+    stable : bool
+        The new replay ran through.
+    accepted : bool
+        ``T`` beyond both the threshold and ``z_block`` standard errors.
+    why : str
+        The verdict in words.
+    """
+    D_before: float
+    D_after: float
+    T: float                 # D_before - D_after
+    threshold_sim: float     # mean + t sd of T over the simulated recordings
+    se_block: float          # block-bootstrap standard error of T
+    stable: bool
+    accepted: bool
+    why: str
+
+    def row(self) -> dict:
+        """The comparison as a report row.
+
+        Returns
+        -------
+        dict
+            ``D_before``, ``D_after``, ``improvement``, ``threshold``, ``block_se``, ``stable``,
+            ``beyond_floor``, ``why``.
+        """
+        return {"D_before": self.D_before, "D_after": self.D_after, "improvement": self.T,
+                "threshold": self.threshold_sim, "block_se": self.se_block, "stable": self.stable,
+                "beyond_floor": self.accepted, "why": self.why}
+
+
+class ReplayJudge:
+    """Closed-loop replay of the held-out trials of ``data`` and the tests above.
+
+    Parameters
+    ----------
+    data : DiagData
+        The recording. Held-out samples are judged (all usable samples if none are held out).
+    seeds : tuple of int
+        Noise seeds of the floor's simulated recordings (``K = len(seeds)``).
+    alpha : float
+        One-sided level of the simulation-calibrated test (per candidate).
+    z_block : float
+        Standard errors of the improvement's noise part (from the data's residual, per block)
+        it must exceed.
+    block_s : float
+        Length of the held-out blocks [s] (at least 20 samples).
+    x_ref : ndarray, optional
+        Reference to replay (T, B) instead of the recorded one (:func:`equivalent_reference`).
+    """
+
+    def __init__(self, data: DiagData, seeds=FLOOR_SEEDS, alpha: float = 1e-3, z_block: float = 2.0,
+                 block_s: float = 0.02, x_ref=None):
+        held = data.held if data.held.any() else (data.fit | data.held)
+        self.cols = np.array([b for b in range(data.shape[1]) if held[:, b].any()], int)
+        c = self.cols
+        self.rate = data.rate
+        self.mask = np.ascontiguousarray(held[:, c])
+        xr = data.x_ref if x_ref is None else x_ref
+        self.x_ref = np.ascontiguousarray(xr[:, c])
+        self.v_ref = np.ascontiguousarray(data.v_ref[:, c])
+        fe = data.f_ext
+        self.f_ext = None if fe is None or not np.any(fe[:, c]) else np.ascontiguousarray(fe[:, c])
+        self.u = np.ascontiguousarray(data.u[:, c])
+        self.y = np.ascontiguousarray(data.y[:, c])
+        self.u_resolution = own_resolution(self.u, self.mask)
+        self.y_resolution = own_resolution(self.y, self.mask)
+        self.seeds = tuple(int(s) for s in seeds)
+        self.K = len(self.seeds)
+        self.t_q = float(stats.t.ppf(1 - alpha, self.K - 1)) * math.sqrt(1 + 1 / self.K)
+        self.z_block = z_block
+        self.n = int(self.mask.sum())
+        # blocks: runs of held-out samples cut every block_s
+        L = max(20, int(round(block_s * data.rate)))
+        ids = np.full(self.mask.shape, -1, int)
+        nb = 0
+        for j in range(self.mask.shape[1]):
+            idx = np.flatnonzero(self.mask[:, j])
+            if not len(idx):
+                continue
+            brk = np.r_[0, np.flatnonzero(np.diff(idx) > 1) + 1, len(idx)]
+            for a, b in zip(brk[:-1], brk[1:]):
+                run = idx[a:b]
+                k = max(1, len(run) // L)
+                ids[run, j] = nb + np.minimum(np.arange(len(run)) * k // len(run), k - 1)
+                nb += k
+        self.block = ids
+        self.n_blocks = nb
+        self.block_n = np.bincount(ids[self.mask], minlength=nb).astype(float)
+        self.sims = 0
+        self.token = next(_TOKENS)      # replay cache key on the specs (an id() could be reused)
+
+    # ------------------------------------------------------------------ simulation
+    def simulate_recordings(self, spec: ModelSpec, seeds):
+        """Recordings of ``spec`` on the judged trials with noise ``seeds`` (one batch call): ``(u, y)``
+        each (K, T, B), the simulator's status (K, B) and the preset.
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+        seeds : sequence of int
+            One recording per seed (trial ``b``: ``seed + b``).
+
+        Returns
+        -------
+        tuple
+            ``(u, y, status, preset)``.
+        """
+        checkpoint()          # a search whose budget is spent stops here (:mod:`.budget`)
+        p = spec.preset
+        K = len(seeds)
+        B = len(self.cols)
+        xr = np.tile(self.x_ref.T, (K, 1))
+        vr = np.tile(self.v_ref.T, (K, 1))
+        sd = np.concatenate([s + np.arange(B) for s in seeds]).astype(np.int64)
+        models = spec._compiled.get("batch_models")
+        if models is None:
+            models = spec._compiled["batch_models"] = Models.from_preset(p)
+        fe = None if self.f_ext is None else np.tile(self.f_ext.T, (K, 1))
+        res = simulate(p, xr, vr, seeds=sd, check=False, models=models, f_ext=fe)
+        self.sims += 1
+        u = res.u.reshape(K, B, -1).transpose(0, 2, 1)
+        y = res.y.reshape(K, B, -1).transpose(0, 2, 1)
+        return u, y, res.status.reshape(K, B), p
+
+    def replay(self, spec: ModelSpec) -> Replay:
+        """Noise-free closed-loop replay of ``spec`` (cached on the spec).
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        Replay
+        """
+        key = ("judge_replay", self.token)
+        hit = spec._compiled.get(key)
+        if hit is not None:
+            return hit
+        nf = noise_free(spec)
+        u, y, status, p = self.simulate_recordings(nf, [0])
+        u, y = u[0], y[0]
+        ok, why = True, ""
+        if np.any(status != 0) or not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+            ok, why = False, "replay diverged or left the travel"
+        elif self.n:
+            lim = nf._compiled["batch_models"].servo.limit
+            sat = float(np.mean(np.abs(u[self.mask]) >= 0.999 * lim))
+            sat_rec = float(np.mean(np.abs(self.u[self.mask]) >= 0.999 * lim))
+            # a replay sitting at the command limit much more often than the recording: the loop
+            # swings (an unstable model), whatever it does to the error statistics
+            if sat > sat_rec + 0.01:
+                ok, why = False, f"replay command at its limit ({lim:.4g} N) on {100 * sat:.1f} % of the samples"
+        r = Replay(u=u, y=y, ok=ok, why=why)
+        spec._compiled[key] = r
+        return r
+
+    def floor(self, spec: ModelSpec) -> Floor:
+        """Run-to-run floor of ``spec``: ``K`` simulated recordings (one batch call).
+
+        Parameters
+        ----------
+        spec : ModelSpec
+            The model.
+
+        Returns
+        -------
+        Floor
+        """
+        rp = self.replay(spec)
+        u, y, _, _ = self.simulate_recordings(spec, self.seeds)
+        du = (u - rp.u[None])[:, self.mask]
+        dy = (y - rp.y[None])[:, self.mask]
+        su = float(np.sqrt(np.mean(du ** 2))) if du.size else 1.0
+        sy = float(np.sqrt(np.mean(dy ** 2))) if dy.size else 1.0
+        # a model without noise (e.g. drive noise "unknown: 0") has a degenerate floor: its simulated
+        # recordings are its replay. The channels are then weighted by the least a rig resolves:
+        # the encoder step (uniform quantization error), 1e-4 of the recorded command's RMS, and what
+        # the recorded signals themselves resolve (their sample-to-sample roughness): never a floor
+        # below the measurement's own resolution
+        q = spec.preset.stage.encoder.resolution
+        tiny_u = max(1e-4 * (float(np.sqrt(np.mean(self.u[self.mask] ** 2))) if self.n else 1.0),
+                     self.u_resolution) or 1e-12
+        tiny_y = max(q / math.sqrt(12.0), self.y_resolution, 1e-12)
+        return Floor(spec=spec, replay=rp, u=u, y=y, sigma_u=max(su, tiny_u), sigma_y=max(sy, tiny_y))
+
+    # ------------------------------------------------------------------ distances
+    def _blocks(self, e2: np.ndarray) -> np.ndarray:
+        """Per-block sums of ``e2`` (T, B) over the held-out samples."""
+        return np.bincount(self.block[self.mask], weights=e2[self.mask], minlength=self.n_blocks)
+
+    def _errors(self, u, y, rp: Replay, fl: Floor) -> list:
+        """The channels' errors of ``(u, y)`` against ``rp`` in ``fl``'s floor units, (T, B) each:
+        command and position. Every statistic below is built on them."""
+        return [(u - rp.u) / fl.sigma_u, (y - rp.y) / fl.sigma_y]
+
+    def _e2(self, u, y, rp: Replay, fl: Floor) -> np.ndarray:
+        return sum(e ** 2 for e in self._errors(u, y, rp, fl))
+
+    def residual(self, rp: Replay, fl: Floor) -> np.ndarray:
+        """The data's replay error against ``rp`` on the judged samples in ``fl``'s floor units, as one
+        vector (channel after channel): its sum of squares is ``n D``. What an output-error fit
+        minimises.
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        numpy.ndarray
+            (2 n,) command then position errors.
+        """
+        return np.concatenate([e[self.mask] for e in self._errors(self.u, self.y, rp, fl)])
+
+    def difference(self, rp_a: Replay, rp_b: Replay, fl: Floor) -> np.ndarray:
+        """``rp_a`` - ``rp_b`` on the judged samples in ``fl``'s floor units, as :meth:`residual`'s
+        vector (a replay in place of the data).
+
+        Parameters
+        ----------
+        rp_a, rp_b : Replay
+            Two replays.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
+        return np.concatenate([e[self.mask] for e in self._errors(rp_a.u, rp_a.y, rp_b, fl)])
+
+    def sim_residuals(self, rp: Replay, fl: Floor) -> np.ndarray:
+        """(K, n): :meth:`residual` of each of ``fl``'s simulated recordings against ``rp`` (what
+        the data's residual would be, run to run, were ``fl``'s model the truth).
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        numpy.ndarray
+            (K, 2 n).
+        """
+        return np.stack([np.concatenate([e[self.mask] for e in self._errors(fl.u[k], fl.y[k], rp, fl)])
+                         for k in range(self.K)])
+
+    def data_blocks(self, rp: Replay, fl: Floor) -> np.ndarray:
+        """Per-block sums of the data's normalised squared replay error against ``rp``.
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        numpy.ndarray
+            (n_blocks,).
+        """
+        return self._blocks(self._e2(self.u, self.y, rp, fl))
+
+    def sim_blocks(self, rp: Replay, fl: Floor, of: Floor | None = None) -> np.ndarray:
+        """(K, n_blocks): the same for the simulated recordings of ``of`` (default ``fl``),
+        normalised by ``fl``.
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+        of : Floor, optional
+            Whose simulated recordings (default ``fl``).
+
+        Returns
+        -------
+        numpy.ndarray
+            (K, n_blocks).
+        """
+        of = of or fl
+        return np.stack([self._blocks(self._e2(of.u[k], of.y[k], rp, fl)) for k in range(self.K)])
+
+    def D(self, rp: Replay, fl: Floor) -> float:
+        """Data's replay error against ``rp`` in units of ``fl``'s floor (2 = at the floor).
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        float
+            Per judged sample, both channels summed.
+        """
+        return float(self.data_blocks(rp, fl).sum() / max(self.n, 1))
+
+    def rms(self, rp: Replay) -> tuple[float, float]:
+        """Physical RMS replay errors on the held-out samples: command [N], position [m].
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+
+        Returns
+        -------
+        tuple of float
+            NaN when no sample is judged.
+        """
+        if not self.n:
+            return float("nan"), float("nan")
+        return (float(np.sqrt(np.mean((self.u - rp.u)[self.mask] ** 2))),
+                float(np.sqrt(np.mean((self.y - rp.y)[self.mask] ** 2))))
+
+    def _block_se(self, tb: np.ndarray, T: float) -> float:
+        nb = self.n_blocks
+        if nb < 3:
+            return 0.0
+        dev = tb - self.block_n * T
+        return float(np.sqrt(nb / (nb - 1) * np.sum(dev ** 2)) / max(self.n, 1))
+
+    def _score_se(self, rp0: Replay, rp1: Replay, fl: Floor, of: Floor | None = None) -> float:
+        """Standard error of ``T = D(rp0) - D(rp1)`` under "no improvement" with the noise taken
+        from the data: with ``e = data - rp1`` and ``d = rp1 - rp0`` (floor units),
+        ``T = sum(d^2 + 2 e d) / n`` and its noise part ``2 sum(e d) / n`` has, over blocks
+        that may be correlated inside, the variance ``4 sum_b (sum_{t in b} e d)^2 / n^2``. A
+        likelihood-ratio test whose noise model is the data's own residual: a concentrated
+        deterministic improvement (at reversals) passes, a change that only trades one misfit
+        for another (large ``e`` where it acts) does not. The blocks span the noise's correlation
+        time in the replay error (:meth:`_score_span`, from the recordings ``of``, default ``fl``'s)."""
+        if not self.n:
+            return 0.0
+        d = self._errors(rp1.u, rp1.y, rp0, fl)
+        e = self._errors(self.u, self.y, rp1, fl)
+        sb = self._blocks(sum(ei * di for ei, di in zip(e, d)))
+        m = self._score_span(rp0, d, fl, of)
+        return float(2.0 * np.sqrt(np.sum(self._merged(sb, m) ** 2)) / self.n)
+
+    @staticmethod
+    def _merged(sb: np.ndarray, m: int) -> np.ndarray:
+        """Sums over ``m`` consecutive blocks (..., n_blocks) -> (..., ceil(n_blocks / m))."""
+        if m <= 1:
+            return sb
+        nb = sb.shape[-1]
+        pad = (-nb) % m
+        z = np.concatenate([sb, np.zeros(sb.shape[:-1] + (pad,))], axis=-1)
+        return z.reshape(sb.shape[:-1] + (-1, m)).sum(axis=-1)
+
+    def _score_span(self, rp0: Replay, d: list, fl: Floor, of: Floor | None = None) -> int:
+        """How many consecutive held-out blocks the score test's blocks must span for its noise part
+        to be independent from block to block: the smallest number (1, 2, 4, ...) at which the sum of
+        the per-block variances of ``sum e_k d`` over the simulated recordings ``of`` (default
+        ``fl``'s; errors against ``rp0``) reaches 70 % of the variance of the whole sum. Drive noise
+        moves a friction contact's hold force for a whole hold and the loop integrates it: blocks of
+        20 ms are then far from independent, and the score test took a wrong effect that trades one
+        realisation's misfit for another (a delay for a mode) as beyond the data's noise."""
+        of = of or fl
+        if of.u.ndim != 3 or of.u.shape[0] < 3 or self.n_blocks < 6:
+            return 1
+        S = np.stack([self._blocks(sum(ei * di for ei, di in zip(self._errors(of.u[k], of.y[k], rp0, fl), d)))
+                      for k in range(of.u.shape[0])])
+        whole = float(np.var(S.sum(axis=1), ddof=1))
+        if not whole > 0:
+            return 1
+        m = 1
+        while self.n_blocks // m >= 3:
+            if float(np.sum(np.var(self._merged(S, m), axis=0, ddof=1))) >= 0.7 * whole:
+                return m
+            m *= 2
+        return max(1, m // 2)
+
+    # ------------------------------------------------------------------ tests
+    def compare(self, fl: Floor, rp_new: Replay, fl_blocks=None, rp_base: Replay | None = None,
+                of_base: Floor | None = None) -> Comparison:
+        """Is ``rp_new`` (current model + an effect) a real improvement over ``fl``'s model (or over
+        the replay ``rp_base``, e.g. a simpler alternative, whose model's simulated recordings
+        ``of_base`` (its floor) give the run-to-run threshold; in ``fl``'s floor units)?
+
+        Accepted when the improvement ``T`` is positive, beyond the simulation-calibrated
+        threshold, and beyond ``z_block`` standard errors of its noise part from the data.
+
+        Parameters
+        ----------
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+        rp_new : Replay
+            The replay of the changed model.
+        fl_blocks : numpy.ndarray, optional
+            ``sim_blocks(fl.replay, fl)``, when already computed.
+        rp_base : Replay, optional
+            The replay to improve on (default ``fl.replay``).
+        of_base : Floor, optional
+            The floor of ``rp_base``'s model.
+
+        Returns
+        -------
+        Comparison
+        """
+        rp0 = fl.replay if rp_base is None else rp_base
+        b0 = self.data_blocks(rp0, fl)
+        b1 = self.data_blocks(rp_new, fl)
+        n = max(self.n, 1)
+        D0, D1 = float(b0.sum() / n), float(b1.sum() / n)
+        T = D0 - D1
+        s0 = fl_blocks if (fl_blocks is not None and rp_base is None) else self.sim_blocks(rp0, fl, of=of_base)
+        s1 = self.sim_blocks(rp_new, fl, of=of_base)
+        Tk = (s0.sum(axis=1) - s1.sum(axis=1)) / n
+        thr = float(np.mean(Tk) + self.t_q * np.std(Tk, ddof=1))
+        se = self._score_se(rp0, rp_new, fl, of=of_base)
+        if not rp_new.ok:
+            return Comparison(D0, D1, T, thr, se, False, False, f"unstable: {rp_new.why}")
+        if T <= 0:
+            why = "replay not better"
+        elif T <= thr:
+            why = "improvement within the run-to-run floor"
+        elif T <= self.z_block * se:
+            why = "improvement within the data's own noise (score test over held-out blocks)"
+        else:
+            why = ""
+        return Comparison(D0, D1, T, thr, se, True, not why, why or "beyond the floor")
+
+    def equivalent(self, fl: Floor, rp_a: Replay, rp_b: Replay, margin: float = 0.05,
+                   of_b: Floor | None = None) -> tuple[bool, float]:
+        """Can the held-out data tell ``rp_a`` from the better ``rp_b``? With ``d = D(a) - D(b)``
+        (in ``fl``'s floor units): equivalent when ``d`` is within 2 standard errors of the same
+        difference over simulated recordings of ``b``'s model (``of_b``, its floor; default
+        ``fl``'s), or ``D(a)`` is within ``margin`` of ``D(b)`` (replay errors a few per cent apart
+        in RMS), or ``d`` is within 2 block-bootstrap standard errors (the data's own scatter)
+        while ``D(a)`` is within 25 % of ``D(b)`` (the block bootstrap alone would call a large
+        difference concentrated in a few blocks, e.g. at the reversals, "equivalent").
+        Recordings of ``fl``'s model are the wrong reference when both replays are far from it:
+        their difference then scatters with that distance; hence ``of_b``.
+
+        Parameters
+        ----------
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+        rp_a, rp_b : Replay
+            The two replays; ``rp_b`` the better.
+        margin : float, optional
+            Relative margin of ``D(a)`` over ``D(b)``.
+        of_b : Floor, optional
+            The floor of ``rp_b``'s model.
+
+        Returns
+        -------
+        equivalent : bool
+        d : float
+            ``D(a) - D(b)``.
+        """
+        ba = self.data_blocks(rp_a, fl)
+        bb = self.data_blocks(rp_b, fl)
+        n = max(self.n, 1)
+        Da, Db = float(ba.sum() / n), float(bb.sum() / n)
+        d = Da - Db
+        of_b = of_b or fl
+        dk = (self.sim_blocks(rp_a, fl, of=of_b).sum(axis=1) - self.sim_blocks(rp_b, fl, of=of_b).sum(axis=1)) / n
+        se_sim = float(np.std(dk, ddof=1))
+        se_blk = self._block_se(ba - bb, d)
+        eq = d <= 2.0 * se_sim or Da <= (1 + margin) * Db or (d <= 2.0 * se_blk and Da <= 1.25 * Db)
+        return bool(eq), d
+
+    def consistency(self, rp: Replay, fl: Floor, norm: Floor | None = None) -> float:
+        """z-score of the data's ``log(D + mean D_k)`` among ``fl``'s simulated recordings (both against
+        ``rp``, normalised by ``norm``, default ``fl``): about N(0, 1) when the data could be
+        a recording of ``fl``'s model; large positive = the data is further from the replay
+        than run-to-run noise explains.
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The model whose simulated recordings the data are compared with.
+        norm : Floor, optional
+            The floor whose units normalise the errors (default ``fl``).
+
+        Returns
+        -------
+        float
+        """
+        norm = norm or fl
+        n = max(self.n, 1)
+        Dd = self.data_blocks(rp, norm).sum() / n
+        Dk = self.sim_blocks(rp, norm, of=fl).sum(axis=1) / n
+        # log of D shifted by the floor's mean: multiplicative for large errors, and no heavy left
+        # tail when some simulated recordings are nearly their replay (a stuck stage, quantization only)
+        c = max(float(np.mean(Dk)), 1e-300)
+        lk = np.log(Dk + c)
+        sd = float(np.std(lk, ddof=1)) or 1e-12
+        return float((math.log(Dd + c) - np.mean(lk)) / sd)
+
+    def floor_ratio(self, rp: Replay, fl: Floor) -> float:
+        """Data's replay error over the floor's, RMS ratio (1 = at the run-to-run floor).
+
+        Parameters
+        ----------
+        rp : Replay
+            A replay on the judged trials.
+        fl : Floor
+            The floor whose units (``sigma_u``, ``sigma_y``) normalise the errors.
+
+        Returns
+        -------
+        float
+        """
+        n = max(self.n, 1)
+        Dd = self.data_blocks(rp, fl).sum() / n
+        Dk = self.sim_blocks(rp, fl).sum(axis=1) / n
+        # 2 per sample = at the floor by construction; less when the floor is degenerate (no noise)
+        return float(math.sqrt(Dd / max(float(np.mean(Dk)), 2.0)))
+
+
+# --------------------------------------------------------------------------- controller
+def _servo_on(spec: ModelSpec, data: DiagData, x_ref: np.ndarray, cols) -> np.ndarray:
+    """The model's servo on the recorded measurement and the reference ``x_ref`` (T, B)."""
+    p = spec.preset
+    sm = build_servo(p.controller, p.stage)
+    T = data.shape[0]
+    B = len(cols)
+    st = init_servo_state(sm, B)
+    out = np.empty((T, B))
+    uk = np.empty(B)
+    xr = np.ascontiguousarray(x_ref[:, cols])
+    vr = np.ascontiguousarray(data.v_ref[:, cols])
+    y = np.ascontiguousarray(data.y[:, cols])
+    for k in range(T):
+        servo_step(sm, st, xr[k], vr[k], y[k], uk)
+        out[k] = uk
+    return out
+
+
+def controller_check(spec: ModelSpec, data: DiagData, max_samples: int = 20000) -> float:
+    """Relative RMS difference between the recorded command and the model's servo run on the
+    recorded reference and measurement (0 when the preset's controller is the recording's).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model (its controller).
+    data : DiagData
+        The recording.
+    max_samples : int, optional
+        Samples per trial compared.
+
+    Returns
+    -------
+    float
+    """
+    T = min(data.shape[0], max_samples)
+    sub = data.subset(np.arange(data.shape[1]))
+    for k in ("x_ref", "v_ref", "u", "y", "valid"):
+        setattr(sub, k, np.ascontiguousarray(getattr(sub, k)[:T]))
+    u = _servo_on(spec, sub, sub.x_ref, np.arange(sub.shape[1]))
+    m = sub.valid
+    den = float(np.sqrt(np.mean(sub.u[m] ** 2))) or 1.0
+    return float(np.sqrt(np.mean((u - sub.u)[m] ** 2)) / den)
+
+
+def equivalent_reference(spec: ModelSpec, data: DiagData) -> np.ndarray:
+    """Reference (T, B) for which the model's servo, fed the recorded measurement, gives the
+    recorded command: per sample, the servo's output is affine in the reference sample (for
+    PID, DOB and NIASA; a feedforward friction model is solved by the secant through two
+    trial values), so it is solved exactly and the servo advanced with the solution.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model (its controller, unsaturated).
+    data : DiagData
+        The recording.
+
+    Returns
+    -------
+    numpy.ndarray
+        (T, B) reference [m].
+    """
+    p = spec.preset
+    sm = build_servo(p.controller, p.stage)._replace(limit=1e300)      # the affine law, unsaturated
+    T, B = data.shape
+    st = init_servo_state(sm, B)
+    xr = np.ascontiguousarray(data.x_ref).copy()
+    vr = np.ascontiguousarray(data.v_ref)
+    y = np.ascontiguousarray(data.y)
+    u = data.u
+    ua, ub = np.empty(B), np.empty(B)
+    scale = 1e-9
+    for k in range(T):
+        s0 = st.copy()
+        a = xr[k].copy()
+        servo_step(sm, st, a, vr[k], y[k], ua)
+        st[:] = s0
+        servo_step(sm, st, a + scale, vr[k], y[k], ub)
+        st[:] = s0
+        g = (ub - ua) / scale
+        ok = np.abs(g) > 1e-300
+        x = np.where(ok, a + (u[k] - ua) / np.where(ok, g, 1.0), a)
+        servo_step(sm, st, x, vr[k], y[k], ua)
+        xr[k] = x
+    return xr
