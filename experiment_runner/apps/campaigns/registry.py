@@ -22,7 +22,7 @@ True
 
 ... and are the metrics the core measures of a trial:
 
->>> from experiment_runner import metrics
+>>> from experiment_runner.core import metrics
 >>> TRIAL_METRICS == metrics.METRICS
 True
 """
