@@ -60,8 +60,15 @@ class ForwardSelection:
         ``greedy_effects``), or None."""
 
     def run(self) -> Path:
-        """The greedy walk, and the walk from step 1's runner-up when the greedy one ends beyond its
-        floor; returns the kept walk (its ``second_start`` says what both found)."""
+        """The greedy walk, and the walk from step 1's runner-up when the greedy one ends beyond its floor.
+
+        Returns
+        -------
+        Path
+            The kept walk: the greedy one, or the second walk when its held-out replay is better
+            beyond the greedy walk's floor. Its ``second_start`` (when a second walk started) says
+            what both found and why one was kept; :attr:`path` is the same object.
+        """
         problem, judge = self.problem, self.problem.judge
         a = self.walk()
         second = self.second_start(a)
@@ -108,8 +115,22 @@ class ForwardSelection:
         return chosen
 
     def walk(self, first: JudgedRow | None = None) -> Path:
-        """One forward path from the base model: steps until none is adopted; ``first``, a judged
-        candidate of the first step, is adopted there in place of the step's choice."""
+        """One forward path from the base model: steps until none is adopted.
+
+        A step cut short by the budget (or an interruption) is dropped whole and ends the walk; a
+        second walk (``first`` given) also ends where it joins the greedy walk (:attr:`joined`).
+
+        Parameters
+        ----------
+        first : JudgedRow, optional
+            A judged candidate of an earlier walk's first step, adopted at step 1 in place of
+            the step's own choice (:meth:`second_start`). None: the greedy walk.
+
+        Returns
+        -------
+        Path
+            The walk (also :attr:`path`; the greedy one is also kept as :attr:`greedy`).
+        """
         p = self.problem
         self.path = Path(current=p.base, J_held=p.J_held_base, J_fit=p.J_fit_base, floor=p.base_floor,
                          replay_floor=p.base_replay_floor, context=self.context)
@@ -163,8 +184,19 @@ class ForwardSelection:
         ones confounded with it (by the selection's complexity-penalised replay). Forward selection
         commits to its first choice; where that choice is a stand-in that absorbs what two other
         effects do (12 Maxwell-slip blocks for a compliant joint plus a Stribeck curve), the path
-        from the runner-up is the only way back. None when the path ends at its floor or step 1 had
-        no other adoptable candidate."""
+        from the runner-up is the only way back.
+
+        Parameters
+        ----------
+        a : Path
+            The greedy walk (:meth:`walk` without ``first``).
+
+        Returns
+        -------
+        JudgedRow or None
+            Step 1's runner-up; None when the path adopted nothing, its replay is within its own
+            floor (or unstable), or step 1 had no other adoptable candidate.
+        """
         if self.first_step is None or not a.found or a.steps[0].get("accepted") is None:
             return None
         judge = self.problem.judge
@@ -179,7 +211,13 @@ class ForwardSelection:
     def continuations(self) -> list[str]:
         """Keys of the effects that continue an adopted integer effect below its grid step
         (:attr:`.effects.base.Effect.continues`: a fractional delay after a whole-sample one) and have
-        not been tried on the current model: tried before the selection stops within the floor."""
+        not been tried on the current model: tried before the selection stops within the floor.
+
+        Returns
+        -------
+        list of str
+            Effect keys, in the library's order (empty: nothing left to try below a grid step).
+        """
         p, path = self.problem, self.path
         taken = {f.key for f in path.selected}
         return [k for k in p.keys if k not in taken and k not in path.banned and k not in path.continued
@@ -189,7 +227,23 @@ class ForwardSelection:
         """Every candidate of this step (``only``: those keys alone). A member of an exclusive group
         (alternative friction laws) whose one adopted member is the only conflict is a *replacement*:
         fitted on the model without that member (the more flexible member the data preferred first
-        may not be the physics: Dahl for a GMS, Dahl for a Stribeck curve)."""
+        may not be the physics: Dahl for a GMS, Dahl for a Stribeck curve).
+
+        Left out: adopted or banned effects, stochastic ones, drive effects when the recorded
+        command is the measured force, parts of an adopted effect, members clashing with more than
+        one adopted effect, and effects not applicable to the model they would be fitted on.
+
+        Parameters
+        ----------
+        only : collection of str, optional
+            Effect keys to keep (the others are left out); None: every key of the library.
+
+        Returns
+        -------
+        list of Candidate
+            In the library's order; a replacement's ``Candidate`` names the adopted member it
+            replaces.
+        """
         p, path = self.problem, self.path
         taken = {f.key for f in path.selected}
         todo = []
@@ -228,9 +282,25 @@ class ForwardSelection:
 
     def step(self, step: int, first: JudgedRow | None = None) -> bool:
         """Forward step ``step``: propose, fit, judge and refine every candidate, choose one
-        (:func:`.selection.choose`), record the step and adopt the choice. Returns whether the
-        selection goes on. ``first``: a judged candidate of an earlier walk's first step, adopted at
-        step 1 from that step's record (:meth:`second_start`)."""
+        (:func:`.selection.choose`), record the step in ``path.steps`` and adopt the choice.
+
+        When the current model's replay is already within its run-to-run floor only the
+        continuations (:meth:`continuations`) are tried; with none, the step records the stop.
+
+        Parameters
+        ----------
+        step : int
+            The step number, from 1.
+        first : JudgedRow, optional
+            A judged candidate of an earlier walk's first step, adopted at step 1 from that
+            step's record without refitting (:meth:`second_start`).
+
+        Returns
+        -------
+        bool
+            Whether the selection goes on (False: nothing adopted, no candidate fitted, or the
+            replay is within its floor).
+        """
         p, path = self.problem, self.path
         opt, judge = p.options, p.judge
         if first is not None:

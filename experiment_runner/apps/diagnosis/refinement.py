@@ -241,13 +241,42 @@ def refine_by_replay(candidate: FitResult, selected: list, base: ModelSpec, ctx:
 
     With ``with_selected`` the adopted deterministic effects (``selected``) are refined with it
     (joint output error: a second effect is credited with what it adds once the first is re-fitted
-    in its presence), else they are held at their values. ``start``: the candidate's own start
-    values instead of the observer's fit; ``grid``: start from a coarse grid around it, coordinate
-    by coordinate, as a one-parameter candidate always does (:data:`GRID_1D`). ``diff_step``: the
-    optimiser's relative finite-difference step (of the log for log parameters).
+    in its presence), else they are held at their values. A one-parameter candidate, or one with
+    ``grid``, starts from the best of a coarse grid around its start, coordinate by coordinate
+    (:data:`GRID_1D`): the replay error is rough in such a parameter.
 
-    Returns None (no gain, or a failure: the refinement improves a candidate, it never fails a
-    diagnosis) or the :class:`Refinement`.
+    Parameters
+    ----------
+    candidate : FitResult
+        The force observer's fit of the candidate effect (its values are the start).
+    selected : list of FitResult
+        The adopted effects of the current model (without the one the candidate replaces).
+    base : ModelSpec
+        The base model the adopted effects are applied to.
+    ctx : Context
+        The located context for fits on top of ``selected`` (:func:`.selection.for_fits_on`).
+    judge : ReplayJudge
+        The judge of the fit samples: its replay error is the least-squares residual.
+    floor : Floor
+        The current model's run-to-run floor; its ``sigma_u`` [N] and ``sigma_y`` [m] make the
+        residual dimensionless.
+    max_nfev : int, optional
+        Replay evaluations of the least squares at most (the caller gives fewer to candidates
+        with many parameters).
+    with_selected : bool, optional
+        Refine the adopted deterministic effects jointly with the candidate.
+    start : array_like, optional
+        The candidate's own start values (its parameter units) instead of the observer's fit.
+    diff_step : float, optional
+        The optimiser's relative finite-difference step (of the log for log parameters).
+    grid : bool, optional
+        Start from the coarse grid whatever the number of parameters.
+
+    Returns
+    -------
+    Refinement or None
+        The refined candidate; None when the replay error did not decrease or anything failed
+        (the refinement improves a candidate, it never fails a diagnosis).
     """
     try:
         refined = [f for f in selected if f.effect.kind == "deterministic"] if with_selected else []

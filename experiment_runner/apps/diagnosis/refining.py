@@ -135,7 +135,31 @@ def refine_rows(problem: Problem, path: Path, judged: list, sim_blocks) -> list:
     and judged again before candidates are compared; a refined row replaces the observer's.
     Candidates with more than :data:`~.refinement.REFINE_MAX_PARAMS` parameters are refined with
     fewer evaluations; from the second step on the adopted effects are refined with the candidate
-    (at most :data:`~.refinement.REFINE_JOINT_MAX` parameters in all)."""
+    (at most :data:`~.refinement.REFINE_JOINT_MAX` parameters in all).
+
+    An integer candidate (delay) is first re-chosen by the replay among the values next to the
+    observer's pick, and a located mode is refined on the transfer; then :func:`own_share` judges
+    the jointly refined rows against the adopted effects' best re-fit alone. Rows are refined on
+    ``problem.options.n_jobs`` threads and returned in their input order.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the selection works on; nothing is refined when it has no judge of the fit samples.
+    path : Path
+        The current walk (its adopted effects, context and run-to-run replay floor).
+    judged : list of JudgedRow
+        The step's judged candidates.
+    sim_blocks : numpy.ndarray
+        ``(K, n_blocks)`` the floor's simulated recordings' block errors, normalised by the floor
+        (:meth:`.judge.ReplayJudge.sim_blocks`), for judging the refined rows again.
+
+    Returns
+    -------
+    list of JudgedRow
+        ``judged`` with every refined row replaced by its re-judged row (``why`` ends
+        "(refined by the replay)"); the others unchanged.
+    """
     if not problem.refines:
         return judged
     judged = [_refine_integer(problem, path, j, sim_blocks) if j.fit.effect.kind == "integer" else j
@@ -196,7 +220,22 @@ def own_share(problem: Problem, path: Path, refits: list, floor: Floor) -> None:
     their joint refinements reached (``refits``: (row, model of the adopted effects alone at the
     row's joint values, the joint fit); best by the replay of the fit samples) is the baseline a row
     must beat beyond the floor to stay adoptable, and is kept as :attr:`.selection.Path.refit`
-    (:func:`.adoption.keep_refit`). Each candidate's joint refinement reaches a different re-fit."""
+    (:func:`.adoption.keep_refit`). Each candidate's joint refinement reaches a different re-fit.
+
+    Rows that do not beat it are marked not adoptable (``ok`` False, ``why`` says so) in place.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the selection works on.
+    path : Path
+        The current walk; its ``refit`` is set (None when no re-fit beats the current model).
+    refits : list of tuple
+        ``(row, spec, joint fit)``: a jointly refined :class:`.selection.JudgedRow`, the
+        ``ModelSpec`` of the adopted effects alone at its joint values, and the joint ``FitResult``.
+    floor : Floor
+        The current model's run-to-run replay floor the comparison is made in.
+    """
     path.refit = None
 
     def fit_D(spec):

@@ -175,8 +175,37 @@ def candidate_task(token: str, blob: bytes, e, current: ModelSpec, selected: lis
 
 def fit_candidates(problem: Problem, todo: list[Candidate], current: ModelSpec, selected: list, J_fit_cur: float,
                    ctx: Context) -> tuple[list[FitResult], dict]:
-    """Fit every candidate of ``todo`` (with the selected effects re-fitted, from step 2 on); returns
-    the fits, best force-observer score first, and the candidates whose fit failed (key -> error)."""
+    """Fit every candidate of ``todo`` by the force observer (with the selected effects re-fitted, from step 2 on).
+
+    A replacement (``Candidate.replaces`` set) is fitted on the model without the adopted member
+    it replaces. The fits run on the problem's executor (worker processes) when it has one,
+    else on ``problem.options.n_jobs`` threads; a failed fit is logged and left out, never
+    stops the diagnosis.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the selection works on (options, executor, base model, evaluator).
+    todo : list of Candidate
+        The step's candidates; sorted in place, most parameters first (for load balance).
+    current : ModelSpec
+        The current model the candidates are added to.
+    selected : list of FitResult
+        The adopted effects of ``current``.
+    J_fit_cur : float
+        The current model's force-residual J on the fit samples (:class:`.selection.Path`
+        ``J_fit``), the reference each fit is scored against.
+    ctx : Context
+        The located context for fits on top of ``selected``.
+
+    Returns
+    -------
+    fits : list of FitResult
+        The successful fits, best first by held-out J times ``1 + complexity x parameters``
+        (``problem.options.complexity``).
+    failed : dict
+        Effect key -> error message of every candidate whose fit failed.
+    """
     opt, ex, base, ev = problem.options, problem.executor, problem.base, problem.evaluator
     failed = {}
     # slow (multi-parameter, stiff) candidates first for a better balance; the fits are
