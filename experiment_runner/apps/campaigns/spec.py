@@ -101,7 +101,36 @@ def _slug(s: str) -> str:
 
 @dataclass(frozen=True)
 class Condition:
-    """One test condition (a step size, or a radius and speed) and sweep value."""
+    """One test condition (a step size, a radius and speed, or a force amplitude) and sweep value.
+
+    The coordinates a kind does not use are None.
+
+    Parameters
+    ----------
+    key : str
+        Identifier of the condition, letters, digits and ``_`` only (``'5mm'``), unique in the
+        campaign: used in file names and result keys.
+    label : str
+        The condition as the reports show it (``'5 mm'``).
+    step : float, optional
+        Point-to-point step size [m] (signed).
+    radius : float, optional
+        Circle radius [m].
+    speed : float, optional
+        Circle tangential speed [m/s].
+    sweep : float, optional
+        The campaign sweep's value (in the sweep's ``unit``).
+    amplitude : float, optional
+        Frequency response: force amplitude at the plant input [N].
+
+    Examples
+    --------
+    >>> c = Condition("5mm__k_2", "5 mm, k = 2", step=5e-3, sweep=2.0)
+    >>> c.matches(step=5e-3), c.matches(step=5e-3, sweep=1.0), c.matches(radius=1e-3)
+    (True, False, False)
+    >>> c.at()
+    {'step': 0.005, 'sweep': 2.0}
+    """
     key: str
     label: str
     step: Optional[float] = None
@@ -111,6 +140,26 @@ class Condition:
     amplitude: Optional[float] = None          # frequency_response: force amplitude [N]
 
     def matches(self, step=None, radius=None, speed=None, sweep=None, amplitude=None) -> bool:
+        """Whether this condition has every coordinate given (equal to a relative 1e-9; None: any).
+
+        Parameters
+        ----------
+        step : float, optional
+            Step size [m].
+        radius : float, optional
+            Circle radius [m].
+        speed : float, optional
+            Tangential speed [m/s].
+        sweep : float, optional
+            Sweep value.
+        amplitude : float, optional
+            Force amplitude [N].
+
+        Returns
+        -------
+        bool
+            False when a given coordinate differs or this condition does not have it.
+        """
         for mine, want in ((self.step, step), (self.radius, radius), (self.speed, speed), (self.sweep, sweep),
                            (self.amplitude, amplitude)):
             if want is not None and (mine is None or not math.isclose(mine, want, rel_tol=1e-9, abs_tol=0.0)):
@@ -118,6 +167,13 @@ class Condition:
         return True
 
     def at(self) -> dict:
+        """The coordinates this condition has, as :meth:`matches` takes them.
+
+        Returns
+        -------
+        dict
+            ``step``, ``radius``, ``speed``, ``sweep``, ``amplitude`` -> value, the ones not None.
+        """
         return {k: getattr(self, k) for k in ("step", "radius", "speed", "sweep", "amplitude")
                 if getattr(self, k) is not None}
 
@@ -129,7 +185,7 @@ class Condition:
 class PointToPointTest(Move):
     """Point-to-point moves (seed Sec. 3.4.1, Fig. 3.13): one condition per step size, each an
     experiment's :class:`~experiment_runner.core.experiment.PointToPoint` of this :class:`~experiment_runner.core.experiment.Move`."""
-    kind: Literal["point_to_point"]
+    kind: Literal["point_to_point"] = Field(description="the test kind: point_to_point")
     steps: list[Finite] = Field(min_length=1, description="step sizes [m] (signed), one condition each")
     dwell: Pos = Field(1.0, description="settling portion recorded after the reference stops [s] (the seed's "
                                         "tables: 1 s)")
@@ -147,7 +203,13 @@ class PointToPointTest(Move):
         return self
 
     def conditions(self) -> list[Condition]:
-        """One condition per step size."""
+        """One condition per step size.
+
+        Returns
+        -------
+        list of Condition
+            In the order of ``steps``; each with ``step`` [m] and a label such as ``'5 µm'``.
+        """
         return [Condition(_slug(fmt_length(s)), fmt_length(s), step=float(s)) for s in self.steps]
 
     def profile(self, cond: Condition) -> experiment.PointToPoint:
@@ -167,7 +229,22 @@ class PointToPointTest(Move):
                                        **self.model_dump(include=set(Move.model_fields)))
 
     def reference(self, cond: Condition, rate: float) -> profiles.Reference:
-        """The shared (start-at-0) reference of a condition at the control rate."""
+        """The shared (start-at-0) reference of a condition at the control rate.
+
+        Every trial of the condition follows it, offset by its start position.
+
+        Parameters
+        ----------
+        cond : Condition
+            One of :meth:`conditions`.
+        rate : float
+            The control rate [Hz]: the reference is sampled every ``1 / rate`` s.
+
+        Returns
+        -------
+        experiment_runner.core.profiles.Reference
+            :func:`experiment_runner.core.experiment.reference` of :meth:`profile`.
+        """
         return experiment.reference(self.profile(cond), 1.0 / rate)
 
 
@@ -183,7 +260,7 @@ class CircleTest(StrictModel):
     Either ``radii`` x ``speeds`` (every speed at every radius) or ``circles`` (each radius
     with its own speeds, e.g. mm/s at 5 mm and µm/s at 5 µm).
     """
-    kind: Literal["circle"]
+    kind: Literal["circle"] = Field(description="the test kind: circle")
     radii: Optional[list[Pos]] = Field(None, min_length=1, description="circle radii [m] (x speeds)")
     speeds: Optional[list[Pos]] = Field(None, min_length=1, description="tangential speeds [m/s] (x radii)")
     circles: Optional[list[CircleSpeeds]] = Field(None, min_length=1, description="radii with their own speeds")
@@ -202,7 +279,14 @@ class CircleTest(StrictModel):
         return self
 
     def pairs(self) -> list[tuple[float, float]]:
-        """Every (radius, speed) condition, in order."""
+        """Every (radius, speed) condition, in order.
+
+        Returns
+        -------
+        list of tuple of float
+            ``(radius [m], speed [m/s])``: each radius with each of its speeds (``circles``), or
+            every speed at every radius (``radii`` x ``speeds``), radius-major.
+        """
         if self.circles is not None:
             return [(float(c.radius), float(v)) for c in self.circles for v in c.speeds]
         return [(float(r), float(v)) for r in self.radii for v in self.speeds]
@@ -211,7 +295,13 @@ class CircleTest(StrictModel):
     REPRESENTATIVE: ClassVar[str] = "rms_tracking_error_m"
 
     def conditions(self) -> list[Condition]:
-        """One condition per radius and speed."""
+        """One condition per radius and speed.
+
+        Returns
+        -------
+        list of Condition
+            In the order of :meth:`pairs`; each with ``radius`` [m] and ``speed`` [m/s].
+        """
         return [Condition(_slug(f"r{fmt_length(r)}_v{fmt_length(v)}s"), f"R {fmt_length(r)}, {fmt_length(v)}/s",
                           radius=r, speed=v) for r, v in self.pairs()]
 
@@ -231,7 +321,22 @@ class CircleTest(StrictModel):
         return experiment.Circle(kind="circle", radius=cond.radius, speed=cond.speed, cycles=self.cycles)
 
     def reference(self, cond: Condition, rate: float) -> profiles.Reference:
-        """The shared (start-at-0) reference of a condition at the control rate."""
+        """The shared (start-at-0) reference of a condition at the control rate.
+
+        Every trial of the condition follows it, offset by its start position.
+
+        Parameters
+        ----------
+        cond : Condition
+            One of :meth:`conditions`.
+        rate : float
+            The control rate [Hz]: the reference is sampled every ``1 / rate`` s.
+
+        Returns
+        -------
+        experiment_runner.core.profiles.Reference
+            :func:`experiment_runner.core.experiment.reference` of :meth:`profile`.
+        """
         return experiment.reference(self.profile(cond), 1.0 / rate)
 
 
@@ -245,7 +350,7 @@ class FrequencyResponseTest(StrictModel):
     frequency is adjusted by less than half a sample per window so that it holds whole
     samples), repeated until it lasts ``measure_force_time / amplitude^2``.
     """
-    kind: Literal["frequency_response"]
+    kind: Literal["frequency_response"] = Field(description="the test kind: frequency_response")
     amplitudes: list[Pos] = Field(min_length=1,
                                   description="force amplitudes at the plant input [N], one condition each")
     f_min: Pos = Field(description="lowest frequency [Hz]")
@@ -282,7 +387,13 @@ class FrequencyResponseTest(StrictModel):
         return self
 
     def conditions(self) -> list[Condition]:
-        """One condition per force amplitude."""
+        """One condition per force amplitude.
+
+        Returns
+        -------
+        list of Condition
+            In the order of ``amplitudes``; each with ``amplitude`` [N].
+        """
         return [Condition(f"{a:g}N".replace(".", "p").replace("+", ""), f"{a:g} N", amplitude=float(a))
                 for a in self.amplitudes]
 
@@ -290,6 +401,21 @@ class FrequencyResponseTest(StrictModel):
 def frequency_grid(test: FrequencyResponseTest) -> np.ndarray:
     """Nominal log-spaced frequencies [Hz] from ``f_min`` to ``f_max`` (both included).
 
+    ``round(log10(f_max / f_min) * points_per_decade) + 1`` frequencies, at least 2. Nominal: a
+    run adjusts each so that its measurement window holds whole samples.
+
+    Parameters
+    ----------
+    test : FrequencyResponseTest
+        The test (its ``f_min``, ``f_max`` [Hz] and ``points_per_decade``).
+
+    Returns
+    -------
+    numpy.ndarray
+        The frequencies [Hz], ascending.
+
+    Examples
+    --------
     >>> t = FrequencyResponseTest(kind="frequency_response", amplitudes=[1.0], f_min=1.0, f_max=100.0,
     ...                           points_per_decade=2)
     >>> frequency_grid(t).round(3).tolist()
@@ -323,15 +449,18 @@ class StepII(StrictModel):
 
 
 class Case(StrictModel):
-    name: Name
+    """One of the compared configurations: a preset, its overrides, optionally SAI Step II learning."""
+    name: Name = Field(description="identifier (a letter, then letters, digits, _; at most 40), unique in the "
+                                   "campaign; referred to by baseline, seed values, findings, sweeps")
     label: str = Field(description="as in the seed's table, e.g. 'No FI'")
-    description: str = ""
+    description: str = Field("", description="what the case is physically (free text)")
     preset: str = Field(description="preset name or path")
     overrides: dict = Field(default_factory=dict, description="dotted-path preset overrides of this case")
     per_speed: dict[str, Finite] = Field(
         default_factory=dict, description="circle tests: dotted path -> factor; the path is set to factor x the "
         "condition's speed [m/s] (e.g. the SAI reversal window as a fraction of the tangential speed)")
-    step_ii: Optional[StepII] = None
+    step_ii: Optional[StepII] = Field(None, description="learn the SAI's reference correction (seed Sec. 5.3) "
+                                                        "before the trials; None: no learning")
     seed_mechanism: str = Field("", description="the seed's own account of how this case settles (quoted in the "
                                                 "report beside the simulated mechanism)")
 
@@ -343,7 +472,9 @@ class SweepTarget(StrictModel):
     """Where the sweep value goes in some of the cases (see :class:`Sweep`)."""
     cases: list[str] = Field(min_length=1, description="cases this target applies to")
     paths: list[str] = Field(min_length=1, description="dotted paths ('*' matches every list item)")
-    mode: SweepMode = "value"
+    mode: SweepMode = Field("value", description="value: set the paths to the sweep value; scale: multiply the "
+                                                 "preset's values by it; series_scale: scale, then in series with "
+                                                 "'series'")
     series: Optional[Pos] = Field(None, description="series_scale: stiffness in series with the scaled one [N/m]")
 
     @model_validator(mode="after")
@@ -363,13 +494,14 @@ class Sweep(StrictModel):
     ``mode``, ``series`` and optionally ``cases``) for one target, or ``apply``: a list of
     targets, each for its own cases (cases in no target run unchanged at every value).
     """
-    name: Name
-    label: str
+    name: Name = Field(description="identifier of the swept parameter (in condition keys)")
+    label: str = Field(description="the swept parameter as the reports name it")
     paths: Optional[list[str]] = Field(None, min_length=1, description="dotted paths ('*' matches every list item)")
-    mode: SweepMode = "value"
+    mode: SweepMode = Field("value", description="value, scale or series_scale (see the class)")
     series: Optional[Pos] = Field(None, description="series_scale: stiffness in series [N/m]")
-    values: list[Finite] = Field(min_length=1)
-    unit: str = ""
+    values: list[Finite] = Field(min_length=1, description="the swept values, distinct (a value or a factor, "
+                                                           "per mode); one condition each per test condition")
+    unit: str = Field("", description="unit of the values, for labels (empty: none)")
     cases: Optional[list[str]] = Field(None, description="cases it applies to (default all)")
     apply: Optional[list[SweepTarget]] = Field(None, min_length=1, description="per-case targets (instead of paths)")
 
@@ -386,7 +518,20 @@ class Sweep(StrictModel):
         return self
 
     def target(self, case: str) -> Optional[SweepTarget]:
-        """The target applying to ``case`` (None: the case does not depend on the sweep)."""
+        """The target applying to ``case`` (None: the case does not depend on the sweep).
+
+        Parameters
+        ----------
+        case : str
+            A case name.
+
+        Returns
+        -------
+        SweepTarget or None
+            The ``apply`` entry listing ``case``, or the one-target form (``paths``, ``mode``,
+            ``series``) when ``cases`` is unset or lists it; None: the case runs unchanged at
+            every value.
+        """
         if self.apply is not None:
             return next((t for t in self.apply if case in t.cases), None)
         if self.cases and case not in self.cases:
@@ -396,36 +541,45 @@ class Sweep(StrictModel):
 
 class _At(StrictModel):
     """Condition selector: the step (point-to-point) or radius and speed (circle), and sweep value."""
-    step: Optional[Finite] = None
-    radius: Optional[Pos] = None
-    speed: Optional[Pos] = None
-    sweep: Optional[Finite] = None
+    step: Optional[Finite] = Field(None, description="point_to_point: step size [m]")
+    radius: Optional[Pos] = Field(None, description="circle: radius [m]")
+    speed: Optional[Pos] = Field(None, description="circle: tangential speed [m/s]")
+    sweep: Optional[Finite] = Field(None, description="the sweep value (required when the campaign sweeps)")
     amplitude: Optional[Pos] = Field(None, description="frequency_response: force amplitude [N]")
 
     def at(self) -> dict:
+        """The coordinates given, as :meth:`Condition.matches` takes them.
+
+        Returns
+        -------
+        dict
+            ``step``, ``radius``, ``speed``, ``sweep``, ``amplitude`` -> value, the ones not None.
+        """
         return {k: getattr(self, k) for k in ("step", "radius", "speed", "sweep", "amplitude")
                 if getattr(self, k) is not None}
 
 
 class SeedValue(_At):
-    case: str
-    metric: Metric
-    value: Finite = Field(description="the seed's number, SI (s, m)")
-    source: str = ""
+    """A number the seed reports: ``metric`` of ``case`` at the one condition selected."""
+    case: str = Field(description="case name")
+    metric: Metric = Field(description="metric name (campaigns.registry.METRICS), measured by the test kind")
+    value: Finite = Field(description="the seed's number in the metric's SI unit (s, m; Hz, dB, deg, 1/s, "
+                                      "N/(A kg) for the frequency-response metrics)")
+    source: str = Field("", description="where in the seed (table, figure, section)")
     bound: Literal["value", "upper", "lower"] = Field(
         "value", description="frequency_response: the seed states a limit ('less than 10 Hz': upper)")
 
 
 class Finding(_At):
     """A direction the seed reports: ``metric`` of ``case`` is lower / higher / similar vs ``versus``."""
-    id: Name
+    id: Name = Field(description="identifier, unique in the campaign")
     claim: str = Field(description="the seed's statement")
-    case: str
-    versus: str
+    case: str = Field(description="the case the statement is about")
+    versus: str = Field(description="the case it is compared with")
     versus_amplitude: Optional[Pos] = Field(
         None, description="frequency_response: versus at this amplitude [N] (default: the same; case may equal versus)")
-    metric: Metric
-    direction: Literal["lower", "higher", "similar"]
+    metric: Metric = Field(description="metric name (campaigns.registry.METRICS), measured by the test kind")
+    direction: Literal["lower", "higher", "similar"] = Field(description="the metric of case vs versus")
     tolerance: Fraction = Field(0.2, description="'similar': largest relative difference")
     change: Optional[Finite] = Field(None, description="the seed's relative change (case - versus) / versus, "
                                      "when it gives a percentage only (e.g. Table 6.3); else from seed.values")
@@ -452,28 +606,35 @@ class Finding(_At):
 
 
 class SeedData(StrictModel):
-    source: str
-    notes: str = ""
-    values: list[SeedValue] = Field(default_factory=list)
-    findings: list[Finding] = Field(default_factory=list)
+    """What the seed reports for the campaign: its numbers and its findings."""
+    source: str = Field(description="where in the seed (shown at the top of the report)")
+    notes: str = Field("", description="remarks on the seed's data (shown in the report)")
+    values: list[SeedValue] = Field(default_factory=list, description="the seed's numbers")
+    findings: list[Finding] = Field(default_factory=list, description="the directions the seed reports")
 
 
 class CalTarget(_At):
-    metric: Metric
-    form: Literal["absolute", "quadrature_excess"] = "absolute"
+    """The one baseline number a calibrated parameter is fitted to: ``metric`` at the condition selected."""
+    metric: Metric = Field(description="metric name; its seed value for the baseline case is the target")
+    form: Literal["absolute", "quadrature_excess"] = Field(
+        "absolute", description="absolute: match the metric; quadrature_excess: match its part above a "
+                                "deterministic floor, sqrt(metric^2 - floor^2)")
     seed_floor: NonNeg = Field(0.0, description="quadrature_excess: deterministic floor of the seed value [SI]")
 
 
 class CalParameter(StrictModel):
-    name: Name
+    """One physically meaningful parameter the seed leaves open, fitted on the baseline to one seed number."""
+    name: Name = Field(description="identifier (calibration.json values)")
     description: str = Field(description="what it is physically and why it is not known from the seed")
     paths: list[str] = Field(min_length=1, description="dotted paths ('*' matches every list item)")
-    mode: Literal["value", "scale"] = "value"
-    bounds: tuple[Finite, Finite]
-    log: bool = False
+    mode: Literal["value", "scale"] = Field("value", description="value: the parameter is the paths' value; "
+                                                                 "scale: a factor on the preset's values")
+    bounds: tuple[Finite, Finite] = Field(description="(lower, upper), lower below upper: the fit stays inside "
+                                                      "and reports a parameter at a bound")
+    log: bool = Field(False, description="fit in the logarithm of the parameter (positive bounds)")
     neutral: Optional[Finite] = Field(None, description="value that removes the effect (quadrature_excess)")
-    unit: str = ""
-    target: CalTarget
+    unit: str = Field("", description="unit of the parameter, for the report")
+    target: CalTarget = Field(description="the baseline number it is fitted to")
 
     @model_validator(mode="after")
     def _bounds(self):
@@ -491,8 +652,9 @@ class Calibration(StrictModel):
     """Fit ``parameters`` on this campaign's baseline (:mod:`experiment_runner.apps.campaigns.calibration`)."""
     trials: int = Field(16, ge=1, le=1000, description="baseline trials per evaluation (the first of the campaign's)")
     rounds: int = Field(3, ge=1, le=10, description="Gauss-Seidel rounds at most")
-    rtol: Annotated[float, Field(gt=0, lt=1)] = 0.01
-    parameters: list[CalParameter] = Field(min_length=1, max_length=3)
+    rtol: Annotated[float, Field(gt=0, lt=1)] = Field(
+        0.01, description="converged when no parameter moved by more than this, relative, in a round")
+    parameters: list[CalParameter] = Field(min_length=1, max_length=3, description="the parameters fitted (1 to 3)")
 
 
 class CalibrationFrom(StrictModel):
@@ -520,18 +682,26 @@ CalibrationSpec = Annotated[Union[Annotated[Calibration, Tag("fit")], Annotated[
 
 
 class Campaign(StrictModel):
-    name: Name
-    title: str
-    description: str = ""
-    test: Test
+    """One of the seed's experimental comparisons: cases x conditions (x sweep values), trials, seed data.
+
+    Validation also checks the whole: case names unique, ``baseline`` a case (without
+    ``step_ii``), every seed value and finding naming cases and selecting exactly one condition
+    of a metric the test measures, sweep and calibration targets consistent.
+    """
+    name: Name = Field(description="identifier (a letter, then letters, digits, _; at most 40)")
+    title: str = Field(description="one line, shown on top of the report and the plots")
+    description: str = Field("", description="what is run and why (free text)")
+    test: Test = Field(description="the test: point_to_point, circle or frequency_response (by 'kind')")
     trials: int = Field(ge=1, le=10_000, description="trials per case and condition")
     starts: Starts = Field(Starts(), description="where trials start (trial i: starts.trial(i), on its own)")
     overrides: dict = Field(default_factory=dict, description="dotted-path overrides for every case")
-    cases: list[Case] = Field(min_length=1)
-    baseline: str
-    sweep: Optional[Sweep] = None
-    calibration: Optional[CalibrationSpec] = None
-    seed: SeedData
+    cases: list[Case] = Field(min_length=1, description="the compared cases")
+    baseline: str = Field(description="the case the calibration is fitted on (the conventional stage)")
+    sweep: Optional[Sweep] = Field(None, description="one more axis of conditions: a parameter's values")
+    calibration: Optional[CalibrationSpec] = Field(
+        None, description="parameters fitted on the baseline, or {from: NAME}: another campaign's fit; None: "
+                          "every case runs on its preset as is")
+    seed: SeedData = Field(description="the seed's numbers and findings compared with the simulation")
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -755,7 +925,33 @@ def check_campaign(camp: Campaign, source: str = "<campaign>") -> None:
 
 # =========================================================================== overrides
 def expand_path(data, path: str) -> list[tuple[str, object]]:
-    """Dotted path with '*' wildcards -> [(concrete path, value)] in ``data`` (a model_dump)."""
+    """Dotted path with '*' wildcards -> [(concrete path, value)] in ``data`` (a model_dump).
+
+    Parameters
+    ----------
+    data : dict
+        A nested mapping (a preset's ``model_dump()``).
+    path : str
+        Dotted path; a part is a mapping key, a list index (negative counts from the end) or
+        ``*`` (every item of a list or mapping).
+
+    Returns
+    -------
+    list of tuple
+        ``(concrete dotted path, value)`` of every match, in order; list indices non-negative.
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        A part that is not there (the message names the fields or item count there).
+
+    Examples
+    --------
+    >>> expand_path({"a": [{"b": 1}, {"b": 2}]}, "a.*.b")
+    [('a.0.b', 1), ('a.1.b', 2)]
+    >>> expand_path({"a": [{"b": 1}, {"b": 2}]}, "a.-1.b")
+    [('a.1.b', 2)]
+    """
     nodes = [(data, [])]
     for part in path.split("."):
         nxt = []
@@ -841,6 +1037,23 @@ def resolve(preset: Preset, paths, mode: str, value, series: Optional[float] = N
 
 
 def to_python(v):
+    """``v`` with numpy scalars as Python numbers, also inside lists, tuples and dicts (for YAML/JSON).
+
+    Parameters
+    ----------
+    v : object
+        A value, list, tuple or dict.
+
+    Returns
+    -------
+    object
+        The same with every ``numpy.generic`` replaced by its ``item()``; tuples become lists.
+
+    Examples
+    --------
+    >>> to_python({"k": (np.float64(1.5), np.int64(2))})
+    {'k': [1.5, 2]}
+    """
     if isinstance(v, np.generic):
         return v.item()
     if isinstance(v, (list, tuple)):
