@@ -103,7 +103,24 @@ def nominal_from_config(rec):
     """The nominal of the recording's ``/experiment/config`` (read by the project's YAML loader
     and validated: errors name the recording, the topic and the field): its ``preset``, or its
     ``nominal_model`` block (a rig's model in its own terms) translated
-    (:mod:`experiment_runner.core.nominal_model`); None if it carries neither."""
+    (:mod:`experiment_runner.core.nominal_model`); None if it carries neither.
+
+    Parameters
+    ----------
+    rec : experiment_runner.core.recording.Recording
+        The opened recording.
+
+    Returns
+    -------
+    stage_sim.config.Preset or dict or None
+        The ``preset`` validated as a :class:`stage_sim.config.Preset`; else the translated
+        ``nominal_model`` as a validated preset mapping (a line on stderr says so); else None.
+
+    Raises
+    ------
+    stage_sim.config.ConfigError
+        A ``preset`` that is not a valid preset mapping, or an invalid ``nominal_model``.
+    """
     from experiment_runner.core.nominal_model import nominal_preset_from_doc
     from msg_defs.topics import CONFIG
     from stage_sim.config import ConfigError, preset_from_dict

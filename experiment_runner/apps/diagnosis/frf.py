@@ -525,7 +525,32 @@ def noise_band_modes(f, S_data, S_sims, S_det, X, D, rate: float, max_modes: int
 
 def fit_mode(f, R, fk, kind):
     """Least squares of ``log R - log(c mode_ratio)`` over ``(log f_b, log zeta, logit phi)`` and a
-    complex gain ``c`` (solved in closed form per evaluation)."""
+    complex gain ``c`` (solved in closed form per evaluation).
+
+    ``f_b`` is bounded to ``fk / 3 ... 3 fk``, ``zeta`` to ``1e-4 ... 1``; six starts (three
+    mass fractions, two damping ratios), the lowest cost kept.
+
+    Parameters
+    ----------
+    f : numpy.ndarray
+        Frequencies [Hz] of the band fitted.
+    R : numpy.ndarray
+        The measured-over-model transfer ratio at ``f`` (complex, dimensionless,
+        :func:`transfer_ratio`), nonzero.
+    fk : float
+        Frequency of the feature [Hz] (the starts' blocked frequency).
+    kind : {'resonance', 'antiresonance'}
+        The feature's kind: an antiresonance starts ``f_b`` at ``fk``, a resonance at
+        ``fk sqrt(1 - phi)``.
+
+    Returns
+    -------
+    dict or None
+        ``f_hz`` (blocked frequency [Hz]), ``zeta``, ``fraction`` (modal mass fraction),
+        ``fit_rms`` (RMS of the real and imaginary parts of the log residual) and ``at_bound``
+        (``'f'``, ``'zeta'``, ``'fraction'``: those within 0.1 % of their fitted (log or logit) range
+        of a bound); None when no start could be fitted.
+    """
     lR = np.log(R)
 
     def res(p):

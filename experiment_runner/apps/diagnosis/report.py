@@ -354,7 +354,20 @@ def _md_candidates(rep: dict) -> list[str]:
 
 
 def md_noise(rep: dict) -> list[str]:
-    """Noise, quantization, sparse regression and the files."""
+    """Noise, quantization, sparse regression and the files.
+
+    Parameters
+    ----------
+    rep : dict
+        The diagnosis report (``report.json``'s content): ``stochastic``, ``timing_s`` and,
+        when there, ``units``, ``remaining``, ``sparse_regression``, ``plots``.
+
+    Returns
+    -------
+    list of str
+        Markdown lines: the noise and quantization estimates, what the improved model leaves,
+        the sparse regression, the files and the wall time.
+    """
     L = []
     U = rep.get("units") or axis_units("linear")
     fu, pu = U["force"], U["position"]

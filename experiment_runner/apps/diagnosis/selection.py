@@ -584,8 +584,25 @@ def consistent_from_below(problem: Problem, ok: list) -> tuple:
     (consistency z below minus the critical value, each against its own run-to-run floor) replays the
     noise, not a physics: the one realisation's hold forces that drive noise left on a friction
     contact, or a floor its own change inflated (a lighter mass whose loop amplifies the drive noise).
-    A model right up to noise sits near z = 0. Returns ``(the consistent rows, {id(row): its floor})``;
-    the others are marked not adoptable (why)."""
+    A model right up to noise sits near z = 0. The others are marked not adoptable (``ok`` False,
+    ``why``). Only when the data are not quieter than the base model (``problem.noise_ratio`` read
+    and at least :data:`NOISE_QUIETER`): with quieter data every candidate, the truth too, replays closer
+    than its recordings, and no row is marked.
+
+    Parameters
+    ----------
+    problem : Problem
+        What the selection works on (its judge and ``noise_ratio``).
+    ok : list of JudgedRow
+        The adoptable rows.
+
+    Returns
+    -------
+    kept : list of JudgedRow
+        The consistent rows, in order.
+    floors : dict
+        ``id(row)`` -> the row's own run-to-run floor (:class:`.judge.Floor`), for every row of ``ok``.
+    """
     judge = problem.judge
     kept, floors = [], {}
     # data quieter than the model (its noise level read from the residual spectrum): every candidate,
