@@ -43,7 +43,7 @@ def source_copy(tmp_path):
 
 @pytest.mark.parametrize("module, line, broken", [
     ("stage_sim/plant.py", "import rclpy", ["Only the ROS layer imports rclpy"]),
-    ("experiment_runner/core/recording.py", "from rclpy.serialization import serialize_message",
+    ("experiment_runner/core/recording/writer.py", "from rclpy.serialization import serialize_message",
      ["Only the ROS layer imports rclpy"]),
     ("msg_defs/convert.py", "from experiment_runner.ros.node import StageNode", ["Layers: the applications above the ROS layer"]),
     ("experiment_runner/ros/servo_node.py", "from experiment_runner.ros.plant_node import PlantNode",

@@ -23,7 +23,8 @@ import yaml
 from experiment_runner.apps.cli import main
 from experiment_runner.apps.diagnosis.data import load_data
 from experiment_runner.core.metrics import trial_metrics
-from experiment_runner.core.recording import McapRecorder, RecordingError, typestore, read_recording
+from experiment_runner.core.recording import McapRecorder, RecordingError, read_recording
+from experiment_runner.core.recording.writer import typestore
 from msg_defs import convert
 from stage_sim.config import ConfigError, load_preset
 from stage_sim.validation import load_yaml

@@ -246,7 +246,7 @@ def test_indexed_fast_path_gives_the_mcap_librarys_messages(synthetic, tmp_path)
     chunk fails the CRC check as in the library."""
     from mcap_ros2.writer import Writer as Ros2Writer
 
-    from experiment_runner.core.recording import indexed_messages
+    from experiment_runner.core.recording.mcap import indexed_messages
     msgdef, _ = TS.generate_msgdef("sensor_msgs/msg/JointState", ros_version=2)
     foreign = tmp_path / "zstd.mcap"
     with open(foreign, "wb") as f:

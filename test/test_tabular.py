@@ -469,7 +469,8 @@ def test_convert_emps_is_the_table_importer_and_gives_the_same_recording(emps_fi
 def test_external_force_topic_is_read_per_control_sample(tmp_path):
     """``/stage/external_force`` written by any writer (here McapRecorder message by message)
     comes back aligned with the control samples; a sample without it is nan, with a warning."""
-    from experiment_runner.core.recording import McapRecorder, typestore
+    from experiment_runner.core.recording import McapRecorder
+    from experiment_runner.core.recording.writer import typestore
     from msg_defs.convert import joint_state
     from msg_defs.topics import EXTERNAL_FORCE, TOPICS
     assert EXTERNAL_FORCE.units.startswith("N") and TOPICS["/stage/external_force"] is EXTERNAL_FORCE

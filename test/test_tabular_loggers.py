@@ -15,7 +15,8 @@ import pytest
 import yaml
 
 from experiment_runner.apps.cli import main
-from experiment_runner.core.recording import McapRecorder, typestore, read_recording
+from experiment_runner.core.recording import McapRecorder, read_recording
+from experiment_runner.core.recording.writer import typestore
 from experiment_runner.core.tabular import convert_table, read_table
 from msg_defs.convert import joint_state
 from stage_sim.validation import ConfigError, ConfigWarning

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import time
 
-from experiment_runner.core.recording import RecordingError, load_raw
+from experiment_runner.core.recording import RecordingError
+from experiment_runner.core.recording.mcap import load_raw
 from experiment_runner.ros.qos import qos_profile
 from experiment_runner.ros.run import apply_graph_defaults, check_domain_id
 from msg_defs import convert
