@@ -257,19 +257,7 @@ class ReplayJudge:
         self.z_block = z_block
         self.n = int(self.mask.sum())
         # blocks: runs of held-out samples cut every block_s
-        L = max(20, int(round(block_s * data.rate)))
-        ids = np.full(self.mask.shape, -1, int)
-        nb = 0
-        for j in range(self.mask.shape[1]):
-            idx = np.flatnonzero(self.mask[:, j])
-            if not len(idx):
-                continue
-            brk = np.r_[0, np.flatnonzero(np.diff(idx) > 1) + 1, len(idx)]
-            for a, b in zip(brk[:-1], brk[1:]):
-                run = idx[a:b]
-                k = max(1, len(run) // L)
-                ids[run, j] = nb + np.minimum(np.arange(len(run)) * k // len(run), k - 1)
-                nb += k
+        ids, nb = _held_out_blocks(self.mask, max(20, int(round(block_s * data.rate))))
         self.block = ids
         self.n_blocks = nb
         self.block_n = np.bincount(ids[self.mask], minlength=nb).astype(float)
@@ -329,17 +317,7 @@ class ReplayJudge:
         nf = noise_free(spec)
         u, y, status, p = self.simulate_recordings(nf, [0])
         u, y = u[0], y[0]
-        ok, why = True, ""
-        if np.any(status != 0) or not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
-            ok, why = False, "replay diverged or left the travel"
-        elif self.n:
-            lim = nf._compiled["batch_models"].servo.limit
-            sat = float(np.mean(np.abs(u[self.mask]) >= 0.999 * lim))
-            sat_rec = float(np.mean(np.abs(self.u[self.mask]) >= 0.999 * lim))
-            # a replay sitting at the command limit much more often than the recording: the loop
-            # swings (an unstable model), whatever it does to the error statistics
-            if sat > sat_rec + 0.01:
-                ok, why = False, f"replay command at its limit ({lim:.4g} N) on {100 * sat:.1f} % of the samples"
+        ok, why = _replay_verdict(u, y, status, self.u, self.mask, nf._compiled["batch_models"].servo.limit)
         r = Replay(u=u, y=y, ok=ok, why=why)
         spec._compiled[key] = r
         return r
@@ -362,15 +340,8 @@ class ReplayJudge:
         dy = (y - rp.y[None])[:, self.mask]
         su = float(np.sqrt(np.mean(du ** 2))) if du.size else 1.0
         sy = float(np.sqrt(np.mean(dy ** 2))) if dy.size else 1.0
-        # a model without noise (e.g. drive noise "unknown: 0") has a degenerate floor: its simulated
-        # recordings are its replay. The channels are then weighted by the least a rig resolves:
-        # the encoder step (uniform quantization error), 1e-4 of the recorded command's RMS, and what
-        # the recorded signals themselves resolve (their sample-to-sample roughness): never a floor
-        # below the measurement's own resolution
-        q = spec.preset.stage.encoder.resolution
-        tiny_u = max(1e-4 * (float(np.sqrt(np.mean(self.u[self.mask] ** 2))) if self.n else 1.0),
-                     self.u_resolution) or 1e-12
-        tiny_y = max(q / math.sqrt(12.0), self.y_resolution, 1e-12)
+        tiny_u, tiny_y = _least_resolved(spec.preset.stage.encoder.resolution, self.u[self.mask],
+                                         self.u_resolution, self.y_resolution)
         return Floor(spec=spec, replay=rp, u=u, y=y, sigma_u=max(su, tiny_u), sigma_y=max(sy, tiny_y))
 
     # ------------------------------------------------------------------ distances
@@ -514,63 +485,6 @@ class ReplayJudge:
         return (float(np.sqrt(np.mean((self.u - rp.u)[self.mask] ** 2))),
                 float(np.sqrt(np.mean((self.y - rp.y)[self.mask] ** 2))))
 
-    def _block_se(self, tb: np.ndarray, T: float) -> float:
-        nb = self.n_blocks
-        if nb < 3:
-            return 0.0
-        dev = tb - self.block_n * T
-        return float(np.sqrt(nb / (nb - 1) * np.sum(dev ** 2)) / max(self.n, 1))
-
-    def _score_se(self, rp0: Replay, rp1: Replay, fl: Floor, of: Floor | None = None) -> float:
-        """Standard error of ``T = D(rp0) - D(rp1)`` under "no improvement" with the noise taken
-        from the data: with ``e = data - rp1`` and ``d = rp1 - rp0`` (floor units),
-        ``T = sum(d^2 + 2 e d) / n`` and its noise part ``2 sum(e d) / n`` has, over blocks
-        that may be correlated inside, the variance ``4 sum_b (sum_{t in b} e d)^2 / n^2``. A
-        likelihood-ratio test whose noise model is the data's own residual: a concentrated
-        deterministic improvement (at reversals) passes, a change that only trades one misfit
-        for another (large ``e`` where it acts) does not. The blocks span the noise's correlation
-        time in the replay error (:meth:`_score_span`, from the recordings ``of``, default ``fl``'s)."""
-        if not self.n:
-            return 0.0
-        d = self._errors(rp1.u, rp1.y, rp0, fl)
-        e = self._errors(self.u, self.y, rp1, fl)
-        sb = self._blocks(sum(ei * di for ei, di in zip(e, d)))
-        m = self._score_span(rp0, d, fl, of)
-        return float(2.0 * np.sqrt(np.sum(self._merged(sb, m) ** 2)) / self.n)
-
-    @staticmethod
-    def _merged(sb: np.ndarray, m: int) -> np.ndarray:
-        """Sums over ``m`` consecutive blocks (..., n_blocks) -> (..., ceil(n_blocks / m))."""
-        if m <= 1:
-            return sb
-        nb = sb.shape[-1]
-        pad = (-nb) % m
-        z = np.concatenate([sb, np.zeros(sb.shape[:-1] + (pad,))], axis=-1)
-        return z.reshape(sb.shape[:-1] + (-1, m)).sum(axis=-1)
-
-    def _score_span(self, rp0: Replay, d: list, fl: Floor, of: Floor | None = None) -> int:
-        """How many consecutive held-out blocks the score test's blocks must span for its noise part
-        to be independent from block to block: the smallest number (1, 2, 4, ...) at which the sum of
-        the per-block variances of ``sum e_k d`` over the simulated recordings ``of`` (default
-        ``fl``'s; errors against ``rp0``) reaches 70 % of the variance of the whole sum. Drive noise
-        moves a friction contact's hold force for a whole hold and the loop integrates it: blocks of
-        20 ms are then far from independent, and the score test took a wrong effect that trades one
-        realisation's misfit for another (a delay for a mode) as beyond the data's noise."""
-        of = of or fl
-        if of.u.ndim != 3 or of.u.shape[0] < 3 or self.n_blocks < 6:
-            return 1
-        S = np.stack([self._blocks(sum(ei * di for ei, di in zip(self._errors(of.u[k], of.y[k], rp0, fl), d)))
-                      for k in range(of.u.shape[0])])
-        whole = float(np.var(S.sum(axis=1), ddof=1))
-        if not whole > 0:
-            return 1
-        m = 1
-        while self.n_blocks // m >= 3:
-            if float(np.sum(np.var(self._merged(S, m), axis=0, ddof=1))) >= 0.7 * whole:
-                return m
-            m *= 2
-        return max(1, m // 2)
-
     # ------------------------------------------------------------------ tests
     def compare(self, fl: Floor, rp_new: Replay, fl_blocks=None, rp_base: Replay | None = None,
                 of_base: Floor | None = None) -> Comparison:
@@ -608,17 +522,10 @@ class ReplayJudge:
         s1 = self.sim_blocks(rp_new, fl, of=of_base)
         Tk = (s0.sum(axis=1) - s1.sum(axis=1)) / n
         thr = float(np.mean(Tk) + self.t_q * np.std(Tk, ddof=1))
-        se = self._score_se(rp0, rp_new, fl, of=of_base)
+        se = _score_se(self, rp0, rp_new, fl, of=of_base)
         if not rp_new.ok:
             return Comparison(D0, D1, T, thr, se, False, False, f"unstable: {rp_new.why}")
-        if T <= 0:
-            why = "replay not better"
-        elif T <= thr:
-            why = "improvement within the run-to-run floor"
-        elif T <= self.z_block * se:
-            why = "improvement within the data's own noise (score test over held-out blocks)"
-        else:
-            why = ""
+        why = _rejection(T, thr, se, self.z_block)
         return Comparison(D0, D1, T, thr, se, True, not why, why or "beyond the floor")
 
     def equivalent(self, fl: Floor, rp_a: Replay, rp_b: Replay, margin: float = 0.05,
@@ -658,7 +565,7 @@ class ReplayJudge:
         of_b = of_b or fl
         dk = (self.sim_blocks(rp_a, fl, of=of_b).sum(axis=1) - self.sim_blocks(rp_b, fl, of=of_b).sum(axis=1)) / n
         se_sim = float(np.std(dk, ddof=1))
-        se_blk = self._block_se(ba - bb, d)
+        se_blk = _block_se(self, ba - bb, d)
         eq = d <= 2.0 * se_sim or Da <= (1 + margin) * Db or (d <= 2.0 * se_blk and Da <= 1.25 * Db)
         return bool(eq), d
 
@@ -685,12 +592,7 @@ class ReplayJudge:
         n = max(self.n, 1)
         Dd = self.data_blocks(rp, norm).sum() / n
         Dk = self.sim_blocks(rp, norm, of=fl).sum(axis=1) / n
-        # log of D shifted by the floor's mean: multiplicative for large errors, and no heavy left
-        # tail when some simulated recordings are nearly their replay (a stuck stage, quantization only)
-        c = max(float(np.mean(Dk)), 1e-300)
-        lk = np.log(Dk + c)
-        sd = float(np.std(lk, ddof=1)) or 1e-12
-        return float((math.log(Dd + c) - np.mean(lk)) / sd)
+        return _log_z(Dd, Dk)
 
     def floor_ratio(self, rp: Replay, fl: Floor) -> float:
         """Data's replay error over the floor's, RMS ratio (1 = at the run-to-run floor).
@@ -711,6 +613,142 @@ class ReplayJudge:
         Dk = self.sim_blocks(rp, fl).sum(axis=1) / n
         # 2 per sample = at the floor by construction; less when the floor is degenerate (no noise)
         return float(math.sqrt(Dd / max(float(np.mean(Dk)), 2.0)))
+
+
+# --------------------------------------------------------------------------- replay and floor helpers
+def _replay_verdict(u, y, status, u_rec, mask, lim) -> tuple[bool, str]:
+    """``(ok, why)`` of a noise-free replay ``(u, y)`` with simulator ``status`` against the recorded
+    command ``u_rec`` on the judged samples ``mask``; ``lim`` the servo's command limit [N]."""
+    ok, why = True, ""
+    if np.any(status != 0) or not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+        ok, why = False, "replay diverged or left the travel"
+    elif mask.sum():
+        sat = float(np.mean(np.abs(u[mask]) >= 0.999 * lim))
+        sat_rec = float(np.mean(np.abs(u_rec[mask]) >= 0.999 * lim))
+        # a replay sitting at the command limit much more often than the recording: the loop
+        # swings (an unstable model), whatever it does to the error statistics
+        if sat > sat_rec + 0.01:
+            ok, why = False, f"replay command at its limit ({lim:.4g} N) on {100 * sat:.1f} % of the samples"
+    return ok, why
+
+
+def _least_resolved(q: float, u_held: np.ndarray, u_resolution: float, y_resolution: float):
+    """The least a rig resolves, ``(command [N], position [m])``: the floor of a model without noise.
+
+    A model without noise (e.g. drive noise "unknown: 0") has a degenerate floor: its simulated
+    recordings are its replay. The channels are then weighted by the least a rig resolves: the
+    encoder step ``q`` (uniform quantization error), 1e-4 of the recorded command's RMS (``u_held``,
+    the judged samples), and what the recorded signals themselves resolve (their sample-to-sample
+    roughness): never a floor below the measurement's own resolution.
+    """
+    tiny_u = max(1e-4 * (float(np.sqrt(np.mean(u_held ** 2))) if u_held.size else 1.0),
+                 u_resolution) or 1e-12
+    tiny_y = max(q / math.sqrt(12.0), y_resolution, 1e-12)
+    return tiny_u, tiny_y
+
+
+def _log_z(Dd: float, Dk: np.ndarray) -> float:  # noqa: N803 (D of the data, of the recordings)
+    """z-score of ``log(Dd + c)`` among ``log(Dk + c)``, ``c`` the mean of ``Dk``: the log of D shifted
+    by the floor's mean is multiplicative for large errors, with no heavy left tail when some
+    simulated recordings are nearly their replay (a stuck stage, quantization only)."""
+    c = max(float(np.mean(Dk)), 1e-300)
+    lk = np.log(Dk + c)
+    sd = float(np.std(lk, ddof=1)) or 1e-12
+    return float((math.log(Dd + c) - np.mean(lk)) / sd)
+
+
+# --------------------------------------------------------------------------- score test
+# The data's own noise model of :meth:`ReplayJudge.compare` and :meth:`ReplayJudge.equivalent`.
+def _rejection(T: float, thr: float, se: float, z_block: float) -> str:  # noqa: N803 (the statistic T)
+    """Why the improvement ``T`` of a stable replay is not accepted ("" when it is): not positive,
+    within the run-to-run threshold ``thr``, or within ``z_block`` score-test standard errors ``se``."""
+    if T <= 0:
+        return "replay not better"
+    if T <= thr:
+        return "improvement within the run-to-run floor"
+    if T <= z_block * se:
+        return "improvement within the data's own noise (score test over held-out blocks)"
+    return ""
+
+
+def _held_out_blocks(mask: np.ndarray, length: int) -> tuple[np.ndarray, int]:
+    """Block ids (T, B) of the held-out samples ``mask``: each run of held-out samples of a trial cut
+    into ``max(1, len(run) // length)`` near-equal blocks; -1 outside ``mask``. Returns ``(ids, n_blocks)``."""
+    ids = np.full(mask.shape, -1, int)
+    nb = 0
+    for j in range(mask.shape[1]):
+        idx = np.flatnonzero(mask[:, j])
+        if not len(idx):
+            continue
+        brk = np.r_[0, np.flatnonzero(np.diff(idx) > 1) + 1, len(idx)]
+        for a, b in zip(brk[:-1], brk[1:]):
+            run = idx[a:b]
+            k = max(1, len(run) // length)
+            ids[run, j] = nb + np.minimum(np.arange(len(run)) * k // len(run), k - 1)
+            nb += k
+    return ids, nb
+
+
+def _block_se(judge: ReplayJudge, tb: np.ndarray, T: float) -> float:  # noqa: N803 (the statistic T)
+    """Block-bootstrap standard error of ``sum(tb) / n`` from the blocks' scatter about ``T`` per
+    sample (0 with fewer than 3 blocks)."""
+    nb = judge.n_blocks
+    if nb < 3:
+        return 0.0
+    dev = tb - judge.block_n * T
+    return float(np.sqrt(nb / (nb - 1) * np.sum(dev ** 2)) / max(judge.n, 1))
+
+
+def _score_se(judge: ReplayJudge, rp0: Replay, rp1: Replay, fl: Floor, of: Floor | None = None) -> float:
+    """Standard error of ``T = D(rp0) - D(rp1)`` under "no improvement" with the noise taken
+    from the data: with ``e = data - rp1`` and ``d = rp1 - rp0`` (floor units),
+    ``T = sum(d^2 + 2 e d) / n`` and its noise part ``2 sum(e d) / n`` has, over blocks
+    that may be correlated inside, the variance ``4 sum_b (sum_{t in b} e d)^2 / n^2``. A
+    likelihood-ratio test whose noise model is the data's own residual: a concentrated
+    deterministic improvement (at reversals) passes, a change that only trades one misfit
+    for another (large ``e`` where it acts) does not. The blocks span the noise's correlation
+    time in the replay error (:func:`_score_span`, from the recordings ``of``, default ``fl``'s)."""
+    if not judge.n:
+        return 0.0
+    d = judge._errors(rp1.u, rp1.y, rp0, fl)
+    e = judge._errors(judge.u, judge.y, rp1, fl)
+    sb = judge._blocks(sum(ei * di for ei, di in zip(e, d)))
+    m = _score_span(judge, rp0, d, fl, of)
+    return float(2.0 * np.sqrt(np.sum(_merged(sb, m) ** 2)) / judge.n)
+
+
+def _merged(sb: np.ndarray, m: int) -> np.ndarray:
+    """Sums over ``m`` consecutive blocks (..., n_blocks) -> (..., ceil(n_blocks / m))."""
+    if m <= 1:
+        return sb
+    nb = sb.shape[-1]
+    pad = (-nb) % m
+    z = np.concatenate([sb, np.zeros(sb.shape[:-1] + (pad,))], axis=-1)
+    return z.reshape(sb.shape[:-1] + (-1, m)).sum(axis=-1)
+
+
+def _score_span(judge: ReplayJudge, rp0: Replay, d: list, fl: Floor, of: Floor | None = None) -> int:
+    """How many consecutive held-out blocks the score test's blocks must span for its noise part
+    to be independent from block to block: the smallest number (1, 2, 4, ...) at which the sum of
+    the per-block variances of ``sum e_k d`` over the simulated recordings ``of`` (default
+    ``fl``'s; errors against ``rp0``) reaches 70 % of the variance of the whole sum. Drive noise
+    moves a friction contact's hold force for a whole hold and the loop integrates it: blocks of
+    20 ms are then far from independent, and the score test took a wrong effect that trades one
+    realisation's misfit for another (a delay for a mode) as beyond the data's noise."""
+    of = of or fl
+    if of.u.ndim != 3 or of.u.shape[0] < 3 or judge.n_blocks < 6:
+        return 1
+    S = np.stack([judge._blocks(sum(ei * di for ei, di in zip(judge._errors(of.u[k], of.y[k], rp0, fl), d)))
+                  for k in range(of.u.shape[0])])
+    whole = float(np.var(S.sum(axis=1), ddof=1))
+    if not whole > 0:
+        return 1
+    m = 1
+    while judge.n_blocks // m >= 3:
+        if float(np.sum(np.var(_merged(S, m), axis=0, ddof=1))) >= 0.7 * whole:
+            return m
+        m *= 2
+    return max(1, m // 2)
 
 
 # --------------------------------------------------------------------------- controller

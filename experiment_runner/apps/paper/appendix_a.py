@@ -166,12 +166,8 @@ def _plot_sweep(out: Path, sweep, bench):
 
 
 # --------------------------------------------------------------------------- claims
-def claims(out: Path) -> list[Claim]:
-    out = outputs.prepare_folder(out)
-    x_ref, v_ref, t_step = _references()
-    pid = load_preset("als130h")
-
-    # ---- Fig. A.2: benchmark and K_I sweep (one simulate call per K_I, both steps)
+def _fig_a2(out, pid, x_ref, v_ref, t_step):
+    """Fig. A.2: the frictionless benchmark and the K_I sweep (one simulate call per K_I, both steps); plots."""
     t, y_bench, bench = _run(with_overrides(pid, {"stage.table_friction": None}), x_ref, v_ref, t_step)
     sweep, ys = [], {}
     for ki in KI_GRID:
@@ -186,8 +182,11 @@ def claims(out: Path) -> list[Claim]:
           "Fig. A.2: PID-controlled ALS-130H with Dahl friction (als130h preset)",
           "appendix_a_fig_a2.png")
     _plot_sweep(out, sweep, bench)
+    return t, y_bench, bench, sweep, by_ki
 
-    # ---- Fig. A.3: NIASA, plant k_sigma = k_sigma,n (1 + delta)
+
+def _fig_a3(out, x_ref, v_ref, t_step, t, y_bench, bench):
+    """Fig. A.3: NIASA with plant k_sigma = k_sigma,n (1 + delta) per delta; plot."""
     niasa = load_preset("als130h_niasa")
     nres, ny = {}, {}
     for d in DELTAS:
@@ -199,13 +198,13 @@ def claims(out: Path) -> list[Claim]:
           + [(f"NIASA, δ = {d:g}", ny[d], nres[d], "-") for d in DELTAS],
           "Fig. A.3: NIASA (τ_d = 4 ms) with plant k_σ = 8 N/µm·(1+δ) (als130h_niasa preset)",
           "appendix_a_fig_a3.png")
+    return nres, ny
 
-    result: list[Claim] = []
-    b50, b500 = bench[0]["settling_time"], bench[1]["settling_time"]
 
-    # ---- 1. K_I = 0 with friction does not settle
+def _claims_ki0(by_ki):
+    """Claim 1: K_I = 0 with friction does not settle."""
     k0 = by_ki[0.0]
-    result.append(Claim(
+    return [Claim(
         id="A.2/ki0-no-settle", source="Fig. A.2",
         claim="with Dahl friction and K_I = 0 the stage does not settle into the ±20 % window (50 nm, 500 nm)",
         seed="no settling for either step",
@@ -218,9 +217,11 @@ def claims(out: Path) -> list[Claim]:
         note=(f"agrees if neither response is settled (inside the window for the last {HOLD * 1e3:.0f} ms "
               f"of a {DWELL * 1e3:.0f} ms record). The PD force is balanced by the stiff "
               "pre-motion spring far from the target (a purely elastic k_σ would stop it at "
-              "K_P D/(K_P + k_σ) = 9 % of D; the Dahl hysteresis after the derivative kick adds a little).")))
+              "K_P D/(K_P + k_σ) = 9 % of D; the Dahl hysteresis after the derivative kick adds a little)."))]
 
-    # ---- 2. best 50 nm settling near K_I = 3e3, ~33 % shorter than benchmark
+
+def _claims_best_ki(sweep, by_ki, b50):
+    """Claim 2: best 50 nm settling near K_I = 3e3, ~33 % shorter than the benchmark."""
     ts50 = np.array([s[0]["settling_time"] for s in sweep])
     i_best = int(np.nanargmin(ts50))
     ki_best, ts_best = KI_GRID[i_best], float(ts50[i_best])
@@ -228,7 +229,7 @@ def claims(out: Path) -> list[Claim]:
     red_best, red_3e3 = 1 - ts_best / b50, 1 - ts_3e3 / b50
     j = KI_GRID.index(KI_BEST_SEED)
     near = KI_GRID[j - 1] <= ki_best <= KI_GRID[j + 1]
-    result.append(Claim(
+    return [Claim(
         id="A.2/best-ki-50nm", source="Fig. A.2(a)",
         claim="over K_I = 0…1e4 N/(µm·s) the best 50 nm settling time is at K_I ≈ 3e3 and 33 % shorter than the benchmark",
         seed="best at K_I = 3e3 N/(µm·s), 33 % shorter than benchmark",
@@ -249,9 +250,11 @@ def claims(out: Path) -> list[Claim]:
               f"{by_ki[5e3][0]['pp_last'] * 1e9:.1f} nm p-p "
               + ("sustained limit cycle" if by_ki[5e3][0]["limit_cycle"] else "oscillation")
               + (" inside the window (counted as settled)." if by_ki[5e3][0]["settled"]
-                 else f" ({by_ki[5e3][0]['kind']})."))))
+                 else f" ({by_ki[5e3][0]['kind']}).")))]
 
-    # ---- 3. K_I = 3e3 on 500 nm: slower than benchmark (seed +31 %)
+
+def _claims_ki3e3_500nm(pid, x_ref, v_ref, t_step, sweep, by_ki, b500):
+    """Claim 3: K_I = 3e3 on 500 nm is slower than the benchmark (seed +31 %), with the cross-checks."""
     ts500 = by_ki[KI_BEST_SEED][1]["settling_time"]
     rel = ts500 / b500 - 1 if math.isfinite(ts500) else math.inf
     ov500 = by_ki[KI_BEST_SEED][1]["overshoot"]
@@ -262,7 +265,7 @@ def claims(out: Path) -> list[Claim]:
     dm_near = [ki for ki, v in zip(ROUND_KI_CONT, scan_dmeas) if v is not None and abs(v - SEED_SLOWER) <= TOL_PP]
     dm_unst = [ki for ki, v in zip(ROUND_KI_CONT, scan_dmeas) if v is None]
     red50_dm = 1 - cross["cont_dmeas_ki3e3_50nm"] / cross["cont_dmeas_bench"]
-    result.append(Claim(
+    return [Claim(
         id="A.2/ki3e3-500nm-slower", source="Fig. A.2(b)",
         claim="K_I = 3e3 N/(µm·s) (best for 50 nm) gives a very large overshoot and a 31 % longer 500 nm settling time than the benchmark",
         seed="very large overshoot, settling 31 % longer than benchmark",
@@ -302,11 +305,13 @@ def claims(out: Path) -> list[Claim]:
               + f"; it keeps the 50 nm claim ({red50_dm:.0%} at 3e3). So the seed's +31 % is "
               "consistent with a derivative on the measurement, but neither form is stated and the result "
               "flips within the rounding of K_I: we keep the preset (derivative on the error) and report "
-              "the difference.")))
+              "the difference."))]
 
-    # ---- 4. K_I = 6e3: limit cycle (50 nm), unstable (500 nm)
+
+def _claims_ki6e3(by_ki):
+    """Claim 4: K_I = 6e3 gives a limit cycle (50 nm) and an unstable response (500 nm)."""
     k6 = by_ki[KI_LC_SEED]
-    result.append(Claim(
+    return [Claim(
         id="A.2/ki6e3-unstable", source="Fig. A.2",
         claim="K_I = 6e3 N/(µm·s) gives a limit cycle for the 50 nm step and an unstable response for the 500 nm step",
         seed="50 nm: limit cycle; 500 nm: unstable",
@@ -327,9 +332,12 @@ def claims(out: Path) -> list[Claim]:
               "drop balances it (limit cycle); the 500 nm one reaches gross sliding and runs away until "
               "the preset's 1 kN actuator limit bounds it as a mm-size saturated oscillation. "
               f"K_I = 8e3: {'/'.join(s['kind'] for s in by_ki[8e3])}, "
-              f"1e4: {'/'.join(s['kind'] for s in by_ki[1e4])} (50/500 nm).")))
+              f"1e4: {'/'.join(s['kind'] for s in by_ki[1e4])} (50/500 nm)."))]
 
-    # ---- 5. NIASA robustness (50 nm) and 6. 500 nm responses
+
+def _claims_niasa(nres, ny, t, t_step):
+    """Claims 5 and 6: NIASA robustness (50 nm) and the 500 nm responses over delta."""
+    result: list[Claim] = []
     stable = [d for d in DELTAS if d >= -0.5]
     ok_stable = all(nres[d][i]["settled"] and nres[d][i]["kind"] == "settled"
                     and nres[d][i]["pp_last"] < LC_MIN_PP * STEPS[i]
@@ -382,6 +390,18 @@ def claims(out: Path) -> list[Claim]:
               f"{SPREAD_MIN:.0%} (same threshold as A.3(a)). The dependence is moderate: the settling time "
               "rises steadily with δ.")))
     return result
+
+
+def claims(out: Path) -> list[Claim]:
+    out = outputs.prepare_folder(out)
+    x_ref, v_ref, t_step = _references()
+    pid = load_preset("als130h")
+    t, y_bench, bench, sweep, by_ki = _fig_a2(out, pid, x_ref, v_ref, t_step)
+    nres, ny = _fig_a3(out, x_ref, v_ref, t_step, t, y_bench, bench)
+    b50, b500 = bench[0]["settling_time"], bench[1]["settling_time"]
+    return (_claims_ki0(by_ki) + _claims_best_ki(sweep, by_ki, b50)
+            + _claims_ki3e3_500nm(pid, x_ref, v_ref, t_step, sweep, by_ki, b500)
+            + _claims_ki6e3(by_ki) + _claims_niasa(nres, ny, t, t_step))
 
 
 def _settle(t, y, D, t_step, frac):

@@ -181,20 +181,8 @@ def _plots(out, m_t, m_b, pid, k_f, c_f, fis, E, D, e0, d0, ge, etas, gam, bias,
 
 
 # ============================================================================= claims
-def claims(out: Path) -> list[Claim]:
-    out = outputs.prepare_folder(out)
-    t0 = time.perf_counter()
-    m_t, m_b, pid, fis = stage_parameters()
-    c_f = c_f_estimate(m_t, m_b)
-
-    # ---- Sec. 6.3.2
-    E, D, e0, d0 = norm_maps(m_t, m_b, pid, K_F, c_f)
-    fis_e, fis_d = {}, {}
-    for lab, (k, c) in fis.items():
-        fis_e[lab], fis_d[lab] = point_norms(m_t, m_b, pid, k, c, K_F, c_f)
-    ge = _ge_analysis(E, e0, fis_e)
-    gd = _gd_analysis(D, d0)
-    max_re = max_closed_loop_real_part(m_t, m_b, pid, K_F, c_f)
+def _zeta_sensitivity(m_t, m_b, pid, fis):
+    """Sec. 6.3.2 verdicts for each assumed table-bearing damping ratio in ZETA_F_SENS."""
     sens = {}
     for z in ZETA_F_SENS:
         cfz = c_f_estimate(m_t, m_b, z)
@@ -205,7 +193,11 @@ def claims(out: Path) -> list[Claim]:
                        ge_mono_c=gez["mono_c"], ge_below_flat=gez["below_flat"],
                        ge_k_opt_lowc=float(gez["k_opt"][0]), ge_rise_max=float(gez["rise_below"].max()),
                        gd_agrees=gdz["agrees"])
-    # structural variants (the m_t/m_b split is an estimate; the seed's C has no derivative filter)
+    return sens
+
+
+def _structural_variants(m_t, m_b, pid, fis, c_f):
+    """Sec. 6.3.2 verdicts for other m_t/m_b splits and an unfiltered derivative (the seed's C has none)."""
     variants = {}
     for lab, (mt_v, mb_v, pid_v) in {
             "m_b=0.3": (m_t + m_b - 0.3, 0.3, pid), "m_b=0.9": (m_t + m_b - 0.9, 0.9, pid),
@@ -217,14 +209,33 @@ def claims(out: Path) -> list[Claim]:
                              ge_rise_max_c_le_1000=float(gev["rise_below"][C_GRID <= 1000.0].max()),
                              ge_table_ok=gev["table_ok"], ge_mono_c=gev["mono_c"],
                              gd_agrees=gdv["agrees"])
+    return variants
+
+
+def _sec632(m_t, m_b, pid, fis, c_f):
+    """Sec. 6.3.2: the G_e and G_d norm maps over (k_fi, c_fi), their analyses and sensitivities."""
+    E, D, e0, d0 = norm_maps(m_t, m_b, pid, K_F, c_f)
+    fis_e, fis_d = {}, {}
+    for lab, (k, c) in fis.items():
+        fis_e[lab], fis_d[lab] = point_norms(m_t, m_b, pid, k, c, K_F, c_f)
+    ge = _ge_analysis(E, e0, fis_e)
+    gd = _gd_analysis(D, d0)
+    max_re = max_closed_loop_real_part(m_t, m_b, pid, K_F, c_f)
+    sens = _zeta_sensitivity(m_t, m_b, pid, fis)
+    variants = _structural_variants(m_t, m_b, pid, fis, c_f)
     k_star_est, rise_est = ge_optimum_estimate(m_t, pid)
     ge_ctrl = {lab: ge_norm_control(m_t, m_b, pid, k, c, K_F, c_f) for lab, (k, c) in fis.items()}
     ge_ctrl_dev = max(abs(ge_ctrl[lab] / fis_e[lab] - 1.0) for lab in fis)
     k_near = int(np.argmin(np.abs(np.log(K_GRID / 3.3e4))))
     c_lo = C_GRID <= 1000.0
     j240 = int(np.argmin(np.abs(np.log(C_GRID / 240.0))))
+    return dict(E=E, D=D, e0=e0, d0=d0, fis_e=fis_e, fis_d=fis_d, ge=ge, gd=gd, max_re=max_re, sens=sens,
+                variants=variants, k_star_est=k_star_est, rise_est=rise_est, ge_ctrl_dev=ge_ctrl_dev,
+                k_near=k_near, c_lo=c_lo, j240=j240)
 
-    # ---- Sec. 6.4.2
+
+def _gamma():
+    """Sec. 6.4.2: the RMS force difference gamma(eta) between FI+Dahl and FI+GMS, and its sensitivities."""
     gk = gms_consistent()                                   # Table 6.5 distribution, Σk_i = k_σ
     gam, bias, gam2 = gamma_curve(gms_k=gk)
     eta_min2 = float(ETA_GRID[int(np.argmin(gam2))])
@@ -245,178 +256,226 @@ def claims(out: Path) -> list[Claim]:
     g_at = {e: float(np.interp(np.log(e), np.log(ETA_GRID), gam)) for e in (0.01, 0.05, 0.1, 1.0)}
     flips = np.flatnonzero(np.diff(np.sign(bias)))
     cross = float(ETA_GRID[flips[0] + 1]) if flips.size else math.nan
+    return dict(gk=gk, gam=gam, bias=bias, gam2=gam2, eta_min2=eta_min2, i_min=i_min, eta_min=eta_min,
+                gam_pr=gam_pr, gam2_pr=gam2_pr, gam_ch4=gam_ch4, gam2_ch4=gam2_ch4, gam_s65=gam_s65,
+                gam2_s65=gam2_s65, eta_of=eta_of, t45_series=t45_series, t45_per_block=t45_per_block,
+                lo_tol=lo_tol, hi_tol=hi_tol, under_small=under_small, over_large=over_large,
+                gamma_ok=gamma_ok, u_shape=u_shape, g_at=g_at, cross=cross)
 
+
+def _kappa():
+    """Sec. 4.1 / 6.4.2: the simulated sensitivity kappa(eta) vs Eq. 4.2."""
     kap_sim = np.array([kappa_simulated(e) for e in ETA_GRID])
     kap_eq = kappa_eq42(ETA_GRID)
     kap_err = float(np.max(np.abs(kap_sim / kap_eq - 1.0)))
     kap_small = bool(np.all(kap_sim[ETA_GRID < 0.1] < 0.01))
     kap_lim0, kap_liminf = float(kappa_simulated(1e-4)), float(kappa_simulated(1e4))
     kappa_ok = bool(kap_err < 1e-4 and kap_small and kap_lim0 < 1e-6 and kap_liminf > 0.999)
+    return dict(kap_sim=kap_sim, kap_err=kap_err, kap_small=kap_small, kap_lim0=kap_lim0,
+                kap_liminf=kap_liminf, kappa_ok=kappa_ok)
 
-    _plots(out, m_t, m_b, pid, K_F, c_f, fis, E, D, e0, d0, ge, ETA_GRID, gam, bias, gam_pr, kap_sim)
-    runtime_total = time.perf_counter() - t0
 
-    common = dict(m_t=m_t, m_b=m_b, k_f=K_F, c_f=c_f, zeta_f=ZETA_F, kp=pid["kp"], ki=pid["ki"],
-                  kd=pid["kd"], derivative_cutoff=pid["derivative_cutoff"],
-                  k_fi_grid=[float(K_GRID[0]), float(K_GRID[-1]), len(K_GRID)],
-                  c_fi_grid=[float(C_GRID[0]), float(C_GRID[-1]), len(C_GRID)],
-                  max_closed_loop_pole_real=max_re)
+def _claims_ge(s, common, fis, m_t, runtime_total):
+    """The Sec. 6.3.2 G_e claim (thresholds in k_fi and c_fi)."""
+    (e0, fis_e, ge, c_lo, j240, sens, variants, k_star_est, rise_est, ge_ctrl_dev, k_near) = (s[k] for k in (
+        "e0", "fis_e", "ge", "c_lo", "j240", "sens", "variants", "k_star_est", "rise_est",
+        "ge_ctrl_dev", "k_near"))
     fis_txt = ", ".join(f"{lab} {fis_e[lab]:.2f}" for lab in fis)
     sens_txt = "; ".join(f"ζ_f = {z}: k* = {v['ge_k_opt_lowc']:.1e} N/m, rise +{100 * v['ge_rise_max']:.0f} %"
                          for z, v in sens.items())
     var_txt = "; ".join(f"{lab}: k* = {v['ge_k_opt_lowc']:.1e} N/m, rise +{100 * v['ge_rise_max_c_le_1000']:.0f} %"
                         for lab, v in variants.items())
     j1000 = int(np.argmin(np.abs(np.log(C_GRID / 1000.0))))
-    gd_sens_txt = ", ".join(f"ζ_f = {z}: agrees = {v['gd_agrees']}" for z, v in sens.items())
     c_thr_at = float(ge["c_thr"][k_near])
-    claims_ = [
-        Claim(
-            id="6.3.2/Ge-threshold",
-            source="Sec. 6.3.2, Fig. 6.3(b), Eq. 6.1-6.2",
-            claim=("||G_e|| over 1-50 Hz decreases with lower k_fi and c_fi, with little gain below "
-                   "thresholds; the three Table 6.2 FIs have much lower ||G_e|| than No FI"),
-            seed="lower k_fi, c_fi -> smaller ||G_e|| (thresholds below which little improvement); FIs << No FI",
-            ours=(f"No FI {e0:.2f}, {fis_txt} √Hz; monotone in c_fi (flat below ≈{c_thr_at:.0f} N·s/m "
-                  f"at k_fi≈3e4); NOT monotone in k_fi: min at k*≈{ge['k_opt'][0]:.1e} N/m (c_fi→0), "
-                  f"rises up to +{100 * ge['rise_below'][c_lo].max():.0f} % below k*"),
-            agrees=ge["agrees"],
-            numbers=dict(common, Ge_nofi=e0, **{f"Ge_{k}": v for k, v in fis_e.items()},
-                         **{f"Ge_ratio_{k}": v for k, v in ge["ratios"].items()},
-                         Ge_monotone_in_c=ge["mono_c"], Ge_c_threshold_at_kfi_3e4=c_thr_at,
-                         Ge_c_threshold_min=float(ge["c_thr"].min()),
-                         Ge_c_threshold_max=float(ge["c_thr"].max()),
-                         Ge_k_opt_vs_c={f"{c:.3g}": float(k) for c, k in zip(C_GRID[::4], ge["k_opt"][::4])},
-                         Ge_rise_below_kopt_max_c_le_1000=float(ge["rise_below"][c_lo].max()),
-                         Ge_rise_below_kopt_at_c240=float(ge["rise_below"][j240]),
-                         Ge_monotone_above_kopt=ge["above_ok"], Ge_flat_below_kopt=ge["below_flat"],
-                         sensitivity_c_f={str(z): v for z, v in sens.items()},
-                         variants=variants, Ge_k_opt_estimate=k_star_est,
-                         Ge_rise_estimate=rise_est, Ge_python_control_max_rel_dev=ge_ctrl_dev,
-                         runtime_s=runtime_total),
-            note=(f"criterion: every Table 6.2 FI ≤ {MUCH_LOWER:g}× No FI; ||G_e|| non-decreasing in c_fi "
-                  f"at every k_fi with ≥ 1 decade of c_fi within {100 * FLAT:.0f} % of the smallest value; "
-                  f"non-decreasing in k_fi above its optimum k*(c_fi) and within {100 * FLAT:.0f} % of the "
-                  f"optimum below it. Grid k_fi 1e3-1e6 N/m × c_fi 1-1e4 N·s/m. Reproduced: FIs "
-                  f"{min(ge['ratios'].values()):.2f}-{max(ge['ratios'].values()):.2f}× No FI, ordering LS-LD < "
-                  f"LS-HD < HS-HD as the 5 µm settling-time gains of Table 6.3, lower c_fi always "
-                  f"helps and is flat below a damping threshold (≈{c_thr_at:.0f} N·s/m at k_fi ≈ 3e4 N/m). "
-                  f"Not reproduced: ||G_e|| has an optimum k*(c_fi) in k_fi — {ge['k_opt'][0]:.1e} N/m at low "
-                  f"damping, {float(ge['k_opt'][j1000]):.1e} N/m at c_fi = 1e3, i.e. right at the Table 6.2 "
-                  f"designs — and a softer FI than k* makes ||G_e|| WORSE, not flat "
-                  f"(+{100 * ge['rise_below'][j240]:.0f} % at c_fi = 240 N·s/m down to 1e3 N/m, up to "
-                  f"+{100 * ge['rise_below'][c_lo].max():.0f} % for c_fi ≤ 1e3). Reason: the FI mode "
-                  f"sqrt(k_fi/m_t)/2π ({math.sqrt(ge['k_opt'][0] / m_t) / (2 * math.pi):.0f} Hz at k*) "
-                  f"sits inside the 1-50 Hz band and raises the loop gain "
-                  f"there; for k_fi → 0 the table becomes a free {m_t:.1f} kg mass whose |G_e| is larger in "
-                  f"30-50 Hz. Not an artefact of the estimated c_f ({sens_txt}), of the mass split or of the "
-                  f"derivative filter ({var_txt}). It is structural, not a parameter: in the band the bearing "
-                  f"is held by k_f and |C| ≫ |1/G|, so |G_e| ≈ |k_fi − m_t ω² + j c_fi ω| / |C| — G_e's numerator "
-                  f"is the FI branch's own dynamic stiffness, which a soft FI cannot make smaller than the "
-                  f"table's m_t ω². Weighting by |C|⁻² over 1-50 Hz this first-order estimate puts the optimum at "
-                  f"k* = E[m_t ω²] = {k_star_est:.2e} N/m and the k_fi → 0 rise at "
-                  f"sqrt(1 + E²/Var) − 1 = +{100 * rise_est:.0f} % (exact: {ge['k_opt'][0]:.1e} N/m, "
-                  f"+{100 * ge['rise_below'][0]:.0f} %), > 0 for any band, mass and controller; FI damping "
-                  f"adds a k_fi-independent c_fi²ω² term that flattens it (+{100 * ge['rise_below'][j240]:.0f} % "
-                  f"at 240 N·s/m). So the seed's 'thresholds' can only be this optimum seen from above, if "
-                  f"Fig. 6.3(b)'s k_fi axis (not stated) starts near k*. G_e cross-checked with "
-                  f"python-control's feedback(): max deviation {ge_ctrl_dev:.1e} (rel.) at the Table 6.2 FIs."),
-        ),
-        Claim(
-            id="6.3.2/Gd-monotone",
-            source="Sec. 6.3.2, Fig. 6.4(b), Eq. 6.3",
-            claim=("||G_d|| over 1-500 Hz decreases monotonically with higher k_fi and c_fi (no "
-                   "threshold); No FI has the smallest ||G_d||"),
-            seed="higher k_fi, c_fi -> continuously smaller ||G_d||; No FI smallest",
-            ours=(f"strictly decreasing in k_fi: {gd['dec_k']}, in c_fi: {gd['dec_c']}; per-decade gain grows "
-                  f"with k_fi, c_fi (no plateau: {gd['no_thr']}); No FI {d0 * 1e6:.1f} < grid min "
-                  f"{D.min() * 1e6:.1f} µm/(N·√Hz)"),
-            agrees=gd["agrees"],
-            numbers=dict(common, Gd_nofi=d0, Gd_grid_min=float(D.min()), Gd_grid_max=float(D.max()),
-                         **{f"Gd_{k}": v for k, v in fis_d.items()},
-                         Gd_decreasing_in_k=gd["dec_k"], Gd_decreasing_in_c=gd["dec_c"],
-                         Gd_top_decade_k_reduction_min=float(gd["top_k"].min()),
-                         Gd_top_decade_c_reduction_min=float(gd["top_c"].min()),
-                         Gd_low_decade_k_reduction_at_c1=float(1 - D[10, 0] / D[0, 0]),
-                         sensitivity_c_f={str(z): {"c_f": v["c_f"], "agrees": v["gd_agrees"]}
-                                          for z, v in sens.items()}),
-            note=(f"criterion: strictly decreasing along both axes of the grid; no threshold = no "
-                  f"diminishing returns when increasing k_fi or c_fi (along every grid line, once the "
-                  f"reduction per decade exceeds {100 * FLAT:.0f} % it stays above it to the grid's end); No FI "
-                  f"below the whole grid. (A first, stricter version — ≥ {100 * FLAT:.0f} % over the top decade "
-                  f"everywhere — fails only on the c_fi = 1e4 N·s/m line, ζ ≈ 15, where the damper locks the FI "
-                  f"and k_fi 1e5→1e6 gains {100 * gd['top_k'].min():.0f} %.) "
-                  f"Table 6.2: HS-HD {fis_d['HS-HD'] * 1e6:.1f} < "
-                  f"LS-HD {fis_d['LS-HD'] * 1e6:.1f} < LS-LD {fis_d['LS-LD'] * 1e6:.1f} µm/(N·√Hz), the order of "
-                  f"the in-position RMS errors of Table 6.3. The gain is slow at low k_fi/c_fi (only "
-                  f"{100 * (1 - D[10, 0] / D[0, 0]):.1f} % from k_fi 1e3 to 1e4 at c_fi = 1) and accelerates "
-                  f"towards k_fi ~ k_f; the soft, lightly damped corner is flat (free-table limit) — "
-                  f"increasing returns, not a threshold. c_f sensitivity: "
-                  f"{gd_sens_txt}. All closed loops stable "
-                  f"(max pole real part {max_re:.1f} 1/s)."),
-        ),
-        Claim(
-            id="6.4.2/gamma-optimum",
-            source="Sec. 6.4.2, Fig. 6.7-6.8",
-            claim=("RMS force difference γ between FI+Dahl and FI+GMS over a 5 mm circle cycle is "
-                   "minimal at k_fi/k_f ≈ 0.05-0.1; Dahl underestimates at very small k_fi and "
-                   "over-compensates at large k_fi"),
-            seed="γ minimum at k_fi/k_f ≈ 0.05-0.1; under- (small k_fi) / over-compensation (large)",
-            ours=(f"γ min {gam[i_min]:.3f} N at k_fi/k_f = {eta_min:.3f} (γ = {g_at[0.05]:.2f} N at 0.05, "
-                  f"{g_at[0.1]:.2f} N at 0.1); under-est. for η < {cross:.3g}, over-comp. above"),
-            agrees=gamma_ok,
-            numbers=dict(k_f=K_F, F_C=F_C, radius=CIRCLE_R, samples_per_cycle=N_CYCLE,
-                         eta_min=eta_min, gamma_min=float(gam[i_min]),
-                         **{f"gamma_at_{k:g}": v for k, v in g_at.items()},
-                         gamma_eta_1em3=float(gam[0]), gamma_eta_10=float(gam[-1]),
-                         bias_eta_1em3=float(bias[0]), bias_eta_1=float(np.interp(0.0, np.log(ETA_GRID), bias)),
-                         bias_sign_change_eta=float(cross), u_shaped=u_shape,
-                         underestimates_small=under_small, overcompensates_large=over_large,
-                         eta_min_second_cycle=eta_min2, gamma_min_second_cycle=float(gam2.min()),
-                         gms_initial_stiffness=float(gk.sum()), gms_alpha_sum=float(GMS_ALPHA.sum()),
-                         gms_scale_vs_table_6_5=float(gk.sum() / GMS_K.sum()),
-                         eta_min_as_printed=eta_of(gam_pr), eta_min_second_cycle_as_printed=eta_of(gam2_pr),
-                         eta_min_common_scale_table_6_5=eta_of(gam_s65),
-                         eta_min_second_cycle_common_scale_table_6_5=eta_of(gam2_s65),
-                         eta_min_ch4_tables=eta_of(gam_ch4), eta_min_second_cycle_ch4_tables=eta_of(gam2_ch4),
-                         table_4_5_dev_series=t45_series, table_4_5_dev_per_block=t45_per_block,
-                         acceptance_range=[lo_tol, hi_tol]),
-            note=(f"criterion: argmin of γ within 0.05-0.1 widened by 1/10 decade "
-                  f"({lo_tol:.3f}-{hi_tol:.3f}), mean (F_Dahl−F_GMS)·sgn(v) < 0 at η = 1e-3 and > 0 for η ≥ 1. "
-                  f"Model: FI + GMS = the GMS blocks in exact series with k_fi — the seed's construction: "
-                  f"applied to Table 4.4 with k_fi = 8.27e4 N/m it reproduces the seed's Table 4.5 virgin "
-                  f"curve to {100 * t45_series:.1f} % of F_C (each block in series with its own k_fi: "
-                  f"{100 * t45_per_block:.0f} %). Dahl and GMS share the initial stiffness (both from the same "
-                  f"FRFs, Sec. 4.4.3; Tables 4.3/4.4 agree to 0.2 %), so Table 6.5's block distribution is "
-                  f"used with Σk_i = k_σ = {K_F:.3g} N/m (Table 6.4; ×{gk.sum() / GMS_K.sum():.2f} on the "
-                  f"printed k_i, whose Σ = {GMS_K.sum():.3g} N/m contradicts Table 6.4). The optimum does "
-                  f"not depend on which value is the common one: with Σk_i = k_σ = {GMS_K.sum():.3g} N/m "
-                  f"(Table 6.5's scale) it is at η = {eta_of(gam_s65):.3f} as well. With the tables as "
-                  f"printed (Dahl 3.5× stiffer than the GMS it is compared with) Dahl over-compensates as "
-                  f"soon as k_fi stops dominating and the optimum falls to η = {eta_of(gam_pr):.3f}, outside "
-                  f"the seed's range. The block distribution matters: the Ch. 4 bearing (Tables 4.3/4.4, "
-                  f"consistent) puts it at η = {eta_of(gam_ch4):.3f}. One cycle from the relaxed state; the "
-                  f"steady second cycle gives η = {eta_min2:.3f}."),
-        ),
-        Claim(
-            id="6.4.2/kappa-eq4.2",
-            source="Sec. 4.1 Eq. 4.1-4.2, Sec. 6.4.2 Fig. 6.9",
-            claim=("κ = ∂k_c/∂k_f = (η/(1+η))² for the quasi-static series model, and κ < 0.01 for "
-                   "η = k_fi/k_f < 0.1 (robust FF compensation)"),
-            seed="κ = (η/(1+η))²; κ small (robust) for η < 0.1",
-            ours=(f"simulated κ matches Eq. 4.2 to {kap_err:.1e} (rel.) over η 1e-3..10; "
-                  f"κ(0.1) = {float(kappa_simulated(0.1)):.5f} < 0.01; κ→0 as η→0, κ→1 as η→∞"),
-            agrees=kappa_ok,
-            numbers=dict(k_f=K_F, kappa_max_rel_error=kap_err, kappa_at_0_1=float(kappa_simulated(0.1)),
-                         kappa_eq42_at_0_1=float(kappa_eq42(0.1)), kappa_eta_1em4=kap_lim0,
-                         kappa_eta_1e4=kap_liminf, kappa_below_0_01_for_eta_lt_0_1=kap_small,
-                         k_c_check_eta_0_01=float(combined_stiffness(0.01 * K_F, K_F)),
-                         k_c_eq41_eta_0_01=float(0.01 * K_F * K_F / (1.01 * K_F))),
-            note=("criterion: |κ_sim/κ_Eq4.2 − 1| < 1e-4 on the η grid, κ < 0.01 for all η < 0.1, "
-                  "κ(1e-4) < 1e-6 and κ(1e4) > 0.999. κ_sim: table displaced 1 µm through k_fi against a "
-                  "linear k_f with the same exact series solver as Fig. 6.8, k_f perturbed ±0.1 %. The "
-                  "text contradicts itself: Eq. 4.2's 'k_fi ≪ k_f, η → 0' is right (η = k_fi/k_f → 0 "
-                  "gives κ → 0); Sec. 6.4.2's 'η → ∞ and κ → 0' is wrong — η → ∞ (rigid FI) gives "
-                  "κ → 1, the No FI sensitivity."),
-        ),
-    ]
-    return claims_
+    return [Claim(
+        id="6.3.2/Ge-threshold",
+        source="Sec. 6.3.2, Fig. 6.3(b), Eq. 6.1-6.2",
+        claim=("||G_e|| over 1-50 Hz decreases with lower k_fi and c_fi, with little gain below "
+               "thresholds; the three Table 6.2 FIs have much lower ||G_e|| than No FI"),
+        seed="lower k_fi, c_fi -> smaller ||G_e|| (thresholds below which little improvement); FIs << No FI",
+        ours=(f"No FI {e0:.2f}, {fis_txt} √Hz; monotone in c_fi (flat below ≈{c_thr_at:.0f} N·s/m "
+              f"at k_fi≈3e4); NOT monotone in k_fi: min at k*≈{ge['k_opt'][0]:.1e} N/m (c_fi→0), "
+              f"rises up to +{100 * ge['rise_below'][c_lo].max():.0f} % below k*"),
+        agrees=ge["agrees"],
+        numbers=dict(common, Ge_nofi=e0, **{f"Ge_{k}": v for k, v in fis_e.items()},
+                     **{f"Ge_ratio_{k}": v for k, v in ge["ratios"].items()},
+                     Ge_monotone_in_c=ge["mono_c"], Ge_c_threshold_at_kfi_3e4=c_thr_at,
+                     Ge_c_threshold_min=float(ge["c_thr"].min()),
+                     Ge_c_threshold_max=float(ge["c_thr"].max()),
+                     Ge_k_opt_vs_c={f"{c:.3g}": float(k) for c, k in zip(C_GRID[::4], ge["k_opt"][::4])},
+                     Ge_rise_below_kopt_max_c_le_1000=float(ge["rise_below"][c_lo].max()),
+                     Ge_rise_below_kopt_at_c240=float(ge["rise_below"][j240]),
+                     Ge_monotone_above_kopt=ge["above_ok"], Ge_flat_below_kopt=ge["below_flat"],
+                     sensitivity_c_f={str(z): v for z, v in sens.items()},
+                     variants=variants, Ge_k_opt_estimate=k_star_est,
+                     Ge_rise_estimate=rise_est, Ge_python_control_max_rel_dev=ge_ctrl_dev,
+                     runtime_s=runtime_total),
+        note=(f"criterion: every Table 6.2 FI ≤ {MUCH_LOWER:g}× No FI; ||G_e|| non-decreasing in c_fi "
+              f"at every k_fi with ≥ 1 decade of c_fi within {100 * FLAT:.0f} % of the smallest value; "
+              f"non-decreasing in k_fi above its optimum k*(c_fi) and within {100 * FLAT:.0f} % of the "
+              f"optimum below it. Grid k_fi 1e3-1e6 N/m × c_fi 1-1e4 N·s/m. Reproduced: FIs "
+              f"{min(ge['ratios'].values()):.2f}-{max(ge['ratios'].values()):.2f}× No FI, ordering LS-LD < "
+              f"LS-HD < HS-HD as the 5 µm settling-time gains of Table 6.3, lower c_fi always "
+              f"helps and is flat below a damping threshold (≈{c_thr_at:.0f} N·s/m at k_fi ≈ 3e4 N/m). "
+              f"Not reproduced: ||G_e|| has an optimum k*(c_fi) in k_fi — {ge['k_opt'][0]:.1e} N/m at low "
+              f"damping, {float(ge['k_opt'][j1000]):.1e} N/m at c_fi = 1e3, i.e. right at the Table 6.2 "
+              f"designs — and a softer FI than k* makes ||G_e|| WORSE, not flat "
+              f"(+{100 * ge['rise_below'][j240]:.0f} % at c_fi = 240 N·s/m down to 1e3 N/m, up to "
+              f"+{100 * ge['rise_below'][c_lo].max():.0f} % for c_fi ≤ 1e3). Reason: the FI mode "
+              f"sqrt(k_fi/m_t)/2π ({math.sqrt(ge['k_opt'][0] / m_t) / (2 * math.pi):.0f} Hz at k*) "
+              f"sits inside the 1-50 Hz band and raises the loop gain "
+              f"there; for k_fi → 0 the table becomes a free {m_t:.1f} kg mass whose |G_e| is larger in "
+              f"30-50 Hz. Not an artefact of the estimated c_f ({sens_txt}), of the mass split or of the "
+              f"derivative filter ({var_txt}). It is structural, not a parameter: in the band the bearing "
+              f"is held by k_f and |C| ≫ |1/G|, so |G_e| ≈ |k_fi − m_t ω² + j c_fi ω| / |C| — G_e's numerator "
+              f"is the FI branch's own dynamic stiffness, which a soft FI cannot make smaller than the "
+              f"table's m_t ω². Weighting by |C|⁻² over 1-50 Hz this first-order estimate puts the optimum at "
+              f"k* = E[m_t ω²] = {k_star_est:.2e} N/m and the k_fi → 0 rise at "
+              f"sqrt(1 + E²/Var) − 1 = +{100 * rise_est:.0f} % (exact: {ge['k_opt'][0]:.1e} N/m, "
+              f"+{100 * ge['rise_below'][0]:.0f} %), > 0 for any band, mass and controller; FI damping "
+              f"adds a k_fi-independent c_fi²ω² term that flattens it (+{100 * ge['rise_below'][j240]:.0f} % "
+              f"at 240 N·s/m). So the seed's 'thresholds' can only be this optimum seen from above, if "
+              f"Fig. 6.3(b)'s k_fi axis (not stated) starts near k*. G_e cross-checked with "
+              f"python-control's feedback(): max deviation {ge_ctrl_dev:.1e} (rel.) at the Table 6.2 FIs."),
+    )]
+
+
+def _claims_gd(s, common):
+    """The Sec. 6.3.2 G_d claim (monotone, no threshold)."""
+    (D, d0, fis_d, gd, sens, max_re) = (s[k] for k in (
+        "D", "d0", "fis_d", "gd", "sens", "max_re"))
+    gd_sens_txt = ", ".join(f"ζ_f = {z}: agrees = {v['gd_agrees']}" for z, v in sens.items())
+    return [Claim(
+        id="6.3.2/Gd-monotone",
+        source="Sec. 6.3.2, Fig. 6.4(b), Eq. 6.3",
+        claim=("||G_d|| over 1-500 Hz decreases monotonically with higher k_fi and c_fi (no "
+               "threshold); No FI has the smallest ||G_d||"),
+        seed="higher k_fi, c_fi -> continuously smaller ||G_d||; No FI smallest",
+        ours=(f"strictly decreasing in k_fi: {gd['dec_k']}, in c_fi: {gd['dec_c']}; per-decade gain grows "
+              f"with k_fi, c_fi (no plateau: {gd['no_thr']}); No FI {d0 * 1e6:.1f} < grid min "
+              f"{D.min() * 1e6:.1f} µm/(N·√Hz)"),
+        agrees=gd["agrees"],
+        numbers=dict(common, Gd_nofi=d0, Gd_grid_min=float(D.min()), Gd_grid_max=float(D.max()),
+                     **{f"Gd_{k}": v for k, v in fis_d.items()},
+                     Gd_decreasing_in_k=gd["dec_k"], Gd_decreasing_in_c=gd["dec_c"],
+                     Gd_top_decade_k_reduction_min=float(gd["top_k"].min()),
+                     Gd_top_decade_c_reduction_min=float(gd["top_c"].min()),
+                     Gd_low_decade_k_reduction_at_c1=float(1 - D[10, 0] / D[0, 0]),
+                     sensitivity_c_f={str(z): {"c_f": v["c_f"], "agrees": v["gd_agrees"]}
+                                      for z, v in sens.items()}),
+        note=(f"criterion: strictly decreasing along both axes of the grid; no threshold = no "
+              f"diminishing returns when increasing k_fi or c_fi (along every grid line, once the "
+              f"reduction per decade exceeds {100 * FLAT:.0f} % it stays above it to the grid's end); No FI "
+              f"below the whole grid. (A first, stricter version — ≥ {100 * FLAT:.0f} % over the top decade "
+              f"everywhere — fails only on the c_fi = 1e4 N·s/m line, ζ ≈ 15, where the damper locks the FI "
+              f"and k_fi 1e5→1e6 gains {100 * gd['top_k'].min():.0f} %.) "
+              f"Table 6.2: HS-HD {fis_d['HS-HD'] * 1e6:.1f} < "
+              f"LS-HD {fis_d['LS-HD'] * 1e6:.1f} < LS-LD {fis_d['LS-LD'] * 1e6:.1f} µm/(N·√Hz), the order of "
+              f"the in-position RMS errors of Table 6.3. The gain is slow at low k_fi/c_fi (only "
+              f"{100 * (1 - D[10, 0] / D[0, 0]):.1f} % from k_fi 1e3 to 1e4 at c_fi = 1) and accelerates "
+              f"towards k_fi ~ k_f; the soft, lightly damped corner is flat (free-table limit) — "
+              f"increasing returns, not a threshold. c_f sensitivity: "
+              f"{gd_sens_txt}. All closed loops stable "
+              f"(max pole real part {max_re:.1f} 1/s)."),
+    )]
+
+
+def _claims_gamma(g):
+    """The Sec. 6.4.2 gamma claim (optimum eta)."""
+    (gk, gam, bias, gam2, eta_min2, i_min, eta_min, gam_pr, gam2_pr, gam_ch4, gam2_ch4, gam_s65,
+     gam2_s65, eta_of, t45_series, t45_per_block, lo_tol, hi_tol, under_small, over_large, gamma_ok,
+     u_shape, g_at, cross) = (g[k] for k in (
+        "gk", "gam", "bias", "gam2", "eta_min2", "i_min", "eta_min", "gam_pr", "gam2_pr", "gam_ch4",
+        "gam2_ch4", "gam_s65", "gam2_s65", "eta_of", "t45_series", "t45_per_block", "lo_tol",
+        "hi_tol", "under_small", "over_large", "gamma_ok", "u_shape", "g_at", "cross"))
+    return [Claim(
+        id="6.4.2/gamma-optimum",
+        source="Sec. 6.4.2, Fig. 6.7-6.8",
+        claim=("RMS force difference γ between FI+Dahl and FI+GMS over a 5 mm circle cycle is "
+               "minimal at k_fi/k_f ≈ 0.05-0.1; Dahl underestimates at very small k_fi and "
+               "over-compensates at large k_fi"),
+        seed="γ minimum at k_fi/k_f ≈ 0.05-0.1; under- (small k_fi) / over-compensation (large)",
+        ours=(f"γ min {gam[i_min]:.3f} N at k_fi/k_f = {eta_min:.3f} (γ = {g_at[0.05]:.2f} N at 0.05, "
+              f"{g_at[0.1]:.2f} N at 0.1); under-est. for η < {cross:.3g}, over-comp. above"),
+        agrees=gamma_ok,
+        numbers=dict(k_f=K_F, F_C=F_C, radius=CIRCLE_R, samples_per_cycle=N_CYCLE,
+                     eta_min=eta_min, gamma_min=float(gam[i_min]),
+                     **{f"gamma_at_{k:g}": v for k, v in g_at.items()},
+                     gamma_eta_1em3=float(gam[0]), gamma_eta_10=float(gam[-1]),
+                     bias_eta_1em3=float(bias[0]), bias_eta_1=float(np.interp(0.0, np.log(ETA_GRID), bias)),
+                     bias_sign_change_eta=float(cross), u_shaped=u_shape,
+                     underestimates_small=under_small, overcompensates_large=over_large,
+                     eta_min_second_cycle=eta_min2, gamma_min_second_cycle=float(gam2.min()),
+                     gms_initial_stiffness=float(gk.sum()), gms_alpha_sum=float(GMS_ALPHA.sum()),
+                     gms_scale_vs_table_6_5=float(gk.sum() / GMS_K.sum()),
+                     eta_min_as_printed=eta_of(gam_pr), eta_min_second_cycle_as_printed=eta_of(gam2_pr),
+                     eta_min_common_scale_table_6_5=eta_of(gam_s65),
+                     eta_min_second_cycle_common_scale_table_6_5=eta_of(gam2_s65),
+                     eta_min_ch4_tables=eta_of(gam_ch4), eta_min_second_cycle_ch4_tables=eta_of(gam2_ch4),
+                     table_4_5_dev_series=t45_series, table_4_5_dev_per_block=t45_per_block,
+                     acceptance_range=[lo_tol, hi_tol]),
+        note=(f"criterion: argmin of γ within 0.05-0.1 widened by 1/10 decade "
+              f"({lo_tol:.3f}-{hi_tol:.3f}), mean (F_Dahl−F_GMS)·sgn(v) < 0 at η = 1e-3 and > 0 for η ≥ 1. "
+              f"Model: FI + GMS = the GMS blocks in exact series with k_fi — the seed's construction: "
+              f"applied to Table 4.4 with k_fi = 8.27e4 N/m it reproduces the seed's Table 4.5 virgin "
+              f"curve to {100 * t45_series:.1f} % of F_C (each block in series with its own k_fi: "
+              f"{100 * t45_per_block:.0f} %). Dahl and GMS share the initial stiffness (both from the same "
+              f"FRFs, Sec. 4.4.3; Tables 4.3/4.4 agree to 0.2 %), so Table 6.5's block distribution is "
+              f"used with Σk_i = k_σ = {K_F:.3g} N/m (Table 6.4; ×{gk.sum() / GMS_K.sum():.2f} on the "
+              f"printed k_i, whose Σ = {GMS_K.sum():.3g} N/m contradicts Table 6.4). The optimum does "
+              f"not depend on which value is the common one: with Σk_i = k_σ = {GMS_K.sum():.3g} N/m "
+              f"(Table 6.5's scale) it is at η = {eta_of(gam_s65):.3f} as well. With the tables as "
+              f"printed (Dahl 3.5× stiffer than the GMS it is compared with) Dahl over-compensates as "
+              f"soon as k_fi stops dominating and the optimum falls to η = {eta_of(gam_pr):.3f}, outside "
+              f"the seed's range. The block distribution matters: the Ch. 4 bearing (Tables 4.3/4.4, "
+              f"consistent) puts it at η = {eta_of(gam_ch4):.3f}. One cycle from the relaxed state; the "
+              f"steady second cycle gives η = {eta_min2:.3f}."),
+    )]
+
+
+def _claims_kappa(kap):
+    """The Sec. 4.1 / 6.4.2 kappa claim (Eq. 4.2)."""
+    (kap_err, kap_small, kap_lim0, kap_liminf, kappa_ok) = (kap[k] for k in (
+        "kap_err", "kap_small", "kap_lim0", "kap_liminf", "kappa_ok"))
+    return [Claim(
+        id="6.4.2/kappa-eq4.2",
+        source="Sec. 4.1 Eq. 4.1-4.2, Sec. 6.4.2 Fig. 6.9",
+        claim=("κ = ∂k_c/∂k_f = (η/(1+η))² for the quasi-static series model, and κ < 0.01 for "
+               "η = k_fi/k_f < 0.1 (robust FF compensation)"),
+        seed="κ = (η/(1+η))²; κ small (robust) for η < 0.1",
+        ours=(f"simulated κ matches Eq. 4.2 to {kap_err:.1e} (rel.) over η 1e-3..10; "
+              f"κ(0.1) = {float(kappa_simulated(0.1)):.5f} < 0.01; κ→0 as η→0, κ→1 as η→∞"),
+        agrees=kappa_ok,
+        numbers=dict(k_f=K_F, kappa_max_rel_error=kap_err, kappa_at_0_1=float(kappa_simulated(0.1)),
+                     kappa_eq42_at_0_1=float(kappa_eq42(0.1)), kappa_eta_1em4=kap_lim0,
+                     kappa_eta_1e4=kap_liminf, kappa_below_0_01_for_eta_lt_0_1=kap_small,
+                     k_c_check_eta_0_01=float(combined_stiffness(0.01 * K_F, K_F)),
+                     k_c_eq41_eta_0_01=float(0.01 * K_F * K_F / (1.01 * K_F))),
+        note=("criterion: |κ_sim/κ_Eq4.2 − 1| < 1e-4 on the η grid, κ < 0.01 for all η < 0.1, "
+              "κ(1e-4) < 1e-6 and κ(1e4) > 0.999. κ_sim: table displaced 1 µm through k_fi against a "
+              "linear k_f with the same exact series solver as Fig. 6.8, k_f perturbed ±0.1 %. The "
+              "text contradicts itself: Eq. 4.2's 'k_fi ≪ k_f, η → 0' is right (η = k_fi/k_f → 0 "
+              "gives κ → 0); Sec. 6.4.2's 'η → ∞ and κ → 0' is wrong — η → ∞ (rigid FI) gives "
+              "κ → 1, the No FI sensitivity."),
+    )]
+
+
+def claims(out: Path) -> list[Claim]:
+    out = outputs.prepare_folder(out)
+    t0 = time.perf_counter()
+    m_t, m_b, pid, fis = stage_parameters()
+    c_f = c_f_estimate(m_t, m_b)
+    s = _sec632(m_t, m_b, pid, fis, c_f)
+    g = _gamma()
+    kap = _kappa()
+    _plots(out, m_t, m_b, pid, K_F, c_f, fis, s["E"], s["D"], s["e0"], s["d0"], s["ge"], ETA_GRID, g["gam"],
+           g["bias"], g["gam_pr"], kap["kap_sim"])
+    runtime_total = time.perf_counter() - t0
+    max_re = s["max_re"]
+    common = dict(m_t=m_t, m_b=m_b, k_f=K_F, c_f=c_f, zeta_f=ZETA_F, kp=pid["kp"], ki=pid["ki"],
+                  kd=pid["kd"], derivative_cutoff=pid["derivative_cutoff"],
+                  k_fi_grid=[float(K_GRID[0]), float(K_GRID[-1]), len(K_GRID)],
+                  c_fi_grid=[float(C_GRID[0]), float(C_GRID[-1]), len(C_GRID)],
+                  max_closed_loop_pole_real=max_re)
+    return (_claims_ge(s, common, fis, m_t, runtime_total) + _claims_gd(s, common) + _claims_gamma(g)
+            + _claims_kappa(kap))

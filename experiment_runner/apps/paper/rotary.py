@@ -151,14 +151,8 @@ def _rms(e):
 
 
 # ============================================================================= claims
-def claims(out: Path) -> list[Claim]:
-    out = outputs.prepare_folder(out)
-    t0 = time.perf_counter()
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    # ---------------------------------------------------------------- Fig. D.5
+def _fig_d5(out, plt):
+    """Fig. D.5: |G_d| without FI and for each k_fi of the figure, their analysis and plot."""
     f = F_AXIS
     bl0 = blocks(None)
     g0 = gd_response(bl0, f)
@@ -202,8 +196,14 @@ def claims(out: Path) -> list[Claim]:
     fig.tight_layout()
     outputs.savefig(fig, out / "fig_D5_Gd.png", dpi=110)
     plt.close(fig)
+    return dict(g0=g0, rows=rows, poles=poles, slope0=slope0, ks=ks, f_lo=f_lo, hf_order=hf_order, norm_order=norm_order, below=below, d5_ok=d5_ok, norm0=norm0)
 
-    # ---------------------------------------------------------------- Sec. D.4
+
+def _sec_d4(out, plt, poles):
+    """Sec. D.4: RMS tracking error of the three presets at 10 rpm, sensitivities and plot.
+
+    Adds each preset's predicted closed-loop pole margin to `poles` (reported with Fig. D.5).
+    """
     rms, sem, rms_meas, pred, traces, peak_f = {}, {}, {}, {}, {}, {}
     for lab, name in PRESETS.items():
         p = load_preset(name)
@@ -248,8 +248,11 @@ def claims(out: Path) -> list[Claim]:
     fig.tight_layout()
     outputs.savefig(fig, out / "fig_D12_tracking_error.png", dpi=110)
     plt.close(fig)
-    runtime = time.perf_counter() - t0
+    return dict(rms=rms, sem=sem, rms_meas=rms_meas, pred=pred, peak_f=peak_f, rms_ideal=rms_ideal, rms_nofi_damped=rms_nofi_damped, r_wo=r_wo, r_w=r_w, s_wo=s_wo, s_w=s_w, d4_ok=d4_ok, fn_d2=fn_d2)
 
+
+def _claims_d5(g0, rows, poles, slope0, ks, f_lo, hf_order, norm_order, below, d5_ok, norm0):
+    """The Fig. D.5 claim (G_d low-pass above the FI mode)."""
     d5_numbers = dict(I_p=I_P, I_a=I_A, K_p=KP, K_d=KD, K_i=KI, T_f=TF, f_Q=F_Q, c_f=C_F_D5,
                       zeta_fi=ZETA_FI, nofi_peak=float(np.abs(g0).max()), nofi_norm_1_1000=norm0,
                       nofi_slope_300_1000=slope0, hf_band_start_hz=f_lo,
@@ -257,68 +260,82 @@ def claims(out: Path) -> list[Claim]:
                       max_pole_real=poles, **{
                           f"k{k:g}.{q}": v for k, r in rows.items() for q, v in r.items() if q != "g"})
     txt_rows = ", ".join(f"{k:g}: {rows[k]['f_n']:.0f} Hz, {rows[k]['slope_300_1000']:.0f}" for k in ks)
-    return [
-        Claim(
-            id="D.2/Gd-lowpass",
-            source="App. D, Eq. D.1-D.4, Fig. D.5",
-            claim=("|G_d| of the FI rotary system rolls off after the FI resonance and lies below No FI "
-                   "at high frequency; a lower k_fi suppresses the frictional disturbance better"),
-            seed="FI low-pass filters friction; lower k_fi -> faster roll-off, better suppression",
-            ours=(f"FI below No FI above 3 f_n: {below}; slope 300-1000 Hz FI ≈ "
-                  f"{rows[300.0]['slope_300_1000']:.0f} vs No FI {slope0:.0f} dB/dec; lower k_fi -> lower "
-                  f"|G_d| above {f_lo:.0f} Hz and lower 1-1000 Hz norm: {hf_order and norm_order}"),
-            agrees=d5_ok,
-            numbers=d5_numbers,
-            note=(f"criterion, for k_fi ∈ {{{', '.join(f'{k:g}' for k in ks)}}} N·m/rad: |G_d,FI| < |G_d,NoFI| "
-                  f"for all f ∈ [3 f_n, 2 kHz]; slope over 300-1000 Hz ≥ 30 dB/dec steeper than No FI; "
-                  f"|G_d,FI| increasing with k_fi at every f ≥ 3 f_n(k_max) = {f_lo:.0f} Hz and in the "
-                  f"1-1000 Hz 2-norm; all closed loops stable. FI mode f_n and slope [dB/dec] per k_fi: "
-                  f"{txt_rows} (No FI {slope0:.0f}). Caveats: the resonance peak of k_fi = 1000-3000 "
-                  f"N·m/rad ({rows[1000.0]['peak']:.1e}, {rows[3000.0]['peak']:.1e} rad/(N·m)) exceeds the No "
-                  f"FI peak ({np.abs(g0).max():.1e}) and their 1-1000 Hz norms "
-                  f"({rows[1000.0]['norm_1_1000']:.1e}, {rows[3000.0]['norm_1_1000']:.1e}) exceed No FI "
-                  f"({norm0:.1e}); the FI pays off broadband only for k_fi ≲ 300 N·m/rad "
-                  f"({rows[300.0]['norm_1_1000']:.1e}). c_fi from ζ = 0.1 % of the FI mode "
-                  f"(c_fi = 2ζ k_fi/ω_n)."),
-        ),
-        Claim(
-            id="D.4/rms-10rpm",
-            source="App. D, Sec. D.4, Fig. D.12, Table D.2",
-            claim=("10 rpm constant velocity with 0.15 N·m normally distributed bearing torque: RMS error "
-                   "No FI 1.41, FI w/o damper 2.62, FI with damper 0.91 µrad"),
-            seed="1.41 / 2.62 / 0.91 µrad (ratios 1.86, 0.65)",
-            ours=(f"{1e6 * rms['No FI']:.2f} / {1e6 * rms['FI w/o damper']:.2f} / {1e6 * rms['FI w/ damper']:.2f} "
-                  f"µrad (ratios {r_wo:.2f}, {r_w:.2f})"),
-            agrees=d4_ok,
-            numbers=dict(rpm=RPM, t_sim=T_SIM, t_skip=T_SKIP, n_seeds=N_SEEDS, sigma_per_bearing_correlated=SIGMA,
-                         disturbance="white per 1e-4 s control sample, ZOH, independent 0.2121 N·m per bearing",
-                         **{f"rms_true.{k}": v for k, v in rms.items()},
-                         **{f"rms_sem.{k}": v for k, v in sem.items()},
-                         **{f"rms_measured.{k}": v for k, v in rms_meas.items()},
-                         **{f"rms_ideal_encoder.{k}": v for k, v in rms_ideal.items()},
-                         **{f"rms_predicted_EqD3.{k}": v for k, v in pred.items()},
-                         **{f"error_psd_peak_hz.{k}": v for k, v in peak_f.items()},
-                         rms_nofi_with_damper=rms_nofi_damped, ratio_fi_wo=r_wo, ratio_fi_w=r_w,
-                         seed_ratio_fi_wo=s_wo, seed_ratio_fi_w=s_w, fi_mode_hz_table_D2=fn_d2,
-                         runtime_s=runtime),
-            note=(f"criterion: ordering FI w/ < No FI < FI w/o and both ratios within ±{100 * RATIO_TOL:.0f} % of "
-                  f"the seed's ({s_wo:.2f}, {s_w:.2f}); absolute values are not judged because the seed "
-                  f"does not state the disturbance bandwidth. Assumed: per-bearing torque white at the "
-                  f"10 kHz control rate (zero-order held), 0.15 N·m std per bearing fully correlated "
-                  f"(equivalently 0.212 N·m independent). With that assumption the absolute values are also "
-                  f"within {100 * max(abs(rms[k] / SEED_RMS[k] - 1) for k in rms):.0f} % of the seed. The FI w/o "
-                  f"damper ratio is {100 * (r_wo / s_wo - 1):+.0f} % off (Eq. D.3 expectation "
-                  f"{pred['FI w/o damper'] / pred['No FI']:.2f}): its error is a lightly damped FI resonance, "
-                  f"so a single run scatters by ~{100 * sem['FI w/o damper'] * math.sqrt(N_SEEDS) / rms['FI w/o damper']:.0f} % "
-                  f"(per-seed std over 5 s); the seed's 2.62 µrad, probably one short run, is within ~2σ. "
-                  f"True-angle error, {N_SEEDS} seeds × {T_SIM - T_SKIP:.0f} s after a {T_SKIP:.0f} s transient "
-                  f"(seed-to-seed SEM ≤ {1e6 * max(sem.values()):.2f} µrad). Cross-checks: Eq. D.3 with the "
-                  f"same spectrum predicts {', '.join(f'{1e6 * v:.2f}' for v in pred.values())} µrad; an ideal "
-                  f"encoder gives {', '.join(f'{1e6 * v:.2f}' for v in rms_ideal.values())} µrad (the 1.33 µrad "
-                  f"quantisation barely matters); the measured-angle RMS is "
-                  f"{', '.join(f'{1e6 * v:.2f}' for v in rms_meas.values())} µrad. FI w/o damper error peaks "
-                  f"at {peak_f['FI w/o damper']:.1f} Hz (FI mode of Table D.2: {fn_d2:.1f} Hz), the "
-                  f"'vibrations around the resonance' of the seed. Choice in the No FI preset: no eddy-current "
-                  f"damper (c_f = 0.2); with it (c_f = 1.4) No FI gives {1e6 * rms_nofi_damped:.2f} µrad."),
-        ),
-    ]
+    return [Claim(
+        id="D.2/Gd-lowpass",
+        source="App. D, Eq. D.1-D.4, Fig. D.5",
+        claim=("|G_d| of the FI rotary system rolls off after the FI resonance and lies below No FI "
+               "at high frequency; a lower k_fi suppresses the frictional disturbance better"),
+        seed="FI low-pass filters friction; lower k_fi -> faster roll-off, better suppression",
+        ours=(f"FI below No FI above 3 f_n: {below}; slope 300-1000 Hz FI ≈ "
+              f"{rows[300.0]['slope_300_1000']:.0f} vs No FI {slope0:.0f} dB/dec; lower k_fi -> lower "
+              f"|G_d| above {f_lo:.0f} Hz and lower 1-1000 Hz norm: {hf_order and norm_order}"),
+        agrees=d5_ok,
+        numbers=d5_numbers,
+        note=(f"criterion, for k_fi ∈ {{{', '.join(f'{k:g}' for k in ks)}}} N·m/rad: |G_d,FI| < |G_d,NoFI| "
+              f"for all f ∈ [3 f_n, 2 kHz]; slope over 300-1000 Hz ≥ 30 dB/dec steeper than No FI; "
+              f"|G_d,FI| increasing with k_fi at every f ≥ 3 f_n(k_max) = {f_lo:.0f} Hz and in the "
+              f"1-1000 Hz 2-norm; all closed loops stable. FI mode f_n and slope [dB/dec] per k_fi: "
+              f"{txt_rows} (No FI {slope0:.0f}). Caveats: the resonance peak of k_fi = 1000-3000 "
+              f"N·m/rad ({rows[1000.0]['peak']:.1e}, {rows[3000.0]['peak']:.1e} rad/(N·m)) exceeds the No "
+              f"FI peak ({np.abs(g0).max():.1e}) and their 1-1000 Hz norms "
+              f"({rows[1000.0]['norm_1_1000']:.1e}, {rows[3000.0]['norm_1_1000']:.1e}) exceed No FI "
+              f"({norm0:.1e}); the FI pays off broadband only for k_fi ≲ 300 N·m/rad "
+              f"({rows[300.0]['norm_1_1000']:.1e}). c_fi from ζ = 0.1 % of the FI mode "
+              f"(c_fi = 2ζ k_fi/ω_n)."),
+    )]
+
+
+def _claims_d4(rms, sem, rms_meas, pred, peak_f, rms_ideal, rms_nofi_damped, r_wo, r_w, s_wo, s_w, d4_ok, fn_d2, runtime):
+    """The Sec. D.4 claim (RMS tracking error at 10 rpm)."""
+    return [Claim(
+        id="D.4/rms-10rpm",
+        source="App. D, Sec. D.4, Fig. D.12, Table D.2",
+        claim=("10 rpm constant velocity with 0.15 N·m normally distributed bearing torque: RMS error "
+               "No FI 1.41, FI w/o damper 2.62, FI with damper 0.91 µrad"),
+        seed="1.41 / 2.62 / 0.91 µrad (ratios 1.86, 0.65)",
+        ours=(f"{1e6 * rms['No FI']:.2f} / {1e6 * rms['FI w/o damper']:.2f} / {1e6 * rms['FI w/ damper']:.2f} "
+              f"µrad (ratios {r_wo:.2f}, {r_w:.2f})"),
+        agrees=d4_ok,
+        numbers=dict(rpm=RPM, t_sim=T_SIM, t_skip=T_SKIP, n_seeds=N_SEEDS, sigma_per_bearing_correlated=SIGMA,
+                     disturbance="white per 1e-4 s control sample, ZOH, independent 0.2121 N·m per bearing",
+                     **{f"rms_true.{k}": v for k, v in rms.items()},
+                     **{f"rms_sem.{k}": v for k, v in sem.items()},
+                     **{f"rms_measured.{k}": v for k, v in rms_meas.items()},
+                     **{f"rms_ideal_encoder.{k}": v for k, v in rms_ideal.items()},
+                     **{f"rms_predicted_EqD3.{k}": v for k, v in pred.items()},
+                     **{f"error_psd_peak_hz.{k}": v for k, v in peak_f.items()},
+                     rms_nofi_with_damper=rms_nofi_damped, ratio_fi_wo=r_wo, ratio_fi_w=r_w,
+                     seed_ratio_fi_wo=s_wo, seed_ratio_fi_w=s_w, fi_mode_hz_table_D2=fn_d2,
+                     runtime_s=runtime),
+        note=(f"criterion: ordering FI w/ < No FI < FI w/o and both ratios within ±{100 * RATIO_TOL:.0f} % of "
+              f"the seed's ({s_wo:.2f}, {s_w:.2f}); absolute values are not judged because the seed "
+              f"does not state the disturbance bandwidth. Assumed: per-bearing torque white at the "
+              f"10 kHz control rate (zero-order held), 0.15 N·m std per bearing fully correlated "
+              f"(equivalently 0.212 N·m independent). With that assumption the absolute values are also "
+              f"within {100 * max(abs(rms[k] / SEED_RMS[k] - 1) for k in rms):.0f} % of the seed. The FI w/o "
+              f"damper ratio is {100 * (r_wo / s_wo - 1):+.0f} % off (Eq. D.3 expectation "
+              f"{pred['FI w/o damper'] / pred['No FI']:.2f}): its error is a lightly damped FI resonance, "
+              f"so a single run scatters by ~{100 * sem['FI w/o damper'] * math.sqrt(N_SEEDS) / rms['FI w/o damper']:.0f} % "
+              f"(per-seed std over 5 s); the seed's 2.62 µrad, probably one short run, is within ~2σ. "
+              f"True-angle error, {N_SEEDS} seeds × {T_SIM - T_SKIP:.0f} s after a {T_SKIP:.0f} s transient "
+              f"(seed-to-seed SEM ≤ {1e6 * max(sem.values()):.2f} µrad). Cross-checks: Eq. D.3 with the "
+              f"same spectrum predicts {', '.join(f'{1e6 * v:.2f}' for v in pred.values())} µrad; an ideal "
+              f"encoder gives {', '.join(f'{1e6 * v:.2f}' for v in rms_ideal.values())} µrad (the 1.33 µrad "
+              f"quantisation barely matters); the measured-angle RMS is "
+              f"{', '.join(f'{1e6 * v:.2f}' for v in rms_meas.values())} µrad. FI w/o damper error peaks "
+              f"at {peak_f['FI w/o damper']:.1f} Hz (FI mode of Table D.2: {fn_d2:.1f} Hz), the "
+              f"'vibrations around the resonance' of the seed. Choice in the No FI preset: no eddy-current "
+              f"damper (c_f = 0.2); with it (c_f = 1.4) No FI gives {1e6 * rms_nofi_damped:.2f} µrad."),
+    )]
+
+
+def claims(out: Path) -> list[Claim]:
+    out = outputs.prepare_folder(out)
+    t0 = time.perf_counter()
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    d5 = _fig_d5(out, plt)
+    d4 = _sec_d4(out, plt, d5["poles"])
+    runtime = time.perf_counter() - t0
+    return _claims_d5(**d5) + _claims_d4(**d4, runtime=runtime)

@@ -258,13 +258,13 @@ def _overshoot(y, target, D):
     """Largest excursion beyond the target in the step direction [m]."""
     return float(max(0.0, np.max((y - target) * np.sign(D))))
 
+def _ms(x):
+    """Seconds as milliseconds for the claim texts; "n.s." when not settled."""
+    return "n.s." if not np.isfinite(x) else f"{1e3 * x:.1f}"
 
-def claims(out: Path) -> list[Claim]:
-    out = outputs.prepare_folder(out)
-    t_start = time.perf_counter()
-    base = load_preset("van_sim")
-    rate = base.controller.rate
 
+def _benchmark(base):
+    """Frictionless benchmarks: App. A rigid stage with K_I = 0 (Fig. A.2 / 3.5) and the three-mass model."""
     # ---- benchmark: App. A rigid stage without friction, K_I = 0 (Fig. A.2 / Fig. 3.5)
     bench_p = with_overrides(load_preset("als130h"), {"stage.table_friction": None,
                                                       "controller.pid.ki": 0.0})
@@ -273,7 +273,11 @@ def claims(out: Path) -> list[Claim]:
     os_bench = _overshoot(rb.y[0], STEPS[0], STEPS[0]) / STEPS[0]
     r3 = _run(_no_friction(base), STEPS, HORIZONS[0])
     ts_bench3 = _settle(r3.t, r3.y, STEPS, PRE, 0.0)
+    return dict(rb=rb, ts_bench=ts_bench, os_bench=os_bench, ts_bench3=ts_bench3)
 
+
+def _fig34_maps(base):
+    """Fig. 3.4 settling maps, their record lengths and the no-dither settling time per delta."""
     # ---- Fig. 3.4 maps and no-dither reference per delta
     maps, horizons, ts_nod = {}, {}, {}
     for delta in DELTAS:
@@ -281,8 +285,11 @@ def claims(out: Path) -> list[Claim]:
         r = _run(p, STEPS, HORIZONS[-1])
         ts_nod[delta] = _settle(r.t, r.y, STEPS, PRE, FINAL_HOLD)
         maps[delta], horizons[delta] = _settling_map(base, delta)
-    t_maps = time.perf_counter() - t_start
+    return maps, horizons, ts_nod
 
+
+def _fig34_stats(maps, ts_nod):
+    """Fig. 3.4 quantification: cliff, canyon and plain statistics per (delta, step) and the verdict parts."""
     # ---- Fig. 3.4 quantification
     iA_p = np.array(A_GRID) >= PLAIN_A
     jF_p = np.array(F_GRID) >= PLAIN_F
@@ -327,7 +334,11 @@ def claims(out: Path) -> list[Claim]:
         plain_same_for_all_delta=all(x <= DELTA_SPREAD for x in delta_spread.values()),
     )
     c1_ok = all(c1_parts.values())
+    return stats, delta_spread, c1_parts, c1_ok
 
+
+def _fig35(base, ts_bench):
+    """Fig. 3.5: VAN at the operating point vs the benchmark, and the no-dither response (delta = 0)."""
     # ---- Fig. 3.5: operating point vs benchmark
     resp, ts_op = {}, {}
     for delta in DELTAS:
@@ -338,9 +349,11 @@ def claims(out: Path) -> list[Claim]:
     c2_ok = all(np.isfinite(v) and v <= BENCH_TOL for v in dev.values())
     p_nod0 = with_overrides(base, {"dither.amplitude": 0.0})
     rn = _run(p_nod0, STEPS, HORIZONS[0])
-    _plot_maps(out, maps, ts_nod)
-    _plot_responses(out, resp, (rb.t, rb.y), (rn.t, rn.y))
+    return resp, ts_op, dev, c2_ok, rn
 
+
+def _fig38(out, rate):
+    """Fig. 3.8: harmonic cancelling under joint asymmetry (gain sweep, full-friction diagnostic, three steps)."""
     # ---- Fig. 3.8: joint asymmetry, HC controller
     asym = load_preset("van_sim_asym")
     D = STEPS[0]
@@ -397,16 +410,15 @@ def claims(out: Path) -> list[Claim]:
         overshoot_shrinks=bool(os_steps[1] < 0.5 * os_steps[0] and os_steps[2] <= os_steps[1] * 1.1 + 1e-10),
     )
     c3_ok = all(c3_parts.values())
-    runtime = time.perf_counter() - t_start
+    return dict(hc=hc, pp0=pp0, pp_alt=pp_alt, os_steps=os_steps, ts_steps=ts_steps,
+                c3_parts=c3_parts, c3_ok=c3_ok, dwell=dwell)
 
-    # ---- claims
-    def ms(x):
-        return "n.s." if not np.isfinite(x) else f"{1e3 * x:.1f}"
 
+def _claims_fig34(maps, horizons, ts_nod, stats, delta_spread, c1_parts, c1_ok, os_bench, t_maps):
+    """The Fig. 3.4 claim (cliff, canyon, plain)."""
     s_items = {f"d{d:+.1f}_{STEPS[s] * 1e9:.0f}nm": v for (d, s), v in stats.items()}
-    claims_ = []
     st = [stats[(d, s)] for d in DELTAS for s in range(2)]
-    claims_.append(Claim(
+    return [Claim(
         id="3.2/fig3.4-cliff-canyon-plain",
         source="Sec. 3.2.1, Fig. 3.4",
         claim=("settling time over dither A × f has a cliff (no gain at low A·f), a narrow canyon "
@@ -415,8 +427,8 @@ def claims(out: Path) -> list[Claim]:
              "identical across δ",
         ours=(f"cliff: lowest A·f point at ≥ {min(v['cliff_ratio'] for v in st):.2f}× the no-dither "
               f"time ({sum(v['n_not_settled'] for v in st)} cells not settled in 1.4 s); canyon "
-              f"{ms(min(v['opt'] for v in st))}–{ms(max(v['opt'] for v in st))} ms vs plain median "
-              f"{ms(min(v['plain_med'] for v in st))}–{ms(max(v['plain_med'] for v in st))} ms "
+              f"{_ms(min(v['opt'] for v in st))}–{_ms(max(v['opt'] for v in st))} ms vs plain median "
+              f"{_ms(min(v['plain_med'] for v in st))}–{_ms(max(v['plain_med'] for v in st))} ms "
               f"(spread ≤ {100 * max(v['plain_spread'] for v in st):.0f} %, across δ ≤ "
               f"{100 * max(delta_spread.values()):.0f} %)"),
         agrees=bool(c1_ok),
@@ -441,7 +453,7 @@ def claims(out: Path) -> list[Claim]:
               f"±{100 * DELTA_SPREAD:.0f} % of their mean. Parts: "
               + ", ".join(f"{k}={'yes' if v else 'NO'}" for k, v in c1_parts.items())
               + ". No-dither settling "
-              + ", ".join(f"δ={d:+.1f}: {ms(ts_nod[d][0])}/{ms(ts_nod[d][1])} ms" for d in DELTAS)
+              + ", ".join(f"δ={d:+.1f}: {_ms(ts_nod[d][0])}/{_ms(ts_nod[d][1])} ms" for d in DELTAS)
               + " (50/500 nm); lowest-A·f/no-dither ratios "
               + ", ".join(f"{v['cliff_ratio']:.2f}" for v in st)
               + " (δ = −0.5…1 × 50/500 nm; inf = not settled within 1.4 s). The 50 nm cliff is "
@@ -459,15 +471,19 @@ def claims(out: Path) -> list[Claim]:
               "benchmark and the settling equals the benchmark's 5 ms, ~4× the optimum in relative "
               "terms ('slightly above' only on the scale of the cliff). Seed axes are not "
               f"recoverable from the text: grid {len(A_GRID)} A × {len(F_GRID)} f per δ."),
-    ))
+    )]
+
+
+def _claims_fig35(ts_op, dev, c2_ok, ts_bench, ts_bench3, ts_nod):
+    """The Fig. 3.5 claim (VAN close to the frictionless benchmark)."""
     devs = list(dev.values())
-    claims_.append(Claim(
+    return [Claim(
         id="3.2/fig3.5-near-benchmark",
         source="Sec. 3.2.1, Fig. 3.5",
         claim="at A = 3 N, f = 500 Hz VAN settles close to the frictionless benchmark for every δ",
         seed="settling very close to the benchmark (zero friction), regardless of δ and step size",
-        ours=("VAN " + ", ".join(f"{ms(ts_op[d][0])}/{ms(ts_op[d][1])}" for d in DELTAS)
-              + f" ms (δ = −0.5…1, 50/500 nm) vs benchmark {ms(ts_bench[0])}/{ms(ts_bench[1])} ms"),
+        ours=("VAN " + ", ".join(f"{_ms(ts_op[d][0])}/{_ms(ts_op[d][1])}" for d in DELTAS)
+              + f" ms (δ = −0.5…1, 50/500 nm) vs benchmark {_ms(ts_bench[0])}/{_ms(ts_bench[1])} ms"),
         agrees=bool(c2_ok),
         numbers=dict(ts_van={f"{d:+.1f}": list(map(float, ts_op[d])) for d in DELTAS},
                      ts_benchmark_rigid=list(map(float, ts_bench)),
@@ -477,10 +493,14 @@ def claims(out: Path) -> list[Claim]:
         note=(f"criterion: |t_s − t_s,bench| ≤ {100 * BENCH_TOL:.0f} % of t_s,bench for all 8 cases "
               f"(max {100 * max(devs):.0f} %). Benchmark = App. A rigid 1.5 kg stage, F_f = 0, K_I = 0, "
               f"same 10 kHz PD; the frictionless three-mass VAN model gives "
-              f"{ms(ts_bench3[0])}/{ms(ts_bench3[1])} ms. Without dither the same stage needs "
-              f"{ms(ts_nod[0.0][0])}/{ms(ts_nod[0.0][1])} ms (δ = 0)."),
-    ))
-    claims_.append(Claim(
+              f"{_ms(ts_bench3[0])}/{_ms(ts_bench3[1])} ms. Without dither the same stage needs "
+              f"{_ms(ts_nod[0.0][0])}/{_ms(ts_nod[0.0][1])} ms (δ = 0)."),
+    )]
+
+
+def _claims_fig38(hc, pp0, pp_alt, os_steps, ts_steps, c3_parts, c3_ok, dwell, runtime):
+    """The Fig. 3.8 claim (harmonic cancelling)."""
+    return [Claim(
         id="3.2/fig3.8-harmonic-cancelling",
         source="Sec. 3.2.2, Fig. 3.8",
         claim=("with 10 % joint asymmetry, K_HC = 0 leaves ~40 nm p-p parasitic vibration and no "
@@ -489,7 +509,7 @@ def claims(out: Path) -> list[Claim]:
         seed="40 nm p-p, no settling at K_HC = 0; settles with HC, faster with higher K_HC; "
              "overshoots reduce over three steps (K_HC = 4e3 N/µm)",
         ours=(f"{1e9 * pp0:.1f} nm p-p, {'no settling' if not np.isfinite(hc[0.0]['settling']) else 'settles'}"
-              f" at K_HC = 0; settling " + "/".join(ms(hc[K]['settling']) for K in HC_GAINS[1:])
+              f" at K_HC = 0; settling " + "/".join(_ms(hc[K]['settling']) for K in HC_GAINS[1:])
               + " ms at K_HC = " + "/".join(f"{K / 1e6:g}" for K in HC_GAINS[1:])
               + " N/µm; overshoots " + "/".join(f"{1e9 * o:.1f}" for o in os_steps) + " nm"),
         agrees=bool(c3_ok),
@@ -506,12 +526,29 @@ def claims(out: Path) -> list[Claim]:
               f"the two bearings (k_σ = 4 N/µm, F_C = 0.5 N each) -> {1e9 * pp0:.1f} nm; the literal "
               f"reading 'F_f1 = F_f2 = F_f' (each bearing k_σ = 8 N/µm, F_C = 1 N) gives "
               f"{1e9 * pp_alt:.1f} nm (diagnostic only, not used for the claim)"
-              + f". Beyond the seed's range: K_HC = 8e3 N/µm settles in {ms(hc[8e9]['settling'])} ms "
+              + f". Beyond the seed's range: K_HC = 8e3 N/µm settles in {_ms(hc[8e9]['settling'])} ms "
               f"(slower: oscillatory), 1.6e4 N/µm {'is stable' if hc[1.6e10]['stable'] else 'diverges'} "
               "— the seed's warning that K_HC cannot be raised arbitrarily. Sign: our HC uses "
               "F_comp = G_HC[x_meas − x_ref] = −G_HC[e]; the literal Eq. 3.3 on e = x_r − x_t is "
               "unstable for every K_HC > 0 on this model (the path F_comp → x_t is mass-like at f), "
               "see stage_control/dither.py. Dither starts with the (first) step, δ = 0, A = 3 N, "
               "f = 500 Hz; steps of Fig. 3.8(b) 0.1 s apart."),
-    ))
-    return claims_
+    )]
+
+
+def claims(out: Path) -> list[Claim]:
+    out = outputs.prepare_folder(out)
+    t_start = time.perf_counter()
+    base = load_preset("van_sim")
+    b = _benchmark(base)
+    maps, horizons, ts_nod = _fig34_maps(base)
+    t_maps = time.perf_counter() - t_start
+    stats, delta_spread, c1_parts, c1_ok = _fig34_stats(maps, ts_nod)
+    resp, ts_op, dev, c2_ok, rn = _fig35(base, b["ts_bench"])
+    _plot_maps(out, maps, ts_nod)
+    _plot_responses(out, resp, (b["rb"].t, b["rb"].y), (rn.t, rn.y))
+    hc = _fig38(out, base.controller.rate)
+    runtime = time.perf_counter() - t_start
+    return (_claims_fig34(maps, horizons, ts_nod, stats, delta_spread, c1_parts, c1_ok, b["os_bench"], t_maps)
+            + _claims_fig35(ts_op, dev, c2_ok, b["ts_bench"], b["ts_bench3"], ts_nod)
+            + _claims_fig38(**hc, runtime=runtime))
