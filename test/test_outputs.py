@@ -190,6 +190,13 @@ def test_graph_run_keeps_a_users_files_and_run_folders(tmp_path, ros_domain):
 
 
 # --------------------------------------------------------------------------- signals
+def _as_from_a_terminal() -> None:
+    """The child's SIGINT as a terminal's foreground job has it (default). A job started in the
+    background of a non-interactive shell (``cmd &``, as a CI runner may start the suite) inherits
+    SIGINT ignored, and Python then keeps it ignored: the Ctrl-C under test would never arrive."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _wait_for(predicate, timeout: float, proc) -> None:
     t0 = time.monotonic()
     while not predicate():
@@ -204,7 +211,8 @@ def test_signal_during_convert_leaves_no_partial_and_no_traceback(tmp_path, sig)
     """SIGTERM / SIGINT while ``convert`` writes: exit 128 + signal, one line, no traceback, no
     ``.rec.partial-*`` and no recording left (before: a 29 MB hidden partial, or a traceback)."""
     src = _csv(tmp_path / "big.csv", 150_000)
-    proc = subprocess.Popen([*CLI, *_convert(src, tmp_path / "rec")], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([*CLI, *_convert(src, tmp_path / "rec")], preexec_fn=_as_from_a_terminal,
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     _wait_for(lambda: any(p.stat().st_size > 0 for p in tmp_path.glob(".rec.partial-*/rec/rec.mcap")), 120, proc)
     proc.send_signal(sig)
@@ -219,7 +227,8 @@ def test_ctrl_c_in_selftest_gives_no_traceback(tmp_path):
     """SIGINT during ``diagnose --selftest``: one line, exit 130, its temporary folder removed
     (before: a KeyboardInterrupt traceback)."""
     env = dict(os.environ, TMPDIR=str(tmp_path))
-    proc = subprocess.Popen([*CLI, "diagnose", "--selftest", "--only", "coulomb"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([*CLI, "diagnose", "--selftest", "--only", "coulomb"], preexec_fn=_as_from_a_terminal,
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
     _wait_for(lambda: any(tmp_path.glob("nanostage_selftest_*/*/truth.yaml")), 120, proc)
     proc.send_signal(signal.SIGINT)
@@ -235,6 +244,7 @@ def test_ctrl_c_in_a_graph_run_gives_no_traceback(tmp_path, ros_domain):
     the executor's spins, never inside a node's callback (which rclpy logs as a fatal error)."""
     d = tmp_path / "g"
     proc = subprocess.Popen([*CLI, "graph", "fi_p2p_5um", "--out", str(d), "--domain-id", str(ros_domain)],
+                            preexec_fn=_as_from_a_terminal,
                             stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     _wait_for(lambda: (d / "run" / "run.mcap").exists(), 120, proc)
