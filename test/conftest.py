@@ -26,6 +26,12 @@ process that hears the graph's events (the :func:`listener` fixture).
 
 Real records are diagnosed once per session (:func:`emps_diagnosis`).
 
+Parallel runs: the README's test command runs the suite on every core (``pytest -n auto --dist
+loadgroup``, pytest-xdist). The tests sharing a session fixture that is expensive to make (the EMPS
+diagnosis, the Dask cluster) are one group each, run by one worker; the longest work is handed out
+first (:func:`_start_order`). Domains are leased across processes (above), outputs go to each
+test's ``tmp_path``: a test's result never depends on which worker runs it or what runs beside it.
+
 The suite keeps its compiled modules (Python's bytecode, pytest's assertion-rewritten test
 modules) in the git-ignored ``__pycache__`` folders even where ``PYTHONDONTWRITEBYTECODE`` is set:
 without them every run compiles them all again, half of the fast tier's collection time.
@@ -57,6 +63,9 @@ _MARKED_BY_FIXTURE = {"ros": ("ros_domain", "ros_domains", "listener", "node_gra
                       "dask": ("dask_cluster",),
                       "realdata": ("shared_data", "shared_file")}
 _ALSO_SLOW = ("ros", "dask")
+_ONE_WORKER = {"emps_diagnosis", "dask_cluster"}
+"""Session fixtures made once per suite: under ``pytest -n`` (``--dist loadgroup``) the tests using
+one run on one worker (an ``xdist_group`` of the fixture's name), so it is not made once per worker."""
 
 
 # =========================================================================== markers
@@ -68,6 +77,18 @@ def pytest_collection_modifyitems(config, items):
                 item.add_marker(getattr(pytest.mark, marker))
         if item.get_closest_marker("slow") is None and any(item.get_closest_marker(m) for m in _ALSO_SLOW):
             item.add_marker(pytest.mark.slow)
+        for fixture in _ONE_WORKER.intersection(names):
+            item.add_marker(pytest.mark.xdist_group(fixture))
+    items.sort(key=_start_order)
+
+
+def _start_order(item) -> int:
+    """Longest work first, so that ``pytest -n`` (``--dist loadgroup``) ends its workers together:
+    the tests sharing the EMPS diagnosis (one group, minutes), then the other slow tests, then the
+    fast tier (a stable sort: within each rank, the collected order)."""
+    if "emps_diagnosis" in getattr(item, "fixturenames", ()):
+        return 0
+    return 1 if item.get_closest_marker("slow") is not None else 2
 
 
 @pytest.fixture(autouse=True)

@@ -47,3 +47,29 @@ def test_each_lease_is_a_domain_no_other_lease_holds():
                                cwd=Path(__file__).parents[1])
         assert other.returncode == 0, other.stderr
         assert int(other.stdout) not in (a, b)                 # another process (an xdist worker, a checkout)
+
+
+def test_parallel_runs_start_with_the_longest_work_and_make_each_shared_fixture_once():
+    """Under ``pytest -n`` the tests sharing the EMPS diagnosis are handed out first, as one group
+    (one worker makes the fixture), then the slow tests, then the fast tier: collected in that
+    order whatever the files' order."""
+    root = Path(__file__).parents[1]
+    code = ("import sys, pytest\n"
+            "class P:\n"
+            "    def pytest_collection_finish(self, session):\n"
+            "        for it in session.items:\n"
+            "            g = it.get_closest_marker('xdist_group')\n"
+            "            print('ITEM', it.nodeid, 'slow' if it.get_closest_marker('slow') else 'fast',"
+            " g.args[0] if g else '-')\n"
+            "sys.exit(pytest.main(['--collect-only', '-q', '-p', 'no:cacheprovider', 'test/test_suite.py',"
+            " 'test/test_diagnosis_emps.py', 'test/test_diagnosis_executor.py'], plugins=[P()]))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=root)
+    assert out.returncode == 0, out.stdout + out.stderr
+    rows = [line.split()[1:] for line in out.stdout.splitlines() if line.startswith("ITEM ")]
+    n_emps = sum(r[2] == "emps_diagnosis" for r in rows)
+    assert n_emps >= 3 and all(r[2] == "emps_diagnosis" for r in rows[:n_emps])   # one group, first
+    assert all(r[0].startswith("test/test_diagnosis_emps.py") for r in rows[:n_emps])
+    ranks = [0 if i < n_emps else (1 if r[1] == "slow" else 2) for i, r in enumerate(rows)]
+    assert ranks == sorted(ranks)                                      # slow before fast after the group
+    dask = [r for r in rows if "dask_local_cluster" in r[0]]
+    assert dask and all(r[2] == "dask_cluster" for r in dask)
