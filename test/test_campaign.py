@@ -16,8 +16,9 @@ from experiment_runner.apps.campaigns.calibration import ParamSpec, fit
 from experiment_runner.apps.campaigns.cli import add_campaign_arguments, main_campaign
 from experiment_runner.apps.campaigns.report import write_index
 from experiment_runner.apps.campaigns.runner import MAIN_JOB, run_campaign
+from experiment_runner.apps.campaigns.overrides import resolve
 from experiment_runner.apps.campaigns.spec import (CAMPAIGN_DIR, Campaign, cal_parameters, calibration_source, case_preset,
-                                              conditions, list_campaigns, load_campaign, resolve)
+                                              conditions, list_campaigns, load_campaign)
 from experiment_runner.apps.campaigns.trials import graph_experiment, learn_step_ii, make_trials, reference
 from experiment_runner.core.experiment import Experiment, build_trials, experiment_preset
 from stage_sim.config import ConfigError, load_preset

@@ -14,12 +14,15 @@ of the full runs (as in test_campaign.py), so nothing is fitted except in the ``
 """
 from __future__ import annotations
 
+import importlib
 import math
+import pkgutil
 
 import pytest
 import yaml
 
 from experiment_runner.apps.campaigns.calibration import calibration_fingerprint
+from experiment_runner.apps.campaigns import schema
 from experiment_runner.apps.campaigns.kinds import KINDS, kind_of, schemas
 from experiment_runner.apps.campaigns.registry import METRICS
 from experiment_runner.apps.campaigns.runner import run_campaign
@@ -238,6 +241,17 @@ def test_sai_reversal_window_follows_the_speed():
 def test_new_campaigns_are_listed():
     assert {"table_6_3", "circle_3_19", "circle_4_11", "circle_5_14", "ff_4_16", "ff_6_5", "steps_c1",
             "steps_c12"} <= set(list_campaigns())
+
+
+def test_every_campaign_kind_has_its_schema_beside_it():
+    """Each kind's schema is in ``campaigns/schema/<kind>.py`` and nowhere else: the schema package holds
+    one module per kind in :data:`KINDS` (plus ``common``), and that module defines the kind's schema class."""
+    modules = {m.name for m in pkgutil.iter_modules(schema.__path__)}
+    assert modules - {"common"} == set(KINDS), "a schema module without a kind, or a kind without a schema module"
+    for name, kind in KINDS.items():
+        assert kind.test.__module__ == f"{schema.__name__}.{name}", f"{name}'s schema is in {kind.test.__module__}"
+        assert getattr(importlib.import_module(kind.test.__module__), kind.test.__name__) is kind.test
+    assert set(schemas()) == {kind.test for kind in KINDS.values()}
 
 
 def test_every_test_schema_has_its_kind_and_metrics():

@@ -15,8 +15,8 @@ from experiment_runner.apps.campaigns.findings import seed_bound_check
 from experiment_runner.apps.campaigns.frf import loop_frfs, nominal_fit, plant_frf
 from experiment_runner.apps.campaigns.kinds import kind_of
 from experiment_runner.apps.campaigns.runner import run_campaign
-from experiment_runner.apps.campaigns.spec import (Campaign, FrequencyResponseTest, case_preset, conditions,
-                                              frequency_grid, load_campaign)
+from experiment_runner.apps.campaigns.schema.frequency_response import FrequencyResponseTest, frequency_grid
+from experiment_runner.apps.campaigns.spec import Campaign, case_preset, conditions, load_campaign
 from experiment_runner.core.batch import simulate
 from experiment_runner.core.metrics import sine_phasor
 from stage_control.tuning import loop_margins

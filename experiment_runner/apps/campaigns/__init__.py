@@ -5,8 +5,10 @@ Modules, from the bottom up (each imports only those above it in this list; enfo
 
 ========================  =====================================================================
 ``registry``              the metric table: label, unit, formatter
-``spec``                  the campaign schema (one test schema per kind), load / list, conditions,
-                          the presets of every case
+``spec``                  the campaign model (assembling the kinds' test schemas), load / list,
+                          conditions, the presets of every case
+``schema``                the test schema of each kind, ``schema/<kind>.py``; ``schema/common.py``
+``overrides``             dotted-path preset overrides (wildcards, set, scale, series_scale)
 ``base``                  run settings, run results, the ``CampaignKind`` protocol
 ``trials``                the one place trials are built, simulated and judged; Step II learning
 ``stream``                trial chunks on an executor, streamed to ``trials.jsonl``, resumable

@@ -1,7 +1,7 @@
 """What every campaign kind shares: the settings of a run, its results, the kind protocol.
 
 A *campaign kind* is what a ``test: {kind: ...}`` does. Its schema (conditions, metrics,
-reference) is a class in :mod:`experiment_runner.apps.campaigns.spec`; its behaviour is a
+reference) is a class in the module of its name in :mod:`experiment_runner.apps.campaigns.schema`; its behaviour is a
 :class:`CampaignKind` (point-to-point, circle: :mod:`~experiment_runner.apps.campaigns.trial_kinds`;
 frequency response: :mod:`~experiment_runner.apps.campaigns.frequency_response`), listed once in
 :data:`experiment_runner.apps.campaigns.kinds.KINDS`. Nothing outside a kind asks ``test.kind``.
@@ -17,7 +17,8 @@ from typing import Any, Optional, Protocol
 
 import numpy as np
 
-from experiment_runner.apps.campaigns.spec import Campaign, Condition
+from experiment_runner.apps.campaigns.schema.common import Condition
+from experiment_runner.apps.campaigns.spec import Campaign
 from experiment_runner.core import outputs, profiles
 from stage_sim.config import Preset
 
@@ -284,16 +285,20 @@ class CampaignKind(Protocol):
     ----------
     name : str
         The schema's ``kind``.
+    test : type
+        The schema class (``campaigns/schema/<name>.py``).
     metrics : tuple of str
         Metric names (keys of :data:`experiment_runner.apps.campaigns.registry.METRICS`) it reports.
 
     Notes
     -----
-    To add a kind: a test schema in :mod:`~experiment_runner.apps.campaigns.spec` (``kind`` literal,
-    ``METRICS``, ``conditions()``, ``reference()``) added to its ``Test`` union, a module with
-    an object implementing this protocol, and its entry in ``KINDS``.
+    To add a kind: its test schema in ``campaigns/schema/<name>.py`` (``kind`` literal,
+    ``METRICS``, ``conditions()``, ``reference()``) added to the ``Test`` union of
+    :mod:`~experiment_runner.apps.campaigns.spec`, a module with an object implementing this
+    protocol, and its entry in ``KINDS``.
     """
     name: str                   # the schema's ``kind``
+    test: type                  # the schema class, in campaigns/schema/<name>.py
     metrics: tuple              # metric names (keys of campaigns.registry.METRICS) it reports
 
     def reference(self, camp: Campaign, cond: Condition, rate: float) -> Optional[profiles.Reference]:

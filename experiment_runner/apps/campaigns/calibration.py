@@ -51,8 +51,8 @@ from typing import Callable, Optional
 from scipy.optimize import brentq
 
 from experiment_runner.apps.campaigns.base import Stat
-from experiment_runner.apps.campaigns.spec import (Campaign, expand_path, to_python, calibration_source, case_preset, conditions,
-                                              resolve)
+from experiment_runner.apps.campaigns.overrides import expand_path, resolve, to_python
+from experiment_runner.apps.campaigns.spec import Campaign, calibration_source, case_preset, conditions
 from experiment_runner.apps.campaigns.trials import metric_record, simulate_trials
 from experiment_runner.core.batch import Models
 from experiment_runner.core.metrics import finite_or_none

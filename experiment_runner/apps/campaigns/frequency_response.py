@@ -30,8 +30,9 @@ from experiment_runner.apps.campaigns.findings import evaluate_frf_findings, see
 from experiment_runner.apps.campaigns.frf import closed_loop_frf, loop_frfs, nominal_fit, plant_frf
 from experiment_runner.apps.campaigns.registry import METRICS
 from experiment_runner.apps.campaigns.report import cases_md, findings_table, write_outputs
-from experiment_runner.apps.campaigns.spec import (CalibrationFrom, Campaign, Condition, FrequencyResponseTest,
-                                              case_overrides, case_preset, conditions, frequency_grid)
+from experiment_runner.apps.campaigns.schema.common import Condition
+from experiment_runner.apps.campaigns.schema.frequency_response import FrequencyResponseTest, frequency_grid
+from experiment_runner.apps.campaigns.spec import CalibrationFrom, Campaign, case_overrides, case_preset, conditions
 from experiment_runner.core import outputs
 from experiment_runner.core.batch import Models
 from experiment_runner.core.metrics import finite_or_none

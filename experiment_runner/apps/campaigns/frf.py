@@ -31,7 +31,7 @@ Eq. C.5 (Fig. C.8-C.10). This module does the same on the simulated stage:
    amplitudes x frequencies) at the force amplitudes: a check of the LTI assumption.
 
 Campaign files use ``test: {kind: frequency_response, ...}``
-(:class:`~experiment_runner.apps.campaigns.spec.FrequencyResponseTest`); the campaign kind that runs
+(:class:`~experiment_runner.apps.campaigns.schema.frequency_response.FrequencyResponseTest`); the campaign kind that runs
 these measurements per case and writes the outputs is
 :mod:`experiment_runner.apps.campaigns.frequency_response`.
 """
@@ -46,7 +46,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from experiment_runner.apps.campaigns.spec import FrequencyResponseTest, frequency_grid
+from experiment_runner.apps.campaigns.schema.frequency_response import FrequencyResponseTest, frequency_grid
 from experiment_runner.core.batch import Models, chunked, unchunked, simulate
 from experiment_runner.core.metrics import sine_phasor
 from stage_control.servo import build_servo

@@ -27,7 +27,8 @@ def schemas() -> tuple:
     Returns
     -------
     tuple of type
-        The pydantic classes in :mod:`~experiment_runner.apps.campaigns.spec`; each has its kind in :data:`KINDS`.
+        The pydantic classes of :mod:`~experiment_runner.apps.campaigns.schema` (the ``Test`` union of
+        :mod:`~experiment_runner.apps.campaigns.spec`); each has its kind in :data:`KINDS`.
     """
     return typing.get_args(typing.get_args(Test)[0])
 

@@ -26,7 +26,7 @@ from matplotlib.ticker import NullFormatter
 from experiment_runner.apps.campaigns import headline, mechanism
 from experiment_runner.apps.campaigns.base import CampaignRun, write_json
 from experiment_runner.apps.campaigns.registry import METRICS, fmt_change, fmt_metric
-from experiment_runner.apps.campaigns.spec import fmt_length
+from experiment_runner.apps.campaigns.schema.common import fmt_length
 from experiment_runner.core import outputs
 
 __all__ = ["write_outputs", "write_plots", "write_report", "write_index", "summary_lines", "trial_section",

@@ -29,11 +29,14 @@ the seed gives no absolute numbers (Table 6.3), compare the spread over the swee
 (``over: sweep_spread``, the ±1σ bands of Fig. 4.18) and, for 'similar', the reductions vs a
 third case (``relative_to``, as the seed's reduction plots do).
 
-This module is the schema (pydantic, no code executed), :func:`load_campaign` /
+This module is the campaign model (pydantic, no code executed), :func:`load_campaign` /
 :func:`list_campaigns`, the conditions and the presets of every case (:func:`case_preset`:
-campaign, case, calibrated and swept overrides). Each test kind (``point_to_point``,
-``circle``, ``frequency_response``) is one schema class here that knows its conditions, its
-metrics and its reference; what a kind *does* (run, report section, plots) is its
+campaign, case, calibrated and swept overrides, resolved by
+:mod:`~experiment_runner.apps.campaigns.overrides`). Each test kind (``point_to_point``,
+``circle``, ``frequency_response``) has its schema -- the class that knows its conditions, its
+metrics and its reference -- in the module of its name in
+:mod:`experiment_runner.apps.campaigns.schema`; the model assembles them into its ``Test``
+union. What a kind *does* (run, report section, plots) is its
 :class:`~experiment_runner.apps.campaigns.base.CampaignKind` in :mod:`experiment_runner.apps.campaigns.kinds`.
 
 Examples
@@ -47,387 +50,32 @@ True
 from __future__ import annotations
 
 import copy
-import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, ClassVar, Literal, Optional, Union
+from typing import Annotated, Literal, Optional, Union
 
-import numpy as np
 from pydantic import ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
+from experiment_runner.apps.campaigns.overrides import resolve, to_python
 from experiment_runner.apps.campaigns.registry import Metric
-from experiment_runner.core import experiment, profiles
-from experiment_runner.core.experiment import Move, Starts
+from experiment_runner.apps.campaigns.schema.circle import CircleTest
+from experiment_runner.apps.campaigns.schema.common import Condition, Name, slug
+from experiment_runner.apps.campaigns.schema.frequency_response import FrequencyResponseTest
+from experiment_runner.apps.campaigns.schema.point_to_point import PointToPointTest
+from experiment_runner.core.experiment import Starts
 from stage_sim.config import (ConfigError, Finite, Fraction, NonNeg, Pos, Preset, schema_error_message, StrictModel,
                               load_preset, read_yaml_file, with_overrides)
 
-__all__ = ["Campaign", "Case", "Condition", "PointToPointTest", "CircleTest", "FrequencyResponseTest",
-           "load_campaign", "list_campaigns", "check_campaign", "conditions", "frequency_grid", "fmt_length",
-           "case_overrides", "case_preset", "resolve", "cal_parameters", "calibration_source", "CAMPAIGN_DIR"]
+__all__ = ["Campaign", "Case", "Test", "load_campaign", "list_campaigns", "check_campaign", "conditions",
+           "case_overrides", "case_preset", "cal_parameters", "calibration_source", "CAMPAIGN_DIR"]
 
 CAMPAIGN_DIR = Path(__file__).parent
 """The shipped campaign files (``*.yaml`` next to this module, installed as package data)."""
-Name = Annotated[str, Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=40)]
 
 
-# =========================================================================== conditions
-def fmt_length(x: float) -> str:
-    """``5e-3 -> '5 mm'``, ``5e-6 -> '5 µm'``, ``5e-8 -> '50 nm'``.
-
-    Parameters
-    ----------
-    x : float
-        A length [m].
-
-    Returns
-    -------
-    str
-
-    Examples
-    --------
-    >>> fmt_length(5e-3), fmt_length(-5e-6), fmt_length(2e-5)
-    ('5 mm', '-5 µm', '20 µm')
-    """
-    a = abs(x)
-    for unit, s in (("m", 1.0), ("mm", 1e-3), ("µm", 1e-6), ("nm", 1e-9)):
-        if a >= s * 0.9999:
-            return f"{x / s:.4g} {unit}"
-    return f"{x * 1e12:.4g} pm"
-
-
-def _slug(s: str) -> str:
-    return "".join(ch if ch.isalnum() else "_" for ch in s.replace("µ", "u").replace(" ", "")).strip("_")
-
-
-@dataclass(frozen=True)
-class Condition:
-    """One test condition (a step size, a radius and speed, or a force amplitude) and sweep value.
-
-    The coordinates a kind does not use are None.
-
-    Parameters
-    ----------
-    key : str
-        Identifier of the condition, letters, digits and ``_`` only (``'5mm'``), unique in the
-        campaign: used in file names and result keys.
-    label : str
-        The condition as the reports show it (``'5 mm'``).
-    step : float, optional
-        Point-to-point step size [m] (signed).
-    radius : float, optional
-        Circle radius [m].
-    speed : float, optional
-        Circle tangential speed [m/s].
-    sweep : float, optional
-        The campaign sweep's value (in the sweep's ``unit``).
-    amplitude : float, optional
-        Frequency response: force amplitude at the plant input [N].
-
-    Examples
-    --------
-    >>> c = Condition("5mm__k_2", "5 mm, k = 2", step=5e-3, sweep=2.0)
-    >>> c.matches(step=5e-3), c.matches(step=5e-3, sweep=1.0), c.matches(radius=1e-3)
-    (True, False, False)
-    >>> c.at()
-    {'step': 0.005, 'sweep': 2.0}
-    """
-    key: str
-    label: str
-    step: Optional[float] = None
-    radius: Optional[float] = None
-    speed: Optional[float] = None
-    sweep: Optional[float] = None
-    amplitude: Optional[float] = None          # frequency_response: force amplitude [N]
-
-    def matches(self, step=None, radius=None, speed=None, sweep=None, amplitude=None) -> bool:
-        """Whether this condition has every coordinate given (equal to a relative 1e-9; None: any).
-
-        Parameters
-        ----------
-        step : float, optional
-            Step size [m].
-        radius : float, optional
-            Circle radius [m].
-        speed : float, optional
-            Tangential speed [m/s].
-        sweep : float, optional
-            Sweep value.
-        amplitude : float, optional
-            Force amplitude [N].
-
-        Returns
-        -------
-        bool
-            False when a given coordinate differs or this condition does not have it.
-        """
-        for mine, want in ((self.step, step), (self.radius, radius), (self.speed, speed), (self.sweep, sweep),
-                           (self.amplitude, amplitude)):
-            if want is not None and (mine is None or not math.isclose(mine, want, rel_tol=1e-9, abs_tol=0.0)):
-                return False
-        return True
-
-    def at(self) -> dict:
-        """The coordinates this condition has, as :meth:`matches` takes them.
-
-        Returns
-        -------
-        dict
-            ``step``, ``radius``, ``speed``, ``sweep``, ``amplitude`` -> value, the ones not None.
-        """
-        return {k: getattr(self, k) for k in ("step", "radius", "speed", "sweep", "amplitude")
-                if getattr(self, k) is not None}
-
-
-
-# =========================================================================== tests (one schema per campaign kind)
-# A trial kind's condition is an experiment profile (:mod:`experiment_runner.core.experiment`, the one
-# description of a run): ``profile(cond)``; its reference is that profile's.
-class PointToPointTest(Move):
-    """Point-to-point moves (seed Sec. 3.4.1, Fig. 3.13): one condition per step size, each an
-    experiment's :class:`~experiment_runner.core.experiment.PointToPoint` of this :class:`~experiment_runner.core.experiment.Move`."""
-    kind: Literal["point_to_point"] = Field(description="the test kind: point_to_point")
-    steps: list[Finite] = Field(min_length=1, description="step sizes [m] (signed), one condition each")
-    dwell: Pos = Field(1.0, description="settling portion recorded after the reference stops [s] (the seed's "
-                                        "tables: 1 s)")
-    window: Pos = Field(25e-9, description="settling window half-width [m]")
-
-    METRICS: ClassVar[tuple] = ("settling_time_s", "rms_in_position_m")
-    REPRESENTATIVE: ClassVar[str] = "settling_time_s"      # the representative trial has the median of it
-
-    @model_validator(mode="after")
-    def _nonzero(self):
-        if any(s == 0 for s in self.steps):
-            raise ValueError("steps must be nonzero")
-        if len(set(self.steps)) != len(self.steps):
-            raise ValueError("steps must be distinct")
-        return self
-
-    def conditions(self) -> list[Condition]:
-        """One condition per step size.
-
-        Returns
-        -------
-        list of Condition
-            In the order of ``steps``; each with ``step`` [m] and a label such as ``'5 µm'``.
-        """
-        return [Condition(_slug(fmt_length(s)), fmt_length(s), step=float(s)) for s in self.steps]
-
-    def profile(self, cond: Condition) -> experiment.PointToPoint:
-        """The experiment profile of a condition: its step, moved as this test moves.
-
-        Parameters
-        ----------
-        cond : Condition
-            One of :meth:`conditions`.
-
-        Returns
-        -------
-        experiment_runner.core.experiment.PointToPoint
-            The step ``cond.step`` with this test's move (dwell, profile, limits).
-        """
-        return experiment.PointToPoint(kind="point_to_point", distance=cond.step,
-                                       **self.model_dump(include=set(Move.model_fields)))
-
-    def reference(self, cond: Condition, rate: float) -> profiles.Reference:
-        """The shared (start-at-0) reference of a condition at the control rate.
-
-        Every trial of the condition follows it, offset by its start position.
-
-        Parameters
-        ----------
-        cond : Condition
-            One of :meth:`conditions`.
-        rate : float
-            The control rate [Hz]: the reference is sampled every ``1 / rate`` s.
-
-        Returns
-        -------
-        experiment_runner.core.profiles.Reference
-            :func:`experiment_runner.core.experiment.reference` of :meth:`profile`.
-        """
-        return experiment.reference(self.profile(cond), 1.0 / rate)
-
-
-class CircleSpeeds(StrictModel):
-    """One radius and the tangential speeds run at it."""
-    radius: Pos = Field(description="circle radius [m]")
-    speeds: list[Pos] = Field(min_length=1, description="tangential speeds [m/s]")
-
-
-class CircleTest(StrictModel):
-    """x-axis reference of circles (seed Sec. 3.4.2 / 4.4.2): one condition per radius and speed.
-
-    Either ``radii`` x ``speeds`` (every speed at every radius) or ``circles`` (each radius
-    with its own speeds, e.g. mm/s at 5 mm and µm/s at 5 µm).
-    """
-    kind: Literal["circle"] = Field(description="the test kind: circle")
-    radii: Optional[list[Pos]] = Field(None, min_length=1, description="circle radii [m] (x speeds)")
-    speeds: Optional[list[Pos]] = Field(None, min_length=1, description="tangential speeds [m/s] (x radii)")
-    circles: Optional[list[CircleSpeeds]] = Field(None, min_length=1, description="radii with their own speeds")
-    cycles: Pos = Field(1.0, description="revolutions")
-    window: Pos = Field(25e-9, description="(recorded only) [m]")
-
-    @model_validator(mode="after")
-    def _one_form(self):
-        if self.circles is None and (self.radii is None or self.speeds is None):
-            raise ValueError("give radii and speeds, or circles")
-        if self.circles is not None and (self.radii is not None or self.speeds is not None):
-            raise ValueError("give either radii and speeds, or circles (not both)")
-        pairs = self.pairs()
-        if len(set(pairs)) != len(pairs):
-            raise ValueError("radius/speed pairs must be distinct")
-        return self
-
-    def pairs(self) -> list[tuple[float, float]]:
-        """Every (radius, speed) condition, in order.
-
-        Returns
-        -------
-        list of tuple of float
-            ``(radius [m], speed [m/s])``: each radius with each of its speeds (``circles``), or
-            every speed at every radius (``radii`` x ``speeds``), radius-major.
-        """
-        if self.circles is not None:
-            return [(float(c.radius), float(v)) for c in self.circles for v in c.speeds]
-        return [(float(r), float(v)) for r in self.radii for v in self.speeds]
-
-    METRICS: ClassVar[tuple] = ("peak_tracking_error_m", "rms_tracking_error_m")
-    REPRESENTATIVE: ClassVar[str] = "rms_tracking_error_m"
-
-    def conditions(self) -> list[Condition]:
-        """One condition per radius and speed.
-
-        Returns
-        -------
-        list of Condition
-            In the order of :meth:`pairs`; each with ``radius`` [m] and ``speed`` [m/s].
-        """
-        return [Condition(_slug(f"r{fmt_length(r)}_v{fmt_length(v)}s"), f"R {fmt_length(r)}, {fmt_length(v)}/s",
-                          radius=r, speed=v) for r, v in self.pairs()]
-
-    def profile(self, cond: Condition) -> experiment.Circle:
-        """The experiment profile of a condition: its radius and speed.
-
-        Parameters
-        ----------
-        cond : Condition
-            One of :meth:`conditions`.
-
-        Returns
-        -------
-        experiment_runner.core.experiment.Circle
-            The circle of radius ``cond.radius`` at ``cond.speed``, this test's cycles.
-        """
-        return experiment.Circle(kind="circle", radius=cond.radius, speed=cond.speed, cycles=self.cycles)
-
-    def reference(self, cond: Condition, rate: float) -> profiles.Reference:
-        """The shared (start-at-0) reference of a condition at the control rate.
-
-        Every trial of the condition follows it, offset by its start position.
-
-        Parameters
-        ----------
-        cond : Condition
-            One of :meth:`conditions`.
-        rate : float
-            The control rate [Hz]: the reference is sampled every ``1 / rate`` s.
-
-        Returns
-        -------
-        experiment_runner.core.profiles.Reference
-            :func:`experiment_runner.core.experiment.reference` of :meth:`profile`.
-        """
-        return experiment.reference(self.profile(cond), 1.0 / rate)
-
-
-class FrequencyResponseTest(StrictModel):
-    """Stepped-sine FRFs at several force amplitudes (seed Sec. 4.3): one condition per amplitude.
-
-    Every amplitude x frequency is an independent column starting at rest: a sine force of
-    the amplitude, ramped in over ``max(ramp_cycles / f, min_ramp_time)``, then
-    ``max(settle_cycles / f, min_settle_time)`` for the transients, then the measurement
-    window: the base window of ``max(cycles, ceil(min_measure_time f))`` whole periods (the
-    frequency is adjusted by less than half a sample per window so that it holds whole
-    samples), repeated until it lasts ``measure_force_time / amplitude^2``.
-    """
-    kind: Literal["frequency_response"] = Field(description="the test kind: frequency_response")
-    amplitudes: list[Pos] = Field(min_length=1,
-                                  description="force amplitudes at the plant input [N], one condition each")
-    f_min: Pos = Field(description="lowest frequency [Hz]")
-    f_max: Pos = Field(description="highest frequency [Hz] (below the Nyquist frequency)")
-    points_per_decade: int = Field(30, ge=2, le=200, description="log-spaced frequencies per decade")
-    cycles: int = Field(8, ge=1, le=1000, description="measured periods per frequency (at least)")
-    min_measure_time: NonNeg = Field(0.1, description="measurement window at least [s]")
-    measure_force_time: Optional[NonNeg] = Field(
-        None, description="window at least this / amplitude^2 [N^2 s] (whole multiples of the base window): the "
-                          "drive noise is the same force at every amplitude, so a given FRF scatter needs a window "
-                          "growing as 1/amplitude^2")
-    ramp_cycles: NonNeg = Field(3.0, description="raised-cosine ramp-in [periods]")
-    min_ramp_time: NonNeg = Field(0.1, description="ramp-in at least [s]")
-    settle_cycles: NonNeg = Field(3.0, description="wait after the ramp [periods]")
-    min_settle_time: NonNeg = Field(1.0, description="wait after the ramp at least [s] (light damping rings long)")
-    sensor: Literal["encoder", "true"] = Field(
-        "encoder", description="position measured: the encoder reading (quantised) or the true table position")
-    simulate_closed_loop: bool = Field(
-        False, description="also simulate each case's closed loop at the force amplitudes on the batch engine "
-                           "(a check of the LTI assumption; see campaigns.frf.closed_loop_frf)")
-    max_displacement: Pos = Field(
-        2e-3, description="skip frequencies at which an amplitude above the stage's total Coulomb force would "
-                          "slide the rigid stage by more than this [m] (A / (m w^2)); the travel limits the seed too")
-
-    METRICS: ClassVar[tuple] = ("bandwidth_hz", "gain_margin_db", "phase_margin_deg", "nominal_pole_per_s",
-                                "nominal_gain")
-
-    @model_validator(mode="after")
-    def _check(self):
-        if not self.f_min < self.f_max:
-            raise ValueError(f"f_min={self.f_min} must be below f_max={self.f_max}")
-        if len(set(self.amplitudes)) != len(self.amplitudes):
-            raise ValueError("amplitudes must be distinct")
-        return self
-
-    def conditions(self) -> list[Condition]:
-        """One condition per force amplitude.
-
-        Returns
-        -------
-        list of Condition
-            In the order of ``amplitudes``; each with ``amplitude`` [N].
-        """
-        return [Condition(f"{a:g}N".replace(".", "p").replace("+", ""), f"{a:g} N", amplitude=float(a))
-                for a in self.amplitudes]
-
-
-def frequency_grid(test: FrequencyResponseTest) -> np.ndarray:
-    """Nominal log-spaced frequencies [Hz] from ``f_min`` to ``f_max`` (both included).
-
-    ``round(log10(f_max / f_min) * points_per_decade) + 1`` frequencies, at least 2. Nominal: a
-    run adjusts each so that its measurement window holds whole samples.
-
-    Parameters
-    ----------
-    test : FrequencyResponseTest
-        The test (its ``f_min``, ``f_max`` [Hz] and ``points_per_decade``).
-
-    Returns
-    -------
-    numpy.ndarray
-        The frequencies [Hz], ascending.
-
-    Examples
-    --------
-    >>> t = FrequencyResponseTest(kind="frequency_response", amplitudes=[1.0], f_min=1.0, f_max=100.0,
-    ...                           points_per_decade=2)
-    >>> frequency_grid(t).round(3).tolist()
-    [1.0, 3.162, 10.0, 31.623, 100.0]
-    """
-    n = max(2, int(round(math.log10(test.f_max / test.f_min) * test.points_per_decade)) + 1)
-    return np.logspace(math.log10(test.f_min), math.log10(test.f_max), n)
-
-
-
-
+# =========================================================================== the campaign model
 Test = Annotated[Union[PointToPointTest, CircleTest, FrequencyResponseTest], Field(discriminator="kind")]
+"""The ``test`` of a campaign file: one schema per campaign kind (:mod:`experiment_runner.apps.campaigns.schema`), by ``kind``."""
 
 
 class StepII(StrictModel):
@@ -836,7 +484,7 @@ def conditions(c: Campaign) -> list[Condition]:
     out = []
     for b in base:
         for v in c.sweep.values:
-            out.append(replace(b, key=f"{b.key}__{_slug(c.sweep.name)}_{v:g}".replace("-", "m").replace(".", "p"),
+            out.append(replace(b, key=f"{b.key}__{slug(c.sweep.name)}_{v:g}".replace("-", "m").replace(".", "p"),
                                label=f"{b.label}, {c.sweep.label} = {v:g}{(' ' + c.sweep.unit) if c.sweep.unit else ''}",
                                sweep=float(v)))
     return out
@@ -923,146 +571,7 @@ def check_campaign(camp: Campaign, source: str = "<campaign>") -> None:
             raise ConfigError(f"{where}: step_ii needs a preset with sai_manager.rule point_to_point and an ilc")
 
 
-# =========================================================================== overrides
-def expand_path(data, path: str) -> list[tuple[str, object]]:
-    """Dotted path with '*' wildcards -> [(concrete path, value)] in ``data`` (a model_dump).
-
-    Parameters
-    ----------
-    data : dict
-        A nested mapping (a preset's ``model_dump()``).
-    path : str
-        Dotted path; a part is a mapping key, a list index (negative counts from the end) or
-        ``*`` (every item of a list or mapping).
-
-    Returns
-    -------
-    list of tuple
-        ``(concrete dotted path, value)`` of every match, in order; list indices non-negative.
-
-    Raises
-    ------
-    stage_sim.config.ConfigError
-        A part that is not there (the message names the fields or item count there).
-
-    Examples
-    --------
-    >>> expand_path({"a": [{"b": 1}, {"b": 2}]}, "a.*.b")
-    [('a.0.b', 1), ('a.1.b', 2)]
-    >>> expand_path({"a": [{"b": 1}, {"b": 2}]}, "a.-1.b")
-    [('a.1.b', 2)]
-    """
-    nodes = [(data, [])]
-    for part in path.split("."):
-        nxt = []
-        for node, pre in nodes:
-            if part == "*":
-                if isinstance(node, list):
-                    nxt += [(v, pre + [str(i)]) for i, v in enumerate(node)]
-                elif isinstance(node, dict):
-                    nxt += [(v, pre + [k]) for k, v in node.items()]
-                else:
-                    raise ConfigError(f"{path}: '*' at {'.'.join(pre) or 'top'} which is not a list or mapping")
-            elif isinstance(node, list):
-                if not part.lstrip("-").isdigit() or not -len(node) <= int(part) < len(node):
-                    raise ConfigError(f"{path}: {'.'.join(pre)} has {len(node)} items, no {part!r}")
-                nxt.append((node[int(part)], pre + [str(int(part) % len(node))]))
-            elif isinstance(node, dict):
-                if part not in node:
-                    raise ConfigError(f"{path}: {'.'.join(pre) or 'preset'} has no field {part!r} "
-                                      f"(fields: {', '.join(node)})")
-                nxt.append((node[part], pre + [part]))
-            else:
-                raise ConfigError(f"{path}: {'.'.join(pre)} is {node!r}, not a mapping")
-        nodes = nxt
-    if not nodes:
-        raise ConfigError(f"{path}: matches nothing")
-    return [(".".join(pre), v) for v, pre in nodes]
-
-
-def _scaled(v, factor, path, series=None):
-    if isinstance(v, list):
-        return [_scaled(x, factor, path, series) for x in v]
-    if isinstance(v, (int, float)) and not isinstance(v, bool):
-        k = float(v) * float(factor)
-        if series is None:
-            return k
-        if k <= 0:
-            raise ConfigError(f"{path}: series_scale needs a positive stiffness, got {k!r}")
-        return 1.0 / (1.0 / float(series) + 1.0 / k)
-    raise ConfigError(f"{path}: cannot scale {v!r}")
-
-
-def resolve(preset: Preset, paths, mode: str, value, series: Optional[float] = None) -> dict:
-    """Absolute dotted-path overrides setting (``mode: value``), scaling (``scale``) or
-    scaling and combining in series with ``series`` (``series_scale``) ``paths``.
-
-    Parameters
-    ----------
-    preset : stage_sim.config.Preset
-        The case's preset.
-    paths : list of str
-        Dotted paths (with ``*`` over list items).
-    mode : {'value', 'scale', 'series_scale'}
-        How ``value`` applies.
-    value : float
-        The value or factor.
-    series : float, optional
-        The element combined in series (``series_scale``).
-
-    Returns
-    -------
-    dict
-        Absolute dotted-path overrides.
-
-    Examples
-    --------
-    >>> p = load_preset("fi_stage_gms")
-    >>> o = resolve(p, ["stage.bearings.*.friction.f_c"], "scale", 2.0)
-    >>> o
-    {'stage.bearings.0.friction.f_c': 5.31, 'stage.bearings.1.friction.f_c': 5.31}
-    >>> k = resolve(p, ["stage.bearings.0.friction.k"], "series_scale", 1.0, series=8.27e4)
-    >>> round(k["stage.bearings.0.friction.k"][0])      # 1 / (1/8.27e4 + 1/6.7e5)
-    73614
-    """
-    if mode == "series_scale" and series is None:
-        raise ConfigError(f"{paths}: mode series_scale needs a series stiffness")
-    data = preset.model_dump()
-    out = {}
-    for path in paths:
-        for concrete, old in expand_path(data, path):
-            out[concrete] = (_scaled(old, value, concrete, series if mode == "series_scale" else None)
-                             if mode in ("scale", "series_scale") else to_python(value))
-    return out
-
-
-def to_python(v):
-    """``v`` with numpy scalars as Python numbers, also inside lists, tuples and dicts (for YAML/JSON).
-
-    Parameters
-    ----------
-    v : object
-        A value, list, tuple or dict.
-
-    Returns
-    -------
-    object
-        The same with every ``numpy.generic`` replaced by its ``item()``; tuples become lists.
-
-    Examples
-    --------
-    >>> to_python({"k": (np.float64(1.5), np.int64(2))})
-    {'k': [1.5, 2]}
-    """
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, (list, tuple)):
-        return [to_python(x) for x in v]
-    if isinstance(v, dict):
-        return {k: to_python(x) for k, x in v.items()}
-    return v
-
-
+# =========================================================================== the presets of the cases
 def case_overrides(camp: Campaign, case: Case, cal_values: Optional[dict] = None,
                    cond: Optional[Condition] = None) -> dict:
     """Every override of a case as absolute dotted paths, in application order: campaign,

@@ -26,7 +26,10 @@ from experiment_runner.apps.campaigns.base import CampaignRun, RunSettings, Trac
 from experiment_runner.apps.campaigns.registry import METRICS
 from experiment_runner.apps.campaigns.report import (colors, save_figure, trial_how, trial_plots, trial_section,
                                                 trial_settings)
-from experiment_runner.apps.campaigns.spec import Campaign, CircleTest, Condition, PointToPointTest, fmt_length
+from experiment_runner.apps.campaigns.schema.circle import CircleTest
+from experiment_runner.apps.campaigns.schema.common import Condition, fmt_length
+from experiment_runner.apps.campaigns.schema.point_to_point import PointToPointTest
+from experiment_runner.apps.campaigns.spec import Campaign
 from experiment_runner.apps.campaigns.trial_run import run_trial_campaign, write_results
 from experiment_runner.core import profiles
 from experiment_runner.core.metrics import error_spectrum
@@ -37,7 +40,7 @@ __all__ = ["TrialKind", "PointToPoint", "Circle", "POINT_TO_POINT", "CIRCLE"]
 class TrialKind:
     """What the trial kinds share (a :class:`~experiment_runner.apps.campaigns.base.CampaignKind`)."""
     name: str
-    test: type                     # the schema class in campaigns.spec
+    test: type                     # the schema class, in campaigns/schema/<name>.py
 
     @property
     def metrics(self) -> tuple:

@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from experiment_runner.apps.campaigns.registry import TRIAL_METRICS
-from experiment_runner.apps.campaigns.spec import Campaign, Case, Condition, case_overrides, case_preset
+from experiment_runner.apps.campaigns.schema.common import Condition
+from experiment_runner.apps.campaigns.spec import Campaign, Case, case_overrides, case_preset
 from experiment_runner.core import profiles
 from experiment_runner.core.batch import Models, simulate
 from experiment_runner.core.experiment import Starts, Trial, trial_metrics
