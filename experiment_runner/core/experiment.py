@@ -29,6 +29,7 @@ import numpy as np
 from pydantic import Field, ValidationError
 
 from experiment_runner.core import metrics, profiles
+from experiment_runner.core.batch import simulate
 from stage_sim.config import (ConfigError, Finite, NonNeg, Pos, Preset, schema_error_message, StrictModel,
                               load_preset, read_yaml_file, with_overrides)
 
@@ -189,7 +190,6 @@ def build_trials(exp: Experiment, preset: Preset | None = None) -> list[Trial]:
 
 def run_batch(exp: Experiment):
     """Run every trial of the experiment on the batch engine; returns (trials, BatchResult)."""
-    from experiment_runner.core.batch import simulate
     preset = experiment_preset(exp)
     trials = build_trials(exp, preset)
     res = simulate(preset, np.stack([t.x_ref for t in trials]), np.stack([t.v_ref for t in trials]),
