@@ -14,10 +14,11 @@ from experiment_runner.apps.diagnosis.context import Context
 from experiment_runner.apps.diagnosis.data import DiagData
 from experiment_runner.apps.diagnosis.effects import LIBRARY
 from experiment_runner.apps.diagnosis.effects.friction import virgin_x50
-from experiment_runner.apps.diagnosis.fit import (Evaluator, estimate_lattice, fit_effect, gauss_newton,
-                                             sparse_regression)
+from experiment_runner.apps.diagnosis.evaluator import Evaluator
+from experiment_runner.apps.diagnosis.fit import fit_effect, gauss_newton, sparse_regression
 from experiment_runner.apps.diagnosis.locate import REGIMES, regimes
 from experiment_runner.apps.diagnosis.model import ModelSpec, load_model
+from experiment_runner.apps.diagnosis.noise import estimate_lattice
 from experiment_runner.apps.diagnosis.predict import NoiseFloor, Observer, closed_loop, force_resolution, sim_batch, sim_data
 from experiment_runner.core import profiles
 from experiment_runner.core.batch import simulate

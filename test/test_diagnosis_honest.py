@@ -20,8 +20,9 @@ from experiment_runner.apps.diagnosis.effects import LIBRARY
 from experiment_runner.apps.diagnosis.effects.base import Param, Parameter
 from experiment_runner.apps.diagnosis.fit import FitResult
 from experiment_runner.apps.diagnosis.forward import ForwardSelection
-from experiment_runner.apps.diagnosis.judge import ReplayJudge, noise_free, own_resolution
+from experiment_runner.apps.diagnosis.judge import ReplayJudge
 from experiment_runner.apps.diagnosis.model import ModelSpec
+from experiment_runner.apps.diagnosis.replay_floor import noise_free, own_resolution
 from experiment_runner.apps.diagnosis.selection import Path, identification
 from stage_sim.config import preset_from_dict
 

@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from experiment_runner.apps.diagnosis.judge import ReplayJudge, controller_check, equivalent_reference
+from experiment_runner.apps.diagnosis.controller import controller_check, equivalent_reference
+from experiment_runner.apps.diagnosis.judge import ReplayJudge
 from experiment_runner.apps.diagnosis.model import ModelSpec
 from experiment_runner.apps.diagnosis.power import PowerCase, build_case
 

@@ -270,7 +270,7 @@ def test_a_parameters_sigma_is_its_spread_over_the_models_own_recordings():
 
     from scipy.optimize import minimize_scalar
 
-    from experiment_runner.apps.diagnosis.fit import spec_with
+    from experiment_runner.apps.diagnosis.joint import spec_with
     from experiment_runner.apps.diagnosis.model import ModelSpec
     from experiment_runner.apps.diagnosis.options import Options
     from experiment_runner.apps.diagnosis.pipeline import diagnose_stages

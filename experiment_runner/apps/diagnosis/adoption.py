@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 
-from .fit import FitResult, joint_fit, spec_with
+from .fit import FitResult
 from .floors import ForceFloor
+from .joint import joint_fit, spec_with
 from .locate import proposals
 from .refinement import REFINE_JOINT_MAX, Refinement, refine_by_replay
 from .selection import JudgedRow, Path, Problem, for_fits_on

@@ -12,8 +12,10 @@ import numpy as np
 from scipy.optimize import brentq
 
 from .effects.stochastic import NoiseLevel
-from .fit import FitResult, fit_noise_level, joint_fit, noise_components
+from .fit import FitResult
 from .floors import ForceFloor
+from .joint import joint_fit
+from .noise import fit_noise_level, noise_components
 from .observer import Observer
 from .openloop import MISSING_LP
 from .selection import Path, Problem, for_fits_on

@@ -10,7 +10,7 @@ and judged like any fitted estimator:
     and ``report_`` (the report dict).
 ``predict(data)``
     the improved model's noise-free closed-loop replay of ``data``'s held-out trials
-    (:class:`.judge.Replay`: command ``u`` [N] and measurement ``y`` [m], (T, B) arrays).
+    (:class:`.replay_floor.Replay`: command ``u`` [N] and measurement ``y`` [m], (T, B) arrays).
 ``score(data)``
     the share of the nominal's held-out replay error in excess of the run-to-run floor that
     the improved model removes (1: down to the floor, 0: no better, negative: worse) -- the
@@ -18,11 +18,13 @@ and judged like any fitted estimator:
 """
 from __future__ import annotations
 
+from .controller import controller_check, equivalent_reference
 from .data import DiagData, load_data
-from .judge import Replay, ReplayJudge, controller_check, equivalent_reference
+from .judge import ReplayJudge
 from .model import ModelSpec, load_model
 from .options import CONTROLLER_TOL, Options
 from .pipeline import diagnose
+from .replay_floor import Replay
 
 __all__ = ["Diagnosis"]
 

@@ -6,7 +6,7 @@ weigh the force observer's fits (:class:`.predict.NoiseFloor`, whitening) and it
 from __future__ import annotations
 
 from .data import DiagData
-from .fit import n_eff
+from .evaluator import n_eff
 from .model import ModelSpec
 from .observer import Observer
 from .predict import NoiseFloor, force_resolution, sim_batch, sim_data

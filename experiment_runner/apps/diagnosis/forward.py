@@ -23,7 +23,7 @@ import copy
 from .adoption import adopt_best, keep_refit, refit_selected
 from .budget import Budget, BudgetReached
 from .context import Context
-from .fit import spec_with
+from .joint import spec_with
 from .refining import refine_rows
 from .selection import Candidate, FirstStep, JudgedRow, Path, Problem, choose, judge_rows, rank, step_rows
 from .tasks import fit_candidates

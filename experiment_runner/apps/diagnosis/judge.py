@@ -23,196 +23,38 @@ Adoption test (:meth:`ReplayJudge.compare`)
     degrees of freedom: a likelihood-ratio test calibrated by simulation, the noise model
     being the model's own), and (iii) beyond the data's own noise: above ``z_block``
     standard errors of its noise part computed from the data's residual over held-out blocks
-    (:meth:`ReplayJudge._score_se`; robust when the model's noise is not the data's). No
+    (:func:`_score_se`; robust when the model's noise is not the data's). No
     random draw is involved: same data, same decision.
 Stochastic changes (drive noise, quantization)
-    do not move the noise-free replay much; they move the floor. :meth:`consistency` says
+    do not move the noise-free replay much; they move the floor. :meth:`ReplayJudge.consistency` says
     how far the data's replay error is from each model's floor (a z-score of
     ``log D`` over the ``K`` simulated recordings).
 
-Controller check
-    The replay needs the recording's controller. :func:`controller_check` runs the
-    model's servo on the recorded reference and measurement; if it does not reproduce the
-    recorded command (a loop the preset cannot express, e.g. the EMPS benchmark's
-    velocity feedback on the measurement only), :func:`equivalent_reference` finds the
-    reference for which it does (sample by sample, the servo's feedthrough inverted), and
-    the replay follows that one (said so in the report).
+What a replay, a floor and a comparison hold, and the rules they rest on (the model without its
+noise, the least a recording resolves), are in :mod:`.replay_floor`; the check of the recording's
+controller and the equivalent reference the replay follows when the preset cannot express it are
+in :mod:`.controller`.
 """
 from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
 
 from experiment_runner.core.batch import Models, simulate
-from stage_control.servo import build_servo, init_servo_state, servo_step
 
 from .budget import checkpoint
 from .data import DiagData
 from .model import ModelSpec
+from .replay_floor import Comparison, Floor, Replay, least_resolved, noise_free, own_resolution, replay_verdict
 
-__all__ = ["Replay", "Floor", "ReplayJudge", "Comparison", "controller_check", "equivalent_reference",
-           "noise_free"]
+__all__ = ["FLOOR_SEEDS", "ReplayJudge"]
 
 _TOKENS = itertools.count()
 FLOOR_SEEDS = tuple(70001 + 1000 * i for i in range(16))
 """Noise seeds of the simulated recordings of the run-to-run floor (fixed: same data, same decision)."""
-
-
-def own_resolution(a: np.ndarray, mask: np.ndarray) -> float:
-    """The finest difference a recorded signal ``a`` (T, B) resolves on the samples ``mask``: the
-    white part of its sample-to-sample roughness (robust SD of its fourth differences / sqrt(70):
-    a smooth motion's part of them is its fourth derivative times the sample time to the fourth,
-    nothing), 0 where it is smooth to the last digit. A floor below it carries no information.
-    Quantization on a lattice is the encoder's step (:func:`.fit.estimate_lattice`, taken into
-    the model before judging): a signal at rest on its lattice reads 0 here.
-
-    Parameters
-    ----------
-    a : numpy.ndarray
-        (T, B) recorded signal.
-    mask : numpy.ndarray
-        (T, B) bool: the samples to use (a column needs more than 5).
-
-    Returns
-    -------
-    float
-        In ``a``'s unit.
-
-    Examples
-    --------
-    >>> rng = np.random.default_rng(0)
-    >>> t = np.linspace(0.0, 1.0, 4000)[:, None]
-    >>> x = 1e-3 * np.sin(2 * np.pi * t) + 1e-8 * rng.normal(size=t.shape)
-    >>> bool(abs(own_resolution(x, np.ones_like(x, bool)) / 1e-8 - 1) < 0.1)
-    True
-    """
-    d = []
-    for b in range(a.shape[1]):
-        col = a[mask[:, b], b]
-        if len(col) > 5:
-            d.append(np.diff(col, 4))
-    if not d:
-        return 0.0
-    d = np.concatenate(d)
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(70.0))
-
-
-def noise_free(spec: ModelSpec) -> ModelSpec:
-    """``spec`` without its random parts (drive current noise, random bearing friction).
-
-    Parameters
-    ----------
-    spec : ModelSpec
-        The model.
-
-    Returns
-    -------
-    ModelSpec
-        ``spec`` itself when it has none.
-    """
-    p = spec.preset
-    if p.stage.drive.noise_current_rms == 0 and all(b.force_noise_rms == 0 for b in p.stage.bearings):
-        return spec
-    ch = {"stage.drive.noise_current_rms": 0.0}
-    ch.update({f"stage.bearings.{i}.force_noise_rms": 0.0 for i in range(len(p.stage.bearings))})
-    return spec.with_changes(ch)
-
-
-@dataclass
-class Replay:
-    """A closed-loop replay on the judge's trials: (T, B) arrays, ``ok`` if every trial ran
-    through (no divergence, inside the travel) and the command did not sit at its limit more
-    than the recording's does.
-
-    Parameters
-    ----------
-    u : numpy.ndarray
-        (T, B) command [N].
-    y : numpy.ndarray
-        (T, B) measured position [m].
-    ok : bool
-        Every trial ran through.
-    why : str
-        Why not, when not ``ok``.
-    """
-    u: np.ndarray
-    y: np.ndarray
-    ok: bool
-    why: str = ""
-
-
-@dataclass
-class Floor:
-    """Run-to-run floor of one model: ``K`` simulated recordings and its noise-free replay.
-
-    Parameters
-    ----------
-    spec : ModelSpec
-        The model.
-    replay : Replay
-        Its noise-free replay.
-    u, y : numpy.ndarray
-        (K, T, B) simulated commands [N] and measurements [m].
-    sigma_u, sigma_y : float
-        RMS command [N] and position [m] error of a simulated recording against the replay.
-    white : numpy.ndarray, optional
-        Prewhitening filter of the errors (open-loop judge), else None.
-    """
-    spec: ModelSpec
-    replay: Replay
-    u: np.ndarray            # (K, T, B) simulated commands
-    y: np.ndarray            # (K, T, B) simulated measurements
-    sigma_u: float           # RMS command error of a simulated recording vs the replay [N]
-    sigma_y: float           # RMS position error [m]
-    white: np.ndarray | None = None     # prewhitening filter of the errors (open-loop judge), else None
-
-
-@dataclass
-class Comparison:
-    """Outcome of :meth:`ReplayJudge.compare` (all ``D`` per held-out sample, floor units).
-
-    Parameters
-    ----------
-    D_before, D_after : float
-        The data's replay error before and after the change.
-    T : float
-        ``D_before - D_after``.
-    threshold_sim : float
-        Mean + t standard deviations of ``T`` over the simulated recordings.
-    se_block : float
-        Standard error of ``T``'s noise part from the data, over held-out blocks.
-    stable : bool
-        The new replay ran through.
-    accepted : bool
-        ``T`` beyond both the threshold and ``z_block`` standard errors.
-    why : str
-        The verdict in words.
-    """
-    D_before: float
-    D_after: float
-    T: float                 # D_before - D_after
-    threshold_sim: float     # mean + t sd of T over the simulated recordings
-    se_block: float          # block-bootstrap standard error of T
-    stable: bool
-    accepted: bool
-    why: str
-
-    def row(self) -> dict:
-        """The comparison as a report row.
-
-        Returns
-        -------
-        dict
-            ``D_before``, ``D_after``, ``improvement``, ``threshold``, ``block_se``, ``stable``,
-            ``beyond_floor``, ``why``.
-        """
-        return {"D_before": self.D_before, "D_after": self.D_after, "improvement": self.T,
-                "threshold": self.threshold_sim, "block_se": self.se_block, "stable": self.stable,
-                "beyond_floor": self.accepted, "why": self.why}
 
 
 class ReplayJudge:
@@ -317,7 +159,7 @@ class ReplayJudge:
         nf = noise_free(spec)
         u, y, status, p = self.simulate_recordings(nf, [0])
         u, y = u[0], y[0]
-        ok, why = _replay_verdict(u, y, status, self.u, self.mask, nf._compiled["batch_models"].servo.limit)
+        ok, why = replay_verdict(u, y, status, self.u, self.mask, nf._compiled["batch_models"].servo.limit)
         r = Replay(u=u, y=y, ok=ok, why=why)
         spec._compiled[key] = r
         return r
@@ -340,7 +182,7 @@ class ReplayJudge:
         dy = (y - rp.y[None])[:, self.mask]
         su = float(np.sqrt(np.mean(du ** 2))) if du.size else 1.0
         sy = float(np.sqrt(np.mean(dy ** 2))) if dy.size else 1.0
-        tiny_u, tiny_y = _least_resolved(spec.preset.stage.encoder.resolution, self.u[self.mask],
+        tiny_u, tiny_y = least_resolved(spec.preset.stage.encoder.resolution, self.u[self.mask],
                                          self.u_resolution, self.y_resolution)
         return Floor(spec=spec, replay=rp, u=u, y=y, sigma_u=max(su, tiny_u), sigma_y=max(sy, tiny_y))
 
@@ -615,37 +457,6 @@ class ReplayJudge:
         return float(math.sqrt(Dd / max(float(np.mean(Dk)), 2.0)))
 
 
-# --------------------------------------------------------------------------- replay and floor helpers
-def _replay_verdict(u, y, status, u_rec, mask, lim) -> tuple[bool, str]:
-    """``(ok, why)`` of a noise-free replay ``(u, y)`` with simulator ``status`` against the recorded
-    command ``u_rec`` on the judged samples ``mask``; ``lim`` the servo's command limit [N]."""
-    ok, why = True, ""
-    if np.any(status != 0) or not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
-        ok, why = False, "replay diverged or left the travel"
-    elif mask.sum():
-        sat = float(np.mean(np.abs(u[mask]) >= 0.999 * lim))
-        sat_rec = float(np.mean(np.abs(u_rec[mask]) >= 0.999 * lim))
-        # a replay sitting at the command limit much more often than the recording: the loop
-        # swings (an unstable model), whatever it does to the error statistics
-        if sat > sat_rec + 0.01:
-            ok, why = False, f"replay command at its limit ({lim:.4g} N) on {100 * sat:.1f} % of the samples"
-    return ok, why
-
-
-def _least_resolved(q: float, u_held: np.ndarray, u_resolution: float, y_resolution: float):
-    """The least a rig resolves, ``(command [N], position [m])``: the floor of a model without noise.
-
-    A model without noise (e.g. drive noise "unknown: 0") has a degenerate floor: its simulated
-    recordings are its replay. The channels are then weighted by the least a rig resolves: the
-    encoder step ``q`` (uniform quantization error), 1e-4 of the recorded command's RMS (``u_held``,
-    the judged samples), and what the recorded signals themselves resolve (their sample-to-sample
-    roughness): never a floor below the measurement's own resolution.
-    """
-    tiny_u = max(1e-4 * (float(np.sqrt(np.mean(u_held ** 2))) if u_held.size else 1.0),
-                 u_resolution) or 1e-12
-    tiny_y = max(q / math.sqrt(12.0), y_resolution, 1e-12)
-    return tiny_u, tiny_y
-
 
 def _log_z(Dd: float, Dk: np.ndarray) -> float:  # noqa: N803 (D of the data, of the recordings)
     """z-score of ``log(Dd + c)`` among ``log(Dk + c)``, ``c`` the mean of ``Dk``: the log of D shifted
@@ -749,92 +560,3 @@ def _score_span(judge: ReplayJudge, rp0: Replay, d: list, fl: Floor, of: Floor |
             return m
         m *= 2
     return max(1, m // 2)
-
-
-# --------------------------------------------------------------------------- controller
-def _servo_on(spec: ModelSpec, data: DiagData, x_ref: np.ndarray, cols) -> np.ndarray:
-    """The model's servo on the recorded measurement and the reference ``x_ref`` (T, B)."""
-    p = spec.preset
-    sm = build_servo(p.controller, p.stage)
-    T = data.shape[0]
-    B = len(cols)
-    st = init_servo_state(sm, B)
-    out = np.empty((T, B))
-    uk = np.empty(B)
-    xr = np.ascontiguousarray(x_ref[:, cols])
-    vr = np.ascontiguousarray(data.v_ref[:, cols])
-    y = np.ascontiguousarray(data.y[:, cols])
-    for k in range(T):
-        servo_step(sm, st, xr[k], vr[k], y[k], uk)
-        out[k] = uk
-    return out
-
-
-def controller_check(spec: ModelSpec, data: DiagData, max_samples: int = 20000) -> float:
-    """Relative RMS difference between the recorded command and the model's servo run on the
-    recorded reference and measurement (0 when the preset's controller is the recording's).
-
-    Parameters
-    ----------
-    spec : ModelSpec
-        The model (its controller).
-    data : DiagData
-        The recording.
-    max_samples : int, optional
-        Samples per trial compared.
-
-    Returns
-    -------
-    float
-    """
-    T = min(data.shape[0], max_samples)
-    sub = data.subset(np.arange(data.shape[1]))
-    for k in ("x_ref", "v_ref", "u", "y", "valid"):
-        setattr(sub, k, np.ascontiguousarray(getattr(sub, k)[:T]))
-    u = _servo_on(spec, sub, sub.x_ref, np.arange(sub.shape[1]))
-    m = sub.valid
-    den = float(np.sqrt(np.mean(sub.u[m] ** 2))) or 1.0
-    return float(np.sqrt(np.mean((u - sub.u)[m] ** 2)) / den)
-
-
-def equivalent_reference(spec: ModelSpec, data: DiagData) -> np.ndarray:
-    """Reference (T, B) for which the model's servo, fed the recorded measurement, gives the
-    recorded command: per sample, the servo's output is affine in the reference sample (for
-    PID, DOB and NIASA; a feedforward friction model is solved by the secant through two
-    trial values), so it is solved exactly and the servo advanced with the solution.
-
-    Parameters
-    ----------
-    spec : ModelSpec
-        The model (its controller, unsaturated).
-    data : DiagData
-        The recording.
-
-    Returns
-    -------
-    numpy.ndarray
-        (T, B) reference [m].
-    """
-    p = spec.preset
-    sm = build_servo(p.controller, p.stage)._replace(limit=1e300)      # the affine law, unsaturated
-    T, B = data.shape
-    st = init_servo_state(sm, B)
-    xr = np.ascontiguousarray(data.x_ref).copy()
-    vr = np.ascontiguousarray(data.v_ref)
-    y = np.ascontiguousarray(data.y)
-    u = data.u
-    ua, ub = np.empty(B), np.empty(B)
-    scale = 1e-9
-    for k in range(T):
-        s0 = st.copy()
-        a = xr[k].copy()
-        servo_step(sm, st, a, vr[k], y[k], ua)
-        st[:] = s0
-        servo_step(sm, st, a + scale, vr[k], y[k], ub)
-        st[:] = s0
-        g = (ub - ua) / scale
-        ok = np.abs(g) > 1e-300
-        x = np.where(ok, a + (u[k] - ua) / np.where(ok, g, 1.0), a)
-        servo_step(sm, st, x, vr[k], y[k], ua)
-        xr[k] = x
-    return xr

@@ -27,8 +27,9 @@ from scipy import signal
 
 from .context import Context
 from .frf import drive_frf, locate_modes, loop_from_excitation, noise_band_modes, psd_trials, transfer_ratio
-from .judge import ReplayJudge, noise_free
+from .judge import ReplayJudge
 from .predict import taper
+from .replay_floor import noise_free
 
 __all__ = ["REGIMES", "regimes", "locate", "lowpass", "proposals", "PROPOSAL_KEYS", "transfer_modes",
            "noise_spectrum_modes"]

@@ -51,9 +51,10 @@ from stage_sim.plant import PlantInputs, PlantState
 
 from . import engine as E
 from .data import DiagData, smooth
-from .judge import FLOOR_SEEDS, Floor, Replay, ReplayJudge
+from .judge import FLOOR_SEEDS, ReplayJudge
 from .model import ModelSpec
 from .observer import Observer
+from .replay_floor import Floor, Replay
 
 __all__ = ["WINDOW_S", "OpenLoopJudge", "sim_batch", "window_replay", "noisy_model", "quiet_model"]
 

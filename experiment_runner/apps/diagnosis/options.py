@@ -13,7 +13,7 @@ __all__ = ["Options", "CONTROLLER_TOL"]
 CONTROLLER_TOL = 0.02
 """The model's servo on the recorded reference and measurement must reproduce the recorded command
 to this relative RMS, else the replay follows the equivalent reference
-(:func:`.judge.equivalent_reference`)."""
+(:func:`.controller.equivalent_reference`)."""
 
 
 @dataclass

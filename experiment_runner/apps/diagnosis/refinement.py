@@ -19,7 +19,8 @@ from scipy.optimize import least_squares
 
 from .budget import checkpoint, parallel_map
 from .context import Context
-from .fit import FitResult, JointEffect, Transform, bad_point
+from .fit import FitResult, Transform, bad_point
+from .joint import JointEffect
 from .model import ModelSpec
 
 __all__ = ["Refinement", "refine_by_replay", "block_covariance", "GRID_1D", "REFINE_MAX_PARAMS", "REFINE_PROPOSALS",

@@ -15,10 +15,10 @@ import numpy as np
 
 from .budget import parallel_map, progress
 from .effects.body import Mode
-from .fit import spec_moved, spec_with
-from .judge import Floor
+from .joint import spec_moved, spec_with
 from .refinement import (REFINE_JOINT_MAX, REFINE_MAX_PARAMS, REFINE_MODE_PASSES, REFINE_PROPOSALS, REFINE_TOP,
                          refine_by_replay)
+from .replay_floor import Floor
 from .selection import JudgedRow, Path, Problem, for_fits_on, judge_rows
 
 __all__ = ["refine_rows", "own_share"]

@@ -18,12 +18,14 @@ from .context import Context
 from .data import DiagData
 from .effects import Library
 from .effects.base import Effect
-from .fit import Evaluator, FitResult
+from .evaluator import Evaluator
+from .fit import FitResult
 from .floors import ForceFloor
-from .judge import Comparison, Floor, Replay, ReplayJudge
+from .judge import ReplayJudge
 from .model import ModelSpec
 from .observer import Observer
 from .options import Options
+from .replay_floor import Comparison, Floor, Replay
 
 __all__ = ["Problem", "Candidate", "JudgedRow", "Path", "FirstStep", "judge_rows", "rank", "choose", "step_rows",
            "for_fits_on", "identification", "NOMINAL_Z"]
@@ -601,7 +603,7 @@ def consistent_from_below(problem: Problem, ok: list) -> tuple:
     kept : list of JudgedRow
         The consistent rows, in order.
     floors : dict
-        ``id(row)`` -> the row's own run-to-run floor (:class:`.judge.Floor`), for every row of ``ok``.
+        ``id(row)`` -> the row's own run-to-run floor (:class:`.replay_floor.Floor`), for every row of ``ok``.
     """
     judge = problem.judge
     kept, floors = [], {}

@@ -18,19 +18,22 @@ import numpy as np
 from stage_sim.config import ConfigError
 
 from .context import Context
+from .controller import controller_check, equivalent_reference
 from .data import DiagData, load_data
 from .effects import Library
 from .effects.stochastic import NoiseLevel, Quantization
-from .fit import Evaluator, estimate_lattice, fit_noise_level, noise_components
+from .evaluator import Evaluator
 from .floors import ForceFloor
-from .judge import Floor, ReplayJudge, controller_check, equivalent_reference
+from .judge import ReplayJudge
 from .locate import locate as locate_residual
 from .locate import transfer_modes
 from .model import ModelSpec, load_model
+from .noise import estimate_lattice, fit_noise_level, noise_components
 from .observer import ObsResult, Observer, smoothing_hz
 from .openloop import MISSING_LP, OpenLoopJudge
 from .options import CONTROLLER_TOL, Options
 from .predict import open_loop_windows, replay
+from .replay_floor import Floor
 from .selection import Problem
 
 __all__ = ["Setup", "Lattice", "Prediction", "Location", "read", "quantization", "predict", "drive_noise_prior",
@@ -336,7 +339,7 @@ def noise_states(spec: ModelSpec) -> bool:
 
 def drive_noise_prior(setup: Setup, lattice: Lattice, pred: Prediction, opt: Options, timing: dict) -> Prediction:
     """The data's drive-noise level read from the nominal's force residual spectrum where drive noise
-    dominates (:func:`.fit.fit_noise_level`), before anything is judged. A nominal that states no
+    dominates (:func:`.noise.fit_noise_level`), before anything is judged. A nominal that states no
     random force (noise-free, the floor a numerical nothing) takes that level into the base model
     (a stochastic finding, said in the report; the floors are estimated again) when that level alone
     makes its replay consistent with its own simulated recordings -- the record holds noise and

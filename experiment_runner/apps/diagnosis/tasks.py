@@ -19,8 +19,10 @@ from threadpoolctl import threadpool_limits
 
 from .budget import checkpoint, parallel_map, progress
 from .context import Context
-from .fit import Evaluator, FitResult, fit_effect, fit_with, spec_with
+from .evaluator import Evaluator
+from .fit import FitResult, fit_effect
 from .floors import light_floor
+from .joint import fit_with, spec_with
 from .model import ModelSpec
 from .observer import Observer
 from .predict import NoiseFloor

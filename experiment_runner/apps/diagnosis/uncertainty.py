@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from .fit import spec_with
+from .joint import spec_with
 from .options import Options
 
 __all__ = ["roughness", "spread_over_recordings", "widen"]

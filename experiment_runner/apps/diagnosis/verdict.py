@@ -17,7 +17,8 @@ from msg_defs.topics import COMMAND_KINDS
 from .adoption import renew_floor
 from .context import Context
 from .effects.stochastic import NoiseLevel
-from .fit import sparse_regression, spec_with
+from .fit import sparse_regression
+from .joint import spec_with
 from .locate import REGIMES, lowpass, regimes
 from .observer import ObsResult
 from .predict import band_rms, compare_replay, open_loop_windows, replay
