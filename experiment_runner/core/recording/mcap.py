@@ -15,7 +15,7 @@ from stage_sim.validation import input_file_problem, load_yaml_file
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"
 _NS = 1_000_000_000
-_CHUNK_CRC_OFFSET = 9 + 8 + 8 + 8
+CHUNK_CRC_OFFSET = 9 + 8 + 8 + 8
 """Byte offset of ``uncompressed_crc`` in a chunk record (opcode, length, start, end, size)."""
 _COMPRESSIONS = ("", "zstd", "lz4")
 _MAX_CHUNK = 1 << 32
@@ -146,7 +146,7 @@ def _parse(opcode: int, body: bytes):
 
 
 @dataclass
-class _Raw:
+class RawRecording:
     """Undecoded content of an MCAP file."""
     path: Path
     profile: str
@@ -212,7 +212,7 @@ def _recorded_count(path: Path) -> int | None:
     return None
 
 
-def _salvage(path: Path, f, size: int, indexed_error: Exception) -> _Raw:
+def _salvage(path: Path, f, size: int, indexed_error: Exception) -> RawRecording:
     """Read record by record up to a cut; keep whole chunks only. A damaged record (bad
     CRC, does not parse) raises :class:`RecordingError`: its data cannot be trusted."""
     from mcap.opcode import Opcode
@@ -266,10 +266,10 @@ def _salvage(path: Path, f, size: int, indexed_error: Exception) -> _Raw:
         why = f"{type(indexed_error).__name__}: {indexed_error}" if str(indexed_error) else type(indexed_error).__name__
         note = (f"index unreadable ({why}); read the whole "
                 f"file record by record: {span} in {n_chunks} chunk(s)")
-    return _Raw(path, "", schemas, channels, messages, note, backwards)
+    return RawRecording(path, "", schemas, channels, messages, note, backwards)
 
 
-def load_raw(path) -> _Raw:
+def load_raw(path) -> RawRecording:
     """Schemas, channels and messages of an MCAP file: indexed, else salvaged."""
     from mcap.reader import SeekingReader
     path = mcap_file(path)
@@ -307,7 +307,7 @@ def load_raw(path) -> _Raw:
                 if stats is not None and stats.message_count != len(messages):
                     raise _IndexMismatch(f"the summary counts {stats.message_count} messages, "
                                          f"the index leads to {len(messages)}")
-            raw = _Raw(path, header.profile, schemas, channels, messages, None, backwards)
+            raw = RawRecording(path, header.profile, schemas, channels, messages, None, backwards)
         except Exception as err:          # noqa: BLE001 - truncated files fail in many ways
             f.seek(0)
             raw = _salvage(path, f, size, err)

@@ -11,7 +11,7 @@ from typing import ClassVar
 import numpy as np
 
 from experiment_runner.core.errors import RecordingError
-from experiment_runner.core.recording.mcap import _Raw, load_raw
+from experiment_runner.core.recording.mcap import RawRecording, load_raw
 from msg_defs import cdr, convert
 from msg_defs.topics import (BEARING, COMMAND, COMMAND_KINDS, CONFIG, CONTRACT_TOPICS, DITHER, EVENTS, EXTERNAL_FORCE,
                              ISOLATOR, MEASURED, MOTOR, REFERENCE, RESULTS, SOURCE_CHANNELS, TABLE, TOPICS, TRUTH)
@@ -343,7 +343,7 @@ def read_recording(path, require_reference: bool = True) -> Recording:
                              f"{err}); the schema was altered or the file is damaged") from None
 
 
-def _assemble(raw: _Raw, where: str, topics: dict, by_topic: dict, counts: Counter,
+def _assemble(raw: RawRecording, where: str, topics: dict, by_topic: dict, counts: Counter,
               open_loop: bool = False) -> Recording:
     """Decoded messages -> :class:`Recording` (control samples on all contract topics); what is
     damaged in them -> ``Recording.damage`` (:func:`_find_damage`)."""

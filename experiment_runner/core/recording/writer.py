@@ -7,7 +7,7 @@ from collections import Counter
 from functools import lru_cache
 
 from experiment_runner.core import outputs
-from experiment_runner.core.recording.mcap import _CHUNK_CRC_OFFSET, bag_layout
+from experiment_runner.core.recording.mcap import CHUNK_CRC_OFFSET, bag_layout
 from msg_defs import convert
 from msg_defs.topics import CONFIG, TOPICS, Qos, qos_yaml
 
@@ -48,7 +48,7 @@ def _writer_classes():
             start = self.bio.tell()
             super().close_chunk()
             end = self.bio.tell()
-            self.bio.seek(start + _CHUNK_CRC_OFFSET)
+            self.bio.seek(start + CHUNK_CRC_OFFSET)
             self.bio.write(struct.pack("<I", crc))
             self.bio.seek(end)
             self.bio.flush()          # a killed process keeps every closed chunk

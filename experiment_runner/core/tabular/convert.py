@@ -10,7 +10,7 @@ import numpy as np
 from experiment_runner.core.nominal_model import add_convert_nominal_arguments, main_convert_nominal
 from experiment_runner.core.outputs import add_overwrite_argument, check_recording
 from experiment_runner.core.recording import TrialSignals, bag_layout, read_recording, write_trials
-from experiment_runner.core.tabular.mapping import (EMPS_MAPPING, EMPS_PULSES_MAPPING, _KEYS, Mapping, _count,
+from experiment_runner.core.tabular.mapping import (EMPS_MAPPING, EMPS_PULSES_MAPPING, MAPPING_KEYS, Mapping, count_value,
                                                     load_mapping, mapping_from_dict)
 from experiment_runner.core.tabular.reading import read_table
 from experiment_runner.core.tabular.signals import Signals, prepare
@@ -110,7 +110,7 @@ def add_convert_arguments(parser):
                     "COL). Bad input: one line on stderr, exit 2, nothing written; warnings (an implausible rate, "
                     "a join) on stderr.")
     p.add_argument("source", metavar="FILE", help="the table (format recognised from its content)")
-    p.add_argument("--mapping", metavar="YAML", help="mapping file (keys: " + ", ".join(_KEYS)
+    p.add_argument("--mapping", metavar="YAML", help="mapping file (keys: " + ", ".join(MAPPING_KEYS)
                    + "); flags given as well override its keys")
     for k, meta in _FLAGS.items():
         p.add_argument(f"--{k.replace('_', '-')}", dest=f"map_{k}", metavar=meta, help=_HELP[k])
@@ -238,7 +238,7 @@ def main_convert(args) -> int:
         print(_summary(convert_emps(args.source, args.out, overwrite=args.overwrite)))
         return 0
     if args.list:
-        skip = _count(args.skip_rows, "command line: --skip-rows") if args.skip_rows is not None else None
+        skip = count_value(args.skip_rows, "command line: --skip-rows") if args.skip_rows is not None else None
         print(read_table(args.source, skip).describe())
         return 0
     flags = _flags(args)

@@ -15,10 +15,12 @@ EMPS_MAPPING = Path(__file__).parent.with_name("mappings") / "emps.yaml"
 EMPS_PULSES_MAPPING = EMPS_MAPPING.with_name("emps_pulses.yaml")
 """... and of its validation record with force pulses, ``DATA_EMPS_PULSES.mat``."""
 _ROLES = ("time", "reference", "reference_velocity", "command", "measured", "bearing", "input")
-_UNITS = {"linear": {"position": "m", "velocity": "m/s", "force": "N"},
-          "rotary": {"position": "rad", "velocity": "rad/s", "force": "N·m"}}
-_KEYS = (*_ROLES, "rate", "time_unit", "skip_rows", "scale", "units", "command_kind", "command_includes_input",
-         "sources", "extra", "resample", "resample_rate", "case", "notes")
+AXIS_UNITS = {"linear": {"position": "m", "velocity": "m/s", "force": "N"},
+              "rotary": {"position": "rad", "velocity": "rad/s", "force": "N·m"}}
+"""SI units of a recording's signals per kind of axis (a mapping's ``units``)."""
+MAPPING_KEYS = (*_ROLES, "rate", "time_unit", "skip_rows", "scale", "units", "command_kind", "command_includes_input",
+                "sources", "extra", "resample", "resample_rate", "case", "notes")
+"""The keys a mapping file may have (any other is refused, naming these)."""
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "ns": 1e-9}
 """Units a time column may be in (``time_unit``), with their factor to s."""
 JOIN_METHODS = ("linear", "hold")
@@ -83,7 +85,30 @@ def _positive(v, where: str) -> float:
     return x
 
 
-def _count(v, where: str) -> int:
+def count_value(v, where: str) -> int:
+    """A count of lines (``skip_rows``) from a mapping file or the command line, checked.
+
+    Parameters
+    ----------
+    v : int or str
+        The value as given.
+    where : str
+        Where it was given (file and field, or the option), for the error message.
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ConfigError
+        Naming ``where``, the value and what is allowed, when ``v`` is not a whole number >= 0.
+
+    Examples
+    --------
+    >>> count_value("3", "m.yaml: skip_rows")
+    3
+    """
     if isinstance(v, bool) or not isinstance(v, (int, str)) or not str(v).strip().isdigit():
         raise ConfigError(f"{where}: got {v!r}; expected a number of lines (0 or more)")
     return int(v)
@@ -135,7 +160,7 @@ def _sources(items, where: str, base: Path | None) -> tuple:
         if item.get("time_unit") is not None:
             kw["time_unit"] = _time_unit(item["time_unit"], f"{w}.time_unit")
         if item.get("skip_rows") is not None:
-            kw["skip_rows"] = _count(item["skip_rows"], f"{w}.skip_rows")
+            kw["skip_rows"] = count_value(item["skip_rows"], f"{w}.skip_rows")
         method = item.get("method", "linear")
         if method not in JOIN_METHODS:
             raise ConfigError(f"{w}.method: got {method!r}; expected linear (interpolate: a sampled signal) or "
@@ -163,11 +188,11 @@ def mapping_from_dict(data: dict, source: str = "mapping", base: Path | None = N
 
     where = (lambda k: f"{source}: {lab(k)}")
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: a mapping must be a YAML mapping of keys ({', '.join(_KEYS)}), "
+        raise ConfigError(f"{source}: a mapping must be a YAML mapping of keys ({', '.join(MAPPING_KEYS)}), "
                           f"got {type(data).__name__}")
-    unknown = [k for k in data if k not in _KEYS]
+    unknown = [k for k in data if k not in MAPPING_KEYS]
     if unknown:
-        raise ConfigError(f"{source}: unknown key(s) {', '.join(map(repr, unknown))}; allowed keys: {', '.join(_KEYS)}")
+        raise ConfigError(f"{source}: unknown key(s) {', '.join(map(repr, unknown))}; allowed keys: {', '.join(MAPPING_KEYS)}")
     kw = {}
     for r in _ROLES:
         v = data.get(r)
@@ -189,7 +214,7 @@ def mapping_from_dict(data: dict, source: str = "mapping", base: Path | None = N
         raise ConfigError(f"{source}: give {lab('time')} (the time column) or {lab('rate')} (the sampling rate "
                           f"[Hz] of a table without one), " + ("not both" if "time" in kw else "one of them"))
     units = data.get("units", "linear")
-    if units not in _UNITS:
+    if units not in AXIS_UNITS:
         raise ConfigError(f"{where('units')}: got {units!r}; expected linear (m, N) or rotary (rad, N·m)")
     kw["units"] = units
     if data.get("time_unit") is not None:
@@ -197,7 +222,7 @@ def mapping_from_dict(data: dict, source: str = "mapping", base: Path | None = N
             raise ConfigError(f"{source}: {lab('time_unit')} needs {lab('time')} (the time column it is the unit of)")
         kw["time_unit"] = _time_unit(data["time_unit"], where("time_unit"))
     if data.get("skip_rows") is not None:
-        kw["skip_rows"] = _count(data["skip_rows"], where("skip_rows"))
+        kw["skip_rows"] = count_value(data["skip_rows"], where("skip_rows"))
     kind = data.get("command_kind", "drive")
     if kind not in COMMAND_KINDS:
         raise ConfigError(f"{where('command_kind')}: got {kind!r}; expected "

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from experiment_runner.core.recording import LIMITS, beyond_limits
-from experiment_runner.core.tabular.mapping import Mapping, TIME_UNITS, _UNITS
+from experiment_runner.core.tabular.mapping import Mapping, TIME_UNITS, AXIS_UNITS
 from experiment_runner.core.tabular.reading import Table
 from msg_defs.topics import COMMAND_KINDS
 from stage_sim.validation import ConfigError
@@ -329,7 +329,7 @@ def join(tab: Table, m: Mapping, joined, warns: list) -> tuple[Table, list]:
 def prepare(tab: Table, m: Mapping, joined=()) -> Signals:
     """Select, scale, check and (if asked) resample the mapped columns of ``tab``; ``joined``:
     ``(Source, Table)`` pairs of the files joined on their time columns (:func:`join`)."""
-    unit = _UNITS[m.units]
+    unit = AXIS_UNITS[m.units]
     roles = m.roles()
     warns = []
     join_info = []
