@@ -178,9 +178,244 @@ def _delayed_zoh(a, b, h, n_sub, frac):
     return out
 
 
+class _Bodies(NamedTuple):
+    """A stage as lumped bodies, DOF 0 the table (with its rigidly attached bearings), then each
+    bearing on a joint, then each structural-mode mass (built by :func:`_bodies`)."""
+    masses: list          # mass of each DOF [kg]
+    springs: list         # (i, j, stiffness [N/m], damping [N·s/m]) between DOFs i and j
+    elements: list        # (friction config, DOF it acts on, random force RMS [N]) per friction element
+    dither_dof: list      # DOF driven by piezo 0 / 1, -1 if none
+    bearing_dofs: list    # DOF of each bearing on a joint
+
+
+def _bodies(stage: Stage) -> _Bodies:
+    """The lumped bodies, couplings and friction elements of a stage.
+
+    Parameters
+    ----------
+    stage : Stage
+        Validated stage configuration.
+
+    Returns
+    -------
+    _Bodies
+        A bearing without a joint moves with the table (its mass added to DOF 0); the table's own
+        friction, if any, is the first element, then each bearing's.
+
+    Examples
+    --------
+    >>> from stage_sim.config import load_preset
+    >>> bodies = _bodies(load_preset("fi_stage").stage)
+    >>> len(bodies.masses), bodies.bearing_dofs, [dof for _, dof, _ in bodies.elements]
+    (4, [1, 2], [1, 2])
+    """
+    masses = [stage.table.mass + sum(b.mass for b in stage.bearings if b.joint is None)]
+    springs, elements, dither_dof, bearing_dofs = [], [], [-1, -1], []
+    if stage.table_friction is not None:
+        elements.append((stage.table_friction, 0, 0.0))
+    for b in stage.bearings:
+        if b.joint is None:
+            dof = 0
+        else:
+            dof = len(masses)
+            masses.append(b.mass)
+            springs.append((0, dof, b.joint.stiffness, b.joint.damping))
+            bearing_dofs.append(dof)
+        elements.append((b.friction, dof, b.force_noise_rms))
+        if b.dither_channel is not None:
+            dither_dof[b.dither_channel] = dof
+    for mode in stage.modes:
+        dof = len(masses)
+        ms = mode.mass_ratio * stage.table.mass
+        w = 2 * math.pi * mode.frequency
+        masses.append(ms)
+        springs.append((0, dof, ms * w * w, 2 * mode.damping_ratio * ms * w))
+    return _Bodies(masses, springs, elements, dither_dof, bearing_dofs)
+
+
+def _couple(mat: np.ndarray, i: int, j: int, value: float) -> None:
+    """Add a coupling ``value`` (a stiffness or a damping) between DOFs ``i`` and ``j`` to the
+    symmetric matrix ``mat`` in place."""
+    mat[i, i] += value
+    mat[j, j] += value
+    mat[i, j] -= value
+    mat[j, i] -= value
+
+
+def _linear_matrices(bodies: _Bodies) -> tuple[np.ndarray, np.ndarray]:
+    """Stiffness and damping matrices (n, n) of the joints and structural modes, the friction
+    elements' viscous parts added to the damping."""
+    n = len(bodies.masses)
+    kmat, cmat = np.zeros((n, n)), np.zeros((n, n))
+    for i, j, k, c in bodies.springs:
+        _couple(kmat, i, j, k)
+        _couple(cmat, i, j, c)
+    for fr, dof, _ in bodies.elements:
+        cmat[dof, dof] += fr.viscous
+    return kmat, cmat
+
+
+def _state_space(bodies: _Bodies, kmat: np.ndarray, cmat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The linear part ``z' = a z + b f`` (``z``: positions then velocities, ``f``: a force on each DOF)."""
+    n = len(bodies.masses)
+    minv = np.diag(1.0 / np.array(bodies.masses))
+    a = np.zeros((2 * n, 2 * n))
+    a[:n, n:] = np.eye(n)
+    a[n:, :n] = -minv @ kmat
+    a[n:, n:] = -minv @ cmat
+    b = np.zeros((2 * n, n))
+    b[n:, :] = minv
+    return a, b
+
+
+def _friction_fields(elements: list) -> dict:
+    """The friction elements' :class:`PlantModel` fields: law ids, DOFs, parameter rows, implicit
+    flags, state slots, random force RMS and force variations (``fr_*``, ``n_frs``).
+
+    Examples
+    --------
+    >>> from stage_sim.config import load_preset
+    >>> fields = _friction_fields(_bodies(load_preset("fi_stage").stage).elements)
+    >>> fields["fr_dof"].tolist(), fields["fr_par"].shape[0], fields["n_frs"]
+    ([1, 2], 2, 1)
+    """
+    nf = len(elements)
+    laws = [friction.law(fr) for fr, _, _ in elements]
+    pars = [law.params(fr) for law, (fr, _, _) in zip(laws, elements)]
+    fr_par = np.zeros((nf, max([1] + [len(p) for p in pars])))
+    fr_var = np.zeros((nf, 6))
+    for e, (fr, _, _) in enumerate(elements):
+        fr_par[e, :len(pars[e])] = pars[e]
+        fr_var[e] = _variation(fr)
+    return dict(
+        fr_kind=np.array([friction.kind(fr) for fr, _, _ in elements], np.int64),
+        fr_dof=np.array([dof for _, dof, _ in elements], np.int64),
+        fr_par=fr_par,
+        fr_implicit=np.array([law.IMPLICIT for law in laws], np.bool_),
+        n_frs=max([1] + [law.n_state(fr) for law, (fr, _, _) in zip(laws, elements)]),
+        fr_noise=np.array([noise for _, _, noise in elements], float),
+        fr_var=fr_var)
+
+
+def _explicit_terms(bodies: _Bodies, fr_var: np.ndarray, sai, sai_dof: int) -> tuple[np.ndarray, ...]:
+    """The stiffness and damping the sub-steps hold explicitly, which set their number.
+
+    Returns
+    -------
+    k_tangent : ndarray, shape (n, n)
+        Tangent stiffness at rest of the friction elements (scaled by their direction variation)
+        and of the SAI lock [N/m].
+    c_law : ndarray, shape (n,)
+        Damping an explicit law holds over a sub-step (LuGre's ``sigma1``) [N·s/m].
+    c_explicit : ndarray, shape (n,)
+        ``c_law`` plus the SAI lock's damping: the explicit damping the sub-steps keep stable [N·s/m].
+    """
+    n = len(bodies.masses)
+    k_tangent = np.zeros((n, n))
+    c_law = np.zeros(n)
+    for e, (fr, dof, _) in enumerate(bodies.elements):
+        law = friction.law(fr)
+        k_tangent[dof, dof] += law.stiffness_at_rest(fr) * (1.0 + abs(fr_var[e, 1]))
+        c_law[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
+    c_explicit = c_law.copy()
+    if sai is not None:
+        _couple(k_tangent, 0, sai_dof, sai.lock_stiffness)
+        c_explicit[0] += sai.lock_damping
+        c_explicit[sai_dof] += sai.lock_damping
+    return k_tangent, c_law, c_explicit
+
+
+def _substeps(bodies: _Bodies, kmat: np.ndarray, explicit: tuple, dt: float, max_omega_h: float,
+              max_substeps: int) -> int:
+    """Sub-steps per control period.
+
+    Stability: the stiffest mode (joints, structural modes and the tangent stiffness of
+    ``explicit``, from :func:`_explicit_terms`) and the fastest explicit damping rate satisfy
+    ``rate * h <= max_omega_h``; more than ``max_substeps`` is refused (``ValueError``). Accuracy,
+    up to ``max_substeps`` (beyond: stable but coarse): a law's explicitly held damping (LuGre's
+    ``sigma1 dz/dt``, first order in the sub-step) to :data:`BRISTLE_H` of its rate. An implicit law's
+    slope (regularised Coulomb at rest, ``F_C / v_reg``) asks for none: the law resolves its own
+    transient inside the sub-step (``stage_sim.friction.regularized.implicit``).
+    """
+    k_tangent, c_law, c_explicit = explicit
+    masses = np.array(bodies.masses)
+    minv = np.diag(1.0 / masses)
+    eig = np.linalg.eigvals(minv @ (kmat + k_tangent))
+    omega_max = float(np.sqrt(np.max(np.abs(eig))))
+    rate_max = float(np.max(c_explicit / masses))  # explicit damping rate [1/s]
+    n_sub = max(1, math.ceil(max(omega_max, rate_max) * dt / max_omega_h))
+    if n_sub > max_substeps:
+        raise ValueError(
+            f"stage needs {n_sub} sub-steps per control period (stiffest mode "
+            f"{omega_max / (2 * math.pi):.0f} Hz); limit is simulation.max_substeps={max_substeps}")
+    need = math.ceil(float(np.max(c_law / masses)) * dt / BRISTLE_H)
+    return max(n_sub, min(max_substeps, need))
+
+
+def _sai_fields(sai, sai_dof: int, h: float) -> dict:
+    """The SAI's :class:`PlantModel` fields (lock, solenoid RC filter, armature delay, impact
+    pulse over sub-steps of ``h`` [s]); with no SAI (``sai`` None) a lock that never acts."""
+    if sai is None:
+        return dict(sai_dof=-1, k_lock=0.0, c_lock=0.0, cap_lock=1.0, rc_a=1.0, arm_steps=0, pulse_force=0.0,
+                    pulse_steps=0)
+    pulse_steps = max(1, int(round(sai.impact_duration / h)))
+    return dict(
+        sai_dof=sai_dof, k_lock=sai.lock_stiffness, c_lock=sai.lock_damping, cap_lock=sai.lock_capacity,
+        rc_a=1.0 if sai.rc_cutoff is None else 1.0 - math.exp(-2 * math.pi * sai.rc_cutoff * h),
+        arm_steps=int(round(sai.switch_delay / h)),
+        pulse_force=sai.impact_impulse * (1.0 - sai.cushioning) / (pulse_steps * h),
+        pulse_steps=pulse_steps)
+
+
+def _drive_fields(d, dt: float, a: np.ndarray, b: np.ndarray, h: float, n_sub: int) -> dict:
+    """The drive's :class:`PlantModel` fields: force-constant error, peak and thermal limits, noise
+    (RMS force, AR(1) low-pass keeping that RMS), whole-sample delay and the exact delayed hold of
+    its fractional part (over the linear part ``a``, ``b`` and ``n_sub`` sub-steps of ``h``)."""
+    noise_a, noise_gain = 1.0, 1.0
+    if d.noise_cutoff is not None:
+        noise_a = 1.0 - math.exp(-2 * math.pi * d.noise_cutoff * dt)
+        noise_gain = math.sqrt((2.0 - noise_a) / noise_a)   # unit-variance AR(1) output
+    return dict(
+        kf_ratio=d.force_constant_ratio, peak=d.peak_force, cont=d.continuous_force,
+        th_alpha=dt / d.thermal_time_constant,
+        noise_std=d.noise_current_rms * d.force_constant * d.force_constant_ratio,
+        noise_a=noise_a, noise_gain=noise_gain, delay=d.delay_samples,
+        delay_frac=float(d.delay_fraction), g_prev=_delayed_zoh(a, b, h, n_sub, d.delay_fraction))
+
+
+def _sensor_fields(stage: Stage, bearing_dofs: list) -> dict:
+    """The encoder's, the bearing sensor's (on the first jointed bearing) and the travel's
+    :class:`PlantModel` fields; the divergence bound is 1000 travels beyond the range."""
+    span = stage.travel.max - stage.travel.min
+    return dict(
+        q_table=stage.encoder.resolution,
+        bsens_dof=-1 if stage.bearing_sensor is None else bearing_dofs[0],
+        bear_dof=bearing_dofs[0] if bearing_dofs else 0,
+        q_bearing=0.0 if stage.bearing_sensor is None else stage.bearing_sensor.resolution,
+        travel_min=stage.travel.min, travel_max=stage.travel.max,
+        x_limit=1e3 * span + abs(stage.travel.min) + abs(stage.travel.max))
+
+
+def _table_force_fields(stage: Stage) -> dict:
+    """The table forces' :class:`PlantModel` fields: constant offset, position-periodic ripple and
+    fixed-frequency forces, and whether any acts."""
+    return dict(
+        f_offset=float(stage.force_offset),
+        ripple=np.array([[r.amplitude, 2 * math.pi / r.period, r.phase] for r in stage.force_ripple],
+                        float).reshape(-1, 3),
+        periodic=np.array([[p.amplitude, 2 * math.pi * p.frequency, p.phase] for p in stage.periodic_force],
+                          float).reshape(-1, 3),
+        table_force=bool(stage.force_offset != 0.0 or stage.force_ripple or stage.periodic_force))
+
+
 def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
                 max_substeps: int = 200) -> PlantModel:
     """Compile a stage configuration into a :class:`PlantModel`.
+
+    The stage becomes lumped bodies (:func:`_bodies`) whose linear part is discretised exactly over
+    the sub-step; the sub-steps are as many as the stiffest explicitly held term needs
+    (:func:`_substeps`); each physics block writes its own fields (friction elements, SAI, drive,
+    sensors and travel, table forces).
 
     Parameters
     ----------
@@ -193,6 +428,15 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
     max_substeps : int
         Refuse configurations needing more sub-steps than this.
 
+    Returns
+    -------
+    PlantModel
+
+    Raises
+    ------
+    ValueError
+        The stage needs more than ``max_substeps`` sub-steps per control period.
+
     Examples
     --------
     >>> from stage_sim.config import load_preset
@@ -201,138 +445,21 @@ def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
     True
     """
     dt = 1.0 / rate
-    m_table = stage.table.mass + sum(b.mass for b in stage.bearings if b.joint is None)
-    masses = [m_table]
-    springs = []                     # (i, j, k, c); j = -1 for ground
-    fr_list = []                     # (config, dof, noise)
-    dither_dof = [-1, -1]
-    bearing_dofs = []
-    if stage.table_friction is not None:
-        fr_list.append((stage.table_friction, 0, 0.0))
-    for b in stage.bearings:
-        if b.joint is None:
-            dof = 0
-        else:
-            dof = len(masses)
-            masses.append(b.mass)
-            springs.append((0, dof, b.joint.stiffness, b.joint.damping))
-            bearing_dofs.append(dof)
-        fr_list.append((b.friction, dof, b.force_noise_rms))
-        if b.dither_channel is not None:
-            dither_dof[b.dither_channel] = dof
-    for mode in stage.modes:
-        dof = len(masses)
-        ms = mode.mass_ratio * stage.table.mass
-        w = 2 * math.pi * mode.frequency
-        masses.append(ms)
-        springs.append((0, dof, ms * w * w, 2 * mode.damping_ratio * ms * w))
-
-    n = len(masses)
-    kmat, cmat = np.zeros((n, n)), np.zeros((n, n))
-    for i, j, k, c in springs:
-        for mat, val in ((kmat, k), (cmat, c)):
-            mat[i, i] += val
-            mat[j, j] += val
-            mat[i, j] -= val
-            mat[j, i] -= val
-
-    nf = len(fr_list)
-    laws = [friction.law(fr) for fr, _, _ in fr_list]
-    pars = [law.params(fr) for law, (fr, _, _) in zip(laws, fr_list)]
-    fr_kind = np.array([friction.kind(fr) for fr, _, _ in fr_list], np.int64)
-    fr_dof = np.array([dof for _, dof, _ in fr_list], np.int64)
-    fr_par = np.zeros((nf, max([1] + [len(p) for p in pars])))
-    fr_implicit = np.array([law.IMPLICIT for law in laws], np.bool_)
-    n_frs = max([1] + [law.n_state(fr) for law, (fr, _, _) in zip(laws, fr_list)])
-    fr_noise = np.array([noise for _, _, noise in fr_list], float)
-    fr_var = np.zeros((nf, 6))
-    k_tangent = np.zeros((n, n))
-    c_law = np.zeros(n)          # damping an explicit law holds over a sub-step (LuGre's sigma1)
-    for e, (law, (fr, dof, _)) in enumerate(zip(laws, fr_list)):
-        fr_par[e, :len(pars[e])] = pars[e]
-        fr_var[e] = _variation(fr)
-        cmat[dof, dof] += fr.viscous
-        k_tangent[dof, dof] += law.stiffness_at_rest(fr) * (1.0 + abs(fr_var[e, 1]))
-        c_law[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
-    c_explicit = c_law.copy()    # and the SAI lock's: explicit damping the sub-steps keep stable
-
-    sai_dof, k_lock, c_lock, cap, rc_a, arm_steps, pulse_force, pulse_steps = -1, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0
-    sai = stage.sai
-    if sai is not None:
-        sai_dof = bearing_dofs[0]
-        k_lock, c_lock, cap = sai.lock_stiffness, sai.lock_damping, sai.lock_capacity
-        for mat, val in ((k_tangent, k_lock),):
-            mat[0, 0] += val
-            mat[sai_dof, sai_dof] += val
-            mat[0, sai_dof] -= val
-            mat[sai_dof, 0] -= val
-        c_explicit[0] += c_lock
-        c_explicit[sai_dof] += c_lock
-
-    minv = np.diag(1.0 / np.array(masses))
-    eig = np.linalg.eigvals(minv @ (kmat + k_tangent))
-    omega_max = float(np.sqrt(np.max(np.abs(eig))))
-    rate_max = float(np.max(c_explicit / np.array(masses)))  # explicit damping rate [1/s]
-    n_sub = max(1, math.ceil(max(omega_max, rate_max) * dt / max_omega_h))
-    if n_sub > max_substeps:
-        raise ValueError(
-            f"stage needs {n_sub} sub-steps per control period (stiffest mode "
-            f"{omega_max / (2 * math.pi):.0f} Hz); limit is simulation.max_substeps={max_substeps}")
-    # resolved for accuracy, up to max_substeps (beyond: stable but coarse): a law's explicitly
-    # held damping (LuGre's sigma1 dz/dt, first order in the sub-step) to BRISTLE_H of its rate. An
-    # implicit law's slope (regularised Coulomb at rest, F_C / v_reg) asks for none: the law resolves
-    # its own transient inside the sub-step (stage_sim.friction.regularized.implicit)
-    need = math.ceil(float(np.max(c_law / np.array(masses))) * dt / BRISTLE_H)
-    n_sub = max(n_sub, min(max_substeps, need))
+    bodies = _bodies(stage)
+    n = len(bodies.masses)
+    fr_fields = _friction_fields(bodies.elements)
+    sai_dof = bodies.bearing_dofs[0] if stage.sai is not None else -1
+    kmat, cmat = _linear_matrices(bodies)
+    explicit = _explicit_terms(bodies, fr_fields["fr_var"], stage.sai, sai_dof)
+    n_sub = _substeps(bodies, kmat, explicit, dt, max_omega_h, max_substeps)
     h = dt / n_sub
-
-    a = np.zeros((2 * n, 2 * n))
-    a[:n, n:] = np.eye(n)
-    a[n:, :n] = -minv @ kmat
-    a[n:, n:] = -minv @ cmat
-    b = np.zeros((2 * n, n))
-    b[n:, :] = minv
+    a, b = _state_space(bodies, kmat, cmat)
     phi, gam = _exact_zoh(a, b, h)
-
-    if sai is not None:
-        rc_a = 1.0 if sai.rc_cutoff is None else 1.0 - math.exp(-2 * math.pi * sai.rc_cutoff * h)
-        arm_steps = int(round(sai.switch_delay / h))
-        pulse_steps = max(1, int(round(sai.impact_duration / h)))
-        pulse_force = sai.impact_impulse * (1.0 - sai.cushioning) / (pulse_steps * h)
-
-    d = stage.drive
-    noise_a, noise_gain = 1.0, 1.0
-    if d.noise_cutoff is not None:
-        noise_a = 1.0 - math.exp(-2 * math.pi * d.noise_cutoff * dt)
-        noise_gain = math.sqrt((2.0 - noise_a) / noise_a)   # unit-variance AR(1) output
-    span = stage.travel.max - stage.travel.min
-    bsens = -1
-    if stage.bearing_sensor is not None:
-        bsens = bearing_dofs[0]
     return PlantModel(
-        n=n, n_sub=n_sub, h=h, dt=dt, phi=phi, gam=gam,
-        fr_kind=fr_kind, fr_dof=fr_dof, fr_par=fr_par, fr_implicit=fr_implicit, n_frs=n_frs,
-        fr_noise=fr_noise, dither_dof=np.array(dither_dof, np.int64),
-        kf_ratio=d.force_constant_ratio, peak=d.peak_force, cont=d.continuous_force,
-        th_alpha=dt / d.thermal_time_constant,
-        noise_std=d.noise_current_rms * d.force_constant * d.force_constant_ratio,
-        noise_a=noise_a, noise_gain=noise_gain, delay=d.delay_samples,
-        q_table=stage.encoder.resolution, bsens_dof=bsens,
-        bear_dof=bearing_dofs[0] if bearing_dofs else 0,
-        q_bearing=0.0 if stage.bearing_sensor is None else stage.bearing_sensor.resolution,
-        travel_min=stage.travel.min, travel_max=stage.travel.max,
-        x_limit=1e3 * span + abs(stage.travel.min) + abs(stage.travel.max),
-        sai_dof=sai_dof, k_lock=k_lock, c_lock=c_lock, cap_lock=cap, rc_a=rc_a,
-        arm_steps=arm_steps, pulse_force=pulse_force, pulse_steps=pulse_steps,
-        fr_var=fr_var, f_offset=float(stage.force_offset),
-        ripple=np.array([[r.amplitude, 2 * math.pi / r.period, r.phase] for r in stage.force_ripple],
-                        float).reshape(-1, 3),
-        periodic=np.array([[p.amplitude, 2 * math.pi * p.frequency, p.phase] for p in stage.periodic_force],
-                          float).reshape(-1, 3),
-        table_force=bool(stage.force_offset != 0.0 or stage.force_ripple or stage.periodic_force),
-        delay_frac=float(d.delay_fraction), g_prev=_delayed_zoh(a, b, h, n_sub, d.delay_fraction),
-        gam_ramp=_ramp_response(a, b, h) if fr_implicit.any() else np.zeros((2 * n, n)),
-    )
+        n=n, n_sub=n_sub, h=h, dt=dt, phi=phi, gam=gam, dither_dof=np.array(bodies.dither_dof, np.int64),
+        gam_ramp=_ramp_response(a, b, h) if fr_fields["fr_implicit"].any() else np.zeros((2 * n, n)),
+        **fr_fields, **_sai_fields(stage.sai, sai_dof, h), **_drive_fields(stage.drive, dt, a, b, h, n_sub),
+        **_sensor_fields(stage, bodies.bearing_dofs), **_table_force_fields(stage))
 
 
 class PlantState(NamedTuple):
