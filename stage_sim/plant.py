@@ -655,9 +655,164 @@ def _sai_forces(pm, z, ps, f, mode):
             ps[P_PULSE, b] -= 1.0
 
 
+@njit(cache=True, inline="always")
+def _drive_force(pm, ps, dbuf, u_cmd, k, seeds, force):
+    """Drive force of each trial over the control period into ``force`` [N]: the command after the
+    whole-sample delay, the peak and thermal (I²t) limits, the force-constant error and the noise."""
+    for b in range(u_cmd.shape[0]):
+        if pm.delay > 0:
+            i = int(ps[P_DELAY_IDX, b])
+            u_in = dbuf[i, b]
+            dbuf[i, b] = u_cmd[b]
+            ps[P_DELAY_IDX, b] = (i + 1) % pm.delay
+        else:
+            u_in = u_cmd[b]
+        u = min(max(u_in, -pm.peak), pm.peak)
+        if ps[P_THERMAL, b] > pm.cont * pm.cont:
+            u = min(max(u, -pm.cont), pm.cont)
+        ps[P_THERMAL, b] += pm.th_alpha * (u * u - ps[P_THERMAL, b])
+        force[b] = pm.kf_ratio * u
+        if pm.noise_std > 0.0:
+            w = gauss(seeds[b], k, 0)
+            if pm.noise_a < 1.0:
+                ps[P_NOISE, b] += pm.noise_a * (w * pm.noise_gain - ps[P_NOISE, b])
+                w = ps[P_NOISE, b]
+            force[b] += pm.noise_std * w
+
+
+@njit(cache=True, inline="always")
+def _applied_forces(pm, z, force, d0, d1, f_ext, t_sub, f):
+    """Forces on every DOF other than friction and the SAI, held over the sub-step centred at
+    ``t_sub`` [s], written to ``f``: drive, table and external forces on the table, piezo dither
+    forces on their bearings (``f_ext`` empty: none)."""
+    n = pm.n
+    j0, j1 = pm.dither_dof[0], pm.dither_dof[1]
+    ext = f_ext.shape[0] > 0
+    for b in range(force.shape[0]):
+        f[0, b] = force[b]
+        if pm.table_force:
+            f[0, b] += _table_force(pm, z[0, b], t_sub)
+        if ext:
+            f[0, b] += f_ext[b]
+        for i in range(1, n):
+            f[i, b] = 0.0
+        if j0 >= 0:
+            f[j0, b] += d0[b]
+        if j1 >= 0:
+            f[j1, b] -= d1[b]
+
+
+@njit(cache=True, inline="always")
+def _propagate(pm, z, f, zn):
+    """Exact linear propagation over a sub-step, ``zn = phi z + gam f``.
+
+    Both branches sum in the same order, so a trial's result is bit-identical for any batch size:
+    the few-trial branch also adds the zero entries' products, +-0, which change no finite sum.
+    """
+    n = pm.n
+    nz = 2 * n
+    nb = z.shape[1]
+    if nb < 8:
+        for b in range(nb):
+            for r in range(nz):
+                acc = 0.0
+                for c in range(nz):
+                    acc += pm.phi[r, c] * z[c, b]
+                for c in range(n):
+                    acc += pm.gam[r, c] * f[c, b]
+                zn[r, b] = acc
+    else:
+        for r in range(nz):
+            for b in range(nb):
+                zn[r, b] = 0.0
+            for c in range(nz):
+                a = pm.phi[r, c]
+                if a != 0.0:
+                    for b in range(nb):
+                        zn[r, b] += a * z[c, b]
+            for c in range(n):
+                a = pm.gam[r, c]
+                if a != 0.0:
+                    for b in range(nb):
+                        zn[r, b] += a * f[c, b]
+
+
+@njit(cache=True, inline="always")
+def _delayed_drive(pm, ps, force, sub, zn):
+    """Fractional drive delay: add to ``zn`` the response of sub-step ``sub`` to the previous
+    sample's force acting over the first part of the period (``pm.g_prev``)."""
+    for b in range(force.shape[0]):
+        df = ps[P_FPREV, b] - force[b]
+        for r in range(2 * pm.n):
+            zn[r, b] += pm.g_prev[sub, r] * df
+
+
+@njit(cache=True, inline="always")
+def _implicit_friction(pm, z, zn):
+    """Implicit laws (Coulomb: stick or slip), solved from the velocity the other forces give
+    ``zn``; their force (mean and slope over the sub-step) is taken off ``zn``, a stuck element's
+    velocity set to zero."""
+    n = pm.n
+    nz = 2 * n
+    for e in range(pm.fr_kind.shape[0]):
+        if pm.fr_implicit[e]:
+            kind = pm.fr_kind[e]
+            dof = pm.fr_dof[e]
+            p = pm.fr_par[e]
+            g = pm.gam[n + dof, dof]
+            for b in range(z.shape[1]):
+                a = zn[n + dof, b]
+                sc = 1.0
+                if pm.fr_var[e, 0] != 0.0:
+                    sc = _var_scale(pm, e, z[dof, b], 1.0 if a > 0.0 else -1.0)
+                fc, stick, slope = friction.implicit(kind, p, a, g, z[n + dof, b], sc)
+                for r in range(nz):
+                    zn[r, b] -= pm.gam[r, dof] * fc + pm.gam_ramp[r, dof] * slope
+                if stick:
+                    zn[n + dof, b] = 0.0
+
+
+@njit(cache=True, inline="always")
+def _friction_states(pm, z, zn, fr):
+    """Advance the explicit laws' states ``fr`` over the sub-step from ``z`` to ``zn``, exactly in
+    the displacement domain."""
+    for e in range(pm.fr_kind.shape[0]):
+        if not pm.fr_implicit[e]:
+            kind = pm.fr_kind[e]
+            dof = pm.fr_dof[e]
+            p = pm.fr_par[e]
+            s = fr[e]
+            for b in range(z.shape[1]):
+                friction.update(kind, p, s, b, zn[dof, b] - z[dof, b], pm.h)
+
+
+@njit(cache=True, inline="always")
+def _measure(pm, z, meas, status):
+    """Quantized table and bearing-sensor positions into ``meas``; a trial's ``status`` set to
+    ``DIVERGED`` or ``OUT_OF_TRAVEL`` (a nonzero status is kept)."""
+    n = pm.n
+    for b in range(z.shape[1]):
+        meas[0, b] = quantize(z[0, b], pm.q_table)
+        meas[1, b] = quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
+        if status[b] != OK:
+            continue
+        # every DOF is coupled to the table through phi, so a non-finite or runaway
+        # state reaches the table's position or velocity within one sub-step
+        x, v = z[0, b], z[n, b]
+        if not (abs(x) <= pm.x_limit and abs(v) <= 1e4 * pm.x_limit):
+            status[b] = DIVERGED
+        elif x < pm.travel_min or x > pm.travel_max:
+            status[b] = OUT_OF_TRAVEL
+
+
 @njit(cache=True, inline="always", _nrt=False)
 def plant_step(pm, st, inp, k, seeds, meas, status):
     """Advance a batch of trials by one control period.
+
+    The drive force is held over the period; each of the ``n_sub`` sub-steps holds the applied,
+    explicit friction and SAI forces, propagates the linear part exactly, then solves the implicit
+    laws and advances the friction states (the steps are inlined functions, so the kernel compiles
+    as one loop nest).
 
     Parameters
     ----------
@@ -677,127 +832,24 @@ def plant_step(pm, st, inp, k, seeds, meas, status):
     """
     z, fr, ps, dbuf, f, zn, force = st
     u_cmd, d0, d1, mode, f_ext = inp
-    n = pm.n
-    nz = 2 * n
-    nb = u_cmd.shape[0]
-    # ---- drive: delay, peak and thermal (I²t) limits, force-constant error, noise
-    for b in range(nb):
-        if pm.delay > 0:
-            i = int(ps[P_DELAY_IDX, b])
-            u_in = dbuf[i, b]
-            dbuf[i, b] = u_cmd[b]
-            ps[P_DELAY_IDX, b] = (i + 1) % pm.delay
-        else:
-            u_in = u_cmd[b]
-        u = min(max(u_in, -pm.peak), pm.peak)
-        if ps[P_THERMAL, b] > pm.cont * pm.cont:
-            u = min(max(u, -pm.cont), pm.cont)
-        ps[P_THERMAL, b] += pm.th_alpha * (u * u - ps[P_THERMAL, b])
-        force[b] = pm.kf_ratio * u
-        if pm.noise_std > 0.0:
-            w = gauss(seeds[b], k, 0)
-            if pm.noise_a < 1.0:
-                ps[P_NOISE, b] += pm.noise_a * (w * pm.noise_gain - ps[P_NOISE, b])
-                w = ps[P_NOISE, b]
-            force[b] += pm.noise_std * w
-    nf = pm.fr_kind.shape[0]
-    j0, j1 = pm.dither_dof[0], pm.dither_dof[1]
-    ext = f_ext.shape[0] > 0
-
+    _drive_force(pm, ps, dbuf, u_cmd, k, seeds, force)
     for sub in range(pm.n_sub):
-        t_sub = k * pm.dt + (sub + 0.5) * pm.h
-        for b in range(nb):
-            f[0, b] = force[b]
-            if pm.table_force:
-                f[0, b] += _table_force(pm, z[0, b], t_sub)
-            if ext:
-                f[0, b] += f_ext[b]
-            for i in range(1, n):
-                f[i, b] = 0.0
-            if j0 >= 0:
-                f[j0, b] += d0[b]
-            if j1 >= 0:
-                f[j1, b] -= d1[b]
+        _applied_forces(pm, z, force, d0, d1, f_ext, k * pm.dt + (sub + 0.5) * pm.h, f)
         _friction_forces(pm, z, fr, f, k, seeds)
         if pm.sai_dof >= 0:
             _sai_forces(pm, z, ps, f, mode)
-        # ---- exact linear propagation  zn = phi z + gam f  (same summation order in
-        # both branches, so a trial's result is bit-identical for any batch size: the few-trial
-        # branch also adds the zero entries' products, +-0, which change no finite sum)
-        if nb < 8:
-            for b in range(nb):
-                for r in range(nz):
-                    acc = 0.0
-                    for c in range(nz):
-                        acc += pm.phi[r, c] * z[c, b]
-                    for c in range(n):
-                        acc += pm.gam[r, c] * f[c, b]
-                    zn[r, b] = acc
-        else:
-            for r in range(nz):
-                for b in range(nb):
-                    zn[r, b] = 0.0
-                for c in range(nz):
-                    a = pm.phi[r, c]
-                    if a != 0.0:
-                        for b in range(nb):
-                            zn[r, b] += a * z[c, b]
-                for c in range(n):
-                    a = pm.gam[r, c]
-                    if a != 0.0:
-                        for b in range(nb):
-                            zn[r, b] += a * f[c, b]
-        # ---- fractional drive delay: the previous sample's force over the first part of the period
+        _propagate(pm, z, f, zn)
         if pm.delay_frac > 0.0:
-            for b in range(nb):
-                df = ps[P_FPREV, b] - force[b]
-                for r in range(nz):
-                    zn[r, b] += pm.g_prev[sub, r] * df
-        # ---- implicit laws (Coulomb: stick/slip), from the velocity the other forces give
-        for e in range(nf):
-            if pm.fr_implicit[e]:
-                kind = pm.fr_kind[e]
-                dof = pm.fr_dof[e]
-                p = pm.fr_par[e]
-                g = pm.gam[n + dof, dof]
-                for b in range(nb):
-                    a = zn[n + dof, b]
-                    sc = 1.0
-                    if pm.fr_var[e, 0] != 0.0:
-                        sc = _var_scale(pm, e, z[dof, b], 1.0 if a > 0.0 else -1.0)
-                    fc, stick, slope = friction.implicit(kind, p, a, g, z[n + dof, b], sc)
-                    for r in range(nz):
-                        zn[r, b] -= pm.gam[r, dof] * fc + pm.gam_ramp[r, dof] * slope
-                    if stick:
-                        zn[n + dof, b] = 0.0
-        # ---- friction states, exactly in the displacement domain
-        for e in range(nf):
-            if not pm.fr_implicit[e]:
-                kind = pm.fr_kind[e]
-                dof = pm.fr_dof[e]
-                p = pm.fr_par[e]
-                s = fr[e]
-                for b in range(nb):
-                    friction.update(kind, p, s, b, zn[dof, b] - z[dof, b], pm.h)
-        for b in range(nb):
-            for r in range(nz):
+            _delayed_drive(pm, ps, force, sub, zn)
+        _implicit_friction(pm, z, zn)
+        _friction_states(pm, z, zn, fr)
+        for b in range(z.shape[1]):
+            for r in range(z.shape[0]):
                 z[r, b] = zn[r, b]
-
     if pm.delay_frac > 0.0:
-        for b in range(nb):
+        for b in range(force.shape[0]):
             ps[P_FPREV, b] = force[b]
-    for b in range(nb):
-        meas[0, b] = quantize(z[0, b], pm.q_table)
-        meas[1, b] = quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
-        if status[b] != OK:
-            continue
-        # every DOF is coupled to the table through phi, so a non-finite or runaway
-        # state reaches the table's position or velocity within one sub-step
-        x, v = z[0, b], z[n, b]
-        if not (abs(x) <= pm.x_limit and abs(v) <= 1e4 * pm.x_limit):
-            status[b] = DIVERGED
-        elif x < pm.travel_min or x > pm.travel_max:
-            status[b] = OUT_OF_TRAVEL
+    _measure(pm, z, meas, status)
 
 
 @njit(cache=True, nogil=True, _nrt=False)
