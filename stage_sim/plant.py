@@ -1,7 +1,7 @@
 """Plant simulator: lumped-mass stage with friction, isolators, drive, sensors.
 
-:func:`build_plant` compiles a validated :class:`stage_sim.config.Stage` into a
-:class:`PlantModel` (plain arrays), and :func:`plant_step` advances a batch of trials
+:func:`build_plant` (home :mod:`stage_sim.plant_model`, exported here) compiles a validated
+:class:`stage_sim.config.Stage` into a :class:`PlantModel` (plain arrays), and :func:`plant_step` advances a batch of trials
 (:class:`PlantState`, trial axis last) under :class:`PlantInputs` by one control period. The
 same compiled step is called by the batch engine (``experiment_runner.core.batch``), the ROS plant
 node (a batch of one) and :func:`run_open_loop` (the open-loop driver of the diagnosis, the FRF
@@ -40,23 +40,17 @@ equations with rad, N·m and kg·m².
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
-import scipy.linalg
 from numba import njit
 
 from . import friction
-from .config import Stage
+from .plant_model import BRISTLE_H as BRISTLE_H, PlantModel as PlantModel, build_plant as build_plant
 
 # per-trial scalar state slots
 P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX, P_FPREV = range(9)
 N_PSTATE = 9
-BRISTLE_H = 0.01
-"""Sub-step x (explicitly held law damping / mass) at most this: LuGre's bristle damping
-``sigma1 dz/dt`` is held over a sub-step, a first-order error in the sub-step (against RK4:
-4.3 um over 0.45 mm of travel at 1 kHz with 4 sub-steps, 0.17 um at 0.01)."""
 # status codes returned by plant_step
 OK, DIVERGED, OUT_OF_TRAVEL = 0, 1, 2
 STATUS_TEXT = {OK: "ok", DIVERGED: "state diverged (non-finite or beyond 1e3 x travel)",
@@ -65,274 +59,6 @@ STATUS_TEXT = {OK: "ok", DIVERGED: "state diverged (non-finite or beyond 1e3 x t
 
 class SimulationError(RuntimeError):
     """A simulation stopped: the message names the trial, the time and the reason."""
-
-
-class PlantModel(NamedTuple):
-    """Compiled plant (SI units). Built by :func:`build_plant`; read-only."""
-    n: int                 # number of DOFs
-    n_sub: int             # sub-steps per control period
-    h: float               # sub-step [s]
-    dt: float              # control period [s]
-    phi: np.ndarray        # (2n, 2n) exact state transition over h
-    gam: np.ndarray        # (2n, n) exact ZOH force input over h
-    fr_kind: np.ndarray    # (nf,) friction law id (stage_sim.friction.kind)
-    fr_dof: np.ndarray     # (nf,) DOF the element acts on
-    fr_par: np.ndarray     # (nf, npar) the law's parameter row (its params()), zero-padded
-    fr_implicit: np.ndarray  # (nf,) bool: the law is solved implicitly per sub-step (law.IMPLICIT)
-    n_frs: int             # friction state slots per element (max of the laws' n_state, >= 1)
-    fr_noise: np.ndarray   # (nf,) random force per control sample, RMS [N]
-    dither_dof: np.ndarray  # (2,) DOF driven by piezo 0 / 1, -1 if none
-    kf_ratio: float        # true / nominal force constant
-    peak: float            # peak force [N]
-    cont: float            # continuous force [N]
-    th_alpha: float        # dt / thermal time constant
-    noise_std: float       # drive noise force RMS [N]
-    noise_a: float         # noise low-pass coefficient (1 = white)
-    noise_gain: float      # keeps the filtered noise RMS equal to noise_std
-    delay: int             # drive delay [samples]
-    q_table: float         # encoder resolution [m]
-    bear_dof: int          # first bearing on a joint (0 = table if none)
-    bsens_dof: int         # DOF seen by the bearing sensor, -1 if none
-    q_bearing: float       # bearing sensor resolution [m]
-    travel_min: float
-    travel_max: float
-    x_limit: float         # divergence bound on any position [m]
-    sai_dof: int           # bearing DOF locked by the SAI, -1 if none
-    k_lock: float
-    c_lock: float
-    cap_lock: float
-    rc_a: float            # RC filter coefficient per sub-step (1 = no filter)
-    arm_steps: int         # armature travel time [sub-steps]
-    pulse_force: float     # impact force during the pulse [N]
-    pulse_steps: int       # impact duration [sub-steps]
-    fr_var: np.ndarray     # (nf, 6) force variation: on, f_c_difference/(2 f_c), viscous_difference/2,
-                           #   position_center [m], f_c_gradient/f_c [1/m], f_c_curvature/f_c [1/m²]
-    f_offset: float        # constant table force [N]
-    ripple: np.ndarray     # (nr, 3) position-periodic table force: amplitude [N], 2 pi/period [rad/m], phase
-    periodic: np.ndarray   # (np, 3) fixed-frequency table force: amplitude [N], 2 pi f [rad/s], phase
-    table_force: bool      # any of f_offset, ripple, periodic
-    delay_frac: float      # fractional drive delay [control periods] (0 = whole samples only)
-    g_prev: np.ndarray     # (n_sub, 2n) exact response of each sub-step to (previous - present) drive force
-    gam_ramp: np.ndarray   # (2n, n) exact response over h to a force (t/h - 1/2) (an implicit law's slope)
-
-
-def _variation(fr) -> np.ndarray:
-    """Row of :attr:`PlantModel.fr_var` for a friction config (all zero = no variation)."""
-    var = np.zeros(6)
-    if fr.f_c_difference or fr.viscous_difference or fr.f_c_gradient or fr.f_c_curvature:
-        fc = fr.f_c if fr.f_c > 0 else 1.0    # f_c = 0 only without gradient/curvature (validated)
-        var[:] = (1.0, fr.f_c_difference / (2.0 * fc), 0.5 * fr.viscous_difference, fr.position_center,
-                  fr.f_c_gradient / fc, fr.f_c_curvature / fc)
-    return var
-
-
-def _exact_zoh(a, b, h):
-    """Van Loan: exact ZOH discretisation of z' = a z + b f over h (memoised: model fits
-    rebuild plants whose linear part did not change)."""
-    phi, gam = _exact_zoh_cached(a.tobytes(), b.tobytes(), b.shape, float(h))
-    return phi.copy(), gam.copy()
-
-
-@lru_cache(maxsize=512)
-def _exact_zoh_cached(a_bytes, b_bytes, shape, h):
-    nz, nu = shape
-    a = np.frombuffer(a_bytes).reshape(nz, nz)
-    b = np.frombuffer(b_bytes).reshape(nz, nu)
-    big = np.zeros((nz + nu, nz + nu))
-    big[:nz, :nz] = a * h
-    big[:nz, nz:] = b * h
-    e = scipy.linalg.expm(big)
-    return e[:nz, :nz].copy(), e[:nz, nz:].copy()
-
-
-def _ramp_response(a, b, h):
-    """(2n, n): exact response over ``h`` of ``z' = a z + b f`` from ``z = 0`` to the zero-mean ramp
-    ``f = t / h - 1/2`` (Van Loan, the input's value and slope as states)."""
-    nz, nu = b.shape
-    big = np.zeros((nz + 2 * nu, nz + 2 * nu))
-    big[:nz, :nz] = a * h
-    big[:nz, nz:nz + nu] = b * h
-    big[nz:nz + nu, nz + nu:] = np.eye(nu)
-    e = scipy.linalg.expm(big)
-    return e[:nz, nz + nu:] - 0.5 * e[:nz, nz:nz + nu]
-
-
-def _delayed_zoh(a, b, h, n_sub, frac):
-    """(n_sub, 2n): exact delayed zero-order hold of the drive force. Over a control period the
-    force is the previous sample's until ``frac`` of the period, then the present one's; sub-step
-    ``i`` propagates with the present force (``phi z + gam f``) plus row ``i`` times (previous -
-    present): ``gam[:, 0]`` for a sub-step wholly before the switch, ``phi(h - t_s) gam(t_s)[:, 0]``
-    for the one the switch splits at ``t_s``, zero after it."""
-    out = np.zeros((n_sub, a.shape[0]))
-    if frac <= 0.0:
-        return out
-    ts = frac * n_sub
-    whole = int(math.floor(ts))
-    phi_h, gam_h = _exact_zoh(a, b, h)
-    out[:whole] = gam_h[:, 0]
-    rest = (ts - whole) * h
-    if whole < n_sub and rest > 0.0:
-        gam_a = _exact_zoh(a, b, rest)[1]
-        phi_b = _exact_zoh(a, b, h - rest)[0]
-        out[whole] = phi_b @ gam_a[:, 0]
-    return out
-
-
-def build_plant(stage: Stage, rate: float = 10_000.0, max_omega_h: float = 0.25,
-                max_substeps: int = 200) -> PlantModel:
-    """Compile a stage configuration into a :class:`PlantModel`.
-
-    Parameters
-    ----------
-    stage : Stage
-        Validated stage configuration.
-    rate : float
-        Control rate [Hz]; the plant advances ``1/rate`` per :func:`plant_step`.
-    max_omega_h : float
-        Largest allowed ``omega_max * h`` [-], which sets the number of sub-steps.
-    max_substeps : int
-        Refuse configurations needing more sub-steps than this.
-
-    Examples
-    --------
-    >>> from stage_sim.config import load_preset
-    >>> pm = build_plant(load_preset("fi_stage").stage)
-    >>> pm.n_sub >= 1
-    True
-    """
-    dt = 1.0 / rate
-    m_table = stage.table.mass + sum(b.mass for b in stage.bearings if b.joint is None)
-    masses = [m_table]
-    springs = []                     # (i, j, k, c); j = -1 for ground
-    fr_list = []                     # (config, dof, noise)
-    dither_dof = [-1, -1]
-    bearing_dofs = []
-    if stage.table_friction is not None:
-        fr_list.append((stage.table_friction, 0, 0.0))
-    for b in stage.bearings:
-        if b.joint is None:
-            dof = 0
-        else:
-            dof = len(masses)
-            masses.append(b.mass)
-            springs.append((0, dof, b.joint.stiffness, b.joint.damping))
-            bearing_dofs.append(dof)
-        fr_list.append((b.friction, dof, b.force_noise_rms))
-        if b.dither_channel is not None:
-            dither_dof[b.dither_channel] = dof
-    for mode in stage.modes:
-        dof = len(masses)
-        ms = mode.mass_ratio * stage.table.mass
-        w = 2 * math.pi * mode.frequency
-        masses.append(ms)
-        springs.append((0, dof, ms * w * w, 2 * mode.damping_ratio * ms * w))
-
-    n = len(masses)
-    kmat, cmat = np.zeros((n, n)), np.zeros((n, n))
-    for i, j, k, c in springs:
-        for mat, val in ((kmat, k), (cmat, c)):
-            mat[i, i] += val
-            mat[j, j] += val
-            mat[i, j] -= val
-            mat[j, i] -= val
-
-    nf = len(fr_list)
-    laws = [friction.law(fr) for fr, _, _ in fr_list]
-    pars = [law.params(fr) for law, (fr, _, _) in zip(laws, fr_list)]
-    fr_kind = np.array([friction.kind(fr) for fr, _, _ in fr_list], np.int64)
-    fr_dof = np.array([dof for _, dof, _ in fr_list], np.int64)
-    fr_par = np.zeros((nf, max([1] + [len(p) for p in pars])))
-    fr_implicit = np.array([law.IMPLICIT for law in laws], np.bool_)
-    n_frs = max([1] + [law.n_state(fr) for law, (fr, _, _) in zip(laws, fr_list)])
-    fr_noise = np.array([noise for _, _, noise in fr_list], float)
-    fr_var = np.zeros((nf, 6))
-    k_tangent = np.zeros((n, n))
-    c_law = np.zeros(n)          # damping an explicit law holds over a sub-step (LuGre's sigma1)
-    for e, (law, (fr, dof, _)) in enumerate(zip(laws, fr_list)):
-        fr_par[e, :len(pars[e])] = pars[e]
-        fr_var[e] = _variation(fr)
-        cmat[dof, dof] += fr.viscous
-        k_tangent[dof, dof] += law.stiffness_at_rest(fr) * (1.0 + abs(fr_var[e, 1]))
-        c_law[dof] += law.explicit_damping(fr) * (1.0 + abs(fr_var[e, 1]))
-    c_explicit = c_law.copy()    # and the SAI lock's: explicit damping the sub-steps keep stable
-
-    sai_dof, k_lock, c_lock, cap, rc_a, arm_steps, pulse_force, pulse_steps = -1, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0
-    sai = stage.sai
-    if sai is not None:
-        sai_dof = bearing_dofs[0]
-        k_lock, c_lock, cap = sai.lock_stiffness, sai.lock_damping, sai.lock_capacity
-        for mat, val in ((k_tangent, k_lock),):
-            mat[0, 0] += val
-            mat[sai_dof, sai_dof] += val
-            mat[0, sai_dof] -= val
-            mat[sai_dof, 0] -= val
-        c_explicit[0] += c_lock
-        c_explicit[sai_dof] += c_lock
-
-    minv = np.diag(1.0 / np.array(masses))
-    eig = np.linalg.eigvals(minv @ (kmat + k_tangent))
-    omega_max = float(np.sqrt(np.max(np.abs(eig))))
-    rate_max = float(np.max(c_explicit / np.array(masses)))  # explicit damping rate [1/s]
-    n_sub = max(1, math.ceil(max(omega_max, rate_max) * dt / max_omega_h))
-    if n_sub > max_substeps:
-        raise ValueError(
-            f"stage needs {n_sub} sub-steps per control period (stiffest mode "
-            f"{omega_max / (2 * math.pi):.0f} Hz); limit is simulation.max_substeps={max_substeps}")
-    # resolved for accuracy, up to max_substeps (beyond: stable but coarse): a law's explicitly
-    # held damping (LuGre's sigma1 dz/dt, first order in the sub-step) to BRISTLE_H of its rate. An
-    # implicit law's slope (regularised Coulomb at rest, F_C / v_reg) asks for none: the law resolves
-    # its own transient inside the sub-step (stage_sim.friction.regularized.implicit)
-    need = math.ceil(float(np.max(c_law / np.array(masses))) * dt / BRISTLE_H)
-    n_sub = max(n_sub, min(max_substeps, need))
-    h = dt / n_sub
-
-    a = np.zeros((2 * n, 2 * n))
-    a[:n, n:] = np.eye(n)
-    a[n:, :n] = -minv @ kmat
-    a[n:, n:] = -minv @ cmat
-    b = np.zeros((2 * n, n))
-    b[n:, :] = minv
-    phi, gam = _exact_zoh(a, b, h)
-
-    if sai is not None:
-        rc_a = 1.0 if sai.rc_cutoff is None else 1.0 - math.exp(-2 * math.pi * sai.rc_cutoff * h)
-        arm_steps = int(round(sai.switch_delay / h))
-        pulse_steps = max(1, int(round(sai.impact_duration / h)))
-        pulse_force = sai.impact_impulse * (1.0 - sai.cushioning) / (pulse_steps * h)
-
-    d = stage.drive
-    noise_a, noise_gain = 1.0, 1.0
-    if d.noise_cutoff is not None:
-        noise_a = 1.0 - math.exp(-2 * math.pi * d.noise_cutoff * dt)
-        noise_gain = math.sqrt((2.0 - noise_a) / noise_a)   # unit-variance AR(1) output
-    span = stage.travel.max - stage.travel.min
-    bsens = -1
-    if stage.bearing_sensor is not None:
-        bsens = bearing_dofs[0]
-    return PlantModel(
-        n=n, n_sub=n_sub, h=h, dt=dt, phi=phi, gam=gam,
-        fr_kind=fr_kind, fr_dof=fr_dof, fr_par=fr_par, fr_implicit=fr_implicit, n_frs=n_frs,
-        fr_noise=fr_noise, dither_dof=np.array(dither_dof, np.int64),
-        kf_ratio=d.force_constant_ratio, peak=d.peak_force, cont=d.continuous_force,
-        th_alpha=dt / d.thermal_time_constant,
-        noise_std=d.noise_current_rms * d.force_constant * d.force_constant_ratio,
-        noise_a=noise_a, noise_gain=noise_gain, delay=d.delay_samples,
-        q_table=stage.encoder.resolution, bsens_dof=bsens,
-        bear_dof=bearing_dofs[0] if bearing_dofs else 0,
-        q_bearing=0.0 if stage.bearing_sensor is None else stage.bearing_sensor.resolution,
-        travel_min=stage.travel.min, travel_max=stage.travel.max,
-        x_limit=1e3 * span + abs(stage.travel.min) + abs(stage.travel.max),
-        sai_dof=sai_dof, k_lock=k_lock, c_lock=c_lock, cap_lock=cap, rc_a=rc_a,
-        arm_steps=arm_steps, pulse_force=pulse_force, pulse_steps=pulse_steps,
-        fr_var=fr_var, f_offset=float(stage.force_offset),
-        ripple=np.array([[r.amplitude, 2 * math.pi / r.period, r.phase] for r in stage.force_ripple],
-                        float).reshape(-1, 3),
-        periodic=np.array([[p.amplitude, 2 * math.pi * p.frequency, p.phase] for p in stage.periodic_force],
-                          float).reshape(-1, 3),
-        table_force=bool(stage.force_offset != 0.0 or stage.force_ripple or stage.periodic_force),
-        delay_frac=float(d.delay_fraction), g_prev=_delayed_zoh(a, b, h, n_sub, d.delay_fraction),
-        gam_ramp=_ramp_response(a, b, h) if fr_implicit.any() else np.zeros((2 * n, n)),
-    )
 
 
 class PlantState(NamedTuple):
@@ -528,9 +254,164 @@ def _sai_forces(pm, z, ps, f, mode):
             ps[P_PULSE, b] -= 1.0
 
 
+@njit(cache=True, inline="always")
+def _drive_force(pm, ps, dbuf, u_cmd, k, seeds, force):
+    """Drive force of each trial over the control period into ``force`` [N]: the command after the
+    whole-sample delay, the peak and thermal (I²t) limits, the force-constant error and the noise."""
+    for b in range(u_cmd.shape[0]):
+        if pm.delay > 0:
+            i = int(ps[P_DELAY_IDX, b])
+            u_in = dbuf[i, b]
+            dbuf[i, b] = u_cmd[b]
+            ps[P_DELAY_IDX, b] = (i + 1) % pm.delay
+        else:
+            u_in = u_cmd[b]
+        u = min(max(u_in, -pm.peak), pm.peak)
+        if ps[P_THERMAL, b] > pm.cont * pm.cont:
+            u = min(max(u, -pm.cont), pm.cont)
+        ps[P_THERMAL, b] += pm.th_alpha * (u * u - ps[P_THERMAL, b])
+        force[b] = pm.kf_ratio * u
+        if pm.noise_std > 0.0:
+            w = gauss(seeds[b], k, 0)
+            if pm.noise_a < 1.0:
+                ps[P_NOISE, b] += pm.noise_a * (w * pm.noise_gain - ps[P_NOISE, b])
+                w = ps[P_NOISE, b]
+            force[b] += pm.noise_std * w
+
+
+@njit(cache=True, inline="always")
+def _applied_forces(pm, z, force, d0, d1, f_ext, t_sub, f):
+    """Forces on every DOF other than friction and the SAI, held over the sub-step centred at
+    ``t_sub`` [s], written to ``f``: drive, table and external forces on the table, piezo dither
+    forces on their bearings (``f_ext`` empty: none)."""
+    n = pm.n
+    j0, j1 = pm.dither_dof[0], pm.dither_dof[1]
+    ext = f_ext.shape[0] > 0
+    for b in range(force.shape[0]):
+        f[0, b] = force[b]
+        if pm.table_force:
+            f[0, b] += _table_force(pm, z[0, b], t_sub)
+        if ext:
+            f[0, b] += f_ext[b]
+        for i in range(1, n):
+            f[i, b] = 0.0
+        if j0 >= 0:
+            f[j0, b] += d0[b]
+        if j1 >= 0:
+            f[j1, b] -= d1[b]
+
+
+@njit(cache=True, inline="always")
+def _propagate(pm, z, f, zn):
+    """Exact linear propagation over a sub-step, ``zn = phi z + gam f``.
+
+    Both branches sum in the same order, so a trial's result is bit-identical for any batch size:
+    the few-trial branch also adds the zero entries' products, +-0, which change no finite sum.
+    """
+    n = pm.n
+    nz = 2 * n
+    nb = z.shape[1]
+    if nb < 8:
+        for b in range(nb):
+            for r in range(nz):
+                acc = 0.0
+                for c in range(nz):
+                    acc += pm.phi[r, c] * z[c, b]
+                for c in range(n):
+                    acc += pm.gam[r, c] * f[c, b]
+                zn[r, b] = acc
+    else:
+        for r in range(nz):
+            for b in range(nb):
+                zn[r, b] = 0.0
+            for c in range(nz):
+                a = pm.phi[r, c]
+                if a != 0.0:
+                    for b in range(nb):
+                        zn[r, b] += a * z[c, b]
+            for c in range(n):
+                a = pm.gam[r, c]
+                if a != 0.0:
+                    for b in range(nb):
+                        zn[r, b] += a * f[c, b]
+
+
+@njit(cache=True, inline="always")
+def _delayed_drive(pm, ps, force, sub, zn):
+    """Fractional drive delay: add to ``zn`` the response of sub-step ``sub`` to the previous
+    sample's force acting over the first part of the period (``pm.g_prev``)."""
+    for b in range(force.shape[0]):
+        df = ps[P_FPREV, b] - force[b]
+        for r in range(2 * pm.n):
+            zn[r, b] += pm.g_prev[sub, r] * df
+
+
+@njit(cache=True, inline="always")
+def _implicit_friction(pm, z, zn):
+    """Implicit laws (Coulomb: stick or slip), solved from the velocity the other forces give
+    ``zn``; their force (mean and slope over the sub-step) is taken off ``zn``, a stuck element's
+    velocity set to zero."""
+    n = pm.n
+    nz = 2 * n
+    for e in range(pm.fr_kind.shape[0]):
+        if pm.fr_implicit[e]:
+            kind = pm.fr_kind[e]
+            dof = pm.fr_dof[e]
+            p = pm.fr_par[e]
+            g = pm.gam[n + dof, dof]
+            for b in range(z.shape[1]):
+                a = zn[n + dof, b]
+                sc = 1.0
+                if pm.fr_var[e, 0] != 0.0:
+                    sc = _var_scale(pm, e, z[dof, b], 1.0 if a > 0.0 else -1.0)
+                fc, stick, slope = friction.implicit(kind, p, a, g, z[n + dof, b], sc)
+                for r in range(nz):
+                    zn[r, b] -= pm.gam[r, dof] * fc + pm.gam_ramp[r, dof] * slope
+                if stick:
+                    zn[n + dof, b] = 0.0
+
+
+@njit(cache=True, inline="always")
+def _friction_states(pm, z, zn, fr):
+    """Advance the explicit laws' states ``fr`` over the sub-step from ``z`` to ``zn``, exactly in
+    the displacement domain."""
+    for e in range(pm.fr_kind.shape[0]):
+        if not pm.fr_implicit[e]:
+            kind = pm.fr_kind[e]
+            dof = pm.fr_dof[e]
+            p = pm.fr_par[e]
+            s = fr[e]
+            for b in range(z.shape[1]):
+                friction.update(kind, p, s, b, zn[dof, b] - z[dof, b], pm.h)
+
+
+@njit(cache=True, inline="always")
+def _measure(pm, z, meas, status):
+    """Quantized table and bearing-sensor positions into ``meas``; a trial's ``status`` set to
+    ``DIVERGED`` or ``OUT_OF_TRAVEL`` (a nonzero status is kept)."""
+    n = pm.n
+    for b in range(z.shape[1]):
+        meas[0, b] = quantize(z[0, b], pm.q_table)
+        meas[1, b] = quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
+        if status[b] != OK:
+            continue
+        # every DOF is coupled to the table through phi, so a non-finite or runaway
+        # state reaches the table's position or velocity within one sub-step
+        x, v = z[0, b], z[n, b]
+        if not (abs(x) <= pm.x_limit and abs(v) <= 1e4 * pm.x_limit):
+            status[b] = DIVERGED
+        elif x < pm.travel_min or x > pm.travel_max:
+            status[b] = OUT_OF_TRAVEL
+
+
 @njit(cache=True, inline="always", _nrt=False)
 def plant_step(pm, st, inp, k, seeds, meas, status):
     """Advance a batch of trials by one control period.
+
+    The drive force is held over the period; each of the ``n_sub`` sub-steps holds the applied,
+    explicit friction and SAI forces, propagates the linear part exactly, then solves the implicit
+    laws and advances the friction states (the steps are inlined functions, so the kernel compiles
+    as one loop nest).
 
     Parameters
     ----------
@@ -550,127 +431,24 @@ def plant_step(pm, st, inp, k, seeds, meas, status):
     """
     z, fr, ps, dbuf, f, zn, force = st
     u_cmd, d0, d1, mode, f_ext = inp
-    n = pm.n
-    nz = 2 * n
-    nb = u_cmd.shape[0]
-    # ---- drive: delay, peak and thermal (I²t) limits, force-constant error, noise
-    for b in range(nb):
-        if pm.delay > 0:
-            i = int(ps[P_DELAY_IDX, b])
-            u_in = dbuf[i, b]
-            dbuf[i, b] = u_cmd[b]
-            ps[P_DELAY_IDX, b] = (i + 1) % pm.delay
-        else:
-            u_in = u_cmd[b]
-        u = min(max(u_in, -pm.peak), pm.peak)
-        if ps[P_THERMAL, b] > pm.cont * pm.cont:
-            u = min(max(u, -pm.cont), pm.cont)
-        ps[P_THERMAL, b] += pm.th_alpha * (u * u - ps[P_THERMAL, b])
-        force[b] = pm.kf_ratio * u
-        if pm.noise_std > 0.0:
-            w = gauss(seeds[b], k, 0)
-            if pm.noise_a < 1.0:
-                ps[P_NOISE, b] += pm.noise_a * (w * pm.noise_gain - ps[P_NOISE, b])
-                w = ps[P_NOISE, b]
-            force[b] += pm.noise_std * w
-    nf = pm.fr_kind.shape[0]
-    j0, j1 = pm.dither_dof[0], pm.dither_dof[1]
-    ext = f_ext.shape[0] > 0
-
+    _drive_force(pm, ps, dbuf, u_cmd, k, seeds, force)
     for sub in range(pm.n_sub):
-        t_sub = k * pm.dt + (sub + 0.5) * pm.h
-        for b in range(nb):
-            f[0, b] = force[b]
-            if pm.table_force:
-                f[0, b] += _table_force(pm, z[0, b], t_sub)
-            if ext:
-                f[0, b] += f_ext[b]
-            for i in range(1, n):
-                f[i, b] = 0.0
-            if j0 >= 0:
-                f[j0, b] += d0[b]
-            if j1 >= 0:
-                f[j1, b] -= d1[b]
+        _applied_forces(pm, z, force, d0, d1, f_ext, k * pm.dt + (sub + 0.5) * pm.h, f)
         _friction_forces(pm, z, fr, f, k, seeds)
         if pm.sai_dof >= 0:
             _sai_forces(pm, z, ps, f, mode)
-        # ---- exact linear propagation  zn = phi z + gam f  (same summation order in
-        # both branches, so a trial's result is bit-identical for any batch size: the few-trial
-        # branch also adds the zero entries' products, +-0, which change no finite sum)
-        if nb < 8:
-            for b in range(nb):
-                for r in range(nz):
-                    acc = 0.0
-                    for c in range(nz):
-                        acc += pm.phi[r, c] * z[c, b]
-                    for c in range(n):
-                        acc += pm.gam[r, c] * f[c, b]
-                    zn[r, b] = acc
-        else:
-            for r in range(nz):
-                for b in range(nb):
-                    zn[r, b] = 0.0
-                for c in range(nz):
-                    a = pm.phi[r, c]
-                    if a != 0.0:
-                        for b in range(nb):
-                            zn[r, b] += a * z[c, b]
-                for c in range(n):
-                    a = pm.gam[r, c]
-                    if a != 0.0:
-                        for b in range(nb):
-                            zn[r, b] += a * f[c, b]
-        # ---- fractional drive delay: the previous sample's force over the first part of the period
+        _propagate(pm, z, f, zn)
         if pm.delay_frac > 0.0:
-            for b in range(nb):
-                df = ps[P_FPREV, b] - force[b]
-                for r in range(nz):
-                    zn[r, b] += pm.g_prev[sub, r] * df
-        # ---- implicit laws (Coulomb: stick/slip), from the velocity the other forces give
-        for e in range(nf):
-            if pm.fr_implicit[e]:
-                kind = pm.fr_kind[e]
-                dof = pm.fr_dof[e]
-                p = pm.fr_par[e]
-                g = pm.gam[n + dof, dof]
-                for b in range(nb):
-                    a = zn[n + dof, b]
-                    sc = 1.0
-                    if pm.fr_var[e, 0] != 0.0:
-                        sc = _var_scale(pm, e, z[dof, b], 1.0 if a > 0.0 else -1.0)
-                    fc, stick, slope = friction.implicit(kind, p, a, g, z[n + dof, b], sc)
-                    for r in range(nz):
-                        zn[r, b] -= pm.gam[r, dof] * fc + pm.gam_ramp[r, dof] * slope
-                    if stick:
-                        zn[n + dof, b] = 0.0
-        # ---- friction states, exactly in the displacement domain
-        for e in range(nf):
-            if not pm.fr_implicit[e]:
-                kind = pm.fr_kind[e]
-                dof = pm.fr_dof[e]
-                p = pm.fr_par[e]
-                s = fr[e]
-                for b in range(nb):
-                    friction.update(kind, p, s, b, zn[dof, b] - z[dof, b], pm.h)
-        for b in range(nb):
-            for r in range(nz):
+            _delayed_drive(pm, ps, force, sub, zn)
+        _implicit_friction(pm, z, zn)
+        _friction_states(pm, z, zn, fr)
+        for b in range(z.shape[1]):
+            for r in range(z.shape[0]):
                 z[r, b] = zn[r, b]
-
     if pm.delay_frac > 0.0:
-        for b in range(nb):
+        for b in range(force.shape[0]):
             ps[P_FPREV, b] = force[b]
-    for b in range(nb):
-        meas[0, b] = quantize(z[0, b], pm.q_table)
-        meas[1, b] = quantize(z[pm.bsens_dof, b], pm.q_bearing) if pm.bsens_dof >= 0 else math.nan
-        if status[b] != OK:
-            continue
-        # every DOF is coupled to the table through phi, so a non-finite or runaway
-        # state reaches the table's position or velocity within one sub-step
-        x, v = z[0, b], z[n, b]
-        if not (abs(x) <= pm.x_limit and abs(v) <= 1e4 * pm.x_limit):
-            status[b] = DIVERGED
-        elif x < pm.travel_min or x > pm.travel_max:
-            status[b] = OUT_OF_TRAVEL
+    _measure(pm, z, meas, status)
 
 
 @njit(cache=True, nogil=True, _nrt=False)
