@@ -1,6 +1,6 @@
 """Plant simulator: lumped-mass stage with friction, isolators, drive, sensors.
 
-:func:`build_plant` (home :mod:`stage_sim.plant_model`, exported here) compiles a validated
+:func:`stage_sim.plant_model.build_plant` compiles a validated
 :class:`stage_sim.config.Stage` into a :class:`PlantModel` (plain arrays), and :func:`plant_step` advances a batch of trials
 (:class:`PlantState`, trial axis last) under :class:`PlantInputs` by one control period. The
 same compiled step is called by the batch engine (``experiment_runner.core.batch``), the ROS plant
@@ -46,7 +46,7 @@ import numpy as np
 from numba import njit
 
 from . import friction
-from .plant_model import BRISTLE_H as BRISTLE_H, PlantModel as PlantModel, build_plant as build_plant
+from .plant_model import PlantModel
 
 # per-trial scalar state slots
 P_THERMAL, P_NOISE, P_RC, P_LOCKED, P_ANCHOR, P_PULSE, P_ARM_TIMER, P_DELAY_IDX, P_FPREV = range(9)
@@ -505,6 +505,7 @@ class PlantSim:
     Examples
     --------
     >>> from stage_sim.config import load_preset
+    >>> from stage_sim.plant_model import build_plant
     >>> sim = PlantSim(build_plant(load_preset("als130h").stage))
     >>> y = sim.step(0.5)          # 0.5 N for one control period
     >>> float(y[0, 0]) > 0.0

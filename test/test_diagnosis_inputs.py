@@ -164,7 +164,8 @@ def test_plant_fractional_delay_is_the_exact_delayed_zoh(rate, delay):
     random command equals scipy's exact delayed zero-order hold to 1e-9 relative (the fraction's
     linear part is exact, not an average over the period)."""
     from stage_sim.config import preset_from_dict
-    from stage_sim.plant import PlantSim, build_plant
+    from stage_sim.plant import PlantSim
+    from stage_sim.plant_model import build_plant
     m, c = 2.0, 30.0
     d = _nominal(m=m, c=c, q=0.0, noise=0.0)
     d["stage"]["drive"].update(delay_samples=int(delay), delay_fraction=delay - int(delay))
@@ -256,7 +257,7 @@ def test_isolator_hypothesis_in_any_rigid_nominal_same_candidate():
     joint) and to a table with bolted bearings; the same parameters give the same plant in both
     writings (every DOF mass, joint, friction), the rigid mass kept."""
     from experiment_runner.apps.diagnosis.effects import LIBRARY
-    from stage_sim.plant import build_plant
+    from stage_sim.plant_model import build_plant
     e = LIBRARY["fi_compliance"]
     a, b = (load_model(x).with_changes({"controller.rate": 1000.0}) for x in _rigid_nominals())
     assert e.applicable(a) is None and e.applicable(b) is None

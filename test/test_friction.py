@@ -95,10 +95,11 @@ def test_lugre_on_a_mass_matches_an_independent_integrator(rate, sigma1):
     below and above F_C from rest, against RK4 in (x, v, z) on a 1 us grid (``independent.py``):
     within 0.5 um over ~0.5 mm of travel, and within 40 nm during the pre-motion holds under
     3 N and -2 N (deflections of ~2 um; 31 nm measured without bristle damping at 1 kHz). The bristle damping sigma1 dz/dt is held over a
-    sub-step (first order): sub-steps resolve it (``plant.BRISTLE_H``); before that rule
+    sub-step (first order): sub-steps resolve it (``plant_model.BRISTLE_H``); before that rule
     sigma1 = 1500 N·s/m missed by 4.3 / 1.7 um (holds 170 / 68 nm) at 1 / 10 kHz."""
     from stage_sim.config import Stage
-    from stage_sim.plant import PlantSim, build_plant
+    from stage_sim.plant import PlantSim
+    from stage_sim.plant_model import build_plant
     m, s0, f_c, f_s, v_s, c = 2.0, 2e6, 5.0, 5.0 * 1.0001, 1e-3, 30.0
     stage = Stage.model_validate(dict(
         table=dict(mass=m), encoder=dict(resolution=0.0), travel=dict(min=-1.0, max=1.0),
@@ -131,7 +132,8 @@ def test_batch_of_trials_is_independent():
 # --------------------------------------------------------------------------- regularised Coulomb (registry law)
 def _regularized_sim(f_c=2.0, v_reg=1e-5, viscous=4.0, mass=1.0, rate=10_000.0):
     from stage_sim.config import Stage
-    from stage_sim.plant import PlantSim, build_plant
+    from stage_sim.plant import PlantSim
+    from stage_sim.plant_model import build_plant
     stage = Stage.model_validate(dict(
         table=dict(mass=mass), encoder=dict(resolution=0.0), travel=dict(min=-1.0, max=1.0),
         drive=dict(force_constant=1.0, peak_force=100.0, continuous_force=100.0),

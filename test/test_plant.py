@@ -5,7 +5,8 @@ import pytest
 from experiment_runner.core.batch import simulate
 from experiment_runner.core.profiles import point_to_point
 from stage_sim.config import Stage, load_preset, with_overrides
-from stage_sim.plant import PlantSim, SimulationError, build_plant
+from stage_sim.plant import PlantSim, SimulationError
+from stage_sim.plant_model import build_plant
 
 DRIVE = dict(force_constant=1.0, peak_force=100.0, continuous_force=100.0)
 TRAVEL = dict(min=-0.05, max=0.05)

@@ -59,7 +59,7 @@ from experiment_runner.core.metrics import rms_in_position, settling_time
 from stage_control import isolator
 from stage_sim.config import GmsFriction, Preset, load_preset, with_overrides
 from stage_sim.friction import initial_stiffness
-from stage_sim.plant import build_plant
+from stage_sim.plant_model import build_plant
 from stage_sim.validation import load_yaml
 
 # ----------------------------------------------------------------------------- defaults

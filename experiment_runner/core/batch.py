@@ -27,8 +27,8 @@ from stage_control.dither import build_dither, dither_step, init_dither_state
 from stage_control.sai import build_sai, init_sai_state, sai_step
 from stage_control.servo import build_servo, init_servo_state, servo_step
 from stage_sim.config import ConfigError, Dither, Preset, SaiManager
-from stage_sim.plant import (OK, STATUS_TEXT, PlantInputs, PlantModel, PlantState, SimulationError, build_plant,
-                             chunk_state, init_plant_state, plant_step, quantize, state_chunk)
+from stage_sim.plant import OK, STATUS_TEXT, PlantInputs, PlantState, SimulationError, chunk_state, init_plant_state, plant_step, quantize, state_chunk
+from stage_sim.plant_model import PlantModel, build_plant
 
 
 class InitialState(NamedTuple):

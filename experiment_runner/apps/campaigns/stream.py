@@ -55,7 +55,7 @@ STREAM_NAME = "trials.jsonl"
 _ROOT = Path(__file__).resolve().parents[3]
 CODE_MODULES = ("stage_sim/config.py", "stage_sim/schema.py", *sorted(f"stage_sim/friction/{p.name}" for p in
                                                 (_ROOT / "stage_sim" / "friction").glob("*.py")),
-                "stage_sim/plant.py",
+                "stage_sim/plant.py", "stage_sim/plant_model.py",
                 "stage_control/dither.py", "stage_control/filters.py", "stage_control/sai.py",
                 "stage_control/servo.py", "experiment_runner/core/batch.py", "experiment_runner/core/metrics.py",
                 "experiment_runner/core/experiment.py", "experiment_runner/core/profiles.py",

@@ -31,8 +31,8 @@ import numpy as np
 from numba import njit
 
 from stage_sim import friction
-from stage_sim.plant import (OK, PlantInputs, PlantModel, PlantState, init_plant_state, plant_step, quantize,
-                             run_open_loop)
+from stage_sim.plant import OK, PlantInputs, PlantState, init_plant_state, plant_step, quantize, run_open_loop
+from stage_sim.plant_model import PlantModel
 
 __all__ = ["observer_model", "observe", "open_loop", "new_state", "friction_norm"]
 
@@ -43,12 +43,12 @@ def observer_model(pm: PlantModel) -> PlantModel:
 
     Parameters
     ----------
-    pm : stage_sim.plant.PlantModel
+    pm : stage_sim.plant_model.PlantModel
         The plant model.
 
     Returns
     -------
-    stage_sim.plant.PlantModel
+    stage_sim.plant_model.PlantModel
     """
     return pm._replace(noise_std=0.0, fr_noise=np.zeros_like(pm.fr_noise), q_table=0.0, q_bearing=0.0)
 
@@ -59,7 +59,7 @@ def friction_norm(pm, z, fr, b, fc_tot):
 
     Parameters
     ----------
-    pm : stage_sim.plant.PlantModel
+    pm : stage_sim.plant_model.PlantModel
         The plant model.
     z : numpy.ndarray
         The plant's continuous states.
@@ -100,7 +100,7 @@ def observe(pm, fc_tot, inp, ys, vs, st, omega, m_eff, snap_every,
 
     Parameters
     ----------
-    pm : stage_sim.plant.PlantModel
+    pm : stage_sim.plant_model.PlantModel
         The observer's plant model (:func:`observer_model`).
     fc_tot : float
         Coulomb force of the friction elements on the table [N].
@@ -187,7 +187,7 @@ def open_loop(pm, inp, k0, st, out_x, seeds=None, out_y=None) -> int:
 
     Parameters
     ----------
-    pm : stage_sim.plant.PlantModel
+    pm : stage_sim.plant_model.PlantModel
         The plant model.
     inp : stage_sim.plant.PlantInputs
         (length, W) inputs.
@@ -222,7 +222,7 @@ def new_state(pm: PlantModel, x0, sai_mode: float = 1.0) -> PlantState:
 
     Parameters
     ----------
-    pm : stage_sim.plant.PlantModel
+    pm : stage_sim.plant_model.PlantModel
         The plant model.
     x0 : numpy.ndarray
         (B,) positions [m].

@@ -16,7 +16,7 @@ import yaml
 
 from stage_sim.config import ConfigError, Preset, load_preset, preset_from_dict, set_dotted
 from stage_sim.validation import load_yaml_file
-from stage_sim.plant import build_plant
+from stage_sim.plant_model import build_plant
 
 from .engine import observer_model
 
@@ -99,9 +99,9 @@ class Compiled:
 
     Parameters
     ----------
-    pm : stage_sim.plant.PlantModel
+    pm : stage_sim.plant_model.PlantModel
         The observer's plant model (noise-free, ideal sensor; drive kept).
-    pm_full : stage_sim.plant.PlantModel
+    pm_full : stage_sim.plant_model.PlantModel
         The full plant model.
     fc_tot : float
         Coulomb force of the friction elements on the table's degree of freedom [N].

@@ -42,7 +42,8 @@ from experiment_runner.apps.paper import Claim
 from experiment_runner.core import outputs
 from experiment_runner.core.metrics import settling_time
 from stage_sim.config import load_preset, with_overrides
-from stage_sim.plant import OK, SimulationError, build_plant, init_plant_state, plant_inputs, plant_step
+from stage_sim.plant import OK, SimulationError, init_plant_state, plant_inputs, plant_step
+from stage_sim.plant_model import build_plant
 
 STEPS = (50e-9, 500e-9)          # App. A test steps [m]
 DITHER_FORCE = 2.0               # a w^2 [N]
