@@ -16,7 +16,7 @@ from experiment_runner.apps.diagnosis.effects import LIBRARY
 from experiment_runner.apps.diagnosis.effects.friction import virgin_x50
 from experiment_runner.apps.diagnosis.evaluator import Evaluator
 from experiment_runner.apps.diagnosis.fit import fit_effect, gauss_newton, sparse_regression
-from experiment_runner.apps.diagnosis.locate import REGIMES, regimes
+from experiment_runner.apps.diagnosis.locate import REGIMES, by_regime, regimes
 from experiment_runner.apps.diagnosis.model import ModelSpec, load_model
 from experiment_runner.apps.diagnosis.noise import estimate_lattice
 from experiment_runner.apps.diagnosis.predict import NoiseFloor, Observer, closed_loop, force_resolution, sim_batch, sim_data
@@ -310,6 +310,29 @@ def test_regimes_of_steps_and_circle():
     half = len(c.x) // 2
     assert REGIMES[lab[half, 0]] == "reversal"
     assert REGIMES[lab[half // 2, 0]] == "constant_velocity"
+
+
+def test_by_regime_shares_and_floor():
+    """The one per-regime breakdown (locate, signatures, verdict): shares of the examined samples and
+    of the residual's energy, the floor scaled to each regime's samples, regimes below
+    ``min_samples`` left out."""
+    lab = np.array([0] * 10 + [1] * 30 + [4] * 60)[:, None]
+    r = np.concatenate([np.full(10, 2.0), np.full(30, 1.0), np.full(60, 0.5)])[:, None]
+    mask = np.ones_like(r, bool)
+    floor = np.full_like(r, 0.5)
+    floor_mask = np.arange(100)[:, None] < 50          # the floor's 50 samples: 10 of constant_velocity
+    rows = by_regime(r, mask, lab, floor=floor, floor_mask=floor_mask)
+    assert [g["regime"] for g in rows] == ["in_position", "settling", "constant_velocity"]
+    assert math.isclose(sum(g["time_share"] for g in rows), 1.0)
+    assert math.isclose(sum(g["energy_share"] for g in rows), 1.0)
+    total = 10 * 4.0 + 30 * 1.0 + 60 * 0.25
+    assert math.isclose(rows[0]["energy_share"], 40.0 / total) and rows[0]["rms_N"] == 2.0
+    # the floor's energy in a regime is scaled to the regime's samples: constant_velocity's 10 floor
+    # samples stand for its 60
+    assert rows[0]["floor_rms_N"] == 0.5 and rows[2]["floor_rms_N"] == 0.5
+    excess = [max(0.0, g["samples"] * (g["rms_N"] ** 2 - g["floor_rms_N"] ** 2)) for g in rows]
+    assert excess[2] == 0.0 and math.isclose(rows[0]["excess_share"], excess[0] / sum(excess))
+    assert [g["regime"] for g in by_regime(r, mask, lab, min_samples=20)] == ["settling", "constant_velocity"]
 
 
 def test_experiment_sine_sweep_profile():

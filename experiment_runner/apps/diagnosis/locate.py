@@ -31,7 +31,7 @@ from .judge import ReplayJudge
 from .predict import taper
 from .replay_floor import noise_free
 
-__all__ = ["REGIMES", "regimes", "locate", "lowpass", "proposals", "PROPOSAL_KEYS", "transfer_modes",
+__all__ = ["REGIMES", "regimes", "by_regime", "locate", "lowpass", "proposals", "PROPOSAL_KEYS", "transfer_modes",
            "noise_spectrum_modes"]
 
 REGIMES = ("in_position", "settling", "reversal", "acceleration", "constant_velocity")
@@ -124,6 +124,71 @@ def regimes(x_ref, v_ref, valid, rate: float, t_settle: float = 0.02) -> np.ndar
 
 def _share(e, tot):
     return float(e / tot) if tot > 0 else 0.0
+
+
+def by_regime(r: np.ndarray, mask: np.ndarray, lab: np.ndarray, min_samples: int = 1,
+              floor: np.ndarray | None = None, floor_mask: np.ndarray | None = None) -> list[dict]:
+    """Where a residual's energy lies by motion regime: one row per regime of :data:`REGIMES` with at
+    least ``min_samples`` samples on ``mask``, in that order.
+
+    Each row is ``{regime, samples, time_share, rms_N, energy_share}``: the regime's samples, their
+    share of ``mask``'s, the residual's RMS there and the regime's share of the residual's energy
+    on ``mask``. With a ``floor`` (the same residual of a recording simulated from the model, on
+    ``floor_mask``) a row also has ``floor_rms_N`` (the floor's energy in the regime scaled to the
+    regime's sample count) and ``excess_share`` (the regime's share of the energy above the floor,
+    summed over the listed regimes), after ``rms_N``.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        (T, B) residual [N].
+    mask : numpy.ndarray
+        (T, B) bool: the samples examined.
+    lab : numpy.ndarray
+        (T, B) regime index per sample (:func:`regimes`).
+    min_samples : int, optional
+        Fewest samples of a regime listed.
+    floor : numpy.ndarray, optional
+        (T', B') the floor's residual [N].
+    floor_mask : numpy.ndarray, optional
+        (T', B') bool, its samples examined; labelled by ``lab`` too.
+
+    Returns
+    -------
+    list of dict
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> r = np.array([[1.0], [1.0], [3.0], [3.0]])
+    >>> lab = np.array([[0], [0], [4], [4]])
+    >>> rows = by_regime(r, np.ones_like(r, bool), lab)
+    >>> [(g["regime"], g["time_share"], g["rms_N"], g["energy_share"]) for g in rows]
+    [('in_position', 0.5, 1.0, 0.1), ('constant_velocity', 0.5, 3.0, 0.9)]
+    """
+    tot = float(np.sum(r[mask] ** 2)) or 1e-300
+    n_all = mask.sum()
+    rows = []
+    tot_ex = 0.0
+    for i, name in enumerate(REGIMES):
+        m = mask & (lab == i)
+        n = m.sum()
+        if n < max(1, min_samples):
+            continue
+        e = float(np.sum(r[m] ** 2))
+        row = {"regime": name, "samples": int(n), "time_share": _share(n, n_all), "rms_N": float(np.sqrt(e / n))}
+        if floor is not None:
+            mf = floor_mask & (lab == i)
+            ef = float(np.sum(floor[mf] ** 2)) * n / max(1, mf.sum())
+            row["floor_rms_N"] = float(np.sqrt(ef / n))
+            row["excess_energy"] = max(0.0, e - ef)
+            tot_ex += row["excess_energy"]
+        row["energy_share"] = _share(e, tot)
+        rows.append(row)
+    if floor is not None:
+        for row in rows:
+            row["excess_share"] = _share(row.pop("excess_energy"), tot_ex)
+    return rows
 
 
 def segments(rl, fl, mask, rate, block: float = 0.05, top: int = 8, lab=None, t0=None, trial_ids=None):
@@ -424,22 +489,7 @@ def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None 
     lab = regimes(data.x_ref, data.v_ref, data.valid, rate)
     tot = float(np.sum(rl[mask] ** 2)) or 1e-300
     tot_f = float(np.sum(fl[mfl] ** 2))
-    reg = []
-    tot_ex = 0.0
-    tmp = []
-    for i, name in enumerate(REGIMES):
-        m = mask & (lab == i)
-        mf = mfl & (lab == i)
-        if not m.any():
-            continue
-        e = float(np.sum(rl[m] ** 2))
-        ef = float(np.sum(fl[mf] ** 2)) * m.sum() / max(1, mf.sum())
-        tmp.append((name, m.sum(), e, ef))
-        tot_ex += max(0.0, e - ef)
-    for name, n, e, ef in tmp:
-        reg.append({"regime": name, "samples": int(n), "time_share": _share(n, mask.sum()),
-                    "rms_N": float(np.sqrt(e / n)), "floor_rms_N": float(np.sqrt(ef / n)),
-                    "energy_share": _share(e, tot), "excess_share": _share(max(0.0, e - ef), tot_ex)})
+    reg = by_regime(rl, mask, lab, floor=fl, floor_mask=mfl)
     segs, n_blocks = segments(rl, fl, mask, rate, lab=lab, t0=data.t0, trial_ids=data.trial_ids)
     n_typ = int(np.median(mask.sum(axis=0))) if mask.any() else 1024
     nper = int(2 ** np.clip(np.floor(np.log2(max(n_typ, 256))), 8, 14))

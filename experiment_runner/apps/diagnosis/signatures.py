@@ -13,7 +13,7 @@ like the rest of the diagnosis):
   magnet pitch;
 - **a level along the stroke**: the straight line in position (slope, share);
 - **by regime**: the residual's RMS and energy share per motion regime
-  (:data:`.locate.REGIMES`).
+  (:func:`.locate.by_regime`, as the locate stage has them).
 
 These are *located, not explained*: no library effect was adopted for them. Modes of the
 transfer are in ``locate.frf_modes``.
@@ -26,7 +26,7 @@ import numpy as np
 from scipy import signal
 
 from .frf import psd_trials
-from .locate import REGIMES, lowpass, regimes
+from .locate import by_regime, lowpass, regimes
 from .units import axis_units
 
 __all__ = ["remaining", "LINE_PROMINENCE_DB", "MIN_SHARE"]
@@ -63,8 +63,7 @@ def _lines(r, held, rate, lab, max_lines: int = 3) -> tuple[list, dict]:
         if lo < hi < 1:
             sos = signal.butter(2, [lo, hi], btype="band", output="sos")
             rb = np.where(held, signal.sosfiltfilt(sos, np.where(held, r, 0.0), axis=0), 0.0)
-            rms = {REGIMES[i]: float(np.sqrt(np.mean(rb[held & (lab == i)] ** 2)))
-                   for i in range(len(REGIMES)) if (held & (lab == i)).sum() >= 20}
+            rms = {g["regime"]: g["rms_N"] for g in by_regime(rb, held, lab, min_samples=20)}
             if rms:
                 row["regime"] = max(rms, key=rms.get)
                 row["rms_by_regime_N"] = rms
@@ -174,13 +173,8 @@ def remaining(data, r: np.ndarray, held: np.ndarray, f_band: float, floor_rms: f
     level, periodic, scan = _position(rl, data.y, held, moving)
     out["stroke_level"], out["position_periodic"] = level, periodic
     ms = float(np.mean(rl[held] ** 2)) if held.any() else 0.0
-    reg = []
-    for i, name in enumerate(REGIMES):
-        m = held & (lab == i)
-        if m.sum() >= 20 and ms > 0:
-            reg.append({"regime": name, "time_share": float(m.sum() / held.sum()),
-                        "rms_N": float(np.sqrt(np.mean(rl[m] ** 2))),
-                        "energy_share": float(np.sum(rl[m] ** 2) / np.sum(rl[held] ** 2))})
+    reg = [{k: g[k] for k in ("regime", "time_share", "rms_N", "energy_share")}
+           for g in by_regime(rl, held, lab, min_samples=20)] if ms > 0 else []
     out["regimes"] = reg
     sig = [{"kind": "line in time", "share": ln["share"],
             "text": f"line at {ln['f_hz']:.4g} Hz, amplitude {ln['amplitude_N']:.3g} {fu}"

@@ -19,7 +19,7 @@ from .context import Context
 from .effects.stochastic import NoiseLevel
 from .fit import sparse_regression
 from .joint import spec_with
-from .locate import REGIMES, lowpass, regimes
+from .locate import by_regime, lowpass, regimes
 from .observer import ObsResult
 from .predict import band_rms, compare_replay, open_loop_windows, replay
 from .selection import Path, Problem, for_fits_on, identification
@@ -254,12 +254,8 @@ def explain_figures(data, res_nom: ObsResult, res_new: ObsResult, held: np.ndarr
     lab = regimes(data.x_ref, data.v_ref, data.valid, data.rate)
     rn, ri = lowpass(res_nom.r, held, data.rate, f_band), lowpass(res_new.r, held, data.rate, f_band)
     low_n, low_i = lowpass(res_nom.r, held, data.rate, f_band / 10), lowpass(res_new.r, held, data.rate, f_band / 10)
-    parts = []
-    for i, reg in enumerate(REGIMES):
-        m = held & (lab == i)
-        if m.sum() >= 10:
-            a, b = float(np.sqrt(np.mean(rn[m] ** 2))), float(np.sqrt(np.mean(ri[m] ** 2)))
-            parts.append((b - a, f"{reg} {a:.3g} -> {b:.3g} N"))
+    parts = [(gi["rms_N"] - gn["rms_N"], f"{gn['regime']} {gn['rms_N']:.3g} -> {gi['rms_N']:.3g} N")
+             for gn, gi in zip(by_regime(rn, held, lab, min_samples=10), by_regime(ri, held, lab, min_samples=10))]
     parts.sort(key=lambda t: -t[0])
     lo = (float(np.sqrt(np.mean(low_n[held] ** 2))), float(np.sqrt(np.mean(low_i[held] ** 2))))
     hi = (float(np.sqrt(np.mean((rn - low_n)[held] ** 2))), float(np.sqrt(np.mean((ri - low_i)[held] ** 2))))
