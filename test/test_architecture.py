@@ -58,7 +58,7 @@ def source_copy(tmp_path):
                  marks=pytest.mark.slow),
     pytest.param("experiment_runner/apps/diagnosis/effects/base.py", "from experiment_runner.apps.diagnosis.effects.friction "
                  "import F_C_NOMINAL", ["Diagnosis effects: the families above"], marks=pytest.mark.slow),
-    pytest.param("experiment_runner/apps/design.py", "from experiment_runner.apps.paper.fi_design import claims",
+    pytest.param("experiment_runner/apps/design/sweep.py", "from experiment_runner.apps.paper.fi_design import claims",
                  ["The applications are independent"], marks=pytest.mark.slow),
     pytest.param("experiment_runner/apps/campaigns/spec.py", "from experiment_runner.apps.cli import main",
                  ["Applications: the command line above"], marks=pytest.mark.slow),
