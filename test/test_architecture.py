@@ -58,6 +58,13 @@ def source_copy(tmp_path):
                  marks=pytest.mark.slow),
     pytest.param("experiment_runner/apps/diagnosis/effects/base.py", "from experiment_runner.apps.diagnosis.effects.friction "
                  "import F_C_NOMINAL", ["Diagnosis effects: the families above"], marks=pytest.mark.slow),
+    pytest.param("experiment_runner/apps/design/sweep.py", "from experiment_runner.apps.design.advice import recommend",
+                 ["Design advisor: CLI above", "No import cycles among the modules of any package"],
+                 marks=pytest.mark.slow),
+    pytest.param("experiment_runner/apps/diagnosis/power/cases.py",
+                 "from experiment_runner.apps.diagnosis.power.study import run_power",
+                 ["Power study: the study above", "No import cycles among the modules of any package"],
+                 marks=pytest.mark.slow),
     pytest.param("experiment_runner/apps/design/sweep.py", "from experiment_runner.apps.paper.fi_design import claims",
                  ["The applications are independent"], marks=pytest.mark.slow),
     pytest.param("experiment_runner/apps/campaigns/spec.py", "from experiment_runner.apps.cli import main",
