@@ -331,14 +331,14 @@ def shared_file(shared_data):
 @pytest.fixture(scope="session")
 def emps_diagnosis(shared_data, shared_file, tmp_path_factory) -> dict:
     """The EMPS record diagnosed once for the whole suite, as ``nanostage realdata`` does it
-    (:func:`experiment_runner.apps.diagnosis.realdata.run_emps`: converted by ``nanostage convert emps``,
+    (:func:`experiment_runner.apps.diagnosis.emps.run_emps`: converted by ``nanostage convert emps``,
     diagnosed with ``nanostage diagnose``'s defaults from the shipped nominal, the published-structure
     fits, closed-loop replays; no plots), without the wall-clock budget: the answer must not depend
     on the machine's load (how long it takes is ``nanostage bench``'s ``diagnose_seconds_emps``).
 
     ``{"summary": run_emps's result, "recording": the converted recording, "diagnosis": the folder
     of report.json and improved_preset.yaml}``."""
-    from experiment_runner.apps.diagnosis import realdata as R
+    from experiment_runner.apps.diagnosis import emps as R
     shared_file("emps/DATA_EMPS.mat")
     out = tmp_path_factory.mktemp("emps")
     summary = R.run_emps(shared_data, out, structure_check=True, plots=False, max_seconds=None)

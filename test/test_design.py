@@ -11,9 +11,11 @@ import math
 import numpy as np
 import pytest
 
-from experiment_runner.apps import design
-from experiment_runner.apps.design import (DesignError, Flexure, advise_isolator, check_van, main_design, recommend,
-                                      sweep_isolator)
+from experiment_runner.apps.design.advice import advise_isolator, recommend
+from experiment_runner.apps.design.cli import main_design
+from experiment_runner.apps.design.sweep import GRIDS, isolator_preset, lumped_stage, sweep_isolator
+from experiment_runner.apps.design.van import Flexure, check_van
+from experiment_runner.core.errors import DesignError
 
 K_GRID = np.logspace(4, 6.5, 6)        # stage totals [N/m]
 C_GRID = np.array([1.0, 30.0, 1000.0])  # [N·s/m]
@@ -79,7 +81,7 @@ def test_sweep_contents(sweep):
     assert math.isclose(p.eta, p.k_fi / 2.19e6) and p.gamma_n > 0 and math.isclose(p.kappa, (p.eta / (1 + p.eta)) ** 2)
     # the sweep reuses the servo/dither/SAI models and rebuilds only the plant: same trials as a full build
     i, j = 2, 1
-    ts, rms = sweep.moves.run(design.isolator_preset("fi_stage", K_GRID[i], C_GRID[j]))
+    ts, rms = sweep.moves.run(isolator_preset("fi_stage", K_GRID[i], C_GRID[j]))
     assert np.array_equal(ts, sweep.ts[i, j]) and np.array_equal(rms, sweep.rms[i, j])
     # the seed's own FI settles a 5 um step much faster than the grid's stiffest FI (Table 4.2 trend)
     assert a.preset_design.settling_time_s < np.nanmin(sweep.ts_mean[-1])
@@ -173,7 +175,7 @@ def test_cli_exit_codes(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_cli_fi_run_writes_report(tmp_path, capsys, monkeypatch):
-    monkeypatch.setitem(design.GRIDS, "coarse", (np.array([2e4, 2e5]), np.array([1.0, 300.0])))
+    monkeypatch.setitem(GRIDS, "coarse", (np.array([2e4, 2e5]), np.array([1.0, 300.0])))
     out = tmp_path / "fi"
     # a loose requirement is met (0), an impossible one is not (1)
     assert _cli(["fi_stage", "--rms", "50", "--grid", "coarse", "--trials", "2", "--dwell", "0.2",
@@ -200,7 +202,7 @@ def test_gamma_gms_shares_the_dahl_initial_stiffness():
     preset's initial stiffness k_f (the seed identifies both from the same FRFs), not Table 6.5's
     printed Σk_i = 6.17e5 N/m."""
     from stage_control import isolator
-    lp = design.lumped_stage("fi_stage")                           # Dahl bearings (Table 4.3)
+    lp = lumped_stage("fi_stage")                           # Dahl bearings (Table 4.3)
     assert math.isclose(sum(lp.gms_k), lp.k_f, rel_tol=1e-12)
     np.testing.assert_allclose(np.array(lp.gms_k) / lp.k_f, np.array(isolator.GMS_K) / sum(isolator.GMS_K),
                                rtol=1e-12)

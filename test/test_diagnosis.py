@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from experiment_runner.apps.diagnosis import power
+from experiment_runner.apps.diagnosis.power.case_run import build_case
+from experiment_runner.apps.diagnosis.power.cases import DEFAULT_CASES, make_cases
 from experiment_runner.apps.diagnosis.context import Context
 from experiment_runner.apps.diagnosis.data import DiagData
 from experiment_runner.apps.diagnosis.effects import LIBRARY
@@ -180,8 +181,8 @@ def test_gms_fit_gets_past_rejected_damped_steps():
     with a 13 um pre-motion length behind the isolator joints, Dahl nominal): from the start,
     Marquardt's damping stepped tenfold six times rejects every step (the fit stayed at its start);
     the trust-region solver takes over and reaches the data's level."""
-    case = next(c for c in power.make_cases(power.DEFAULT_CASES) if c.name.startswith("006_gms_"))
-    nominal, truth, expect, data, _ = power.build_case(case)
+    case = next(c for c in make_cases(DEFAULT_CASES) if c.name.startswith("006_gms_"))
+    nominal, truth, expect, data, _ = build_case(case)
     f, J0 = _fit_on(data, nominal, "gms", {"v_max": 7e-4})
     assert J0 > 1000
     assert f.J_held < 10, f.J_held
@@ -193,8 +194,8 @@ def test_a_start_the_simulator_refuses_is_a_bad_point_not_a_lost_candidate():
     of the joint's starts (from a located spectral peak) is too stiff for the simulator's
     sub-step limit at 1 kHz; that start counts as a bad fit and the others find the joint (the
     candidate was dropped before, and the diagnosis named GMS)."""
-    case = next(c for c in power.make_cases(power.DEFAULT_CASES) if c.name.startswith("029_fi_compliance_"))
-    nominal, truth, expect, data, _ = power.build_case(case)
+    case = next(c for c in make_cases(DEFAULT_CASES) if c.name.startswith("029_fi_compliance_"))
+    nominal, truth, expect, data, _ = build_case(case)
     spec = ModelSpec(nominal)
     e = LIBRARY["fi_compliance"]
     p = e.params(spec, Context())

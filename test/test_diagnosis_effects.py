@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from experiment_runner.apps.diagnosis import effects as effects_pkg
-from experiment_runner.apps.diagnosis import power
+from experiment_runner.apps.diagnosis.power.cases import PowerCase, dealt_effects, nominal_doc
 from experiment_runner.apps.diagnosis.context import Context
 from experiment_runner.apps.diagnosis.effects import LIBRARY, SHIPPED, Draw, Effect, Library
 from experiment_runner.apps.diagnosis.model import ModelSpec
@@ -50,10 +50,10 @@ def test_every_effect_has_a_concealed_truth_and_a_selftest_case(key):
 def test_the_deal_is_one_number_per_effect():
     deals = sorted(e.deal for e in LIBRARY.values() if e.deal is not None)
     assert deals == list(range(1, len(deals) + 1))
-    assert power.dealt_effects()[:3] == ["coulomb", "viscous", "mass"]
+    assert dealt_effects()[:3] == ["coulomb", "viscous", "mass"]
 
 
-@pytest.mark.parametrize("key", power.dealt_effects())
+@pytest.mark.parametrize("key", dealt_effects())
 def test_each_truth_writer_writes_a_valid_preset_with_the_effects_parameters(key):
     """On every setting the effect accepts, its truth is a valid preset and the truth values it returns
     are parameters or derived quantities of the effect (what the power study compares)."""
@@ -61,8 +61,8 @@ def test_each_truth_writer_writes_a_valid_preset_with_the_effects_parameters(key
     settings = [(s, f) for s, f in SETTINGS if e.conceal_on(s, f) and (s != "sai" or f == "dahl")]
     assert settings, key
     for stage, law in settings:
-        case = power.PowerCase(index=0, effects=(key,), stage=stage, friction=law, rate=1e4, noise=1.0, record="p2p")
-        d = power.nominal_doc(case)
+        case = PowerCase(index=0, effects=(key,), stage=stage, friction=law, rate=1e4, noise=1.0, record="p2p")
+        d = nominal_doc(case)
         spec = ModelSpec(preset_from_dict(d))
         draw = Draw(q=0.5, sign=-1.0, rng=np.random.default_rng(0), stage=stage, friction=law, rate=1e4,
                     x_center=1e-3, half_span=1e-3, stroke=2e-3, v_max=0.02)

@@ -21,7 +21,7 @@ import json
 import pytest
 
 from experiment_runner.apps.diagnosis import add_diagnose_arguments
-from experiment_runner.apps.diagnosis import realdata as R
+from experiment_runner.apps.diagnosis import emps as R
 from experiment_runner.apps.diagnosis.cli import diagnose_options
 from experiment_runner.apps.diagnosis.options import Options
 from stage_sim.config import load_preset
@@ -35,7 +35,7 @@ def emps_cli(emps_diagnosis):
 
 def test_realdata_diagnoses_with_the_cli_defaults():
     """``nanostage diagnose REC emps_nominal.yaml --no-plots`` runs ``Options(plots=False)``, the
-    options of :func:`~experiment_runner.apps.diagnosis.realdata.run_emps`'s diagnosis; the suite's one
+    options of :func:`~experiment_runner.apps.diagnosis.emps.run_emps`'s diagnosis; the suite's one
     (``conftest.emps_diagnosis``) lifts only the wall-clock budget (``max_seconds=None``: an answer
     that must not depend on the machine's load)."""
     p = argparse.ArgumentParser()

@@ -14,7 +14,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from experiment_runner.apps.diagnosis import power, verdict
+from experiment_runner.apps.diagnosis import verdict
+from experiment_runner.apps.diagnosis.power.case_run import build_case
+from experiment_runner.apps.diagnosis.power.cases import PowerCase, nominal_doc
 from experiment_runner.apps.diagnosis.context import Context
 from experiment_runner.apps.diagnosis.effects import LIBRARY
 from experiment_runner.apps.diagnosis.effects.base import Param, Parameter
@@ -28,9 +30,9 @@ from stage_sim.config import preset_from_dict
 
 
 def _nominal(law: str = "dahl", edit=None) -> ModelSpec:
-    case = power.PowerCase(index=0, effects=("coulomb",), stage="rigid", friction=law, rate=1e4, noise=1.0,
+    case = PowerCase(index=0, effects=("coulomb",), stage="rigid", friction=law, rate=1e4, noise=1.0,
                            record="p2p")
-    d = power.nominal_doc(case)
+    d = nominal_doc(case)
     if edit is not None:
         edit(d)
     return ModelSpec(preset_from_dict(d))
@@ -152,10 +154,10 @@ def test_own_resolution_reads_a_quantization_step_and_is_zero_for_a_smooth_signa
 
 
 def test_a_noise_free_nominal_with_an_ideal_encoder_has_the_datas_floor():
-    case = power.PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
+    case = PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
                            quantiles=(), seed=4242, profile={"kind": "point_to_point", "distance": 1e-4,
                                                              "dwell": 0.06}, trials=4)
-    nominal, _, _, data, _ = power.build_case(case)
+    nominal, _, _, data, _ = build_case(case)
     # a sensor of 5 nm white noise, not on a lattice; a nominal that states no noise and an ideal encoder
     data.y = data.y + np.where(data.valid, 5e-9 * np.random.default_rng(3).normal(size=data.y.shape), 0.0)
     ideal = noise_free(ModelSpec(nominal)).with_changes({"stage.encoder.resolution": 0.0})
@@ -260,10 +262,10 @@ def test_a_force_residual_that_rises_while_the_replay_improves_is_stated():
 def test_a_nominal_stating_no_drive_noise_takes_the_datas_level_before_judging():
     from experiment_runner.apps.diagnosis import stages
     from experiment_runner.apps.diagnosis.options import Options
-    case = power.PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
+    case = PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
                            quantiles=(), seed=4242, profile={"kind": "point_to_point", "distance": 1e-4,
                                                              "dwell": 0.06}, trials=4)
-    nominal, truth, _, data, _ = power.build_case(case)
+    nominal, truth, _, data, _ = build_case(case)
     s_true = ModelSpec(truth).preset.stage.drive.noise_current_rms
     assert s_true > 0
     quiet = noise_free(ModelSpec(nominal))
@@ -287,10 +289,10 @@ def test_a_deterministic_residual_is_not_taken_for_the_drive_noise_level():
     friction: the EMPS nominal read 1.5 A and named a 0.16 Hz 'periodic force' instead of friction)."""
     from experiment_runner.apps.diagnosis import stages
     from experiment_runner.apps.diagnosis.options import Options
-    case = power.PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
+    case = PowerCase(index=0, effects=(), stage="rigid", friction="dahl", rate=1e4, noise=1.0, record="p2p",
                            quantiles=(), seed=4242, profile={"kind": "point_to_point", "distance": 1e-4,
                                                              "dwell": 0.06}, trials=4)
-    nominal, truth, _, data, _ = power.build_case(case)
+    nominal, truth, _, data, _ = build_case(case)
     f_c = nominal.stage.bearings[0].friction.f_c
     quiet = noise_free(ModelSpec(nominal)).with_changes({f"stage.bearings.{i}.friction.f_c": 0.5 * f_c
                                                          for i in range(len(nominal.stage.bearings))})

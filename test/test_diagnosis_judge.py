@@ -1,7 +1,7 @@
 """The replay judge (issue 11, items 1-2): a model is judged by its closed-loop replay of
 held-out data against its own run-to-run floor.
 
-Recordings are simulated in memory from a concealed truth (:mod:`.power` helpers): the
+Recordings are simulated in memory from a concealed truth (:mod:`experiment_runner.apps.diagnosis.power` helpers): the
 Ch. 4 rigid stage with Dahl friction, four 100 um point-to-point trials at 10 kHz.
 """
 from __future__ import annotations
@@ -12,7 +12,8 @@ import pytest
 from experiment_runner.apps.diagnosis.controller import controller_check, equivalent_reference
 from experiment_runner.apps.diagnosis.judge import ReplayJudge
 from experiment_runner.apps.diagnosis.model import ModelSpec
-from experiment_runner.apps.diagnosis.power import PowerCase, build_case
+from experiment_runner.apps.diagnosis.power.case_run import build_case
+from experiment_runner.apps.diagnosis.power.cases import PowerCase
 
 
 def _case(effects=(), q=()):

@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 
 from experiment_runner.apps.diagnosis import add_diagnose_arguments, main_diagnose
-from experiment_runner.apps.diagnosis.power import PowerCase, build_case, make_cases
+from experiment_runner.apps.diagnosis.power.case_run import build_case
+from experiment_runner.apps.diagnosis.power.cases import PowerCase, make_cases
 
 pytestmark = pytest.mark.slow
 
@@ -65,7 +66,7 @@ def test_replay_refined_candidates_name_the_simpler_true_effect():
     adopted instead. With every candidate refined by the replay before candidates are compared,
     the Coulomb level reaches the floor, the friction slope adds nothing beyond it, and the
     simpler true effect is named first, its value within 2 % (the issue asks 20 %)."""
-    from experiment_runner.apps.diagnosis.power import run_case
+    from experiment_runner.apps.diagnosis.power.case_run import run_case
     # the case as dealt before lugre / regularised Coulomb / fractional delay joined the deal
     case = PowerCase(index=54, effects=("coulomb",), stage="rigid", friction="gms", rate=1000.0, noise=0.5,
                      record="p2p1", quantiles=(0.008776320631489587,), seed=176666255, trials=1,
@@ -115,7 +116,7 @@ def test_pair_rate_counts_what_each_effect_adds_given_the_other():
     """``pair_rate`` is over pairs in which each effect changes the replay by >= 3 floors once the
     other is in the model; an effect large alone but hidden by the other does not count there
     (it does in ``pair_rate_alone``)."""
-    from experiment_runner.apps.diagnosis.power import summarize
+    from experiment_runner.apps.diagnosis.power.study import summarize
 
     def pair(name, alone, given, both):
         return {"case": name, "kind": "pair", "effects": ["a", "b"], "named": [], "both_named": both,
@@ -134,7 +135,7 @@ def test_pair_rate_counts_what_each_effect_adds_given_the_other():
 def _named_alone(case: PowerCase, param: str, min_change: float) -> dict:
     """Run single-effect ``case``: its effect changes the replay by >= ``min_change`` floors and is
     the one effect named; returns the check of its parameter ``param`` (truth, estimate)."""
-    from experiment_runner.apps.diagnosis.power import run_case
+    from experiment_runner.apps.diagnosis.power.case_run import run_case
     r = run_case(case)
     assert "error" not in r, r.get("traceback")
     assert r["replay_change"]["truth"] >= min_change
@@ -180,7 +181,7 @@ def test_a_parameter_standing_in_for_a_narrow_valley_goes_back_to_no_change():
     alone. From the solution with the viscous part back at zero the refinement reaches the
     truth; on a record that only slides one way the asymmetry, a Coulomb level and an offset are
     the same physics, reported as one confounded set."""
-    from experiment_runner.apps.diagnosis.power import run_case
+    from experiment_runner.apps.diagnosis.power.case_run import run_case
     case = PowerCase(index=12, effects=("friction_asymmetry",), stage="rigid", friction="coulomb", rate=10000.0,
                      noise=0.5, record="p2p", quantiles=(0.4546660325742645,), seed=2016181085, trials=4,
                      profile={"kind": "point_to_point", "distance": -3.327984788133078e-06, "dwell": 0.06})
@@ -196,7 +197,7 @@ def test_a_stage_held_by_friction_gets_its_plots_and_no_warnings(tmp_path):
     """Power-study case 123, a negative control: a 2.5 um move of the 1 kHz Coulomb stage, which
     friction holds (every residual exactly zero). Its residual spectrum cannot be drawn on log
     axes: the plot says so instead of a Matplotlib warning, and nothing else warns."""
-    from experiment_runner.apps.diagnosis.power import run_case
+    from experiment_runner.apps.diagnosis.power.case_run import run_case
     case = PowerCase(index=123, effects=(), stage="rigid", friction="coulomb", rate=1000.0, noise=0.5,
                      record="p2p1", quantiles=(), seed=678996794, trials=1,
                      profile={"kind": "point_to_point", "distance": -2.4751129462579884e-06, "dwell": 0.25})
@@ -215,7 +216,7 @@ def test_a_diverged_candidate_costs_its_bad_point_without_a_numpy_warning():
     names the ripple or nothing: its score test merges the held-out blocks until their noise is
     independent (3 blocks of 13 here), and with so few the ripple (2.7x its floor) may stay within
     the data's own noise -- reported as a residual located, not explained; never a wrong name."""
-    from experiment_runner.apps.diagnosis.power import run_case
+    from experiment_runner.apps.diagnosis.power.case_run import run_case
     case = PowerCase(index=10, effects=("ripple",), stage="isolated", friction="dahl", rate=1000.0, noise=2.0,
                      record="p2p", quantiles=(0.5169795335958682,), seed=1345403502, trials=4,
                      profile={"kind": "point_to_point", "distance": 2.106864430632203e-06, "dwell": 0.25})
@@ -237,7 +238,7 @@ def test_second_start_finds_the_pair_a_stand_in_had_absorbed(tmp_path):
     from experiment_runner.apps.diagnosis.model import ModelSpec
     from experiment_runner.apps.diagnosis.options import Options
     from experiment_runner.apps.diagnosis.pipeline import diagnose
-    from experiment_runner.apps.diagnosis.power import judge_case
+    from experiment_runner.apps.diagnosis.power.case_run import judge_case
     case = PowerCase(index=93, effects=("fi_compliance", "stribeck"), stage="rigid", friction="coulomb",
                      rate=1000.0, noise=2.0, record="sine", quantiles=(0.7361101347540763, 0.6788227103221747),
                      seed=444203855, trials=3,

@@ -195,7 +195,7 @@ def test_the_commands_default_to_every_core(monkeypatch):
     """campaign and design sweeps: one worker process per core; the diagnosis: one thread per core."""
     import argparse
     from experiment_runner.apps.campaigns.cli import add_campaign_arguments
-    from experiment_runner.apps.design import add_design_arguments
+    from experiment_runner.apps.design.cli import add_design_arguments
     from experiment_runner.apps.diagnosis.pipeline import Options
     monkeypatch.setattr(executor_mod.os, "sched_getaffinity", lambda pid: set(range(7)), raising=False)
     monkeypatch.setattr(executor_mod, "cgroup_cpu_limit", lambda: None)

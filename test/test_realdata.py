@@ -20,8 +20,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from experiment_runner.apps.diagnosis import realdata as R
+from experiment_runner.apps.diagnosis import emps as R
 from experiment_runner.apps.diagnosis.datasets import DataMissing, data_root
+from experiment_runner.apps.diagnosis.tribometer import run_tribometer
 from experiment_runner.core.tabular import convert_emps
 
 
@@ -134,7 +135,7 @@ def test_emps_diagnosed_model_predicts_held_out_data(emps_run):
 @pytest.mark.realdata
 @pytest.mark.slow
 def test_tribometer_pre_sliding_beats_coulomb_on_held_out_strokes(shared_data, tmp_path):
-    t = R.run_tribometer(shared_data, tmp_path, plots=False)
+    t = run_tribometer(shared_data, tmp_path, plots=False)
     m = t["models"]
     assert t["reversals"] >= 90
     assert t["mu_moving_median"] == pytest.approx(0.43, abs=0.02)        # README's statistic

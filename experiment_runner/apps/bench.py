@@ -236,7 +236,7 @@ def diagnose_seconds_emps() -> float | None:
 
     from experiment_runner.apps.diagnosis import add_diagnose_arguments, main_diagnose
     from experiment_runner.apps.diagnosis.datasets import DataMissing, data_root, need_file
-    from experiment_runner.apps.diagnosis.realdata import EMPS_NOMINAL
+    from experiment_runner.apps.diagnosis.emps import EMPS_NOMINAL
     from experiment_runner.core.tabular import convert_emps
     try:
         mat = need_file(data_root() / "emps" / "DATA_EMPS.mat", "EMPS main record")

@@ -76,7 +76,7 @@ MODULE_COMMANDS = [
     ("realdata", "run the diagnosis on the real data sets of ../shared/data; report",
      "experiment_runner.apps.diagnosis.realdata", "add_realdata_arguments", "main_realdata"),
     ("design", "FI design advisor (Ch. 6) or VAN piezo power / flexure fatigue check (Sec. 3.3)",
-     "experiment_runner.apps.design", "add_design_arguments", "main_design"),
+     "experiment_runner.apps.design.cli", "add_design_arguments", "main_design"),
 ]
 
 

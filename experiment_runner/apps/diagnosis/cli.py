@@ -324,7 +324,8 @@ def _main_power(args) -> int:
 
     from experiment_runner.core.outputs import prepare_folder
 
-    from .power import DEFAULT_CASES, run_power
+    from .power.cases import DEFAULT_CASES
+    from .power.study import run_power
     out = prepare_folder(Path(args.out) if args.out else Path("out/diagnose/power"), args.overwrite,
                          files=("power.json", "report.md"), option="--out")
     if args.keep:

@@ -31,9 +31,13 @@ Transition length
 ``x_zero``: displacement after a reversal at which the force changes sign; ``x_80``: at which
 it reaches 80 % of the new sliding level (README: ~0.06 mm and ~0.10 mm). Measured on every
 stroke of the record and computed for each fitted model on the same strokes.
+
+:func:`run_tribometer` is the data set's run of ``nanostage realdata``: the record read and
+identified, its checksum, the README's values beside the results, and the plot.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, NamedTuple
@@ -42,11 +46,13 @@ import numpy as np
 from numba import njit
 from scipy.optimize import least_squares, nnls
 
+from experiment_runner.core import outputs
+from experiment_runner.core.tabular import sha256
 from stage_sim.friction import dahl_update, gms_update, lugre_update
 
-from .datasets import DataMissing
+from .datasets import DataMissing, need_file
 
-__all__ = ["TribData", "load_tribometer", "identify_tribometer", "transition_lengths"]
+__all__ = ["TribData", "load_tribometer", "identify_tribometer", "transition_lengths", "run_tribometer"]
 
 GMS_BLOCKS = 10
 GMS_DELTA = (2e-6, 3e-4)       # slip displacements of the GMS blocks, log-spaced [m]
@@ -382,3 +388,67 @@ def identify_tribometer(d: TribData, held_every: int = 3) -> dict:
         "models": out, "winner": win,
         "_masks": {"fit": fit_m, "held": held_m, "transition": trans_m},
     }
+
+
+def run_tribometer(root: Path, out: Path, plots: bool = True) -> dict:
+    """The tribometer's section of the realdata report: the open-loop, position-driven friction
+    identification (:func:`identify_tribometer`) of the record under ``root``, with its plots.
+
+    Parameters
+    ----------
+    root : pathlib.Path
+        The data folder (``microtribometer_reciprocating/test_data_2.txt`` in it).
+    out : pathlib.Path
+        Output folder of its plots.
+    plots : bool, optional
+        Write the PNG plots.
+
+    Returns
+    -------
+    dict
+        The data set's section of the realdata report (held-out RMS per friction model).
+    """
+    T0 = time.perf_counter()
+    path = need_file(Path(root) / "microtribometer_reciprocating" / "test_data_2.txt",
+                      "tribometer data (shared/data/microtribometer_reciprocating)")
+    d = load_tribometer(path)
+    r = identify_tribometer(d)
+    r["sha256"] = sha256(path)
+    r["readme"] = {"mu_sliding_median": 0.43, "x_zero_m": 0.06e-3, "x_80_m": 0.10e-3}
+    r["dataset"] = "microtribometer_reciprocating"
+    if plots:
+        r["plots"] = _trib_plots(Path(out), d, r)
+    r["seconds"] = time.perf_counter() - T0
+    return r
+
+
+def _trib_plots(out: Path, d, r: dict) -> list[str]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    j = r["held_out_strokes"][len(r["held_out_strokes"]) // 2]
+    a, b = d.strokes[j]
+    a0 = d.strokes[j - 1][0]
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
+    ax[0].plot(d.x[a0:b] * 1e3, d.f[a0:b], "k.", ms=2, label="measured")
+    for k, e in r["models"].items():
+        ax[0].plot(d.x[a0:b] * 1e3, e["_pred"][a0:b], lw=1, label=f"{k} (held-out RMS {e['rms_held_N']:.3f} N)")
+    ax[0].set_xlabel("position [mm]")
+    ax[0].set_ylabel("friction (resisting) [N]")
+    ax[0].set_title(f"strokes {j - 1}-{j} (stroke {j} held out)")
+    ax[0].legend(fontsize=7)
+    s = np.sign(d.x[b - 1] - d.x[a])
+    disp = s * (d.x[a:b] - d.x[a]) * 1e3
+    ax[1].plot(disp, s * d.f[a:b], "k.", ms=2, label="measured")
+    for k, e in r["models"].items():
+        ax[1].plot(disp, s * e["_pred"][a:b], lw=1, label=k)
+    for xv, lab in ((0.06, "README 0.06 mm"), (0.10, "README 0.10 mm")):
+        ax[1].axvline(xv, color="0.6", ls="--", lw=0.8, label=lab)
+    ax[1].set_xlabel("displacement since reversal [mm]")
+    ax[1].set_ylabel("friction in the new direction [N]")
+    ax[1].set_title("transition after a reversal")
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    p = outputs.savefig(fig, out / "tribometer_models.png", dpi=90)
+    plt.close(fig)
+    return [p.name]
