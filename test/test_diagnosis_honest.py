@@ -140,6 +140,15 @@ def test_a_fraction_of_a_sample_is_tried_after_a_whole_sample_delay():
     assert _forward(spec, "measured", selected=[delay]).candidates(["fractional_delay"]) == []
 
 
+def test_a_whole_sample_delay_is_reported_with_its_resolution():
+    """An integer delay has no standard error; it is reported as ± half a sample (the grid's
+    resolution), not as an exact value (the replay cannot tell 2.5 from 3 samples on 5 mm steps)."""
+    spec = _nominal()
+    row = _fit("delay", [3], [np.nan], spec).params()[0]
+    assert row["value"] == 3 and row["sigma"] is None and row["resolution"] == 0.5
+    assert "resolution" not in _fit("coulomb", [5.0], [0.1], spec).params()[0]
+
+
 # ---------------------------------------------------------------- a floor that means something
 
 def test_own_resolution_reads_a_quantization_step_and_is_zero_for_a_smooth_signal():

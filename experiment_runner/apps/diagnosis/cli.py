@@ -243,7 +243,8 @@ def main_diagnose(args) -> int:
         for e in data.incomplete:
             print(f"  {e}")
     for i, f in enumerate(rep["found"], 1):
-        ps = ", ".join(f"{p['name']} = {p['value']:.4g}" + (f" ± {p['sigma']:.2g}" if p.get("sigma") else "")
+        ps = ", ".join(f"{p['name']} = {p['value']:.4g}" + (f" ± {p['sigma']:.2g}" if p.get("sigma") else
+                                                            f" ± {p['resolution']:g} (whole steps)" if p.get("resolution") else "")
                        + f" {p['unit']}" + (f" (nominal {p['nominal']:.4g})" if isinstance(p.get("nominal"), (int, float)) else "")
                        for p in f["params"])
         st = f.get("status", "identified")

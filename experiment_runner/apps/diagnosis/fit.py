@@ -110,14 +110,18 @@ class FitResult:
     effect: "Effect | None" = None       # the (bound) effect fitted: what applies theta to a model
 
     def params(self) -> list[dict]:
-        """The parameters as report rows: ``name``, ``unit``, ``value``, ``sigma`` (None: no standard error).
+        """The parameters as report rows: ``name``, ``unit``, ``value``, ``sigma`` (None: no standard
+        error), ``nominal``, and for an integer effect with a grid (a whole-sample delay) its
+        ``resolution`` (:attr:`.effects.base.Effect.resolution`: ± half a grid step).
 
         Returns
         -------
         list of dict
         """
+        res = getattr(self.effect, "resolution", None)
         return [{"name": n, "unit": u, "value": float(v), "sigma": float(s) if np.isfinite(s) else None,
-                 "nominal": self.nominal.get(n)} for n, u, v, s in zip(self.names, self.units, self.theta, self.sigma)]
+                 "nominal": self.nominal.get(n), **({"resolution": res} if res is not None else {})}
+                for n, u, v, s in zip(self.names, self.units, self.theta, self.sigma)]
 
 
 class Transform:

@@ -21,7 +21,8 @@ Files written to the output folder ``DIR``
                         "unexplained residual"
 ``found``               effects in the order they were named; each: ``effect`` (library key),
                         ``title``, ``kind``, ``step``, ``params`` [{name, unit, value, sigma (1 s.d.,
-                        from the Jacobian), nominal}], ``derived`` (physical summaries, e.g. x_50),
+                        from the Jacobian), nominal, resolution (integer effects: ± half a grid
+                        step, e.g. 0.5 sample of a whole-sample delay)}], ``derived`` (physical summaries, e.g. x_50),
                         ``expressible`` (in a preset), ``confounded_with`` (keys that explain the
                         held-out data as well), ``params_joint`` (after the joint fit), ``held_out``
                         (stochastic effects: their own held-out metric), ``refined_by_replay``
@@ -187,7 +188,7 @@ def _md_found(rep: dict) -> list[str]:
         for i, f in enumerate(rep["found"], 1):
             for j, p in enumerate(f["params"]):
                 L.append(f"| {i if j == 0 else ''} | {f['title'] if j == 0 else ''} | {p['name']} [{p['unit']}] | "
-                         f"{_fmt(p['value'])} | {_fmt(p['sigma'])} | {_fmt(p['nominal'])} | "
+                         f"{_fmt(p['value'])} | {_sigma(p)} | {_fmt(p['nominal'])} | "
                          f"{', '.join(f.get('confounded_with') or []) if j == 0 else ''} |")
             for k, v in (f.get("derived") or {}).items():
                 L.append(f"|  |  | {k} (derived) | {_fmt(v)} |  |  |  |")
@@ -279,6 +280,17 @@ def _md_proof(rep: dict) -> list[str]:
     L.append(f"| open-loop {o['window_s'] * 1e3:.3g} ms window drift RMS [{pu}] | {_fmt(o['nominal'])} | "
              f"{_fmt(o['improved'])} |  |  |")
     return L
+
+
+def _sigma(p: dict) -> str:
+    """A parameter's ± 1σ cell: its standard error, or the resolution of an integer effect's grid.
+
+    >>> _sigma({"sigma": None, "resolution": 0.5})
+    '±0.5 (whole steps)'
+    """
+    if p.get("sigma") is None and p.get("resolution") is not None:
+        return f"±{p['resolution']:g} (whole steps)"
+    return _fmt(p.get("sigma"))
 
 
 def _md_locate(rep: dict) -> list[str]:

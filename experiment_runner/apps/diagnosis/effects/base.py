@@ -438,6 +438,9 @@ class Effect:
     """Keys of adopted effects after which this one is not proposed (it is part of them)."""
     sets_friction_level: ClassVar[bool] = False
     """Adopted, it is the Coulomb level (:attr:`..context.Context.level_fitted`)."""
+    resolution: ClassVar[float | None] = None
+    """Half the grid step of an integer effect's values (a whole-sample delay: 0.5 sample): what the
+    effect itself cannot resolve; reported beside its value (``resolution``), its σ being None."""
     continues: ClassVar[tuple] = ()
     """Keys of integer effects whose value this one continues below their grid step (a fraction of a
     sample after a whole-sample delay): once one of them is adopted, this one is tried before the

@@ -51,6 +51,7 @@ class Delay(Effect):
     parameters = (Parameter("delay_samples", "samples", "delay", (0, MAX)),)
     never_paired_with = ("fractional_delay",)
     in_drive = True
+    resolution = 0.5
     deal = 5
 
     def params(self, spec, ctx):
