@@ -46,8 +46,12 @@ each), see :func:`run_graph_bench`.
 """
 from __future__ import annotations
 
+import argparse
+import contextlib
+import io
 import json
 import resource
+import sys
 import tempfile
 import time
 from contextlib import ExitStack
@@ -60,10 +64,14 @@ import numpy as np
 from experiment_runner.apps.campaigns.runner import main_job
 from experiment_runner.apps.campaigns.spec import Campaign, case_preset, conditions, load_campaign
 from experiment_runner.apps.campaigns.stream import TrialStream, chunk_task, code_fingerprint, run_trial_jobs
+from experiment_runner.apps.diagnosis import add_diagnose_arguments, main_diagnose
+from experiment_runner.apps.diagnosis.datasets import DataMissing, data_root, need_file
+from experiment_runner.apps.diagnosis.emps import EMPS_NOMINAL
 from experiment_runner.apps.diagnosis.selftest import diagnose_seconds
 from experiment_runner.core.batch import Models, simulate
 from experiment_runner.core.executor import default_workers, local_cluster, make_executor
 from experiment_runner.core.profiles import point_to_point
+from experiment_runner.core.tabular import convert_emps
 from stage_sim.config import load_preset
 
 
@@ -229,15 +237,6 @@ def diagnose_seconds_emps() -> float | None:
     folder, progress off) on the EMPS main record and the shipped nominal; None, saying why on
     stderr, when ``DATA_EMPS.mat`` is not under the shared data folder
     (:func:`experiment_runner.apps.diagnosis.datasets.data_root`)."""
-    import argparse
-    import contextlib
-    import io
-    import sys
-
-    from experiment_runner.apps.diagnosis import add_diagnose_arguments, main_diagnose
-    from experiment_runner.apps.diagnosis.datasets import DataMissing, data_root, need_file
-    from experiment_runner.apps.diagnosis.emps import EMPS_NOMINAL
-    from experiment_runner.core.tabular import convert_emps
     try:
         mat = need_file(data_root() / "emps" / "DATA_EMPS.mat", "EMPS main record")
     except DataMissing as err:

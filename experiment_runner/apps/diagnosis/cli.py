@@ -1,16 +1,33 @@
 """Command-line entry of ``nanostage diagnose`` (wired in :mod:`experiment_runner.apps.cli`).
 
-Heavy modules are imported inside :func:`main_diagnose`, so building the parser is cheap.
+:mod:`experiment_runner.apps.cli` imports this module only for the ``diagnose`` command (or the
+full ``nanostage --help``), so its imports are at the top like any other module's.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+import time
+from pathlib import Path
 
 from experiment_runner.core.cliargs import positive_float, positive_int
+from experiment_runner.core.executor import add_executor_arguments
+from experiment_runner.core.nominal_model import nominal_preset_from_doc
+from experiment_runner.core.outputs import add_overwrite_argument, prepare_folder
+from experiment_runner.core.recording import read_recording
+from msg_defs.topics import CONFIG
+from stage_sim.config import ConfigError, preset_from_dict
 
 from .budget import DEFAULT_MAX_SECONDS
+from .data import load_data
+from .effects import LIBRARY
+from .options import Options
+from .pipeline import diagnose
+from .power.cases import DEFAULT_CASES
+from .power.study import run_power
+from .report import REPORT_FILES, jsonable
+from .selftest import run_selftest
 
 __all__ = ["add_diagnose_arguments", "main_diagnose", "effect_keys"]
 
@@ -39,7 +56,6 @@ def effect_keys(text: str) -> list[str]:
     >>> effect_keys("viscous, stribeck")
     ['viscous', 'stribeck']
     """
-    from .effects import LIBRARY
     keys = [k.strip() for k in text.split(",") if k.strip()]
     unknown = [k for k in keys if k not in LIBRARY]
     if unknown or not keys:
@@ -92,9 +108,7 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> argparse.Argument
                         help="wall-clock budget [s] (default %(default)g): the search stops there and keeps the "
                              "model of its last completed step; the report says what was not examined")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-    from experiment_runner.core.outputs import add_overwrite_argument
     add_overwrite_argument(parser)
-    from experiment_runner.core.executor import add_executor_arguments
     add_executor_arguments(parser, "candidate fits", workers_help="default: threads of this process")
     return parser
 
@@ -121,9 +135,6 @@ def nominal_from_config(rec):
     stage_sim.config.ConfigError
         A ``preset`` that is not a valid preset mapping, or an invalid ``nominal_model``.
     """
-    from experiment_runner.core.nominal_model import nominal_preset_from_doc
-    from msg_defs.topics import CONFIG
-    from stage_sim.config import ConfigError, preset_from_dict
     doc = rec.config_doc()
     preset = doc.get("preset")
     source = f"{rec.path}: {CONFIG.name} preset"
@@ -150,7 +161,6 @@ def diagnose_options(args):
     -------
     Options
     """
-    from .options import Options
     return Options(bandwidth=args.bandwidth, max_fit_seconds=args.max_fit_seconds,
                    effects=args.effects,
                    plots=not args.no_plots, verbose=args.verbose, workers=args.workers, cluster=args.cluster,
@@ -175,13 +185,11 @@ def main_diagnose(args) -> int:
         passed, else 1. Bad input exits 2 with one message.
     """
     if args.list_effects:
-        from .effects import LIBRARY
         print(json.dumps(LIBRARY.describe(as_json=True), indent=1) if args.json else LIBRARY.describe())
         return 0
     if args.selftest and args.power:
         return _main_power(args)
     if args.selftest:
-        from .selftest import run_selftest
         s = run_selftest(only=args.only, as_json=args.json, keep=args.keep, verbose=args.verbose,
                          workers=args.workers, cluster=args.cluster, overwrite=args.overwrite)
         if args.json:
@@ -194,14 +202,8 @@ def main_diagnose(args) -> int:
         return 0 if s["passed"] == s["cases"] else 1
     if not args.recording:
         raise SystemExit("nanostage diagnose: give RECORDING [NOMINAL], or --list-effects, or --selftest")
-    from pathlib import Path
 
-    from experiment_runner.core.outputs import prepare_folder
-    from experiment_runner.core.recording import read_recording
 
-    from .data import load_data
-    from .pipeline import diagnose
-    from .report import REPORT_FILES, jsonable
     rec = read_recording(args.recording, require_reference=False)   # not there / unreadable: no output folder made
     for w in ([f"recording {rec.salvaged}"] if rec.salvaged else []) + rec.warnings:
         print(f"warning: {w}", file=sys.stderr)         # what the reader found, before the long work
@@ -218,7 +220,6 @@ def main_diagnose(args) -> int:
     for e in data.excluded:
         print(f"warning: excluded {e}", file=sys.stderr)
     prepare_folder(out, args.overwrite, files=REPORT_FILES, option="--out")     # bad input above: no folder made
-    import time
     started = time.time()
     try:
         rep = diagnose(args.recording, nominal, out=out, options=diagnose_options(args), data=data)
@@ -321,12 +322,8 @@ def remaining_line(rep: dict) -> str | None:
 
 
 def _main_power(args) -> int:
-    from pathlib import Path
 
-    from experiment_runner.core.outputs import prepare_folder
 
-    from .power.cases import DEFAULT_CASES
-    from .power.study import run_power
     out = prepare_folder(Path(args.out) if args.out else Path("out/diagnose/power"), args.overwrite,
                          files=("power.json", "report.md"), option="--out")
     if args.keep:
@@ -386,5 +383,4 @@ def replay_lines(rep: dict) -> list[str]:
 
 
 def _clean(o):
-    from .report import jsonable
     return jsonable(o)
