@@ -129,3 +129,43 @@ def test_no_private_name_is_imported_across_modules(tmp_path):
     for other in PACKAGES[1:]:
         (tmp_path / other).mkdir()
     assert _private_imports(tmp_path) == ["stage_sim/planted.py:1 stage_sim.plant _helper"]
+
+
+FILE_LINES, CLASS_LINES, FUNCTION_LINES = 800, 400, 120
+"""The largest units a reader takes in whole: no module over 800 lines, no class over 400, no
+function over 120 (compiled kernels excepted: a numba loop nest is one function by design)."""
+
+
+def _compiled(fn) -> bool:
+    import ast
+    names = {ast.unparse(d.func if isinstance(d, ast.Call) else d) for d in fn.decorator_list}
+    return any(n.split(".")[-1] in ("njit", "jit", "vectorize", "guvectorize", "cfunc") for n in names)
+
+
+def _oversized(root: Path) -> list[str]:
+    """``path: kind name (lines)`` of every unit over its limit in the packages under ``root``."""
+    import ast
+    found = []
+    for pkg in PACKAGES:
+        for path in sorted((root / pkg).rglob("*.py")):
+            src = path.read_text()
+            rel = path.relative_to(root)
+            if src.count("\n") > FILE_LINES:
+                found.append(f"{rel}: file ({src.count(chr(10))} lines)")
+            for n in ast.walk(ast.parse(src)):
+                size = getattr(n, "end_lineno", 0) - getattr(n, "lineno", 0) + 1
+                if isinstance(n, ast.ClassDef) and size > CLASS_LINES:
+                    found.append(f"{rel}: class {n.name} ({size} lines)")
+                elif (isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and size > FUNCTION_LINES
+                      and not _compiled(n)):
+                    found.append(f"{rel}: function {n.name} ({size} lines)")
+    return found
+
+
+def test_no_unit_is_larger_than_a_reader_takes_in(tmp_path):
+    assert _oversized(ROOT) == []
+    for pkg in PACKAGES:
+        (tmp_path / pkg).mkdir()
+    body = "\n".join(f"    x{i} = {i}" for i in range(FUNCTION_LINES))
+    (tmp_path / "stage_sim" / "big.py").write_text(f"def long():\n{body}\n\n\n@njit\ndef kernel():\n{body}\n")
+    assert _oversized(tmp_path) == [f"stage_sim/big.py: function long ({FUNCTION_LINES + 1} lines)"]
