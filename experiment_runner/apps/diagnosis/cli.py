@@ -202,8 +202,6 @@ def main_diagnose(args) -> int:
         return 0 if s["passed"] == s["cases"] else 1
     if not args.recording:
         raise SystemExit("nanostage diagnose: give RECORDING [NOMINAL], or --list-effects, or --selftest")
-
-
     rec = read_recording(args.recording, require_reference=False)   # not there / unreadable: no output folder made
     for w in ([f"recording {rec.salvaged}"] if rec.salvaged else []) + rec.warnings:
         print(f"warning: {w}", file=sys.stderr)         # what the reader found, before the long work
@@ -322,8 +320,6 @@ def remaining_line(rep: dict) -> str | None:
 
 
 def _main_power(args) -> int:
-
-
     out = prepare_folder(Path(args.out) if args.out else Path("out/diagnose/power"), args.overwrite,
                          files=("power.json", "report.md"), option="--out")
     if args.keep:
