@@ -31,7 +31,23 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import llvmlite.binding
+import numba
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from experiment_runner.apps.campaigns.frf import plant_frf
+from experiment_runner.apps.campaigns.spec import load_campaign
+from experiment_runner.apps.diagnosis.selftest import diagnose_seconds
+from experiment_runner.core.batch import Models, simulate
+from experiment_runner.core.profiles import point_to_point
+from stage_control.dither import dither_step
+from stage_control.sai import sai_step
+from stage_control.servo import servo_step
+from stage_sim import numba_cache
+from stage_sim.config import load_preset
+from stage_sim.plant import plant_inputs, plant_step
 
 __all__ = ["STEPS", "warm_up", "is_warm", "main"]
 
@@ -41,9 +57,6 @@ PRESET = "sai_stage"
 
 def batch_engine() -> None:
     """:func:`experiment_runner.core.batch.simulate`: a chunk of several trials, as a campaign runs it."""
-    from experiment_runner.core.batch import Models, simulate
-    from experiment_runner.core.profiles import point_to_point
-    from stage_sim.config import load_preset
     preset = load_preset(PRESET)
     ref = point_to_point(5e-6, dwell=0.01, dt=1.0 / preset.controller.rate)
     simulate(preset, ref.x, ref.v, n_trials=3, models=Models.from_preset(preset), check=False)
@@ -51,9 +64,6 @@ def batch_engine() -> None:
 
 def frequency_response() -> None:
     """:func:`experiment_runner.apps.campaigns.frf.plant_frf` on two short columns."""
-    from experiment_runner.apps.campaigns.frf import plant_frf
-    from experiment_runner.apps.campaigns.spec import load_campaign
-    from stage_sim.config import load_preset
     test = load_campaign("frf_fi").test.model_copy(update=dict(
         f_min=200.0, f_max=300.0, points_per_decade=2, cycles=1, min_measure_time=0.0, measure_force_time=None,
         ramp_cycles=1.0, min_ramp_time=0.0, settle_cycles=0.0, min_settle_time=0.0))
@@ -63,12 +73,6 @@ def frequency_response() -> None:
 def graph_steps() -> None:
     """The step functions of the graph's nodes, with one-trial arrays as each node passes them
     (:mod:`experiment_runner.ros.plant_node`, ``servo_node``, ``dither_node``, ``sai_node``)."""
-    from experiment_runner.core.batch import Models
-    from stage_control.dither import dither_step
-    from stage_control.sai import sai_step
-    from stage_control.servo import servo_step
-    from stage_sim.config import load_preset
-    from stage_sim.plant import plant_inputs, plant_step
     models = Models.from_preset(load_preset(PRESET))
     init = models.initial_state([0.0])
     one = lambda: np.zeros(1)          # noqa: E731 - a one-trial input or output
@@ -82,20 +86,16 @@ def graph_steps() -> None:
 def diagnosis() -> None:
     """``nanostage diagnose`` on a 1 s synthetic recording
     (:func:`experiment_runner.apps.diagnosis.selftest.diagnose_seconds`)."""
-    from experiment_runner.apps.diagnosis.selftest import diagnose_seconds
     diagnose_seconds(1.0)
 
 
 def plots() -> None:
-    """matplotlib's font cache: one figure drawn off screen."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots()
+    """matplotlib's font cache: one figure drawn off screen (the Agg canvas, whatever the backend)."""
+    fig = Figure()
+    ax = fig.subplots()
     ax.plot([0, 1], [0, 1], label="warm-up")
     ax.legend()
-    fig.canvas.draw()
-    plt.close(fig)
+    FigureCanvasAgg(fig).draw()
 
 
 STEPS = {"batch": ("batch engine", batch_engine), "frf": ("frequency responses", frequency_response),
@@ -126,13 +126,10 @@ def _ticking(label: str, out, every: float = 10.0):
 
 def _marker() -> dict:
     """What a complete warm-up's marker records: numba's version and the processor it compiled for."""
-    import llvmlite.binding
-    import numba
     return {"numba": numba.__version__, "cpu": llvmlite.binding.get_host_cpu_name()}
 
 
 def _marker_path() -> Path | None:
-    from stage_sim import numba_cache
     return Path(numba_cache.CACHE_DIR) / "warmed.json" if numba_cache.CACHE_DIR else None
 
 
@@ -152,7 +149,6 @@ def warm_up(steps=None, out=sys.stderr, force: bool = False) -> dict:
     >>> sorted(warm_up(["plots"], out=None))
     ['plots']
     """
-    from stage_sim import numba_cache
     every = steps is None
     steps = list(STEPS) if every else list(steps)
     unknown = [s for s in steps if s not in STEPS]
