@@ -355,7 +355,7 @@ def warm_up(camp, case, cond, preset, executor) -> None:
         The campaign as run.
     case : experiment_runner.apps.campaigns.spec.Case
         The case.
-    cond : experiment_runner.apps.campaigns.spec.Condition
+    cond : experiment_runner.apps.campaigns.schema.common.Condition
         The condition.
     preset : stage_sim.config.Preset
         The case's stage at that condition, as run.
@@ -467,7 +467,7 @@ def run_trials(camp, case, cond, preset, correction, executor, stream: TrialStre
         The campaign as run.
     case : experiment_runner.apps.campaigns.spec.Case
         The case.
-    cond : experiment_runner.apps.campaigns.spec.Condition
+    cond : experiment_runner.apps.campaigns.schema.common.Condition
         The condition.
     preset : stage_sim.config.Preset
         The case's stage at that condition, as run.
@@ -503,7 +503,7 @@ def representative_trial(camp, case, cond, preset, index: int, correction, metri
         The campaign as run.
     case : experiment_runner.apps.campaigns.spec.Case
         The case.
-    cond : experiment_runner.apps.campaigns.spec.Condition
+    cond : experiment_runner.apps.campaigns.schema.common.Condition
         The condition.
     preset : stage_sim.config.Preset
         The case's stage at that condition, as run.

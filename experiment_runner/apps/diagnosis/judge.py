@@ -431,10 +431,8 @@ class ReplayJudge:
         float
         """
         norm = norm or fl
-        n = max(self.n, 1)
-        Dd = self.data_blocks(rp, norm).sum() / n
-        Dk = self.sim_blocks(rp, norm, of=fl).sum(axis=1) / n
-        return _log_z(Dd, Dk)
+        Dk = self.sim_blocks(rp, norm, of=fl).sum(axis=1) / max(self.n, 1)
+        return _log_z(self.D(rp, norm), Dk)
 
     def floor_ratio(self, rp: Replay, fl: Floor) -> float:
         """Data's replay error over the floor's, RMS ratio (1 = at the run-to-run floor).
@@ -450,11 +448,9 @@ class ReplayJudge:
         -------
         float
         """
-        n = max(self.n, 1)
-        Dd = self.data_blocks(rp, fl).sum() / n
-        Dk = self.sim_blocks(rp, fl).sum(axis=1) / n
+        Dk = self.sim_blocks(rp, fl).sum(axis=1) / max(self.n, 1)
         # 2 per sample = at the floor by construction; less when the floor is degenerate (no noise)
-        return float(math.sqrt(Dd / max(float(np.mean(Dk)), 2.0)))
+        return float(math.sqrt(self.D(rp, fl) / max(float(np.mean(Dk)), 2.0)))
 
 
 

@@ -76,7 +76,7 @@ def quiet_model(spec: ModelSpec):
 
     Returns
     -------
-    stage_sim.plant.PlantModel
+    stage_sim.plant_model.PlantModel
     """
     pm = spec.compiled().pm_full
     return pm._replace(noise_std=0.0, fr_noise=np.zeros_like(pm.fr_noise), q_bearing=0.0)
@@ -92,7 +92,7 @@ def noisy_model(spec: ModelSpec):
 
     Returns
     -------
-    stage_sim.plant.PlantModel
+    stage_sim.plant_model.PlantModel
     """
     return spec.compiled().pm_full
 
@@ -314,10 +314,8 @@ class OpenLoopJudge(ReplayJudge):
         -------
         float
         """
-        n = max(self.n, 1)
-        Dd = self.data_blocks(rp, fl).sum() / n
-        Dk = self.sim_blocks(rp, fl).sum(axis=1) / n
-        return float(math.sqrt(Dd / max(float(np.mean(Dk)), 1.0)))
+        Dk = self.sim_blocks(rp, fl).sum(axis=1) / max(self.n, 1)
+        return float(math.sqrt(self.D(rp, fl) / max(float(np.mean(Dk)), 1.0)))
 
 
 MISSING_LP = 0.2
