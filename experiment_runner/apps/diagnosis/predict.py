@@ -281,6 +281,7 @@ class NoiseFloor:
     def __init__(self, rate: float, residuals, masks, f_max: float, nperseg: int = 1024, rms_min: float = 0.0):
         self.rate = rate
         self.f_max = f_max
+        self._gains = {}      # (FFT length, scale) -> gain (:meth:`gain`)
         segs = []
         for r, m in zip(residuals, masks):
             if not np.all(np.isfinite(r[m])) or np.max(np.abs(r[m]), initial=0.0) > 1e100:
@@ -317,7 +318,8 @@ class NoiseFloor:
         self.sim_ms = [float(x * self.scale ** 2) for x in ms]
 
     def gain(self, n: int) -> np.ndarray:
-        """The whitening gain on the ``rfft`` grid of ``n`` samples (scaled: unit mean square floor).
+        """The whitening gain on the ``rfft`` grid of ``n`` samples (scaled: unit mean square floor),
+        computed once per length and scale (every residual a fit evaluates is whitened by it).
 
         Parameters
         ----------
@@ -327,14 +329,20 @@ class NoiseFloor:
         Returns
         -------
         numpy.ndarray
-            ``n // 2 + 1`` gains [1/N].
+            ``n // 2 + 1`` gains [1/N] (read-only: shared by every call).
         """
-        f = np.fft.rfftfreq(n, 1.0 / self.rate)
-        g = 1.0 / np.sqrt(np.interp(f, self.f, self.psd))
-        roll = 1.0 / np.sqrt(1.0 + (f / self.f_max) ** 8)
-        g = g * roll
-        g[0] = g[1] if len(g) > 1 else g[0]
-        return g * self.scale
+        key = (n, self.scale)
+        g = self._gains.get(key)
+        if g is None:
+            f = np.fft.rfftfreq(n, 1.0 / self.rate)
+            g = 1.0 / np.sqrt(np.interp(f, self.f, self.psd))
+            roll = 1.0 / np.sqrt(1.0 + (f / self.f_max) ** 8)
+            g = g * roll
+            g[0] = g[1] if len(g) > 1 else g[0]
+            g = g * self.scale
+            g.flags.writeable = False
+            self._gains[key] = g
+        return g
 
     def whiten(self, r: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Whitened residual (same shape); masked-out samples are zero before and after.

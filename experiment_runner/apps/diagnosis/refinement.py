@@ -139,14 +139,28 @@ class _OutputError:
         self.lo, self.hi = self.tr.bounds()
         self.eps = 1e-6 * (self.hi - self.lo)
         self.bad = None          # the residual of a point that does not run (None until a start runs)
+        self._seen = {}          # z's bytes -> its residual (:meth:`residual`)
 
     def clip(self, z):
         """``z`` inside the bounds by a margin."""
         return np.clip(z, self.lo + self.eps, self.hi - self.eps)
 
     def residual(self, z):
-        """The replay error of the fit samples at ``z`` in floor units, or :attr:`bad`."""
+        """The replay error of the fit samples at ``z`` in floor units, or :attr:`bad`; a point
+        evaluated before is not replayed again (the solver's first evaluation is the start the
+        grid or :meth:`best_start` chose; :meth:`back_to_no_change` starts where it scored)."""
         checkpoint()          # a search whose budget is spent stops here (:mod:`.budget`)
+        z = np.asarray(z, float)
+        key = z.tobytes()
+        hit = self._seen.get(key)
+        if hit is not None:
+            return hit if hit is self.bad else hit.copy()
+        r = self._residual(z)
+        if r is not None:
+            self._seen[key] = r
+        return r if r is None or r is self.bad else r.copy()
+
+    def _residual(self, z):
         th = self.tr.to_theta(z)
         if not np.all(np.isfinite(th)):
             return self.bad
