@@ -3,6 +3,7 @@
 The end-to-end concealed-data cases (synth -> MCAP -> diagnose) are in
 test_diagnosis_selftest.py; here the pieces, on short in-memory batches.
 """
+import dataclasses
 import math
 
 import numpy as np
@@ -139,6 +140,77 @@ def test_fit_recovers_coulomb_and_rejects_others(coulomb_case):
     assert 0 < f.sigma[0] < 0.01
     fm = fit_effect(LIBRARY["mass"], spec, ev, ctx)
     assert fm.J_held > 100 * f.J_held
+
+
+def test_evaluator_runs_the_observer_once_per_model_and_columns(coulomb_case):
+    """The candidates of a step score their start against the same current model, and a fit's
+    held-out J under its own floor repeats the run of its figures: the observer runs once per
+    model and trial columns; each call still counts as an evaluation, and a cached run gives the
+    same J as a fresh evaluator's (under another floor too)."""
+    d, ob, fl, spec = coulomb_case
+    ev = Evaluator(ob, fl)
+    n0 = ob.calls
+    J_fit = ev.J(spec, "fit")
+    assert ev.J(spec, "fit") == J_fit and ob.calls == n0 + 1 and ev.evals == 2
+    J_held = ev.J(spec, "held")
+    other = NoiseFloor(d.rate, [ob.run(spec).r], [d.fit | d.held], f_max=ob.f_o)
+    n1 = ob.calls
+    J_other = ev.J(spec, "held", floor=other)            # the held-out run again, another floor
+    assert ob.calls == n1
+    fresh = Evaluator(ob, fl)
+    assert fresh.J(ModelSpec(NOM), "held") == J_held and fresh.J(ModelSpec(NOM), "held", floor=other) == J_other
+    assert ob.calls == n1 + 2                              # a new spec object: run again
+
+
+def test_fit_runs_of_the_observer_stop_at_the_last_fit_sample(coulomb_case):
+    """The observer is causal: a run stopped at sample ``n`` is the full run there (zero after);
+    the evaluator's fit runs stop at the last fit sample and give the full run's fit vector."""
+    d, ob, fl, spec = coulomb_case
+    full = ob.run(spec, cols=[0])
+    part = ob.run(spec, cols=[0], stop=300)
+    assert np.array_equal(part.r[:300], full.r[:300]) and np.array_equal(part.v[:300], full.v[:300])
+    assert not part.r[300:].any() and part.bad == 0
+    half = dataclasses.replace(d, fit=d.fit & (np.arange(d.shape[0])[:, None] < d.shape[0] // 2))
+    ob2 = Observer(half, bandwidth=ob.f_o)
+    ev = Evaluator(ob2, fl)
+    assert ev.fit_stop == d.shape[0] // 2
+    m = half.fit[:, ev.fit_cols]
+    ref = fl.whiten(ob2.run(spec, cols=ev.fit_cols).r, m)[m]
+    assert np.array_equal(ev.fit_vector(spec), ref)
+
+
+def test_whitening_gain_is_computed_once_per_length(coulomb_case):
+    """Every residual a fit evaluates is whitened by the same gain: computed once per FFT length
+    (read-only, shared), equal to a floor's built afresh."""
+    d, ob, fl, spec = coulomb_case
+    g = fl.gain(4096)
+    assert fl.gain(4096) is g and not g.flags.writeable and fl.gain(8192) is not g
+    again = NoiseFloor(d.rate, [Observer(sim_data(spec, d, 999), bandwidth=ob.f_o).run(spec).r],
+                       [d.fit | d.held], f_max=ob.f_o)
+    assert np.array_equal(again.gain(4096), g)
+
+
+def test_replay_refinement_replays_a_point_once(coulomb_case):
+    """The least-squares solver of a replay refinement starts where the start search scored: a
+    point evaluated before is not replayed again, and its residual comes back unchanged (a
+    copy: the caller may not spoil it)."""
+    from experiment_runner.apps.diagnosis.judge import ReplayJudge
+    from experiment_runner.apps.diagnosis.refinement import _OutputError
+    d, ob, fl, spec = coulomb_case
+    ctx = Context(u_max=float(np.abs(d.u).max()), v_max=0.02, x_center=0.0, x_half_span=5e-3)
+    f = fit_effect(LIBRARY["coulomb"], spec, Evaluator(ob, fl), ctx)
+    judge = ReplayJudge(d)
+    floor = judge.floor(spec)
+    oe = _OutputError(f, [], np.asarray(f.theta, float), spec, ctx, judge, floor)
+    z = oe.clip(oe.tr.to_z(f.theta))
+    n0 = judge.sims
+    r1 = oe.residual(z)
+    r1[:] = 0.0
+    r2 = oe.residual(z.copy())
+    assert judge.sims == n0 + 1
+    assert np.array_equal(r2, judge.residual(judge.replay(f.effect.apply(spec, oe.tr.to_theta(z))), floor))
+    oe.residual(z + 0.01)
+    assert judge.sims == n0 + 3                            # the check's replay, and a new point
 
 
 def _fit_on(d, nominal, key, ctx=None, starts=None):

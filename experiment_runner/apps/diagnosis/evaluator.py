@@ -16,6 +16,7 @@ Effective sample count
 """
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 
@@ -27,6 +28,8 @@ from .observer import Observer
 from .predict import NoiseFloor
 
 __all__ = ["Evaluator", "n_eff"]
+
+_TOKENS = itertools.count()
 
 
 class Evaluator:
@@ -60,24 +63,38 @@ class Evaluator:
                 tot += d.fit[:, b].sum() / d.rate
             fit_cols = keep
         self.fit_cols = np.array(fit_cols, int)
+        rows = np.flatnonzero(d.fit[:, self.fit_cols].any(axis=1))
+        self.fit_stop = int(rows[-1]) + 1 if len(rows) else d.shape[0]
+        """Samples a run for the fit samples alone goes through (to the last one)."""
         self.held_cols = np.array(held_cols, int)
         self.same = set(fit_cols) == set(held_cols)
         self.evals = 0
         self.seconds = 0.0
         self._lock = threading.Lock()
+        self.token = next(_TOKENS)      # the run cache's key on the specs (an id() could be reused)
 
-    def _run(self, spec, cols):
+    def _run(self, spec, cols, stop: int | None = None):
+        """The observer's residual of ``spec`` on trial columns ``cols`` (through sample ``stop``,
+        default all): ``(r, bad)`` of :class:`.observer.ObsResult`, run once per spec, observer,
+        columns and stop (kept on the spec: the candidates of a step score their start against the
+        same current model, and a fit's held-out J after its own floor repeats the run its figures
+        made). Every call counts as an evaluation (:attr:`evals`); :attr:`seconds` are the runs'."""
         checkpoint()          # a search whose budget is spent stops here (:mod:`.budget`)
+        key = ("evaluator_run", self.token, tuple(int(c) for c in cols), stop)
+        hit = spec._compiled.get(key)
         t = time.perf_counter()
-        res = self.obs.run(spec, cols=cols)
+        if hit is None:
+            res = self.obs.run(spec, cols=cols, stop=stop)
+            hit = spec._compiled[key] = (res.r, res.bad)
         with self._lock:
             self.evals += 1
             self.seconds += time.perf_counter() - t
-        return res
+        return hit
 
     def fit_vector(self, spec: ModelSpec, bad: float = 1e3) -> np.ndarray:
         """Whitened residual on the fit samples (the least-squares vector); ``bad`` in every
-        sample where the observer diverged.
+        sample where the observer diverged (the observer runs to the last fit sample,
+        :attr:`fit_stop`: the samples after it are not the fit's).
 
         Parameters
         ----------
@@ -90,11 +107,11 @@ class Evaluator:
         -------
         numpy.ndarray
         """
-        res = self._run(spec, self.fit_cols)
+        r, diverged = self._run(spec, self.fit_cols, self.fit_stop)
         m = self.data.fit[:, self.fit_cols]
-        if res.bad:           # not whitened: a diverged residual is no spectrum
+        if diverged:          # not whitened: a diverged residual is no spectrum
             return np.full(int(m.sum()), bad)
-        return self.floor.whiten(res.r, m)[m]
+        return self.floor.whiten(r, m)[m]
 
     def J(self, spec: ModelSpec, which: str = "held", floor: NoiseFloor | None = None) -> float:
         """Whitened mean square of ``spec``'s force residual on the held-out (or fit) samples; inf when the observer diverges.
@@ -114,10 +131,10 @@ class Evaluator:
         """
         cols = self.held_cols if which == "held" else self.fit_cols
         mask = (self.data.held if which == "held" else self.data.fit)[:, cols]
-        res = self._run(spec, cols)
-        if res.bad:
+        r, diverged = self._run(spec, cols, None if which == "held" else self.fit_stop)
+        if diverged:
             return float("inf")
-        return (floor or self.floor).ms(res.r, mask)
+        return (floor or self.floor).ms(r, mask)
 
     def both(self, spec: ModelSpec, floor: NoiseFloor | None = None) -> tuple[float, float, float]:
         """(J_fit, J_held, n_eff_held) in one or two observer runs.
@@ -135,18 +152,18 @@ class Evaluator:
         """
         fl = floor or self.floor
         cols = np.union1d(self.fit_cols, self.held_cols)
-        res = self._run(spec, cols)
-        if res.bad:
+        r, diverged = self._run(spec, cols)
+        if diverged:
             return float("inf"), float("inf"), 1.0
         idx = {c: i for i, c in enumerate(cols)}
-        mf = np.zeros(res.r.shape, bool)
-        mh = np.zeros(res.r.shape, bool)
+        mf = np.zeros(r.shape, bool)
+        mh = np.zeros(r.shape, bool)
         for c in self.fit_cols:
             mf[:, idx[c]] = self.data.fit[:, c]
         for c in self.held_cols:
             mh[:, idx[c]] = self.data.held[:, c]
-        wh = fl.whiten(res.r, mh)
-        return fl.ms(res.r, mf), float(np.sum(wh[mh] ** 2) / max(1, mh.sum())), n_eff(wh, mh)
+        wh = fl.whiten(r, mh)
+        return fl.ms(r, mf), float(np.sum(wh[mh] ** 2) / max(1, mh.sum())), n_eff(wh, mh)
 
 
 def n_eff(w: np.ndarray, mask: np.ndarray, max_lag: int = 200) -> float:

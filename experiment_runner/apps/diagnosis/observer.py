@@ -113,7 +113,7 @@ class Observer:
         self.fe = np.ascontiguousarray(data.known_force())                        # known external force
         self.calls = 0
 
-    def run(self, spec: ModelSpec, cols=None, snap_every: int = 0) -> ObsResult:
+    def run(self, spec: ModelSpec, cols=None, snap_every: int = 0, stop: int | None = None) -> ObsResult:
         """Run the observer of model ``spec`` over the data.
 
         Parameters
@@ -124,6 +124,10 @@ class Observer:
             Trial columns (default all).
         snap_every : int, optional
             Keep the plant state every this many samples (0: none).
+        stop : int, optional
+            Run the first ``stop`` samples only (the observer is causal: they are what a run over
+            every sample gives there); the outputs are zero after them and ``bad`` counts the
+            steps before. Default: every sample.
 
         Returns
         -------
@@ -135,11 +139,13 @@ class Observer:
             u, ys, vs, fe = (np.ascontiguousarray(a[:, cols]) for a in (u, ys, vs, fe))
             inputs = tuple(np.ascontiguousarray(a[:, cols]) for a in inputs)
         T, B = u.shape
+        n = T if stop is None else max(1, min(int(stop), T))
         st = E.new_state(c.pm, ys[0], sai_mode=float(inputs[2][0, 0]))
-        outs = [np.empty((T, B)) for _ in range(4)]
-        ns = (T + snap_every - 1) // snap_every if snap_every > 0 else 1
+        outs = [np.empty((T, B)) if n == T else np.zeros((T, B)) for _ in range(4)]
+        ns = (n + snap_every - 1) // snap_every if snap_every > 0 else 1
         snaps = [np.zeros((ns,) + a.shape) for a in st[:4]]
-        inp = PlantInputs(u, *inputs, fe if fe is not None and np.any(fe) else np.zeros((0, 0)))
-        bad = E.observe(c.pm, c.fc_tot, inp, ys, vs, st, self.omega, c.m_eff, int(snap_every), *outs, *snaps)
+        inp = PlantInputs(u[:n], *(a[:n] for a in inputs), fe[:n] if fe is not None and np.any(fe) else np.zeros((0, 0)))
+        bad = E.observe(c.pm, c.fc_tot, inp, ys[:n], vs[:n], st, self.omega, c.m_eff, int(snap_every),
+                        *(o[:n] for o in outs), *snaps)
         self.calls += 1
         return ObsResult(*outs, snaps=(snap_every, *snaps) if snap_every > 0 else None, bad=int(bad))
