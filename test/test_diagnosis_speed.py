@@ -5,6 +5,10 @@
 - The replay refinements of a step run on parallel threads (:func:`.refining.refine_rows`): one
   thread and two give the same report, bit for bit.
 - ``nanostage bench``'s EMPS figure is left out, saying why, when the EMPS data are missing.
+
+The work each evaluation saves without changing a number -- the evaluator's observer runs kept on
+the spec, its fit runs stopped at the last fit sample, the whitening gain computed once per length,
+a replay refinement's point replayed once -- is tested with those pieces in test_diagnosis.py.
 """
 import json
 from types import SimpleNamespace
