@@ -316,6 +316,51 @@ def test_a_deterministic_residual_is_not_taken_for_the_drive_noise_level():
     assert not [f for f in lattice.found if f["effect"] == "noise_level"]
 
 
+def test_the_noise_level_read_says_how_widely_noise_alone_scatters_its_groups():
+    """A white residual at 4x the model's drive-noise power: the level is read on a short record and
+    a long one; ``noise_spread`` (chi-square scatter of the groups' power) matches the spread the
+    groups show over independent draws, wide on 315 samples (one Welch segment), narrow on 18000."""
+    from experiment_runner.apps.diagnosis.noise import SPREAD_MAX, fit_noise_level
+    rate = 1000.0
+    f = np.linspace(0, rate / 2, 513)
+    s_n = np.full_like(f, 2.0 / rate)          # one-sided PSD of unit-variance white noise (sigma_ref 1 A)
+    comps = (f, 1e-6 * s_n, s_n, 1.0)
+    rng = np.random.default_rng(3)
+    for n, wide in ((315, True), (18000, False)):
+        est = [fit_noise_level(2.0 * rng.normal(size=(n, 1)), np.ones((n, 1), bool), rate, comps, f_max=30.0)
+               for _ in range(200)]
+        sig = np.array([e["sigma"] for e in est])
+        assert abs(np.median(sig) / 2.0 - 1.0) < 0.15
+        seen, said = np.mean([e["spread"] for e in est]), est[0]["noise_spread"]
+        assert 0.6 < seen / said < 1.5, (n, seen, said)
+        assert (said > 0.5 * SPREAD_MAX) is wide
+
+
+@pytest.mark.slow
+def test_a_stated_level_is_not_moved_where_the_spectrum_cannot_tell_noise_from_a_mode():
+    """Power case 074 (main eedbaf1): a 33 Hz structural mode on a 315-sample p2p record at 1 kHz,
+    the drive noise as stated. The residual in 4-22 Hz read 5.1x the stated level, its groups'
+    spread 0.31 -- what noise alone gives one Welch segment -- and that level made the replay
+    consistent: taken before judging, it hid the mode (never proposed). The stated level stays."""
+    from experiment_runner.apps.diagnosis import stages
+    from experiment_runner.apps.diagnosis.options import Options
+    case = PowerCase(index=74, effects=("structural_mode",), stage="rigid", friction="gms", rate=1000.0, noise=0.5,
+                     record="p2p1", quantiles=(0.3550035808939208,), seed=181385727, trials=1,
+                     profile={"kind": "point_to_point", "distance": -0.0003768748763796661, "dwell": 0.25})
+    nominal, truth, _, data, _ = build_case(case)
+    s0 = nominal.stage.drive.noise_current_rms
+    assert s0 > 0 and truth.stage.drive.noise_current_rms == s0
+    opt, timing = Options(plots=False, n_jobs=1), {}
+    setup = stages.read(None, ModelSpec(nominal), opt, data, timing)
+    lattice = stages.quantization(setup, opt)
+    pred = stages.predict(setup, lattice.base, opt, timing)
+    stages.drive_noise_prior(setup, lattice, pred, opt, timing)
+    info = lattice.stochastic["noise_prior"]
+    assert info["ratio"] > 1.25 and info["noise_spread"] > info["spread"], info
+    assert "not_taken" in info and lattice.base.preset.stage.drive.noise_current_rms == s0
+    assert not [f for f in lattice.found if f["effect"] == "noise_level"]
+
+
 def test_a_candidate_replaying_closer_than_its_own_recordings_replays_the_noise():
     from experiment_runner.apps.diagnosis.selection import JudgedRow, consistent_from_below
     z = {"mass": -5.0, "coulomb": 0.4, "delay": -1.0}

@@ -100,6 +100,50 @@ def test_a_confounded_alternative_counts_as_the_effect_it_stands_for():
     assert ("second", 5) not in fs.steps_run
 
 
+class _Judged(_Scripted):
+    """:class:`_Scripted` run whole: each walk's replay tagged with the walk, the judge's adoption test
+    accepting the second walk's replay over the greedy one's where ``second_better``."""
+
+    def __init__(self, greedy, second, second_better):
+        super().__init__(greedy, second)
+        ok = SimpleNamespace(ok=True, walk=None)
+        self.problem.base_replay_floor = SimpleNamespace(replay=ok, noise=None)
+        self.problem.judge = SimpleNamespace(
+            D=lambda rp, fl: 1.0,
+            compare=lambda fl, rp: SimpleNamespace(accepted=second_better and rp.walk == "second",
+                                                   why="better beyond the floor" if second_better else "not better"))
+
+    def step(self, step, first=None):
+        going = super().step(step, first)
+        if going:
+            self.path.replay_floor = SimpleNamespace(replay=SimpleNamespace(ok=True, walk=self.walking), noise=None)
+            self.path.floor = SimpleNamespace(noise=None)
+        return going
+
+    def second_start(self, a):
+        return SimpleNamespace(fit=SimpleNamespace(key="dahl"))
+
+
+@pytest.mark.parametrize("second_better", [True, False])
+def test_a_walk_joined_through_a_confounded_alternative_is_kept_where_its_replay_is_better(second_better):
+    # power case 003 (a force constant; main eedbaf1): the greedy walk took LuGre (the force constant
+    # confounded with it), later withdrawn as not identified; the second walk from Dahl took the force
+    # constant and withdrew Dahl: joined, it was dropped though its replay was 2x closer to the data
+    fs = _Judged(["lugre~force_constant"], ["dahl", "force_constant~lugre -dahl"], second_better)
+    kept = fs.run()
+    assert fs.joined is not None and fs.joined["effects"] == ["force_constant"]
+    assert [fe["effect"] for fe in kept.found] == (["force_constant"] if second_better else ["lugre"])
+    assert kept.second_start["chosen"] is second_better and kept.second_start["joined"] == fs.joined
+    assert ("second", 3) not in fs.steps_run
+
+
+def test_a_walk_joined_with_the_same_effects_keeps_the_greedy_walk():
+    fs = _Judged(["viscous", "mass"], ["mass", "viscous"], second_better=True)
+    kept = fs.run()
+    assert fs.joined is not None and [fe["effect"] for fe in kept.found] == ["viscous", "mass"]
+    assert kept.second_start["chosen"] is False
+
+
 def test_a_second_walk_that_never_joins_walks_to_its_end():
     fs = _Scripted(["gms", "mass"], ["fi_compliance", "stribeck"])
     fs.walk()

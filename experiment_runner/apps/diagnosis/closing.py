@@ -15,7 +15,7 @@ from .effects.stochastic import NoiseLevel
 from .fit import FitResult
 from .floors import ForceFloor
 from .joint import joint_fit
-from .noise import fit_noise_level, noise_components
+from .noise import SPREAD_MAX, fit_noise_level, noise_components
 from .observer import Observer
 from .openloop import MISSING_LP
 from .selection import Path, Problem, for_fits_on
@@ -132,7 +132,7 @@ def _proposed_level(problem: Problem, path: Path, ninfo: dict):
         return None, None, False
     s0 = path.current.preset.stage.drive.noise_current_rms
     sig = est["sigma"]
-    consistent = est.get("spread", 1.0) < 0.35
+    consistent = est.get("spread", 1.0) < SPREAD_MAX
     if not consistent and data.open_loop and s0 > 0 and problem.fit_judge is not None:
         # the bands disagree (few of them above the open-loop records' known-force band): the level at
         # which the fit samples' prewhitened windows are at the model's own floor, adopted in their

@@ -10,7 +10,9 @@ step 1's runner-up (:meth:`ForwardSelection.second_start`) and is kept only if i
 better beyond the first walk's floor (the adoption test). A second walk whose adopted effects become
 those of the greedy walk after one of its steps (each the same effect or one reported confounded with
 it: a force constant for a mass) has joined it: from there it would walk the greedy path again, so it
-stops, and the greedy walk is kept.
+stops; the greedy walk is kept, unless the second walk holds a confounded alternative in the greedy
+effect's place and its held-out replay is better beyond the greedy walk's floor (the adoption test:
+the two models differ, and the greedy effect may still be withdrawn as not identified).
 
 With a :class:`.budget.Budget`, a step stopped by it (time spent, or an interruption) is dropped
 whole: the walk keeps the model of its last completed step, and an unfinished second walk is not
@@ -86,6 +88,12 @@ class ForwardSelection:
                    f"the greedy path's effects of step {j['greedy_step']} ({', '.join(j['greedy_effects'])}"
                    + (", or one confounded with each" if j["effects"] != j["greedy_effects"] else "")
                    + "); walked no further")
+            # an alternative stands for the effect it is confounded with in the walk, not in the model:
+            # the two models differ, and the data decide between them as between two walks
+            c = (judge.compare(a.replay_floor, b.replay_floor.replay)
+                 if j["effects"] != j["greedy_effects"] and b.replay_floor.replay.ok else None)
+            if c is not None and c.accepted:
+                return self._keep(b, a, b, second, f"{why}; its held-out replay {c.why}", joined=j)
             a.second_start = {
                 "first": second.fit.key, "chosen": False, "joined": dict(j),
                 "effects": [fe["effect"] for fe in b.found], "greedy_effects": [fe["effect"] for fe in a.found],
@@ -101,13 +109,41 @@ class ForwardSelection:
             problem.evaluator.floor = a.floor.noise
             return a
         c = judge.compare(a.replay_floor, b.replay_floor.replay) if b.replay_floor.replay.ok else None
-        chosen = b if c is not None and c.accepted else a
+        return self._keep(b if c is not None and c.accepted else a, a, b, second,
+                          c.why if c is not None else "unstable")
+
+    def _keep(self, chosen: Path, a: Path, b: Path, second: JudgedRow, why: str, joined: dict | None = None) -> Path:
+        """Keep ``chosen`` (the greedy walk ``a`` or the second walk ``b``), saying in its
+        ``second_start`` what both walks found and why.
+
+        Parameters
+        ----------
+        chosen : Path
+            The kept walk.
+        a : Path
+            The greedy walk.
+        b : Path
+            The second walk.
+        second : JudgedRow
+            The second walk's first step.
+        why : str
+            Why ``chosen`` is kept.
+        joined : dict, optional
+            Where the second walk joined the greedy one (:attr:`joined`).
+
+        Returns
+        -------
+        Path
+            ``chosen``.
+        """
+        problem, judge = self.problem, self.problem.judge
         chosen.second_start = {
             "first": second.fit.key, "chosen": chosen is b,
             "effects": [fe["effect"] for fe in b.found], "greedy_effects": [fe["effect"] for fe in a.found],
             "replay_D": judge.D(b.replay_floor.replay, a.replay_floor) if b.replay_floor.replay.ok else None,
-            "replay_D_greedy": judge.D(a.replay_floor.replay, a.replay_floor),
-            "why": c.why if c is not None else "unstable"}
+            "replay_D_greedy": judge.D(a.replay_floor.replay, a.replay_floor), "why": why}
+        if joined is not None:
+            chosen.second_start["joined"] = dict(joined)
         self.path = chosen
         problem.evaluator.floor = chosen.floor.noise
         problem.options.log(f"second start: {[fe['effect'] for fe in chosen.found]} kept "

@@ -22,7 +22,11 @@ from .data import DiagData
 from .model import ModelSpec
 from .predict import sim_batch
 
-__all__ = ["estimate_lattice", "noise_components", "fit_noise_level"]
+__all__ = ["estimate_lattice", "noise_components", "fit_noise_level", "SPREAD_MAX"]
+
+SPREAD_MAX = 0.35
+"""Largest relative spread of :func:`fit_noise_level`'s group ratios of a level read alike in every
+band (a deterministic remnant makes some groups stand out)."""
 
 
 def estimate_lattice(y: np.ndarray, min_frac: float = 0.995):
@@ -137,16 +141,21 @@ def fit_noise_level(r_meas: np.ndarray, mask: np.ndarray, rate: float, comps, f_
     Returns
     -------
     dict
-        ``ok`` and, when ok, ``sigma`` [A] with its uncertainty and the bands' ratios; else ``why``.
+        ``ok`` and, when ok, ``sigma`` [A] with its uncertainty, the groups' ratios, their relative
+        ``spread`` and ``noise_spread``, the spread noise alone gives them (chi-square power of the
+        data's Welch spectrum); else ``why``.
     """
     f, S_q, S_n, sigma_ref = comps
-    psd = []
+    psd, dof, df = [], 0.0, 0.0
     for b in range(r_meas.shape[1]):
         m = mask[:, b]
         if m.sum() < 256:
             continue
-        ff, p = signal.welch(r_meas[m, b], rate, nperseg=min(1024, int(m.sum())))
+        n_seg = min(1024, int(m.sum()))
+        ff, p = signal.welch(r_meas[m, b], rate, nperseg=n_seg)
         psd.append(np.interp(f, ff, p))
+        dof += 2.0 * max(1, (int(m.sum()) - n_seg // 2) // (n_seg - n_seg // 2))    # Hann, half overlap
+        df = max(df, float(ff[1] - ff[0]))
     if not psd:
         return {"ok": False, "why": "not enough samples"}
     S_m = np.mean(psd, axis=0)
@@ -166,5 +175,10 @@ def fit_noise_level(r_meas: np.ndarray, mask: np.ndarray, rate: float, comps, f_
     sig_k2 = float(np.std(k2s) / math.sqrt(len(k2s))) if len(k2s) > 1 else abs(k2)
     # a deterministic remnant makes the low groups stand out: the group ratios disagree
     spread = float(np.std(k2s) / max(abs(np.mean(k2s)), 1e-300)) if len(k2s) > 1 else 1.0
-    return {"ok": True, "group_ratios": [float(v) for v in k2s], "spread": spread, "sigma": sigma, "sigma_unc": sigma_ref * 0.5 * sig_k2 / max(math.sqrt(max(k2, 1e-12)), 1e-12),
+    # what noise alone gives that spread: a group's power is chi-square with 2 dof per Welch segment
+    # and per independent frequency bin of the data's spectrum (coarser than f on a short record)
+    indep = [max(1.0, min(len(g), len(g) * float(f[1] - f[0]) / max(df, 1e-300))) for g in groups]
+    noise_spread = float(np.mean([math.sqrt(2.0 / (dof * k)) for k in indep])) if len(k2s) > 1 else 1.0
+    return {"ok": True, "group_ratios": [float(v) for v in k2s], "spread": spread, "noise_spread": noise_spread,
+            "sigma": sigma, "sigma_unc": sigma_ref * 0.5 * sig_k2 / max(math.sqrt(max(k2, 1e-12)), 1e-12),
             "bands": int(dom.sum()), "groups": len(groups), "f_lo": float(f[dom].min()), "f_hi": float(f[dom].max())}

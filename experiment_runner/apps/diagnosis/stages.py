@@ -28,7 +28,7 @@ from .judge import ReplayJudge
 from .locate import locate as locate_residual
 from .locate import transfer_modes
 from .model import ModelSpec, load_model
-from .noise import estimate_lattice, fit_noise_level, noise_components
+from .noise import SPREAD_MAX, estimate_lattice, fit_noise_level, noise_components
 from .observer import ObsResult, Observer, smoothing_hz
 from .openloop import MISSING_LP, OpenLoopJudge
 from .options import CONTROLLER_TOL, Options
@@ -343,7 +343,10 @@ def drive_noise_prior(setup: Setup, lattice: Lattice, pred: Prediction, opt: Opt
     random force (noise-free, the floor a numerical nothing) takes that level into the base model
     (a stochastic finding, said in the report; the floors are estimated again) when that level alone
     makes its replay consistent with its own simulated recordings -- the record holds noise and
-    nothing else; otherwise the level is fitted after the deterministic effects; otherwise the
+    nothing else; otherwise the level is fitted after the deterministic effects. A stated level
+    moves before judging only when its groups' ratios agree (:data:`.noise.SPREAD_MAX`) on a
+    spectrum sharp enough to tell noise from a deterministic remnant (noise alone scatters them by
+    at most half that: a short record's few segments cannot); otherwise the
     ratio of the data's level to the model's is kept (``stochastic['noise_prior']``): where the data
     are not quieter than the model, a candidate whose replay is closer to the data than its own
     recordings are replays the noise (:func:`.selection.choose`). Returns the prediction (renewed
@@ -392,7 +395,16 @@ def drive_noise_prior(setup: Setup, lattice: Lattice, pred: Prediction, opt: Opt
         if not s0 > 0:
             return pred
         info["ratio"] = sig / s0
-        if 0.8 <= sig / s0 <= 1.25 or est.get("spread", 1.0) >= 0.35 or not fl0.replay.ok:
+        if 0.8 <= sig / s0 <= 1.25 or est.get("spread", 1.0) >= SPREAD_MAX or not fl0.replay.ok:
+            return pred
+        if est.get("noise_spread", 1.0) > 0.5 * SPREAD_MAX:
+            # a stated level moves only when the data demand it: where noise alone would scatter the
+            # groups' ratios as widely as a deterministic remnant does (a short record: few segments,
+            # coarse bins), the spectrum cannot tell the one from the other (a 33 Hz mode read as 5x
+            # the drive noise); the level is then fitted after the deterministic effects
+            info["not_taken"] = (f"the residual spectrum cannot tell noise from a deterministic remnant: noise "
+                                 f"alone scatters its groups by {est['noise_spread']:.2f} (level fitted after the "
+                                 "effects)")
             return pred
     elif not (sig > 0 and fl0.replay.ok):
         return pred
