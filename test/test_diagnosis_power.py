@@ -39,10 +39,13 @@ def test_reduced_power_study_json(tmp_path):
     p = argparse.ArgumentParser()
     add_diagnose_arguments(p)
     args = p.parse_args(["--selftest", "--power", "--cases", "4", "--workers", "1", "--json", "--out", str(tmp_path)])
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
+    buf, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(err):
         assert main_diagnose(args) == 0
     s = json.loads(buf.getvalue())
+    # progress on stderr by default: a line per case as it ends, counted
+    lines = [ln for ln in err.getvalue().splitlines() if ln.startswith("[power")]
+    assert [ln.split("] ")[1].split(" ")[1] for ln in lines] == ["1/4", "2/4", "3/4", "4/4"], err.getvalue()
     assert {"named_first_rate", "pair_rate"} <= set(s["power"])
     assert {"false_positive_rate", "cases", "negatives"} <= set(s)
     assert s["cases"] == 4 and s["negatives"] == 1 and s["errors"] == 0

@@ -85,8 +85,13 @@ def test_diagnose_cli_names_fits_and_proves(viscous_run, capsys):
 def test_selftest_subset_json(capsys):
     argv = ["--selftest", "--json", "--only", "offset_sine", "coulomb+viscous", "negative_steps_b"]
     code = main_diagnose(_args(add_diagnose_arguments, argv))
-    s = json.loads(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    s = json.loads(captured.out)
     assert s["cases"] == 3 and s["negative_controls"] == 1
+    # stdout is the JSON alone; progress goes to stderr, a line per case as it ends
+    lines = [ln for ln in captured.err.splitlines() if ln.startswith("[selftest")]
+    assert [ln.split("] ")[1].split(":")[0] for ln in lines] == [
+        "case 1/3 offset_sine", "case 2/3 coulomb+viscous", "case 3/3 negative_steps_b"], captured.err
     res = {r["case"]: r for r in s["results"]}
     assert set(s["by_profile"]) == {"sine/single", "circle/pair", "steps/negative"}
     for name in ("offset_sine", "coulomb+viscous"):

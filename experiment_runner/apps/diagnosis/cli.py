@@ -191,7 +191,8 @@ def main_diagnose(args) -> int:
         return _main_power(args)
     if args.selftest:
         s = run_selftest(only=args.only, as_json=args.json, keep=args.keep, verbose=args.verbose,
-                         workers=args.workers, cluster=args.cluster, overwrite=args.overwrite)
+                         workers=args.workers, cluster=args.cluster, overwrite=args.overwrite,
+                         progress=not args.quiet)
         if args.json:
             print(json.dumps(_clean(s), indent=1))
         else:
@@ -325,7 +326,7 @@ def _main_power(args) -> int:
     if args.keep:
         prepare_folder(args.keep, args.overwrite, option="--keep")
     s = run_power(args.cases or DEFAULT_CASES, workers=args.workers,
-                  cluster=args.cluster, out=out, keep=args.keep, verbose=args.verbose and not args.json,
+                  cluster=args.cluster, out=out, keep=args.keep, progress=not args.quiet,
                   only=args.only)
     if args.json:
         print(json.dumps(_clean(s), indent=1))

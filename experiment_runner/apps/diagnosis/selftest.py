@@ -25,6 +25,7 @@ truth lacks.
 from __future__ import annotations
 
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -164,7 +165,7 @@ def judge(case: Case, rep: dict) -> dict:
 
 
 def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verbose: bool = False,
-                 workers: int | None = None, cluster=None, overwrite: bool = False) -> dict:
+                 workers: int | None = None, cluster=None, overwrite: bool = False, progress: bool = True) -> dict:
     """Run the concealed-truth cases (``nanostage diagnose --selftest``).
 
     Parameters
@@ -183,6 +184,9 @@ def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verb
         A Dask scheduler for them instead.
     overwrite : bool, optional
         As :func:`experiment_runner.core.outputs.prepare_folder`'s, for ``keep``.
+    progress : bool, optional
+        With ``as_json``, a line on stderr as each case ends (count, elapsed seconds, pass/fail);
+        without it each case's row is printed on stdout instead.
 
     Returns
     -------
@@ -193,8 +197,9 @@ def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verb
     cases = [c for c in CASES if not only or any(c.name.startswith(o) for o in only)]
     tmp = outputs.prepare_folder(keep, overwrite, option="--keep") if keep else Path(tempfile.mkdtemp(prefix="nanostage_selftest_"))
     results = []
+    start = time.perf_counter()
     try:
-        for case in cases:
+        for n, case in enumerate(cases, 1):
             t0 = time.perf_counter()
             d = tmp / case.name
             truth = outputs.write_text(d / "truth.yaml", yaml.safe_dump(case.truth_doc(), sort_keys=False))
@@ -221,6 +226,9 @@ def run_selftest(only=None, as_json: bool = False, keep: str | None = None, verb
             results.append(res)
             if not as_json:
                 _print_row(res)
+            elif progress:
+                print(f"[selftest {time.perf_counter() - start:6.0f} s] case {n}/{len(cases)} {case.name}: "
+                      f"{'PASS' if res['passed'] else 'FAIL'} ({res['runtime_s']:.1f} s)", file=sys.stderr, flush=True)
     finally:
         if not keep:
             shutil.rmtree(tmp, ignore_errors=True)

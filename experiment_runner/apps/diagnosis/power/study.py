@@ -25,6 +25,7 @@ the improved model's replay worse than the nominal's) with the diagnosis' reason
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -119,7 +120,7 @@ def summarize(results: list[dict], threshold: float = 3.0) -> dict:
 
 
 def run_power(n_cases: int = DEFAULT_CASES, workers: int | None = None, cluster=None, out=None, keep=None,
-              verbose: bool = False, only=None) -> dict:
+              progress: bool = True, only=None) -> dict:
     """Run the study (cases on ``workers`` local processes, default one per core this process may use
     (:func:`~experiment_runner.core.executor.default_workers`), or a Dask ``cluster``); returns the
     summary with ``results``; with ``out`` writes ``power.json``, ``report.md`` and the plot.
@@ -136,8 +137,8 @@ def run_power(n_cases: int = DEFAULT_CASES, workers: int | None = None, cluster=
         Output folder.
     keep : str or pathlib.Path, optional
         Folder for every case's recording and report.
-    verbose : bool, optional
-        A line per case.
+    progress : bool, optional
+        A line on stderr as each case ends (count, elapsed seconds, what it named); default on.
     only : list of str, optional
         Run only cases whose name contains one of these.
 
@@ -156,9 +157,10 @@ def run_power(n_cases: int = DEFAULT_CASES, workers: int | None = None, cluster=
     with make_executor(workers, cluster) as ex:
         for k, (i, r) in enumerate(ex.map(_task, [(i, (c, keep)) for i, c in enumerate(cases)])):
             results[i] = r
-            if verbose:
-                print(f"[power {k + 1}/{len(cases)}] {r['case']}: named {r.get('named')} "
-                      f"change {_fmt_change(r)} {r.get('error', '')} ({r['seconds']:.1f} s)", flush=True)
+            if progress:
+                print(f"[power {time.perf_counter() - t0:6.0f} s] case {k + 1}/{len(cases)} {r['case']}: "
+                      f"named {r.get('named')}, change {_fmt_change(r)} {r.get('error', '')} ({r['seconds']:.1f} s)",
+                      file=sys.stderr, flush=True)
     s = summarize(results)
     s["wall_s"] = round(time.perf_counter() - t0, 1)
     s["results"] = results
