@@ -94,15 +94,7 @@ class ForwardSelection:
                  if j["effects"] != j["greedy_effects"] and b.replay_floor.replay.ok else None)
             if c is not None and c.accepted:
                 return self._keep(b, a, b, second, f"{why}; its held-out replay {c.why}", joined=j)
-            a.second_start = {
-                "first": second.fit.key, "chosen": False, "joined": dict(j),
-                "effects": [fe["effect"] for fe in b.found], "greedy_effects": [fe["effect"] for fe in a.found],
-                "replay_D": judge.D(b.replay_floor.replay, a.replay_floor) if b.replay_floor.replay.ok else None,
-                "replay_D_greedy": judge.D(a.replay_floor.replay, a.replay_floor), "why": why}
-            self.path = a
-            problem.evaluator.floor = a.floor.noise
-            problem.options.log(f"second start: {why}")
-            return a
+            return self._keep(a, a, b, second, why, joined=j)
         if self.budget.stopped is not None:        # an unfinished walk is not compared
             self.budget.skip(f"second start from {second.fit.key} (unfinished, not compared)")
             self.path = a
