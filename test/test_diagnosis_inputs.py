@@ -274,19 +274,21 @@ def test_isolator_hypothesis_in_any_rigid_nominal_same_candidate():
 def test_table_with_friction_and_bolted_bearings_give_the_same_diagnosis(tmp_path, rate):
     """A record of a table whose bearing sits behind a joint (scipy, 2-DOF), diagnosed against the
     rigid body written as "table with friction" and as "table + bolted bearing with that friction":
-    both name the FI compliance first, with the joint stiffness, its damping and the bearing mass
-    within 2 % of the truth, and the two diagnoses agree (same effects, parameters within 2 %:
-    measured at 1 kHz k_fi 36249 / 36226 N/m (truth 36241), zeta_fi 0.0496 / 0.0505, m_b 0.29996 /
-    0.29998 kg; the damping's optimum is shallow, the two refinements stop 1.6 % apart)."""
+    both name the FI compliance first, each parameter within 2 % of the truth or within 3 of its
+    reported sigma (the damping's optimum is shallow: at 1 kHz 0.0496 ± 0.0008 and 0.0487 ± 0.0006
+    for 0.05), and the two diagnoses agree (same effects, parameters within 2 %). The table with
+    friction states no bearing mass: it is fitted; the bolted bearing states it: it is held."""
     rec, k = _isolated_record(tmp_path, rate, T=3.0 if rate < 5000 else 1.0, f_j=60.0 if rate < 5000 else 300.0)
     reps = [diagnose(rec, nom, options=Options(plots=False)) for nom in _rigid_nominals()]
     keys = [[f["effect"] for f in r["found"]] for r in reps]
     assert keys[0] == keys[1] and keys[0][0] == "fi_compliance", keys
     vals = [{p["name"]: p["value"] for p in r["found"][0]["params"]} for r in reps]
+    sig = [{p["name"]: p["sigma"] for p in r["found"][0]["params"]} for r in reps]
+    assert "m_b" in vals[0] and "m_b" not in vals[1], vals
     truth = {"k_fi": k, "zeta_fi": 0.05, "m_b": 0.3}
-    for v in vals:
-        assert all(abs(v[n] / truth[n] - 1) < 0.02 for n in truth), vals
-    for name in vals[0]:
+    for v, sg in zip(vals, sig):
+        assert all(abs(v[n] - truth[n]) < max(0.02 * truth[n], 3 * sg[n]) for n in v), (vals, sig)
+    for name in vals[1]:
         assert abs(vals[0][name] / vals[1][name] - 1) < 0.02, (name, vals)
 
 

@@ -73,3 +73,14 @@ def test_parallel_runs_start_with_the_longest_work_and_make_each_shared_fixture_
     assert ranks == sorted(ranks)                                      # slow before fast after the group
     dask = [r for r in rows if "dask_local_cluster" in r[0]]
     assert dask and all(r[2] == "dask_cluster" for r in dask)
+
+
+@pytest.mark.xdist_group("suite_grouping")
+def test_a_group_is_handed_to_one_worker_under_loadgroup(request):
+    """Under ``pytest -n --dist loadgroup`` (the README's test command) an ``xdist_group`` is one
+    scheduling unit: pytest-xdist suffixes its node ids with ``@group``. With pytest 9.2 and
+    pytest-xdist 3.8 it did not (the suffix went to an attribute pytest 9 no longer reads): every
+    worker made the EMPS diagnosis itself. Skipped outside that mode."""
+    if not getattr(request.config.option, "loadgroup", False):      # set on xdist's workers
+        pytest.skip("not run under pytest -n --dist loadgroup")
+    assert request.node.nodeid.endswith("@suite_grouping"), request.node.nodeid

@@ -55,7 +55,8 @@ Files written to the output folder ``DIR``
                         params, derived, on_bound, evals, seconds}]}], J_held_start, J_held_final,
                         adequate_final, second_start (when the greedy path left a residual beyond its
                         floor: the path from step 1's runner-up {first, effects, greedy_effects,
-                        replay_D, replay_D_greedy, chosen, why})
+                        replay_D, replay_D_greedy, chosen, why}; or, beyond the floor in
+                        distribution only, {first, greedy_effects, chosen false, skipped})
 ``joint_fit``           effects, J_fit, J_held, params, correlation, confounded_parameters, used
 ``stochastic``          quantization {nominal_m, estimate_m, found, ...}, noise_level {nominal_A,
                         sigma, ratio, found, ...}
@@ -350,7 +351,9 @@ def _md_candidates(rep: dict) -> list[str]:
             L.append("\nNot judged (the fit failed): " + "; ".join(f"{k}: {v}" for k, v in st["failed"].items()))
         L.append("")
     ss = rep["selection"].get("second_start")
-    if ss:
+    if ss and ss.get("skipped"):
+        L.append(f"No second start from **{ss['first']}** (step 1's runner-up): {ss['skipped']}.\n")
+    elif ss:
         L.append(f"Second start (the greedy path, {', '.join(ss['greedy_effects'])}, left a residual beyond its "
                  f"floor): from **{ss['first']}** the selection found {', '.join(ss['effects'])}, replay D "
                  f"{_fmt(ss['replay_D'])} against the greedy path's {_fmt(ss['replay_D_greedy'])} (in its floor "

@@ -297,9 +297,10 @@ def _fi_stage(d):
 
 
 def table_friction(d: dict) -> None:
-    """The nominal's rigid body of preset mapping ``d`` written as a table with friction: the two
-    identical bolted Dahl bearings folded into the table mass and one table Dahl element of twice
-    their F_C and k_sigma (two identical Dahl elements in parallel are exactly that).
+    """The nominal's rigid body of preset mapping ``d`` written as a table with friction: its ``n``
+    identical bolted bearings (a Dahl or Coulomb law) folded into the table mass and one
+    table element of ``n`` times their forces and stiffness (``n`` identical elements in parallel
+    are exactly that).
 
     Parameters
     ----------
@@ -307,8 +308,12 @@ def table_friction(d: dict) -> None:
         A preset mapping (changed in place).
     """
     st = d["stage"]
+    n = len(st["bearings"])
     fr = dict(st["bearings"][0]["friction"])
-    fr.update(f_c=2 * fr["f_c"], k_sigma=2 * fr["k_sigma"], viscous=2 * fr["viscous"])
+    if not all(b["friction"] == fr for b in st["bearings"]) or fr["model"] not in ("dahl", "coulomb"):
+        raise ValueError(f"table_friction: needs identical Dahl or Coulomb bearings, got {st['bearings']}")
+    fr.update({k: n * fr[k] for k in ("f_c", "f_s", "k_sigma", "viscous", "f_c_difference", "viscous_difference",
+                                      "f_c_gradient", "f_c_curvature") if fr.get(k) is not None})
     m_old = st["table"]["mass"]
     st["table"]["mass"] = m_old + sum(b["mass"] for b in st["bearings"])
     for md in st["modes"]:                  # the table's structural mode keeps its mass
@@ -321,15 +326,18 @@ def table_friction(d: dict) -> None:
 class FiCompliance(Effect):
     """The bearings behind a spring-damper (friction isolator, Ch. 4), in any nominal with friction:
     its bolted bearings, or -- a nominal written as "table with friction" -- a bearing made of the
-    table friction. The bearing mass ``m_b`` is fitted; the rigid mass (table + bearings) is kept,
-    so the two ways of writing the same rigid body give the same candidates and the same fit."""
+    table friction. The rigid mass (table + bearings) is kept. A nominal with bolted bearings states
+    their mass: it is held (a stated quantity), and only ``k_fi`` and ``zeta_fi`` are fitted -- with
+    the mass free as well, the joint's frequency fixes only k_fi/m_red and the three slide along one
+    valley to a bound (power case 029). A nominal written as a table with friction states no
+    bearing mass: ``m_b`` is fitted as a third parameter."""
     key = "fi_compliance"
     title = "FI compliance (bearing behind a spring-damper)"
     physics = ("The bearing carriages are not rigid with the table but behind a joint of stiffness k_fi "
                "and damping (friction isolator, Ch. 4), in any nominal with friction: adds (or re-fits) "
                "stage.bearings[*].joint, or -- a nominal written as a table with friction -- makes that "
-               "friction a bearing's behind the joint; the bearing mass m_b is fitted, table + bearings "
-               "kept (a table with friction and a table with bolted bearings give the same fit).")
+               "friction a bearing's behind the joint; table + bearings kept; the bearing mass m_b is "
+               "the nominal's where it states bolted bearings, fitted where it states a table with friction).")
     signature = ("an oscillatory residual at the joint mode after reversals and moves, frequency "
                  "sqrt(k_fi/m_red)/(2 pi); residual vs acceleration and in the band of that mode")
     parameters = (Parameter("k_fi", "N/m", "total joint stiffness", (1.0, 1e10), (1e-4, 1e6)),
@@ -403,7 +411,17 @@ class FiCompliance(Effect):
         -------
         float
         """
-        return sum(b.mass for b in st.bearings) if st.bearings else 0.1 * self.rigid(st)
+        held = self._held_mass(st)
+        return held if held is not None else 0.1 * self.rigid(st)
+
+    @staticmethod
+    def _held_mass(st):
+        """The bearing mass the nominal states (bolted bearings), held in the fit, else None [kg]."""
+        return sum(b.mass for b in st.bearings) if st.bearings else None
+
+    def _mass(self, st, theta):
+        """The total bearing mass for parameters ``theta`` (k_fi, zeta_fi[, m_b]) on stage ``st`` [kg]."""
+        return float(theta[2]) if len(theta) > 2 else self._held_mass(st)
 
     def params(self, spec, ctx):
         st = spec.preset.stage
@@ -413,21 +431,25 @@ class FiCompliance(Effect):
         k0 = st.bearings[0].joint.stiffness * nb if jointed else None
         kg = k0 or self.reduced_mass(st, mb0) * (2 * np.pi * 50.0) ** 2 * nb
         M = self.rigid(st)
-        return [Param("k_fi", "N/m", 1e-3 * kg, 1e3 * kg, kg, log=True, doc="total joint stiffness (all bearings)"),
-                Param("zeta_fi", "-", 1e-3, 1.0, 0.02, log=True, doc="joint damping ratio on the reduced mass"),
-                Param("m_b", "kg", 0.005 * M, 0.8 * M, min(max(mb0, 0.01 * M), 0.7 * M), log=True,
-                      doc="total bearing mass behind the joints (table + bearings kept)")]
+        ps = [Param("k_fi", "N/m", 1e-3 * kg, 1e3 * kg, kg, log=True, doc="total joint stiffness (all bearings)"),
+              Param("zeta_fi", "-", 1e-3, 1.0, 0.02, log=True, doc="joint damping ratio on the reduced mass")]
+        if self._held_mass(st) is None:
+            ps.append(Param("m_b", "kg", 0.005 * M, 0.8 * M, min(max(mb0, 0.01 * M), 0.7 * M), log=True,
+                            doc="total bearing mass behind the joints (table + bearings kept)"))
+        return ps
 
     def starts(self, spec, ctx):
         st = spec.preset.stage
         nb = max(len(st.bearings), 1)
-        mb = self.params(spec, ctx)[2].x0
+        ps = self.params(spec, ctx)
+        mb = ps[2].x0 if len(ps) > 2 else self._held_mass(st)
+        tail = [mb] if len(ps) > 2 else []
         if st.bearings and st.bearings[0].joint is not None:
             k0 = st.bearings[0].joint.stiffness * nb
-            return [[k0, 0.02, mb], [0.3 * k0, 0.02, mb], [3 * k0, 0.02, mb]]
+            return [[k0, 0.02] + tail, [0.3 * k0, 0.02] + tail, [3 * k0, 0.02] + tail]
         mr = self.reduced_mass(st, mb)
         fr = list(ctx.peak_hz or [])[:2] + [20.0, 60.0, 200.0]
-        return [[mr * (2 * np.pi * f) ** 2 * nb, 0.02, mb] for f in fr[:4]]
+        return [[mr * (2 * np.pi * f) ** 2 * nb, 0.02] + tail for f in fr[:4]]
 
     def nominal(self, spec):
         st = spec.preset.stage
@@ -435,18 +457,18 @@ class FiCompliance(Effect):
             j = st.bearings[0].joint
             mb = sum(b.mass for b in st.bearings)
             return {"k_fi": j.stiffness * len(st.bearings),
-                    "zeta_fi": j.damping / (2 * math.sqrt(j.stiffness * self.reduced_mass(st, mb))), "m_b": mb}
-        return {"k_fi": None, "zeta_fi": None, "m_b": sum(b.mass for b in st.bearings) if st.bearings else None}
+                    "zeta_fi": j.damping / (2 * math.sqrt(j.stiffness * self.reduced_mass(st, mb)))}
+        return {"k_fi": None, "zeta_fi": None} if st.bearings else {"k_fi": None, "zeta_fi": None, "m_b": None}
 
     def derived(self, spec, theta):
         st = spec.preset.stage
-        k, _, mb = (float(v) for v in theta)
+        k, mb = float(theta[0]), self._mass(st, theta)
         nb = max(len(st.bearings), 1)
         return {"f_joint_hz": math.sqrt(k / nb / self.reduced_mass(st, mb)) / (2 * math.pi)}
 
     def apply(self, spec, theta):
-        k, z, mb = (float(v) for v in theta)
         st = spec.preset.stage
+        k, z, mb = float(theta[0]), float(theta[1]), self._mass(st, theta)
         M = self.rigid(st)
         m_old = st.table.mass
         m_new = M - mb
