@@ -69,6 +69,7 @@ one run on one worker (an ``xdist_group`` of the fixture's name), so it is not m
 
 
 # =========================================================================== markers
+@pytest.hookimpl(tryfirst=True)     # before pytest-xdist's, which turns the xdist_group marks into groups
 def pytest_collection_modifyitems(config, items):
     for item in items:
         names = set(getattr(item, "fixturenames", ()))

@@ -76,11 +76,17 @@ def test_parallel_runs_start_with_the_longest_work_and_make_each_shared_fixture_
 
 
 @pytest.mark.xdist_group("suite_grouping")
-def test_a_group_is_handed_to_one_worker_under_loadgroup(request):
-    """Under ``pytest -n --dist loadgroup`` (the README's test command) an ``xdist_group`` is one
-    scheduling unit: pytest-xdist suffixes its node ids with ``@group``. With pytest 9.2 and
-    pytest-xdist 3.8 it did not (the suffix went to an attribute pytest 9 no longer reads): every
-    worker made the EMPS diagnosis itself. Skipped outside that mode."""
+def test_groups_are_handed_to_one_worker_under_loadgroup(request):
+    """Under ``pytest -n --dist loadgroup`` (the README's test command) each ``xdist_group`` -- this
+    test's own, and those ``conftest`` gives the tests sharing the EMPS diagnosis or the Dask
+    cluster -- is one scheduling unit: pytest-xdist suffixes the node ids with ``@group``. It did
+    not, and every worker made the EMPS diagnosis itself: with pytest 9.2 and pytest-xdist 3.8 the
+    suffix went to an attribute pytest 9 no longer reads, and conftest's marks came after
+    pytest-xdist's hook had read them. Skipped outside that mode."""
     if not getattr(request.config.option, "loadgroup", False):      # set on xdist's workers
         pytest.skip("not run under pytest -n --dist loadgroup")
+    grouped = [(it.nodeid, it.get_closest_marker("xdist_group").args[0]) for it in request.session.items
+               if it.get_closest_marker("xdist_group") is not None]
     assert request.node.nodeid.endswith("@suite_grouping"), request.node.nodeid
+    bad = [nid for nid, g in grouped if not nid.endswith("@" + g)]
+    assert not bad, bad
