@@ -247,7 +247,7 @@ class ForwardSelection:
             # with no room left for that (power case 029: an FI joint adopted, RMS ratio 0.86,
             # consistency z 8.8; the walk from LuGre, step 1's runner-up, cost 2.4x the greedy walk
             # and ended at D 35 against 1.5)
-            a.second_start = {"first": ok[0].fit.key, "chosen": False, "greedy_effects": [f.key for f in a.selected],
+            a.second_start = {"first": ok[0].fit.key, "chosen": False, "greedy_effects": [fe["effect"] for fe in a.found],
                               "skipped": f"the greedy path replays within its run-to-run floor (RMS ratio {ratio:.2f}): "
                                          "no room for a path that replays better beyond it"}
             self.problem.options.log(f"no second start from {ok[0].fit.key}: {a.second_start['skipped']}")

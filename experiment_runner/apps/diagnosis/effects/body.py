@@ -455,7 +455,7 @@ class FiCompliance(Effect):
         st = spec.preset.stage
         if st.bearings and st.bearings[0].joint is not None:
             j = st.bearings[0].joint
-            mb = sum(b.mass for b in st.bearings)
+            mb = self._held_mass(st)
             return {"k_fi": j.stiffness * len(st.bearings),
                     "zeta_fi": j.damping / (2 * math.sqrt(j.stiffness * self.reduced_mass(st, mb)))}
         return {"k_fi": None, "zeta_fi": None} if st.bearings else {"k_fi": None, "zeta_fi": None, "m_b": None}
