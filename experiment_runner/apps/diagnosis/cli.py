@@ -365,8 +365,9 @@ def replay_lines(rep: dict) -> list[str]:
     U = rep.get("units") or {}
     fu, pu = U.get("force", "N"), U.get("position", "m")
     if rep.get("recording", {}).get("open_loop"):
+        how = r.get("predictor", "windows re-initialised from the measurement")
         head = [f"held-out open-loop prediction ({len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples, "
-                "windows re-initialised from the measurement; the recorded command is the input):"]
+                f"{how}; the recorded command is the input):"]
     else:
         head = [f"held-out closed-loop replay ({len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples, "
                 f"{r['reference']} reference):",

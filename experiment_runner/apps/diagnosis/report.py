@@ -47,7 +47,12 @@ Files written to the output folder ``DIR``
                         ripple_periods_m
 ``replay``              the headline: held-out closed-loop replay error RMS {command_rms_N,
                         position_rms_m: {nominal, improved, floor_nominal, floor}}, floor_ratio,
-                        consistency_z {nominal, improved, critical}, stable, held_out_trials
+                        consistency_z {nominal, improved, critical}, stable, held_out_trials,
+                        predictor (how the held-out samples were predicted: closed-loop replay,
+                        open-loop windows, or whole trials of a tiny-motion record), how
+``least_squares_check`` open-loop records: the rigid body by ordinary least squares on the same
+                        data (:func:`.openloop.least_squares_check`: samples, inertia, coulomb,
+                        viscous {value, sigma, model, agree}, tolerance, agree); a disagreement is a finding
 ``selection``           steps [{step, replay_D_before, J_held_before, floor_rms, accepted,
                         confounded_with, candidates [{effect, replay {D_before, D_after,
                         improvement, threshold, block_se, stable, beyond_floor, why}, improvement,
@@ -149,8 +154,9 @@ def _md_headline(rep: dict) -> list[str]:
     U = rep.get("units") or axis_units("linear")
     fu, pu = U["force"], U["position"]
     if rep.get("recording", {}).get("open_loop"):
+        how = r.get("predictor", "windows re-initialised from the measurement")
         L.append("**Held-out open-loop prediction** (an open-loop record: the recorded command and known force through "
-                 "the model over windows re-initialised from the measurement, compared with the measurement; "
+                 f"the model, {how}, compared with the measurement; "
                  f"{len(r['held_out_trials'])} trial(s), {r['held_out_samples']} samples):\n")
     else:
         L.append("**Held-out closed-loop replay** (what the user gets: the recorded reference through the model and its "
@@ -241,6 +247,18 @@ def _md_findings(rep: dict) -> list[str]:
             rel = "–" if d.get("relative") is None else f"{100 * d['relative']:.3g} %"
             L.append(f"| {d['title']} | {d['parameter']} [{d['unit']}] | {_fmt(d['model_value'])} | "
                      f"{_fmt(d['smallest_change'])} | {rel} |")
+    lsq = rep.get("least_squares_check")
+    if lsq:
+        U = rep.get("units") or axis_units("linear")
+        L.append(f"\n**Rigid-body least-squares check** (ordinary least squares of the drive force on acceleration, "
+                 f"sign of velocity and velocity over the {lsq['samples']} moving samples, independent of the "
+                 f"diagnosis' models; agreement: within {100 * lsq['tolerance']:.0f} % or 3 standard errors):\n")
+        L.append("| quantity | improved model | least-squares check | agrees |")
+        L.append("|---|---|---|---|")
+        for k, unit in (("inertia", U["mass"]), ("coulomb", U["force"]), ("viscous", U["damping"])):
+            c = lsq[k]
+            L.append(f"| {k} [{unit}] | {_fmt(c['model'])} | {_fmt(c['value'])} ± {_fmt(c['sigma'])} | "
+                     f"{'yes' if c['agree'] else '**no**'} |")
     ch = (rep.get("improved_model") or {}).get("changes")
     if ch:
         L.append(f"\n**The model change** (`{rep['improved_model']['name']}` against `{rep['nominal']['name']}`; "

@@ -30,7 +30,7 @@ from .locate import transfer_modes
 from .model import ModelSpec, load_model
 from .noise import SPREAD_MAX, estimate_lattice, fit_noise_level, noise_components
 from .observer import ObsResult, Observer, smoothing_hz
-from .openloop import MISSING_LP, OpenLoopJudge
+from .openloop import MISSING_LP, TINY_MOTION_STEPS, OpenLoopJudge
 from .options import CONTROLLER_TOL, Options
 from .predict import open_loop_windows, replay
 from .replay_floor import Floor
@@ -308,8 +308,13 @@ def predict(setup: Setup, base: ModelSpec, opt: Options, timing: dict) -> Predic
                      "(run on the recorded reference and measurement): the closed-loop replay follows the "
                      "equivalent reference, for which it reproduces the recorded command exactly")
     if data.open_loop:
-        judge = OpenLoopJudge(data, obs)
-        fit_judge = OpenLoopJudge(dataclasses.replace(data, held=data.fit), obs) if data.fit.any() else None
+        q = base.preset.stage.encoder.resolution
+        judge = OpenLoopJudge(data, obs, resolution=q)
+        fit_judge = OpenLoopJudge(dataclasses.replace(data, held=data.fit), obs, resolution=q) if data.fit.any() else None
+        if judge.whole:
+            notes.append(f"tiny motion: every trial moves over at most {TINY_MOTION_STEPS} encoder steps "
+                         f"({q:.3g}); the open-loop prediction runs each trial whole from its start, "
+                         "quantized like the sensor (windows would absorb the motion)")
     else:
         judge = ReplayJudge(data, x_ref=x_eq)
         fit_judge = ReplayJudge(dataclasses.replace(data, held=data.fit), x_ref=x_eq) if data.fit.any() else None

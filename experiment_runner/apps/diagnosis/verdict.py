@@ -21,6 +21,7 @@ from .fit import sparse_regression
 from .joint import spec_with
 from .locate import by_regime, lowpass, regimes
 from .observer import ObsResult
+from .openloop import TINY_MOTION_STEPS, least_squares_check
 from .predict import band_rms, compare_replay, open_loop_windows, replay
 from .selection import Path, Problem, for_fits_on, identification
 from .stages import Prediction, Setup
@@ -124,7 +125,22 @@ class Validation:
     figures: dict
 
 
+def _predictor(data, judge) -> str:
+    """How the held-out samples were predicted, in a few words (stdout and report.md say it)."""
+    if not data.open_loop:
+        return "closed-loop replay"
+    if getattr(judge, "whole", False):
+        return ("whole trials from their start, quantized like the sensor (tiny motion: at most "
+                f"{TINY_MOTION_STEPS} encoder steps)")
+    return f"{judge.L / data.rate * 1e3:.3g} ms windows re-initialised from the measurement"
+
+
 def _how(data, judge) -> str:
+    if getattr(judge, "whole", False):
+        return ("noise-free open-loop prediction of the held-out samples, each trial run whole from the "
+                "observer's start state and quantized like the sensor (tiny motion), against the measurement; "
+                "floor: RMS difference of the same predictions of recordings simulated with the model's noise "
+                "(run to run), not prewhitened; the command is the input (its error is 0)")
     if not data.open_loop:
         return ("noise-free closed-loop replay of the held-out samples (recorded reference, the model's controller) "
                 "against the recorded command and measurement; floor: RMS difference of simulated recordings of "
@@ -191,6 +207,7 @@ def validate(setup: Setup, pred: Prediction, problem: Problem, path: Path, opt) 
         "reference": "none (open-loop record)" if data.open_loop else (
             "recorded" if pred.reference is None else "equivalent (controller mismatch)"),
         "controller_check_rel": pred.controller_error,
+        "predictor": _predictor(data, judge),
         "how": _how(data, judge)}
     windows_new = open_loop_windows(current, obs, res_new, setup.window)
     figures_explained = []
@@ -625,6 +642,7 @@ def assemble(run: Run, timing: dict, sparse: dict | None) -> dict:
     for fe in run.found:
         if fe["effect"] not in moved:
             fe["status"] += " (its final value is the nominal's: the model is unchanged by it)"
+    lsq = least_squares_check(data, path.current) if data.open_loop else None
     report = {
         "nanostage_diagnosis": 1,
         "verdict": verdict,
@@ -666,8 +684,15 @@ def assemble(run: Run, timing: dict, sparse: dict | None) -> dict:
         "withdrawn": run.withdrawn,
         "findings": findings(run, verdict),
         "detection_limits": run.detection,
+        "least_squares_check": lsq,
         "timing_s": timing,
     }
+    if lsq is not None and not lsq["agree"]:
+        off = [k for k in ("inertia", "coulomb", "viscous") if not lsq[k]["agree"]]
+        report["findings"].append({
+            "finding": "the rigid-body least-squares check disagrees with the improved model in " + ", ".join(off),
+            "status": "located, not explained",
+            "where": {k: {"model": lsq[k]["model"], "check": lsq[k]["value"], "sigma": lsq[k]["sigma"]} for k in off}})
     convert_units(report, kind)       # every parameter unit on the axis of the stage (rotary: rad, N·m, kg·m²)
     return report
 

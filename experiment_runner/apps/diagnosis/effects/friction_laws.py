@@ -17,7 +17,7 @@ from .base import Case, Effect, Param, Parameter, bearing_f_c, both_bearings, fo
 from .friction import FORCE, TORQUE, friction_weights, scaled_variation, virgin_x50
 
 __all__ = ["Dahl", "Gms", "Stribeck", "LugreDamping", "RegularizedCoulomb", "contact_stiffness", "K_SIGMA_NOMINAL",
-           "LUGRE_SIGMA1"]
+           "LUGRE_SIGMA1", "PRE_MOTION_LENGTH", "pre_motion_length"]
 
 K_SIGMA_NOMINAL = 1.095e6
 """Dahl stiffness of one bearing of the self-test's nominal (Table 4.3) [N/m]."""
@@ -29,10 +29,38 @@ bearing's pre-motion mode (0.43 kg on 1.095e6 N/m, 254 Hz), creep time sigma1 / 
 STIFFNESS = ((1e2, 1e10), (1e-2, 1e6))
 """Plausible pre-motion stiffnesses: linear [N/m], rotary [N·m/rad]."""
 
+PRE_MOTION_LENGTH = {"linear": 1e-6, "rotary": 1e-4}
+"""The pre-motion length [m] or [rad] a model without pre-motion is given when a law needs a
+contact stiffness (``F_C / length``; the start of ``dahl``'s search, which spans three decades
+either side): the seed's bearings reach half their friction within about 1 um (Table 4.3:
+x_50 ~ 0.6 um); a rotary axis's pre-rolling angle is of the order of 10-1000 urad."""
+
+
+def pre_motion_length(kind: str) -> float:
+    """The default pre-motion length of an axis of ``kind`` (:data:`PRE_MOTION_LENGTH`).
+
+    Parameters
+    ----------
+    kind : {"linear", "rotary"}
+        The axis.
+
+    Returns
+    -------
+    float
+        [m] or [rad].
+
+    Examples
+    --------
+    >>> pre_motion_length("linear"), pre_motion_length("rotary")
+    (1e-06, 0.0001)
+    """
+    return PRE_MOTION_LENGTH["rotary" if kind == "rotary" else "linear"]
+
 
 def contact_stiffness(spec: ModelSpec) -> float:
     """The model's total pre-motion stiffness at rest [N/m] (:func:`stage_sim.friction.initial_stiffness`
-    summed), or -- friction without pre-motion -- that of a 1 um pre-motion length at F_C.
+    summed), or -- friction without pre-motion -- that of the axis' default pre-motion length at F_C
+    (:data:`PRE_MOTION_LENGTH`).
 
     Parameters
     ----------
@@ -44,7 +72,7 @@ def contact_stiffness(spec: ModelSpec) -> float:
     float
     """
     k0 = float(sum(friction.initial_stiffness(fr) for _, fr in friction_elements(spec.preset)))
-    return k0 if k0 > 0 else max(coulomb_total(spec.preset), 1e-3) / 1e-6
+    return k0 if k0 > 0 else max(coulomb_total(spec.preset), 1e-3) / pre_motion_length(spec.preset.stage.kind)
 
 
 def _short(x: float) -> str:
@@ -380,7 +408,7 @@ class Stribeck(Effect):
 
         def edit(d):
             for (path, fr), we in zip(els, w):
-                k = friction.initial_stiffness(fr) or max(fr.f_c, 1e-9) / 1e-6
+                k = friction.initial_stiffness(fr) or max(fr.f_c, 1e-9) / pre_motion_length(spec.preset.stage.kind)
                 f_c = max(fr.f_c, 1e-9)
                 set_dotted(d, path, friction.lugre.element(
                     k, f_c, max(fs * we, fr.f_c * 1.0001, 1e-9), vs, sigma1=getattr(fr, "sigma1", 0.0),
@@ -393,7 +421,8 @@ class Stribeck(Effect):
         vs = draw.random_log(0.02, 0.3) * draw.v_max
 
         def lug(fr, b):
-            k = fr.get("k_sigma") or (sum(fr["k"]) if fr["model"] == "gms" else fr["f_c"] / 1e-6)
+            k = fr.get("k_sigma") or (sum(fr["k"]) if fr["model"] == "gms" else
+                                      fr["f_c"] / pre_motion_length(d["stage"].get("kind", "linear")))
             b["friction"] = friction.lugre.element(k, fr["f_c"], fr["f_c"] * (1 + m), vs, sigma1=0.0,
                                                    viscous=fr.get("viscous", 0.0))
         for_bearings(d, lug)
@@ -474,7 +503,7 @@ class LugreDamping(Effect):
         tau = draw.size(2e-5, 1e-3)            # creep time sigma1 / sigma0 [s]
 
         def lug(fr, b):
-            k = fr.get("k_sigma") or fr["f_c"] / 1e-6
+            k = fr.get("k_sigma") or fr["f_c"] / pre_motion_length(d["stage"].get("kind", "linear"))
             b["friction"] = friction.lugre.element(k, fr["f_c"], fr["f_c"], 1e-3, sigma1=tau * k,
                                                    viscous=fr.get("viscous", 0.0))
         for_bearings(d, lug)
