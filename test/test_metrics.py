@@ -8,7 +8,7 @@ import pytest
 from scipy import optimize, signal
 
 from experiment_runner.core.metrics import (
-    cross_spectra, error_spectrum, sine_phasor, rms_in_position, settling_time, tracking_errors)
+    cross_spectra, error_spectrum, sine_phasor, rms_in_position, settling_time, tracking_errors, welch_csd)
 from experiment_runner.core.profiles import sine_sweep
 from stage_control.tuning import closed_loop_bandwidth, loop_margins
 
@@ -137,6 +137,24 @@ def test_cross_spectra_give_the_h1_frf_of_a_discrete_filter():
     _, suu, syy, suy = cross_spectra(u, np.roll(u, 5000), fs, nperseg=2048)
     coh_noise = np.abs(suy) ** 2 / (suu * syy)
     assert np.median(coh_noise) < 0.05
+
+
+@pytest.mark.parametrize("n, nperseg, detrend", [(3000, 256, "linear"), (3001, 255, "linear"), (5000, 1024, "constant"),
+                                                 (4096, 4096, "linear"), (999, 100, False)])
+def test_welch_csd_is_scipys_csd_and_welch(n, nperseg, detrend):
+    """The vectorised Welch estimate is scipy's (csd and welch with their defaults: periodic Hann,
+    50 % overlap, density, one-sided; odd and even segments, both detrends, one segment) to
+    rounding, on signals with a trend 1000x their noise (where a linear detrend's rounding shows)."""
+    rng = np.random.default_rng(n)
+    x, y = 1e-6 * rng.standard_normal((2, n)) + np.linspace(0.0, 1e-3, n)
+    f0, p0 = signal.csd(x, y, fs=1e4, nperseg=nperseg, detrend=detrend)
+    f1, p1 = welch_csd(x, y, fs=1e4, nperseg=nperseg, detrend=detrend)
+    np.testing.assert_array_equal(f0, f1)
+    np.testing.assert_allclose(p1, p0, rtol=0, atol=1e-10 * np.max(np.abs(p0)))
+    _, w0 = signal.welch(x, fs=1e4, nperseg=nperseg, detrend=detrend)
+    _, w1 = welch_csd(x, fs=1e4, nperseg=nperseg, detrend=detrend)
+    assert w1.dtype == np.float64
+    np.testing.assert_allclose(w1, w0, rtol=0, atol=1e-10 * np.max(w0))
 
 
 def test_closed_loop_bandwidth_first_order():

@@ -208,6 +208,69 @@ def sine_phasor(t, s, f):
     return out.reshape(s.shape[:-1]) if s.ndim > 1 else complex(out[0])
 
 
+def welch_csd(x, y=None, fs=1.0, nperseg=256, detrend="constant"):
+    """Welch-averaged (cross) power spectral density: :func:`scipy.signal.csd` ``(x, y)`` (or
+    :func:`scipy.signal.welch` ``(x)`` where ``y`` is None) with their defaults -- periodic Hann
+    window, 50 % overlap, no padding, density scaling, one-sided, mean of the segments -- computed
+    on every segment at once. scipy 1.17 detrends and transforms segment by segment in Python
+    (``ShortTimeFFT.stft_detrend``): 0.6 ms a segment with a linear detrend, most of the
+    diagnosis' mode location on a 10 kHz record. The same to rounding (a test compares both).
+
+    Parameters
+    ----------
+    x : array_like, shape (T,)
+        Signal.
+    y : array_like, shape (T,), optional
+        Second signal (same length); None: the PSD of ``x`` (real).
+    fs : float
+        Sample rate [Hz].
+    nperseg : int
+        Segment length (at most ``T``: longer is cut to ``T``, as scipy does).
+    detrend : {"constant", "linear", False}
+        Per-segment detrending.
+
+    Returns
+    -------
+    f : numpy.ndarray
+        Frequencies [Hz], ``rfftfreq(nperseg, 1 / fs)``.
+    p : numpy.ndarray
+        ``conj(X) Y`` density (complex), or the real PSD of ``x``.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(1)
+    >>> x, y = rng.standard_normal((2, 3000))
+    >>> f, p = welch_csd(x, y, fs=1e3, nperseg=256, detrend="linear")
+    >>> bool(np.allclose(p, signal.csd(x, y, fs=1e3, nperseg=256, detrend="linear")[1], rtol=1e-10, atol=0))
+    True
+    """
+    x = np.asarray(x, float)
+    n = x.shape[-1]
+    nperseg = int(min(nperseg, n))
+    step = nperseg - nperseg // 2
+    win = signal.get_window("hann", nperseg)
+
+    def spectra(a):
+        seg = np.lib.stride_tricks.sliding_window_view(a, nperseg)[::step]
+        if detrend == "linear":
+            t = np.arange(nperseg) - 0.5 * (nperseg - 1)
+            seg = seg - seg.mean(axis=1, keepdims=True) - np.outer(seg @ t / (t @ t), t)
+        elif detrend == "constant":
+            seg = seg - seg.mean(axis=1, keepdims=True)
+        elif detrend is not False:
+            raise ValueError(f"detrend must be 'constant', 'linear' or False, not {detrend!r}")
+        return np.fft.rfft(seg * win, axis=1)
+
+    X = spectra(x)
+    P = np.conj(X) * (X if y is None else spectra(np.asarray(y, float)))
+    P = P.mean(axis=0) / (fs * float(win @ win))
+    if nperseg % 2:
+        P[1:] *= 2
+    else:
+        P[1:-1] *= 2
+    return np.fft.rfftfreq(nperseg, 1.0 / fs), (P.real if y is None else P)
+
+
 def cross_spectra(u, y, fs, nperseg, detrend="constant"):
     """Welch-averaged auto- and cross-spectra of an input and an output (Hann window, 50 %
     overlap): :func:`scipy.signal.welch` and :func:`scipy.signal.csd`.
@@ -236,9 +299,9 @@ def cross_spectra(u, y, fs, nperseg, detrend="constant"):
     >>> bool(np.allclose(syy, 4.0 * suu) and np.allclose(suy, -2.0 * suu))
     True
     """
-    f, s_uu = signal.welch(u, fs=fs, nperseg=nperseg, detrend=detrend)
-    _, s_yy = signal.welch(y, fs=fs, nperseg=nperseg, detrend=detrend)
-    _, s_uy = signal.csd(u, y, fs=fs, nperseg=nperseg, detrend=detrend)
+    f, s_uu = welch_csd(u, fs=fs, nperseg=nperseg, detrend=detrend)
+    _, s_yy = welch_csd(y, fs=fs, nperseg=nperseg, detrend=detrend)
+    _, s_uy = welch_csd(u, y, fs=fs, nperseg=nperseg, detrend=detrend)
     return f, s_uu, s_yy, s_uy
 
 

@@ -52,6 +52,8 @@ class Context:
     level_fitted : bool
         The Coulomb level is an adopted effect (position-dependent friction then has no level of its
         own).
+    axis : {"linear", "rotary"}
+        The recording's axis (scales written in its units, e.g. the Maxwell-slip distances).
 
     Examples
     --------
@@ -74,3 +76,4 @@ class Context:
     smoothing_hz: float = 0.0
     resolution: float = 0.0
     level_fitted: bool = False
+    axis: str = "linear"

@@ -39,11 +39,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import optimize, signal, stats
+from scipy import optimize, stats
 
 from .data import DiagData
 from .model import ModelSpec
-from experiment_runner.core.metrics import cross_spectra
+from experiment_runner.core.metrics import cross_spectra, welch_csd
 
 __all__ = ["measured_frf", "model_frf", "mode_ratio", "locate_modes", "transfer_ratio", "noise_band_modes",
            "loop_from_excitation", "drive_frf", "psd_trials"]
@@ -184,8 +184,8 @@ def transfer_ratio(spec: ModelSpec, data: DiagData, nperseg: int | None = None):
             if not np.any(z != z[0]):
                 continue
             f, pzz, pyy, pzy = cross_spectra(z, y, data.rate, nps, detrend="linear")
-            _, pzu = signal.csd(z, u, fs=data.rate, nperseg=nps, detrend="linear")
-            _, pzf = signal.csd(z, fe, fs=data.rate, nperseg=nps, detrend="linear")
+            _, pzu = welch_csd(z, u, fs=data.rate, nperseg=nps, detrend="linear")
+            _, pzf = welch_csd(z, fe, fs=data.rate, nperseg=nps, detrend="linear")
             a = acc.setdefault(name, [f, 0, 0, 0, 0, 0])
             for k, v in enumerate((pzz, pyy, pzy, pzu, pzf), 1):
                 a[k] = a[k] + w * v
@@ -332,7 +332,7 @@ def psd_trials(x: np.ndarray, mask: np.ndarray, rate: float, nperseg: int) -> np
         k = int(m.sum())
         if k < nperseg:
             continue
-        _, p = signal.welch(x[m, b], rate, nperseg=nperseg, detrend="linear")
+        _, p = welch_csd(x[m, b], fs=rate, nperseg=nperseg, detrend="linear")
         P, n = P + p * k, n + k
     return P / n if n else np.zeros(nperseg // 2 + 1)
 
@@ -371,8 +371,8 @@ def loop_from_excitation(f_ext: np.ndarray, du: np.ndarray, mask: np.ndarray, ra
         m = mask[:, c]
         if m.sum() < nperseg:
             continue
-        _, a = signal.csd(f_ext[m, c], f_ext[m, c], rate, nperseg=nperseg, detrend="linear")
-        _, b = signal.csd(f_ext[m, c], du[m, c], rate, nperseg=nperseg, detrend="linear")
+        _, a = welch_csd(f_ext[m, c], f_ext[m, c], fs=rate, nperseg=nperseg, detrend="linear")
+        _, b = welch_csd(f_ext[m, c], du[m, c], fs=rate, nperseg=nperseg, detrend="linear")
         pff, pfu = pff + a, pfu + b
     T = pfu / np.where(np.abs(pff) > 0, pff, 1e-300)
     return -T / (1 + drive * T)

@@ -25,6 +25,8 @@ import math
 import numpy as np
 from scipy import signal
 
+from experiment_runner.core.metrics import welch_csd
+
 from .context import Context
 from .frf import drive_frf, locate_modes, loop_from_excitation, noise_band_modes, psd_trials, transfer_ratio
 from .judge import ReplayJudge
@@ -279,7 +281,7 @@ def spectrum(r, r_floor, mask, mask_floor, rate, f_obs, nperseg: int = 1024):
             mm = m[:, b]
             if mm.sum() < 64:
                 continue
-            f, p = signal.welch(x[mm, b], rate, nperseg=min(nperseg, int(mm.sum())))
+            f, p = welch_csd(x[mm, b], fs=rate, nperseg=min(nperseg, int(mm.sum())))
             out.append(np.interp(np.linspace(0, rate / 2, nperseg // 2 + 1), f, p))
         return np.mean(out, axis=0) if out else np.zeros(nperseg // 2 + 1)
     f = np.linspace(0, rate / 2, nperseg // 2 + 1)
@@ -521,7 +523,7 @@ def locate(data, res, res_floor, floor_data, f_obs: float, f_band: float | None 
                   r_rms=float(np.sqrt(tot / max(1, mask.sum()))),
                   peak_hz=tuple(p["f_hz"] for p in spec["peaks"] if p["f_hz"] > 2.0),
                   line_hz=tuple(spec["lines_hz"]), ripple_period=tuple(periods),
-                  stroke=float(np.median(strokes)) if strokes else 0.0)
+                  stroke=float(np.median(strokes)) if strokes else 0.0, axis=data.axis or "linear")
     summary = {
         "f_band_hz": f_band,
         "residual_rms_N": ctx.r_rms,

@@ -16,7 +16,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import signal
+
+from experiment_runner.core.metrics import welch_csd
 
 from .data import DiagData
 from .model import ModelSpec
@@ -108,7 +109,7 @@ def noise_components(spec: ModelSpec, data: DiagData, obs_factory, seeds=(7001,)
                 m = dd.held[:, b] | dd.fit[:, b]
                 if m.sum() < 256:
                     continue
-                f, p = signal.welch(r[m, b], data.rate, nperseg=min(1024, int(m.sum())))
+                f, p = welch_csd(r[m, b], fs=data.rate, nperseg=min(1024, int(m.sum())))
                 psd.append(np.interp(np.linspace(0, data.rate / 2, 513), f, p))
         if not psd:
             raise ValueError("every trial is shorter than 256 samples: no residual spectrum to read a "
@@ -152,7 +153,7 @@ def fit_noise_level(r_meas: np.ndarray, mask: np.ndarray, rate: float, comps, f_
         if m.sum() < 256:
             continue
         n_seg = min(1024, int(m.sum()))
-        ff, p = signal.welch(r_meas[m, b], rate, nperseg=n_seg)
+        ff, p = welch_csd(r_meas[m, b], fs=rate, nperseg=n_seg)
         psd.append(np.interp(f, ff, p))
         dof += 2.0 * max(1, (int(m.sum()) - n_seg // 2) // (n_seg - n_seg // 2))    # Hann, half overlap
         df = max(df, float(ff[1] - ff[0]))

@@ -30,6 +30,7 @@ import numpy as np
 from scipy import signal
 
 from experiment_runner.core.batch import simulate
+from experiment_runner.core.metrics import welch_csd
 
 from stage_sim.plant import PlantInputs, PlantState
 
@@ -291,7 +292,7 @@ class NoiseFloor:
                 n = int(m[:, b].sum())
                 if n < 64:
                     continue
-                f, p = signal.welch(rt[:, b], rate, nperseg=min(nperseg, n), detrend="constant")
+                f, p = welch_csd(rt[:, b], fs=rate, nperseg=min(nperseg, n), detrend="constant")
                 # welch on zero-filled data: scale by the valid fraction
                 segs.append(np.interp(np.linspace(0, rate / 2, nperseg // 2 + 1), f, p) * len(rt) / n)
         if not segs:

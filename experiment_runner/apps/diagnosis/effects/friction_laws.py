@@ -159,10 +159,12 @@ class Gms(Effect):
     key = "gms"
     title = "pre-motion friction (GMS / Maxwell-slip)"
     N = 12
-    SLIP_MIN = 3e-8
-    """Shortest slip displacement of the log-spaced blocks [m] (at least 3 encoder steps)."""
-    SLIP_MAX = 1e-4
-    """Longest slip displacement [m] (at least 30 times the shortest)."""
+    SLIP_MIN = 0.03
+    """Shortest slip displacement of the log-spaced blocks, in the axis' pre-motion lengths
+    (:data:`PRE_MOTION_LENGTH`: 30 nm, 3 urad; at least 3 encoder steps)."""
+    SLIP_MAX = 100.0
+    """Longest slip displacement, in the axis' pre-motion lengths (100 um, 10 mrad; at least 30
+    times the shortest)."""
     physics = ("Generalized Maxwell-slip (Eq. 4.4): parallel elasto-slip blocks with fitted capacities (a "
                "Prandtl-Ishlinskii operator, linear in the capacities); replaces the friction elements. A Maxwell-slip "
                "model keeps its own blocks, their slip displacements scaled by one factor x_scale; any other gets 12 "
@@ -172,8 +174,10 @@ class Gms(Effect):
     parameters = (Parameter("x_scale", "-", "a Maxwell-slip model's own slip displacements scaled (its stiffnesses "
                             "by 1/x_scale)", (0.1, 10.0)),
                   Parameter("F_1..F_N", "N", f"block capacities (sum = F_C); without a Maxwell-slip model {N} "
-                            f"blocks, slip displacements log-spaced {_short(SLIP_MIN)} (or 3 encoder steps) ... "
-                            f"{_short(SLIP_MAX)} m", (1e-6, 1e4), (1e-8, 1e3)))
+                            f"blocks, slip displacements log-spaced {_short(SLIP_MIN * PRE_MOTION_LENGTH['linear'])} "
+                            f"(or 3 encoder steps) ... {_short(SLIP_MAX * PRE_MOTION_LENGTH['linear'])} m "
+                            f"({_short(SLIP_MIN * PRE_MOTION_LENGTH['rotary'])} ... "
+                            f"{_short(SLIP_MAX * PRE_MOTION_LENGTH['rotary'])} rad)", (1e-6, 1e4), (1e-8, 1e3)))
     exclusive = ("friction_law", "coulomb_level")
     deal = 7
     _d = None
@@ -181,14 +185,16 @@ class Gms(Effect):
     applicable = staticmethod(_no_friction)
 
     @classmethod
-    def slip_range(cls, resolution: float) -> tuple[float, float]:
-        """(shortest, longest) slip displacement [m] of the log-spaced blocks for an encoder step
-        ``resolution`` [m].
+    def slip_range(cls, resolution: float, axis: str = "linear") -> tuple[float, float]:
+        """(shortest, longest) slip displacement [m] or [rad] of the log-spaced blocks for an
+        encoder step ``resolution`` on an ``axis``.
 
         Parameters
         ----------
         resolution : float
-            Encoder step [m] (0: ideal).
+            Encoder step [m] or [rad] (0: ideal).
+        axis : {"linear", "rotary"}
+            The axis (its pre-motion length scales the range).
 
         Returns
         -------
@@ -198,9 +204,12 @@ class Gms(Effect):
         --------
         >>> Gms.slip_range(0.0), Gms.slip_range(1e-7)
         ((3e-08, 0.0001), (3e-07, 0.0001))
+        >>> [float(f"{x:.3g}") for x in Gms.slip_range(1e-7, "rotary")]
+        [3e-06, 0.01]
         """
-        lo = max(3 * resolution, cls.SLIP_MIN)
-        return lo, max(cls.SLIP_MAX, 30 * lo)
+        length = pre_motion_length(axis)
+        lo = max(3 * resolution, round(cls.SLIP_MIN * length, 15))
+        return lo, max(round(cls.SLIP_MAX * length, 15), 30 * lo)
 
     @staticmethod
     def own_slips(spec) -> np.ndarray | None:
@@ -236,7 +245,7 @@ class Gms(Effect):
         -------
         numpy.ndarray
         """
-        lo, hi = self.slip_range(ctx.resolution)
+        lo, hi = self.slip_range(ctx.resolution, ctx.axis)
         return np.logspace(np.log10(lo), np.log10(hi), self.N)
 
     @staticmethod
