@@ -266,3 +266,35 @@ def test_every_test_schema_has_its_kind_and_metrics():
         assert kind_of(camp).test is type(camp.test)
         base = camp.test.conditions()
         assert len(conditions(camp)) == len(base) * (len(camp.sweep.values) if camp.sweep else 1)
+
+
+@pytest.mark.parametrize("fi, nofi, agrees, bound", [
+    ([0.018, 0.019], [None, None], True, (0.0185 - 1.0) / 1.0),     # No FI never settles: FI faster, change <= -98 %
+    ([None, None], [0.06, 0.07], False, (1.0 - 0.065) / 0.065),     # FI never settles: the opposite direction
+])
+def test_a_settling_time_never_reached_is_right_censored(fi, nofi, agrees, bound):
+    """A settling-time finding where one case never settles within the dwell and the other does
+    (table_4_2_dahl's No FI table ratchets out of the +-25 nm window): the direction is known -- the
+    unsettled case takes longer than the dwell -- and the change is a bound against the dwell;
+    before, the finding was "undefined (no settled trials)" and, where it has no note, this file's
+    run test failed on a machine whose two reduced-scale No FI trials both ratcheted. Neither side
+    settled stays undefined."""
+    from experiment_runner.apps.campaigns.base import Stat
+    from experiment_runner.apps.campaigns.findings import evaluate_findings
+
+    class Run:
+        def __init__(self, v):
+            self.stats = {"settling_time_s": Stat.of(v), "rms_in_position_m": Stat.of([None, None])}
+
+    camp = load_campaign("table_4_2_dahl")
+    conds = {c.label: c for c in conditions(camp)}
+    key = next(c.key for c in conds.values() if abs(c.at()["step"] - 5e-6) < 1e-12)
+    runs = {(case, c.key): Run([0.05, 0.05]) for c in conds.values() for case in ("fi", "nofi")}
+    runs[("fi", key)], runs[("nofi", key)] = Run(fi), Run(nofi)
+    f = next(r for r in evaluate_findings(camp, runs) if r["id"] == "fi_settles_faster_5um")
+    assert f["agrees"] is agrees and f["sim_change"] == pytest.approx(bound)
+    assert "never settled within the 1 s dwell" in f["status"]
+    runs[("fi", key)] = Run([None, None])
+    runs[("nofi", key)] = Run([None, None])
+    f = next(r for r in evaluate_findings(camp, runs) if r["id"] == "fi_settles_faster_5um")
+    assert f["status"] == "undefined (no settled trials)" and f["sim_change"] is None

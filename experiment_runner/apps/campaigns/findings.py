@@ -4,7 +4,9 @@ finding a campaign file states, and every seed number or limit against the simul
 * Trial campaigns (:func:`evaluate_findings`): the means over the trials of two cases at a
   condition, z = their difference / its standard error; a 'lower' / 'higher' finding agrees
   when the sign matches and ``|z| >= 2``, a 'similar' one when the relative change is within
-  the tolerance; ``over: sweep_spread`` compares the spreads of the means over a sweep.
+  the tolerance; a settling time one case never reaches within the dwell while the other does is
+  right-censored (its direction is known, its change is a bound: :func:`_censored_settling`);
+  ``over: sweep_spread`` compares the spreads of the means over a sweep.
 * Frequency-response campaigns (:func:`evaluate_frf_findings`): one deterministic value per
   case and amplitude; :func:`seed_bound_check` checks the limits the seed states.
 """
@@ -60,7 +62,10 @@ def evaluate_findings(camp: Campaign, runs: dict) -> list[dict]:
             ref = runs[(f.relative_to, cond.key)].stats[f.metric].mean
             rel = (b.mean - a.mean) / ref if ref and math.isfinite(ref) and math.isfinite(rel) else math.nan
             z = math.nan
-        if not math.isfinite(rel):
+        censored = _censored_settling(camp, f, a, b)
+        if censored is not None:
+            agrees, status, rel = censored
+        elif not math.isfinite(rel):
             agrees, status = False, "undefined (no settled trials)"
         elif f.direction == "similar":
             agrees, status = _similar(rel, f.tolerance, f"reductions vs {f.relative_to} " if f.relative_to else "")
@@ -84,6 +89,30 @@ def evaluate_findings(camp: Campaign, runs: dict) -> list[dict]:
                     "relative_to": f.relative_to,
                     "explanation": f.note if not agrees else ""})
     return out
+
+
+def _censored_settling(camp: Campaign, f: Finding, a, b) -> tuple | None:
+    """A settling-time finding where one case never settled within the dwell and the other did:
+    the unsettled case's settling time is longer than the dwell (right-censored), so the direction
+    is known though the mean is not -- (agrees, status, bound on the relative change: the settled
+    mean against the dwell, an upper bound for 'lower', a lower bound for 'higher'). None where
+    this does not apply (another metric, a 'similar' finding, both or neither settled, no dwell).
+    E.g. table_4_2_dahl at 2 trials: the No FI table with Dahl bearings ratchets out of the window
+    and never settles at 5 um, the FI table settles in 18 ms."""
+    dwell = getattr(camp.test, "dwell", None)
+    if f.metric != "settling_time_s" or f.direction == "similar" or f.relative_to is not None or not dwell:
+        return None
+    if (a.n_valid == 0) == (b.n_valid == 0):
+        return None
+    case_settles = a.n_valid > 0
+    settled, never = (a, f.versus) if case_settles else (b, f.case)
+    rel = (settled.mean - dwell) / dwell if case_settles else (dwell - settled.mean) / settled.mean
+    lower = case_settles            # the case is faster when it settles and the other does not
+    agrees = lower == (f.direction == "lower")
+    bound = "at most" if lower else "at least"
+    status = (f"{'agrees' if agrees else 'opposite direction'}: {never} never settled within the {dwell:g} s dwell "
+              f"(right-censored; change {bound} {rel:+.0%})")
+    return agrees, status, rel
 
 
 def _similar(rel: float, tolerance: float, what: str = "") -> tuple[bool, str]:
