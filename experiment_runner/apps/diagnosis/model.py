@@ -93,6 +93,23 @@ def coulomb_total(preset: Preset) -> float:
     return float(sum(getattr(fr, "f_c", 0.0) for _, fr in friction_elements(preset)))
 
 
+def viscous_total(preset: Preset) -> float:
+    """The stage's total viscous coefficient, table and bearings [N·s/m].
+
+    Parameters
+    ----------
+    preset : stage_sim.config.Preset
+        The stage.
+
+    Returns
+    -------
+    float
+    """
+    st = preset.stage
+    c = st.table_friction.viscous if st.table_friction is not None else 0.0
+    return c + sum(b.friction.viscous for b in st.bearings)
+
+
 @dataclass
 class Compiled:
     """What the kernels need for one :class:`ModelSpec`.

@@ -53,12 +53,12 @@ from stage_sim.plant import PlantInputs, PlantState
 from . import engine as E
 from .data import DiagData, smooth
 from .judge import FLOOR_SEEDS, ReplayJudge
-from .model import ModelSpec, coulomb_total, friction_elements, total_mass
+from .model import ModelSpec, coulomb_total, total_mass, viscous_total
 from .observer import Observer
 from .replay_floor import Floor, Replay
 
-__all__ = ["WINDOW_S", "TINY_MOTION_STEPS", "tiny_motion", "OpenLoopJudge", "sim_batch", "window_replay", "noisy_model", "quiet_model",
-           "LSQ_AGREE", "least_squares_check"]
+__all__ = ["WINDOW_S", "TINY_MOTION_STEPS", "tiny_motion", "OpenLoopJudge", "sim_batch", "window_replay",
+           "noisy_model", "quiet_model", "LSQ_AGREE", "least_squares_check"]
 
 WINDOW_S = 0.05
 """Length of the judge's open-loop windows [s] (at least 20 samples)."""
@@ -578,8 +578,7 @@ def least_squares_check(data: DiagData, spec: ModelSpec) -> dict | None:
     np.add.at(S, gi, As * r[:, None])               # block-robust (cluster) sandwich
     cov = inv @ (S.T @ S) @ inv
     theta, sig = theta / scale, np.sqrt(np.maximum(np.diag(cov), 0.0)) / scale
-    model = (total_mass(spec.preset), coulomb_total(spec.preset),
-             float(sum(getattr(fr, "viscous", 0.0) for _, fr in friction_elements(spec.preset))))
+    model = (total_mass(spec.preset), coulomb_total(spec.preset), viscous_total(spec.preset))
     out = {"samples": int(len(f)), "tolerance": LSQ_AGREE}
     for name, val, s, mv in zip(("inertia", "coulomb", "viscous"), theta, sig, model):
         off = abs(mv - val)

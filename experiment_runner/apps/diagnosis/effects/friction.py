@@ -10,7 +10,7 @@ import numpy as np
 from stage_sim import friction
 
 from ..context import Context
-from ..model import ModelSpec, coulomb_total, friction_elements
+from ..model import ModelSpec, coulomb_total, friction_elements, viscous_total
 from .base import Case, Effect, Param, Parameter, bearing_f_c, both_bearings, for_bearings
 
 __all__ = ["Coulomb", "Viscous", "PositionFriction", "Asymmetry", "friction_weights", "scaled_variation",
@@ -232,9 +232,7 @@ class Viscous(Effect):
         -------
         float
         """
-        st = spec.preset.stage
-        c = st.table_friction.viscous if st.table_friction is not None else 0.0
-        return c + sum(b.friction.viscous for b in st.bearings)
+        return viscous_total(spec.preset)
 
     def params(self, spec, ctx):
         c0 = self.total(spec)

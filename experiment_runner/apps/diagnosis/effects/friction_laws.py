@@ -208,6 +208,7 @@ class Gms(Effect):
         [3e-06, 0.01]
         """
         length = pre_motion_length(axis)
+        # rounded: 0.03 * 1e-6 is 3.0000000000000004e-08 in binary; the linear range stays 3e-8 exactly
         lo = max(3 * resolution, round(cls.SLIP_MIN * length, 15))
         return lo, max(round(cls.SLIP_MAX * length, 15), 30 * lo)
 
