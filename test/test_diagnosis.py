@@ -292,7 +292,7 @@ def test_noise_floor_whitening_is_unit_for_the_model_itself(coulomb_case):
 # --------------------------------------------------------------------------- library, model files
 @pytest.mark.parametrize("key", list(LIBRARY))
 def test_every_effect_applies_to_the_nominal(key):
-    e = LIBRARY[key].bound(Context(x_center=0.0, x_half_span=5e-3, smoothing_hz=1000.0,
+    e = LIBRARY[key].bound(Context(x_center=0.0, x_half_span=5e-3, observer_hz=400.0,
                                    frf_modes=({"f_hz": 1500.0, "zeta": 0.02, "fraction": 0.05},)))
     spec = ModelSpec(NOM)
     if e.applicable(spec) is not None:            # needs what the nominal lacks (isolator_transient: an SAI)

@@ -49,6 +49,7 @@ def test_each_lease_is_a_domain_no_other_lease_holds():
         assert int(other.stdout) not in (a, b)                 # another process (an xdist worker, a checkout)
 
 
+@pytest.mark.slow            # a pytest collection in a subprocess: ~10 s
 def test_parallel_runs_start_with_the_longest_work_and_make_each_shared_fixture_once():
     """Under ``pytest -n`` the tests sharing the EMPS diagnosis are handed out first, as one group
     (one worker makes the fixture), then the slow tests, then the fast tier: collected in that

@@ -45,8 +45,9 @@ class Context:
     frf_modes : tuple
         Modes located on the command -> measurement transfer (:func:`.frf.locate_modes`: dicts with
         ``f_hz``, ``zeta``, ``fraction``).
-    smoothing_hz : float
-        Cutoff of the measurement's smoothing the force observer follows [Hz].
+    observer_hz : float
+        The force observer's bandwidth [Hz]: it follows forces up to it, so a mode above it is
+        proposed as located (:class:`.effects.body.LocatedMode`), not fitted by the observer.
     resolution : float
         Encoder step of the model the effects are added to [m] (the shortest Maxwell-slip distance).
     level_fitted : bool
@@ -73,7 +74,7 @@ class Context:
     line_hz: tuple = ()
     ripple_period: tuple = ()
     frf_modes: tuple = ()
-    smoothing_hz: float = 0.0
+    observer_hz: float = 0.0
     resolution: float = 0.0
     level_fitted: bool = False
     axis: str = "linear"

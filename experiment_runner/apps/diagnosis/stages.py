@@ -479,7 +479,7 @@ def locate(setup: Setup, base: ModelSpec, pred: Prediction, opt: Options, timing
         opt.log(f"frf mode location failed: {err!r}")
     summary["frf_modes"] = frf_modes
     summary["transfer"] = frf_info
-    ctx = dataclasses.replace(ctx, frf_modes=tuple(frf_modes), smoothing_hz=data.smooth_hz,
+    ctx = dataclasses.replace(ctx, frf_modes=tuple(frf_modes), observer_hz=obs.f_o,
                               resolution=base.preset.stage.encoder.resolution)
     timing["locate_s"] = time.perf_counter() - t
     return Location(summary=summary, arrays=arrays, context=ctx, library=opt.effect_library().bound(ctx))

@@ -207,16 +207,30 @@ class Mode(Effect):
 
 
 class LocatedMode(Effect):
-    """A mode located and fitted on the command -> measurement transfer (:mod:`..frf`) above the
-    cutoff of the measurement's smoothing, where the force observer cannot fit it (the smoothed
-    measurement it follows has no motion there): the transfer's fit (frequency, damping, mass
-    fraction; :func:`split_mode`) is the candidate as it is, one per located mode, and the judge
-    decides on the held-out data. Refined by the replay as a :class:`Mode`."""
+    """A mode located and fitted on the command -> measurement transfer or the closed loop's noise
+    response (:mod:`..frf`) above the force observer's bandwidth, where the observer cannot fit it
+    (it follows forces up to its bandwidth; beyond the measurement's smoothing cutoff it sees no
+    motion at all): the located fit (frequency, damping, mass fraction; :func:`split_mode`) is the
+    candidate as it is, one per located mode, and the judge decides on the held-out data. Refined
+    by the replay as a :class:`Mode`.
+
+    Between the observer's bandwidth and the smoothing cutoff a mode is visible to neither fit of
+    :class:`Mode` (its observer fit wanders off to where the observer sees something) nor, were
+    the cutoff the limit, to this one: a 500 Hz mode under a 400 Hz observer was located within
+    5 % and never proposed, and a drive delay stood in for it.
+
+    Examples
+    --------
+    >>> ctx = Context(observer_hz=400.0, frf_modes=({"f_hz": 520.0, "zeta": 0.03, "fraction": 0.2},
+    ...                                              {"f_hz": 150.0, "zeta": 0.03, "fraction": 0.1}))
+    >>> [m["f_hz"] for m in LocatedMode().bound(ctx)._modes]
+    [520.0]
+    """
     key = "located_mode"
     title = "structural resonance located on the transfer"
     kind = "integer"
-    physics = ("A lightly damped mode above the force observer's reach (the measurement's smoothing "
-               "cutoff) up to Nyquist, as located and fitted on the command -> measurement transfer: "
+    physics = ("A lightly damped mode above the force observer's reach (its bandwidth) up to Nyquist, as "
+               "located and fitted on the command -> measurement transfer or the closed loop's noise response: "
                "blocked frequency, damping and mass fraction split off the table (stage.modes; total "
                "mass kept).")
     signature = ("a narrow resonance / anti-resonance of the measured transfer against the model's, where the "
@@ -226,14 +240,14 @@ class LocatedMode(Effect):
     _modes = None
 
     def bound(self, ctx: Context):
-        fs = float(ctx.smoothing_hz or 0.0)
+        f_o = float(ctx.observer_hz or 0.0)
         e = copy.copy(self)
-        e._modes = tuple(m for m in ctx.frf_modes or () if m["f_hz"] > fs)
+        e._modes = tuple(m for m in ctx.frf_modes or () if m["f_hz"] > f_o)
         return e
 
     def applicable(self, spec):
         if self._modes is not None and not self._modes:
-            return "no mode located on the command -> measurement transfer above the smoothing cutoff"
+            return "no mode located above the force observer's bandwidth"
         return None
 
     def params(self, spec, ctx):
