@@ -4,7 +4,7 @@ The force observer proposes and gives the start; the replay of the fit samples s
 (:func:`.refinement.refine_by_replay`): at the observer's values a flexible wrong effect can beat
 the right one whose fit is off where the replay is sensitive. :func:`refine_rows` refines the
 stable candidates that may win, re-chooses an integer one (delay) by the replay, refines a mode
-located on the transfer, and judges each again; :func:`own_share` credits a candidate refined
+located (on the transfer or in the noise response), and judges each again; :func:`own_share` credits a candidate refined
 together with the adopted effects with what it adds to their re-fit, not with the re-fit.
 """
 from __future__ import annotations
@@ -52,7 +52,7 @@ def _refine_integer(problem: Problem, path: Path, row: JudgedRow, sim_blocks, re
 
 
 def _refine_located(problem: Problem, path: Path, row: JudgedRow, sim_blocks) -> JudgedRow:
-    """A mode located on the transfer (``located_mode``) refined by the replay of the fit samples: its
+    """A mode located on the transfer or in the noise response (``located_mode``) refined by the replay of the fit samples: its
     frequency, damping and mass fraction as a :class:`.effects.body.Mode`'s parameters, started at the
     transfer's fit (small finite-difference steps: a lightly damped mode's replay changes over a
     fraction of its bandwidth). The errors are weighted by the floor of the model with the mode (an

@@ -227,7 +227,7 @@ class LocatedMode(Effect):
     [520.0]
     """
     key = "located_mode"
-    title = "structural resonance located on the transfer"
+    title = "structural resonance located on the transfer or in the noise response"
     kind = "integer"
     physics = ("A lightly damped mode above the force observer's reach (its bandwidth) up to Nyquist, as "
                "located and fitted on the command -> measurement transfer or the closed loop's noise response: "
