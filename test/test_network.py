@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -147,21 +148,36 @@ def test_replay_has_every_socket_on_loopback(processes_run, ros_domain):
 
 
 def _hand_started(env: dict, settle: float = 1.5) -> set:
-    """Start ``plant_sim`` by hand with ``env``; its sockets once it has had them ``settle`` s."""
+    """Start ``plant_sim`` by hand with ``env``; its sockets once it has had them ``settle`` s
+    and is spinning (it said "ready": its kernels loaded, so SIGTERM is a clean stop, where
+    during the load it ends the process at once as ``launch.STARTING``)."""
     proc = subprocess.Popen([str(BIN / "plant_sim")], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             text=True)
+    lines, ready = [], threading.Event()
+
+    def read():
+        for line in proc.stderr:
+            lines.append(line)
+            if ": ready (kernels loaded" in line:
+                ready.set()
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
     try:
         seen, first = set(), None
         deadline = time.monotonic() + RUN_TIMEOUT
-        while time.monotonic() < deadline and proc.poll() is None and (first is None or time.monotonic() < first + settle):
+        while time.monotonic() < deadline and proc.poll() is None and (
+                first is None or time.monotonic() < first + settle or not ready.is_set()):
             seen |= sockets(proc.pid)
             if seen and first is None:
                 first = time.monotonic()
             time.sleep(0.1)
-        assert proc.poll() is None, proc.communicate()[1]
+        assert proc.poll() is None, "".join(lines)
+        assert ready.is_set(), f"not ready within {RUN_TIMEOUT} s: {''.join(lines)}"
     finally:
         proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=30)
+        proc.wait(timeout=30)
+        reader.join(timeout=10)
+    err = "".join(lines)
     assert proc.returncode == 0 and "Traceback" not in err, err
     return seen
 

@@ -307,8 +307,10 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
         # the kernels it steps per sample are loaded before the node spins, hence before it joins a
         # run (StageNode.warm_up); discovery goes on meanwhile. Stopped now, it ends at once (still starting)
         starting["warm_up"] = True
+        t_warm = time.monotonic()
         node.warm_up()
         starting["warm_up"] = False
+        node.get_logger().info(f"ready (kernels loaded in {time.monotonic() - t_warm:.1f} s)")
         ex = make_executor()
         ex.add_node(node)
         while rclpy.ok() and not stop.is_set() and not (until and until(node)):
