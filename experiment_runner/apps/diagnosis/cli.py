@@ -243,13 +243,7 @@ def main_diagnose(args) -> int:
         for e in data.incomplete:
             print(f"  {e}")
     for i, f in enumerate(rep["found"], 1):
-        ps = ", ".join(f"{p['name']} = {p['value']:.4g}" + (f" ± {p['sigma']:.2g}" if p.get("sigma") else
-                                                            f" ± {p['resolution']:g} (whole steps)" if p.get("resolution") else "")
-                       + f" {p['unit']}" + (f" (nominal {p['nominal']:.4g})" if isinstance(p.get("nominal"), (int, float)) else "")
-                       for p in f["params"])
-        st = f.get("status", "identified")
-        print(f"  {i}. {f['title']}: {ps}  [{st}" + (f"; chosen by {f['chosen_by']}" if st != "identified" and f.get("chosen_by") else "")
-              + "]")
+        print(f"  {i}. {finding_line(f)}")
     for w in rep.get("withdrawn") or []:
         print(f"  not identified, withdrawn: {w['title']} ({w['why']})")
     for fnd in rep.get("findings") or []:
@@ -278,6 +272,38 @@ def main_diagnose(args) -> int:
     print(f"report: {out / 'report.md'}   improved preset: {out / 'improved_preset.yaml'}   "
           f"({rep['timing_s']['total_s']:.1f} s)")
     return 0
+
+
+def finding_line(f: dict) -> str:
+    """One adopted effect's line on stdout: its title, each parameter with its standard error,
+    unit and nominal (a parameter whose σ exceeds its value marked not determined: the effect is
+    identified by its others), and its status with the rule that chose where it is confounded.
+
+    Parameters
+    ----------
+    f : dict
+        A row of the report's ``found``.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> finding_line({"title": "direction asymmetry", "status": "identified", "params": [
+    ...     {"name": "dF_C", "value": -0.5, "sigma": 0.53, "unit": "N", "identified": False},
+    ...     {"name": "dc", "value": -78.0, "sigma": 5.9, "unit": "N·s/m", "identified": True}]})
+    'direction asymmetry: dF_C = -0.5 ± 0.53 N (not determined: σ above its value), dc = -78 ± 5.9 N·s/m  [identified]'
+    """
+    def param(p):
+        err = (f" ± {p['sigma']:.2g}" if p.get("sigma") else
+               f" ± {p['resolution']:g} (whole steps)" if p.get("resolution") else "")
+        nominal = f" (nominal {p['nominal']:.4g})" if isinstance(p.get("nominal"), (int, float)) else ""
+        weak = " (not determined: σ above its value)" if p.get("identified") is False else ""
+        return f"{p['name']} = {p['value']:.4g}{err} {p['unit']}{nominal}{weak}"
+    st = f.get("status", "identified")
+    rule = f"; chosen by {f['chosen_by']}" if st != "identified" and f.get("chosen_by") else ""
+    return f"{f['title']}: {', '.join(param(p) for p in f['params'])}  [{st}{rule}]"
 
 
 def _interrupted_report(path, since: float) -> bool:
