@@ -29,8 +29,10 @@ import math
 import struct
 from functools import lru_cache
 
-__all__ = ["JOINT_STATE", "CLOCK", "joint_state", "clock", "stamp_ns", "read_joint_state", "first",
-           "JointStateReader", "JointStateWriter", "canonical", "nan_filled"]
+import numpy as np
+
+__all__ = ["JOINT_STATE", "CLOCK", "joint_state", "clock", "stamp_ns", "read_joint_state", "read_joint_states",
+           "first", "JointStateReader", "JointStateWriter", "canonical", "nan_filled"]
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 CLOCK = "rosgraph_msgs/msg/Clock"
@@ -166,6 +168,54 @@ def read_joint_state(data, with_frame: bool = False):
             arrays.append(())
     out = (stamp, names, *arrays)
     return out + (frame,) if with_frame else out
+
+
+def read_joint_states(datas) -> tuple | None:
+    """Many JointStates of one canonical layout (one topic, as a recorder writes it) at once:
+    ``(stamp_ns, names, position, velocity, effort)`` with ``stamp_ns`` an int64 array of the
+    header stamps and each array of values ``(len(datas), n)`` float64 (``n`` = its count in
+    the messages, 0 when empty). ``None`` when any message is not byte for byte the first's
+    canonical layout outside its stamp and values (other names or counts, non-zero padding,
+    big endian, trailing bytes): read those one by one (:class:`JointStateReader`).
+
+    >>> m = [joint_state(k, ("table", "bearing"), position=(k, 2 * k)) for k in range(3)]
+    >>> stamps, names, pos, vel, eff = read_joint_states(m)
+    >>> stamps.tolist(), names, pos.tolist(), vel.shape
+    ([0, 1, 2], ('table', 'bearing'), [[0.0, 0.0], [1.0, 2.0], [2.0, 4.0]], (3, 0))
+    >>> read_joint_states(m + [joint_state(3, ("table",), position=(3.0,))]) is None
+    True
+    """
+    if not datas:
+        return None
+    fields = read_joint_state(datas[0], with_frame=True)
+    first_bytes = bytes(datas[0])
+    if canonical_fields(fields) != first_bytes:
+        return None
+    names, lengths = fields[1], tuple(len(a) for a in fields[2:5])
+    size = len(first_bytes)
+    blob = b"".join(datas)
+    if len(blob) != size * len(datas):
+        return None
+    rows = np.frombuffer(blob, np.uint8).reshape(len(datas), size)
+    fixed = np.ones(size, bool)                  # every byte but the stamp and the values
+    fixed[4:12] = False
+    at, spans = 12 + len(joint_state_layout(names, lengths, fields[5])[1]), []
+    for n in lengths:                            # data offsets (body offset + 4), as JointStateReader
+        at += 4
+        if n:
+            at += -(at - 4) % 8
+            spans.append((at, n))
+            fixed[at:at + 8 * n] = False
+            at += 8 * n
+        else:
+            spans.append((at, 0))
+    if not (rows[:, fixed] == rows[0, fixed]).all():
+        return None
+    sec = np.ascontiguousarray(rows[:, 4:8]).view("<i4")[:, 0].astype(np.int64)
+    nanosec = np.ascontiguousarray(rows[:, 8:12]).view("<u4")[:, 0].astype(np.int64)
+    values = [np.ascontiguousarray(rows[:, o:o + 8 * n]).view("<f8").astype(float) if n
+              else np.empty((len(datas), 0)) for o, n in spans]
+    return (sec * _NS + nanosec, names, *values)
 
 
 class JointStateReader:

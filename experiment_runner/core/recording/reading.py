@@ -193,13 +193,6 @@ class _Joints:
     effort: tuple
 
 
-def _stamp_ns(m):
-    """A message's header stamp [ns], None if it has none."""
-    if isinstance(m, _Joints):
-        return m.stamp_ns
-    return convert.stamp_ns(m) if hasattr(m, "header") else None
-
-
 def _joint_series(topic: str, items) -> JointSeries:
     """(log_time, decoded JointState) pairs -> arrays, columns by joint name."""
     n = len(items)
@@ -242,6 +235,40 @@ def _need(series: JointSeries, topic: str, name: str, fld: str) -> np.ndarray:
     if np.all(np.isnan(col)):
         raise RecordingError(f"{topic}: joint {name!r} has no {fld} values")
     return col
+
+
+@dataclass
+class _JointTopic:
+    """A JointState topic as read: its arrays and each message's ``header.stamp`` [ns]."""
+    series: JointSeries
+    header_ns: np.ndarray
+
+    @property
+    def stamp_mismatch(self) -> np.ndarray:
+        """Log times of the messages whose ``header.stamp`` is not their log time."""
+        return self.series.stamp_ns[self.header_ns != self.series.stamp_ns]
+
+
+def _joint_topic(path, topic: str, msg_type: str, items) -> _JointTopic:
+    """(log time, CDR bytes) pairs of a JointState topic -> :class:`_JointTopic`: at once where
+    every message has the first's canonical layout (:func:`msg_defs.cdr.read_joint_states`, what
+    a recorder writes), else message by message."""
+    log_ns = np.fromiter((lt for lt, _ in items), np.int64, len(items))
+    bulk = cdr.read_joint_states([d for _, d in items])
+    if bulk is not None:
+        header, names, *arrays = bulk
+        if len(set(names)) == len(names) and all(a.shape[1] in (0, len(names)) for a in arrays):
+            pos, vel, eff = (a if a.shape[1] else np.full((len(items), len(names)), np.nan) for a in arrays)
+            return _JointTopic(JointSeries(log_ns, list(names), pos, vel, eff), header)
+    read = cdr.JointStateReader().read
+    decoded = []
+    for lt, data in items:
+        try:
+            decoded.append((lt, _Joints(*read(data))))
+        except Exception as err:          # noqa: BLE001
+            raise RecordingError(f"{path}: {topic}: message at {lt} ns does not decode as {msg_type} ({err})") from None
+    header = np.fromiter((m.stamp_ns for _, m in decoded), np.int64, len(decoded))
+    return _JointTopic(_joint_series(topic, decoded), header)
 
 
 def read_recording(path, require_reference: bool = True) -> Recording:
@@ -297,7 +324,7 @@ def read_recording(path, require_reference: bool = True) -> Recording:
     by_topic: dict[str, list] = {t: [] for t in TOPICS}
     counts: Counter = Counter()
     decoders = {}
-    joint_readers = {}
+    joint_channels = set()
     for m in raw.messages:
         ch = raw.channels.get(m.channel_id)
         if ch is None:
@@ -322,20 +349,24 @@ def read_recording(path, require_reference: bool = True) -> Recording:
                     f"{raw.path}: {ch.topic}: cannot decode message encoding {ch.message_encoding!r} with "
                     f"schema encoding {getattr(schema, 'encoding', None)!r}; the contract wants cdr + ros2msg")
             decoders[ch.id] = dec
-            if TOPICS[ch.topic].msg_type == cdr.JOINT_STATE:      # the schema parsed: read its CDR directly
-                joint_readers[ch.id] = cdr.JointStateReader().read
+            if TOPICS[ch.topic].msg_type == cdr.JOINT_STATE:      # the schema parsed: read its CDR directly,
+                joint_channels.add(ch.id)                          # all of the topic at once (below)
+        if ch.id in joint_channels:
+            by_topic[ch.topic].append((m.log_time, m.data))
+            continue
         try:
-            jr = joint_readers.get(ch.id)
-            by_topic[ch.topic].append((m.log_time, _Joints(*jr(m.data)) if jr is not None else dec(m.data)))
+            by_topic[ch.topic].append((m.log_time, dec(m.data)))
         except Exception as err:          # noqa: BLE001
             raise RecordingError(f"{raw.path}: {ch.topic}: message at {m.log_time} ns does not decode "
                                  f"as {topics[ch.topic]} ({err})") from None
+    joints = {t: _joint_topic(raw.path, t, topics[t], items) for t, items in by_topic.items()
+              if items and TOPICS[t].msg_type == cdr.JOINT_STATE}
 
     empty = [t for t in CONTRACT_TOPICS if not by_topic[t] and not (open_loop and t == REFERENCE.name)]
     if empty:
         raise RecordingError(f"{where}: contract topic(s) {', '.join(empty)} hold no messages")
     try:
-        return _assemble(raw, where, topics, by_topic, counts, open_loop)
+        return _assemble(raw, where, topics, by_topic, joints, counts, open_loop)
     except RecordingError:
         raise
     except (AttributeError, TypeError, ValueError, IndexError, KeyError) as err:
@@ -343,18 +374,18 @@ def read_recording(path, require_reference: bool = True) -> Recording:
                              f"{err}); the schema was altered or the file is damaged") from None
 
 
-def _assemble(raw: RawRecording, where: str, topics: dict, by_topic: dict, counts: Counter,
+def _assemble(raw: RawRecording, where: str, topics: dict, by_topic: dict, joints: dict, counts: Counter,
               open_loop: bool = False) -> Recording:
     """Decoded messages -> :class:`Recording` (control samples on all contract topics); what is
     damaged in them -> ``Recording.damage`` (:func:`_find_damage`)."""
     warnings = []
-    series = {t: _joint_series(t, by_topic[t]) for t in (*CONTRACT_TOPICS, TRUTH.name, DITHER.name, ISOLATOR.name,
-                                                         EXTERNAL_FORCE.name, SOURCE_CHANNELS.name)
-              if by_topic[t]}
+    series = {t: joints[t].series for t in (*CONTRACT_TOPICS, TRUTH.name, DITHER.name, ISOLATOR.name,
+                                             EXTERNAL_FORCE.name, SOURCE_CHANNELS.name)
+              if t in joints}
     sample_topics = tuple(t for t in CONTRACT_TOPICS if not (open_loop and t == REFERENCE.name))
     for t in series:
         if t not in sample_topics:
-            bad = sum(1 for lt, m in by_topic[t] if _stamp_ns(m) not in (None, lt))
+            bad = len(joints[t].stamp_mismatch)
             if bad:
                 warnings.append(f"{t}: {bad} message(s) with header.stamp != log time (log time used)")
 
@@ -416,7 +447,7 @@ def _assemble(raw: RawRecording, where: str, topics: dict, by_topic: dict, count
         topics=topics, counts=dict(counts), profile=raw.profile, salvaged=raw.salvaged, warnings=warnings,
         open_loop=open_loop, external_force=f_ext, source=series.get(SOURCE_CHANNELS.name))
     back = {raw.channels[c].topic: v for c, v in raw.backwards.items() if raw.channels[c].topic in sample_topics}
-    rec.damage = _find_damage(rec, {t: series[t] for t in sample_topics}, {t: by_topic[t] for t in sample_topics},
+    rec.damage = _find_damage(rec, {t: joints[t] for t in sample_topics},
                               back)
     rec.warnings += [d.text for d in rec.damage]
     return rec
@@ -490,10 +521,11 @@ def _at(rec: Recording, i: int) -> str:
     return f"sample {i}, t = {rec.t[i]:.6f} s"
 
 
-def _find_damage(rec: Recording, series: dict, items: dict, back: dict) -> list[Damage]:
-    """The damage of ``rec``'s control samples (see :class:`Damage`): ``series`` / ``items`` the
-    contract topics' JointSeries and (log time, message) pairs, ``back`` what went back in file
-    order (:func:`_backwards`, by topic)."""
+def _find_damage(rec: Recording, topics: dict, back: dict) -> list[Damage]:
+    """The damage of ``rec``'s control samples (see :class:`Damage`): ``topics`` the contract
+    topics as read (:class:`_JointTopic`), ``back`` what went back in file order
+    (:func:`_backwards`, by topic)."""
+    series = {t: jt.series for t, jt in topics.items()}
     out: list[Damage] = []
     n, stamps = len(rec), rec.stamp_ns
 
@@ -524,8 +556,8 @@ def _find_damage(rec: Recording, series: dict, items: dict, back: dict) -> list[
             add("backwards", topic, np.full(k, np.searchsorted(stamps, lt)),
                 f"{k} message(s) stamped before the message written before them, the first "
                 f"{step * 1e-6:.6g} ms earlier, at t = {lt * 1e-9:.6f} s")
-        wrong = [lt for lt, m in items[topic] if _stamp_ns(m) not in (None, lt)]
-        if wrong:
+        wrong = topics[topic].stamp_mismatch
+        if len(wrong):
             add("stamp", topic, np.searchsorted(stamps, wrong),
                 f"{len(wrong)} message(s) with header.stamp != log time (log time used), the first at "
                 f"t = {wrong[0] * 1e-9:.6f} s")
