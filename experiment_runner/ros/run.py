@@ -254,7 +254,8 @@ def run_node(factory, args=None, until=None, on_exit=None, drain=None):
     """``main`` of a node executable: init, spin (until ``until(node)`` is true), clean up.
 
     Once made, the node loads its compiled kernels
-    (:meth:`~experiment_runner.ros.node.StageNode.warm_up`) before it spins. Ctrl-C / SIGINT ends
+    (:meth:`~experiment_runner.ros.node.StageNode.warm_up`) before it spins, then logs
+    ``ready (kernels loaded in X s)``. Ctrl-C / SIGINT ends
     it cleanly (while it still loads them: at once, ended by the signal, as while importing);
     ``on_exit(node)`` runs last (e.g. close a file) and may return the process's exit status.
     Whatever hangs after that, the process ends within :data:`EXIT_GRACE_S` of being stopped.
