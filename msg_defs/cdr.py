@@ -170,6 +170,18 @@ def read_joint_state(data, with_frame: bool = False):
     return out + (frame,) if with_frame else out
 
 
+def _array_spans(end: int, lengths) -> list[tuple[int, int, int]]:
+    """Where a canonical JointState's arrays of doubles lie, its static part ending at data offset
+    ``end`` (body offset + 4): ``(padding start, first value, count)`` per array of ``lengths``."""
+    spans, at = [], end
+    for n in lengths:
+        at += 4                                           # the count
+        pad = -(at - 4) % 8 if n else 0
+        spans.append((at, at + pad, n))
+        at += pad + 8 * n
+    return spans
+
+
 def read_joint_states(datas) -> tuple | None:
     """Many JointStates of one canonical layout (one topic, as a recorder writes it) at once:
     ``(stamp_ns, names, position, velocity, effort)`` with ``stamp_ns`` an int64 array of the
@@ -197,24 +209,16 @@ def read_joint_states(datas) -> tuple | None:
     if len(blob) != size * len(datas):
         return None
     rows = np.frombuffer(blob, np.uint8).reshape(len(datas), size)
+    spans = _array_spans(12 + len(joint_state_layout(names, lengths, fields[5])[1]), lengths)
     fixed = np.ones(size, bool)                  # every byte but the stamp and the values
     fixed[4:12] = False
-    at, spans = 12 + len(joint_state_layout(names, lengths, fields[5])[1]), []
-    for n in lengths:                            # data offsets (body offset + 4), as JointStateReader
-        at += 4
-        if n:
-            at += -(at - 4) % 8
-            spans.append((at, n))
-            fixed[at:at + 8 * n] = False
-            at += 8 * n
-        else:
-            spans.append((at, 0))
+    for _, o, n in spans:
+        fixed[o:o + 8 * n] = False
     if not (rows[:, fixed] == rows[0, fixed]).all():
         return None
     sec = np.ascontiguousarray(rows[:, 4:8]).view("<i4")[:, 0].astype(np.int64)
     nanosec = np.ascontiguousarray(rows[:, 8:12]).view("<u4")[:, 0].astype(np.int64)
-    values = [np.ascontiguousarray(rows[:, o:o + 8 * n]).view("<f8").astype(float) if n
-              else np.empty((len(datas), 0)) for o, n in spans]
+    values = [np.ascontiguousarray(rows[:, o:o + 8 * n]).view("<f8").astype(float, copy=False) for _, o, n in spans]
     return (sec * _NS + nanosec, names, *values)
 
 
@@ -246,15 +250,8 @@ class JointStateReader:
         self._cuts = (5, a, a + 1, b, b + 1)
         # alignment bytes before each array of doubles: zero in a canonical message, anything
         # in rclpy's (Fast CDR leaves them unset), so a message is "known" only if they are 0
-        pads, at = [], self._end                          # data offset (body offset + 4)
-        for n in (len(pos), len(vel), len(eff)):
-            at += 4
-            if n:
-                pad = -(at - 4) % 8
-                if pad:
-                    pads.append((at, at + pad, bytes(pad)))   # (start, end, zeros)
-                at += pad + 8 * n
-        self._pads = tuple(pads)
+        self._pads = tuple((a, o, bytes(o - a)) for a, o, n in _array_spans(self._end, (len(pos), len(vel), len(eff)))
+                           if n and o > a)                # (start, end, zeros)
 
     def _known(self, data) -> bool:
         if not (self._layout is not None and len(data) == self._size and data[1] == 1
