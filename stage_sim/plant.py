@@ -16,8 +16,9 @@ Integration scheme (per control period ``dt``, ``n_sub`` sub-steps of ``h``):
 * Coulomb elements are solved implicitly per sub-step (stick if the force needed
   to stop is within the static limit), so there is no chattering at rest; a regularised
   Coulomb element (``F_C tanh(v / v_reg)``) is solved in parts of the sub-step, each exact for the
-  law linearised at its start, and its force acts as its mean plus the slope of its straight-line
-  fit over the sub-step (``gam_ramp``, exact): its stiffness ``F_C / v_reg`` sets no sub-step;
+  law linearised at its start (or along its chord to the balance it settles at), and its force
+  acts as its mean plus the slope of its straight-line fit over the sub-step (``gam_ramp``,
+  exact): its stiffness ``F_C / v_reg`` sets no sub-step;
 * optional force variations of each friction element (position-dependent and
   direction-dependent level, direction-dependent viscous part: ``stage_sim.friction.FrictionVariation``)
   scale its held force; optional table forces (``stage.force_offset``, ``force_ripple``,

@@ -3,8 +3,9 @@
 A smooth zero-velocity transition (no stiction, no pre-motion state): below ``v_reg`` the
 friction acts as a steep viscous damper ``F_C / v_reg``, above it as Coulomb friction. The
 plant takes per sub-step the mean force and slope of the law solved in parts, each exact for
-the law linearised at its start (:func:`implicit`): stable for any slope, and accurate without
-resolving the slope with sub-steps (:func:`explicit_damping` asks for none).
+the law linearised at its start, or along its chord to the balance where the rest of the sub-step
+settles there (:func:`implicit`): stable for any slope, and accurate without resolving the slope
+with sub-steps (:func:`explicit_damping` asks for none).
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from pydantic import Field
 from stage_sim.schema import NonNeg, Pos
 from stage_sim.validation import unit
 
-from .base import FrictionVariation, variation_entries
+from .base import FrictionVariation, relax_linear, variation_entries
 
 NAME = "regularized_coulomb"
 IMPLICIT = True
@@ -85,30 +86,9 @@ SPLIT_TOL = 1e-4
 :func:`implicit` splits a sub-step until every part meets it."""
 MAX_PARTS = 4096
 """Most tries (parts and halvings) in one sub-step; beyond, the rest in one part."""
-
-
-@njit(cache=True, inline="always")
-def _relax(fc, ve, v, dw, g):
-    """One part: the law linearised at ``v``, a free velocity change ``dw`` and ``g`` velocity per
-    unit force over the part. Returns ``(mean force, its first moment over the part's fraction
-    0..1, end velocity, error of the linearised law at the end velocity)``: the velocity relaxes as
-    ``v_b + (v - v_b) exp(-z s)``, so the force is ``(dw + z (v - v_b) exp(-z s)) / g`` -- a
-    transient at the part's start where ``z`` is large, which the first moment keeps."""
-    th = math.tanh(v / ve)
-    f0 = fc * th
-    ct = fc / ve * (1.0 - th * th)
-    z = g * ct
-    if z > 1e-3:
-        em = math.expm1(-z)
-        phi = 1.0 + em / z
-        psi = (-em - z * (1.0 + em)) / (-z * em)
-    else:
-        phi = 0.5 * z * (1.0 - z / 3.0)
-        psi = 0.5 - z / 12.0
-    f = f0 + (dw - g * f0) * phi / g
-    v1 = v + dw - g * f
-    m1 = (0.5 * dw + (v - v1) * psi) / g
-    return f, m1, v1, abs(fc * math.tanh(v1 / ve) - f0 - ct * (v1 - v))
+Z_BALANCE = 30.0
+"""Least relaxation (rate x duration) for :func:`implicit` to take the rest of a sub-step as one
+part that ends at the law's balance velocity (its transient decays by ``exp(-30)`` = 1e-13)."""
 
 
 @njit(cache=True, inline="always")
@@ -126,10 +106,20 @@ def implicit(p, a, g, v_prev, sc):
     through the transition ``|v| < v_reg`` shorter than the sub-step -- the part is halved (the
     free velocity change ``a - v_prev`` taken as uniform over the sub-step), so the sub-step
     length is free of the law's stiffness ``F_C / v_reg``: a creep transient of 0.4 us is
-    resolved inside a 100 us sub-step. Returns the mean force over the sub-step, ``False``
-    (never sticks) and the slope of the force's straight-line fit over the sub-step (its first
-    moment: the plant propagates it exactly, so the position feels when in the sub-step the
-    force switched). Parameters as :func:`stage_sim.friction.coulomb.implicit`.
+    resolved inside a 100 us sub-step.
+
+    A push below ``F_C`` has a balance: the velocity ``v_b = v_reg atanh(H / F_C)`` at which the law
+    holds the force ``H = (a - v_prev) / g`` that keeps the velocity. Where the rest of the sub-step
+    relaxes to it by more than :data:`Z_BALANCE` (at the slowest rate on the way: the chord from the
+    part's start to the balance, or the law's slope there) and the transient's impulse is too
+    small to move the first moment by ``SPLIT_TOL F_C``, the rest is one part along that chord:
+    an element creeping at rest costs one part per sub-step instead of a halving down to the
+    transient and a doubling back (~20 parts on average behind a stiff joint, up to 80).
+
+    Returns the mean force over the sub-step, ``False`` (never sticks) and the slope of the
+    force's straight-line fit over the sub-step (its first moment: the plant propagates it
+    exactly, so the position feels when in the sub-step the force switched). Parameters as
+    :func:`stage_sim.friction.coulomb.implicit`.
 
     Examples
     --------
@@ -142,15 +132,37 @@ def implicit(p, a, g, v_prev, sc):
     >>> f, _, slope = implicit(p, -3e-3, 1e-3, 1e-3, 1.0)      # reversal at 1/6: +F_C, then -F_C
     >>> round(f, 2), round(slope, 2)                           # (2/6 - 10/6) F_C / 2; 12 (M_1 - f / 2)
     (-1.33, -3.33)
+    >>> f, _, slope = implicit(p, 1e-3, 1e-3, 0.0, 1.0)        # F_C / 2 from rest: creeps, one part
+    >>> round(f, 6), round(slope, 4)        # F_C / 2 less the impulse to v_reg atanh(1/2); its transient
+    (0.999451, 0.0033)
     """
     fc = p[0] * sc
     ve = p[1]
     dw = a - v_prev
     tol = SPLIT_TOL * fc
+    hold = dw / g if g > 0.0 else 0.0
+    bal = abs(hold) < fc * (1.0 - 1e-12)
+    vb, sb = 0.0, 0.0
+    if bal:
+        vb = ve * math.atanh(hold / fc)
+        tb = hold / fc
+        sb = fc / ve * (1.0 - tb * tb)
     v, left, imp, mom, ds = v_prev, 1.0, 0.0, 0.0, 1.0
     for _ in range(MAX_PARTS):
-        f, m1, v1, err = _relax(fc, ve, v, dw * ds, g * ds)
-        if err > tol and ds > 1e-9:
+        if bal:
+            fv = fc * math.tanh(v / ve)
+            cs = (fv - hold) / (v - vb) if v != vb else sb
+            zr = g * left * min(cs, sb)
+            if zr >= Z_BALANCE and 12.0 * abs(v - vb) * left <= tol * g * zr:
+                f, m1, v1 = relax_linear(fv, cs, v, dw * left, g * left)
+                imp += f * left
+                mom += f * left * (1.0 - left) + m1 * left * left
+                return imp, False, 12.0 * (mom - 0.5 * imp)
+        th = math.tanh(v / ve)
+        f0 = fc * th
+        ct = fc / ve * (1.0 - th * th)
+        f, m1, v1 = relax_linear(f0, ct, v, dw * ds, g * ds)
+        if abs(fc * math.tanh(v1 / ve) - f0 - ct * (v1 - v)) > tol and ds > 1e-9:
             ds *= 0.5
             continue
         imp += f * ds
@@ -160,7 +172,8 @@ def implicit(p, a, g, v_prev, sc):
             return imp, False, 12.0 * (mom - 0.5 * imp)
         left -= ds
         ds = min(2.0 * ds, left)
-    f, m1, v1, err = _relax(fc, ve, v, dw * left, g * left)
+    th = math.tanh(v / ve)
+    f, m1, v1 = relax_linear(fc * th, fc / ve * (1.0 - th * th), v, dw * left, g * left)
     imp += f * left
     mom += f * left * (1.0 - left) + m1 * left * left
     return imp, False, 12.0 * (mom - 0.5 * imp)
