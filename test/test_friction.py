@@ -253,3 +253,42 @@ def test_numba_cache_is_keyed_by_the_compiled_code(tmp_path):
     assert b"numba" in caller.read_bytes()
     caller.write_text(caller.read_text() + "\n# comment\n")
     assert numba_cache.code_hash(tmp_path) == h0
+
+
+def _sub_step_reference(fc, ve, a, g, v0):
+    """Mean force, slope and end velocity of ``F_C tanh(v / v_reg)`` over one sub-step, integrated with
+    scipy's Radau (velocity, impulse and first moment over the fraction s of the sub-step:
+    ``u' = (a - v0) - g F``)."""
+    from scipy.integrate import solve_ivp
+    dw = a - v0
+
+    def rhs(s, y):
+        f = fc * np.tanh(y[0] / ve)
+        return [dw - g * f, f, s * f]
+    sol = solve_ivp(rhs, (0.0, 1.0), [v0, 0.0, 0.0], method="Radau", rtol=1e-11, atol=[ve * 1e-9, fc * 1e-12, fc * 1e-12])
+    imp, mom = sol.y[1, -1], sol.y[2, -1]
+    return imp, 12.0 * (mom - 0.5 * imp), sol.y[0, -1]
+
+
+@pytest.mark.parametrize("push", [-0.95, -0.4, 0.0, 0.3, 0.9])
+@pytest.mark.parametrize("start", [0.0, -0.5, 1.0, 20.0])
+def test_a_creeping_regularized_element_is_solved_as_an_ode_is(push, start):
+    """One sub-step of the law behind a push ``H`` below F_C (``push`` = H / F_C), the velocity
+    starting at rest, inside the transition or beyond it (``start`` in units of v_reg), where the
+    sub-step relaxes to the balance ``v_reg atanh(H / F_C)`` (g F_C / v_reg = 1e5: power case 029's
+    bearing): mean force and slope within the solver's tolerance (``SPLIT_TOL`` F_C = 1e-4 F_C;
+    measured at most 2e-6 F_C) of the ODE integrated with scipy's Radau (the solver takes such a
+    sub-step as one part along the chord to the balance; a wrong balance or chord misses by up to
+    F_C), and the end velocity the plant takes from them (``a - g F``) within 1e-4 v_reg (the creep
+    velocity; 1e-6 F_C of force here is 0.1 v_reg of velocity)."""
+    from stage_sim.friction.regularized import SPLIT_TOL, implicit
+    fc, ve = 2.655, 1.29e-9
+    g = 1e5 * ve / fc
+    v0 = start * ve
+    a = v0 + push * fc * g
+    f, stick, slope = implicit(np.array([fc, ve]), a, g, v0, 1.0)
+    f_ref, slope_ref, v_ref = _sub_step_reference(fc, ve, a, g, v0)
+    assert not stick
+    assert abs((a - g * f) - v_ref) < 1e-4 * ve, (a - g * f, v_ref)      # the end velocity: the creep
+    assert abs(f - f_ref) < SPLIT_TOL * fc, (f, f_ref)
+    assert abs(slope - slope_ref) < SPLIT_TOL * fc, (slope, slope_ref)
