@@ -2,15 +2,12 @@
 batch driver of its Python model class (hysteresis loops, virgin curves)."""
 from __future__ import annotations
 
-import math
-
 import numpy as np
-from numba import njit
 from pydantic import Field, model_validator
 
 from stage_sim.schema import Finite, StrictModel
 
-__all__ = ["FrictionVariation", "Model", "relax_linear", "virgin_curve", "variation_entries"]
+__all__ = ["FrictionVariation", "Model", "virgin_curve", "variation_entries"]
 
 
 class FrictionVariation(StrictModel):
@@ -56,49 +53,6 @@ def variation_entries(fields: dict) -> dict:
         raise TypeError(f"unknown friction variation field(s) {', '.join(unknown)} "
                         f"(known: {', '.join(FrictionVariation.model_fields)})")
     return dict(fields)
-
-
-@njit(cache=True, inline="always")
-def relax_linear(f0, ct, v, dw, g):
-    """A force linear in the velocity over (part of) a sub-step, solved exactly.
-
-    The force is ``f0 + ct (u - v)`` at velocity ``u``, ``v`` the start velocity; ``dw`` is the
-    velocity change the other forces give over the part, ``g`` the velocity change per unit
-    force. The velocity relaxes as ``u_b + (v - u_b) exp(-z s)`` (``z = g ct``, ``s`` the fraction
-    0..1 of the part), so the force is ``(dw + z (v - u_b) exp(-z s)) / g``: a transient at the
-    start where ``z`` is large, which the first moment keeps. Stable for any ``ct >= 0``, never past
-    the balance. The regularised Coulomb law's parts (:func:`.regularized.implicit`).
-
-    Returns
-    -------
-    f : float
-        Mean force over the part [N].
-    m1 : float
-        Its first moment over the part's fraction 0..1 [N].
-    v1 : float
-        End velocity [m/s].
-
-    Examples
-    --------
-    >>> f, m1, v1 = relax_linear(0.0, 0.0, 0.0, 1.0, 0.5)    # no force: the free change
-    >>> f, m1, v1
-    (0.0, 0.0, 1.0)
-    >>> f, m1, v1 = relax_linear(0.0, 1e9, 0.0, 1.0, 0.5)    # stiff: held at the balance u_b ~ 0
-    >>> round(f, 6), round(v1, 9)
-    (2.0, 2e-09)
-    """
-    z = g * ct
-    if z > 1e-3:
-        em = math.expm1(-z)
-        phi = 1.0 + em / z
-        psi = (-em - z * (1.0 + em)) / (-z * em)
-    else:
-        phi = 0.5 * z * (1.0 - z / 3.0)
-        psi = 0.5 - z / 12.0
-    f = f0 + (dw - g * f0) * phi / g
-    v1 = v + dw - g * f
-    m1 = (0.5 * dw + (v - v1) * psi) / g
-    return f, m1, v1
 
 
 class Model:

@@ -19,7 +19,7 @@ from pydantic import Field
 from stage_sim.schema import NonNeg, Pos
 from stage_sim.validation import unit
 
-from .base import FrictionVariation, relax_linear, variation_entries
+from .base import FrictionVariation, variation_entries
 
 NAME = "regularized_coulomb"
 IMPLICIT = True
@@ -92,6 +92,49 @@ part that ends at the law's balance velocity (its transient decays by ``exp(-30)
 
 
 @njit(cache=True, inline="always")
+def _relax(f0, ct, v, dw, g):
+    """A force linear in the velocity over (part of) a sub-step, solved exactly.
+
+    The force is ``f0 + ct (u - v)`` at velocity ``u``, ``v`` the start velocity; ``dw`` is the
+    velocity change the other forces give over the part, ``g`` the velocity change per unit
+    force. The velocity relaxes as ``u_b + (v - u_b) exp(-z s)`` (``z = g ct``, ``s`` the fraction
+    0..1 of the part), so the force is ``(dw + z (v - u_b) exp(-z s)) / g``: a transient at the
+    start where ``z`` is large, which the first moment keeps. Stable for any ``ct >= 0``, never past
+    the balance. One part of :func:`implicit`.
+
+    Returns
+    -------
+    f : float
+        Mean force over the part [N].
+    m1 : float
+        Its first moment over the part's fraction 0..1 [N].
+    v1 : float
+        End velocity [m/s].
+
+    Examples
+    --------
+    >>> f, m1, v1 = _relax(0.0, 0.0, 0.0, 1.0, 0.5)    # no force: the free change
+    >>> f, m1, v1
+    (0.0, 0.0, 1.0)
+    >>> f, m1, v1 = _relax(0.0, 1e9, 0.0, 1.0, 0.5)    # stiff: held at the balance u_b ~ 0
+    >>> round(f, 6), round(v1, 9)
+    (2.0, 2e-09)
+    """
+    z = g * ct
+    if z > 1e-3:
+        em = math.expm1(-z)
+        phi = 1.0 + em / z
+        psi = (-em - z * (1.0 + em)) / (-z * em)
+    else:
+        phi = 0.5 * z * (1.0 - z / 3.0)
+        psi = 0.5 - z / 12.0
+    f = f0 + (dw - g * f0) * phi / g
+    v1 = v + dw - g * f
+    m1 = (0.5 * dw + (v - v1) * psi) / g
+    return f, m1, v1
+
+
+@njit(cache=True, inline="always")
 def implicit(p, a, g, v_prev, sc):
     """The element's force over a sub-step: its mean and slope, the law solved in parts.
 
@@ -154,14 +197,14 @@ def implicit(p, a, g, v_prev, sc):
             cs = (fv - hold) / (v - vb) if v != vb else sb
             zr = g * left * min(cs, sb)
             if zr >= Z_BALANCE and 12.0 * abs(v - vb) * left <= tol * g * zr:
-                f, m1, v1 = relax_linear(fv, cs, v, dw * left, g * left)
+                f, m1, v1 = _relax(fv, cs, v, dw * left, g * left)
                 imp += f * left
                 mom += f * left * (1.0 - left) + m1 * left * left
                 return imp, False, 12.0 * (mom - 0.5 * imp)
         th = math.tanh(v / ve)
         f0 = fc * th
         ct = fc / ve * (1.0 - th * th)
-        f, m1, v1 = relax_linear(f0, ct, v, dw * ds, g * ds)
+        f, m1, v1 = _relax(f0, ct, v, dw * ds, g * ds)
         if abs(fc * math.tanh(v1 / ve) - f0 - ct * (v1 - v)) > tol and ds > 1e-9:
             ds *= 0.5
             continue
@@ -173,7 +216,7 @@ def implicit(p, a, g, v_prev, sc):
         left -= ds
         ds = min(2.0 * ds, left)
     th = math.tanh(v / ve)
-    f, m1, v1 = relax_linear(fc * th, fc / ve * (1.0 - th * th), v, dw * left, g * left)
+    f, m1, v1 = _relax(fc * th, fc / ve * (1.0 - th * th), v, dw * left, g * left)
     imp += f * left
     mom += f * left * (1.0 - left) + m1 * left * left
     return imp, False, 12.0 * (mom - 0.5 * imp)
