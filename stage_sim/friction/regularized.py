@@ -187,22 +187,21 @@ def implicit(p, a, g, v_prev, sc):
     bal = abs(hold) < fc * (1.0 - 1e-12)
     vb, sb = 0.0, 0.0
     if bal:
-        vb = ve * math.atanh(hold / fc)
         tb = hold / fc
+        vb = ve * math.atanh(tb)
         sb = fc / ve * (1.0 - tb * tb)
     v, left, imp, mom, ds = v_prev, 1.0, 0.0, 0.0, 1.0
     for _ in range(MAX_PARTS):
+        th = math.tanh(v / ve)
+        f0 = fc * th
         if bal:
-            fv = fc * math.tanh(v / ve)
-            cs = (fv - hold) / (v - vb) if v != vb else sb
+            cs = (f0 - hold) / (v - vb) if v != vb else sb
             zr = g * left * min(cs, sb)
             if zr >= Z_BALANCE and 12.0 * abs(v - vb) * left <= tol * g * zr:
-                f, m1, v1 = _relax(fv, cs, v, dw * left, g * left)
+                f, m1, v1 = _relax(f0, cs, v, dw * left, g * left)
                 imp += f * left
                 mom += f * left * (1.0 - left) + m1 * left * left
                 return imp, False, 12.0 * (mom - 0.5 * imp)
-        th = math.tanh(v / ve)
-        f0 = fc * th
         ct = fc / ve * (1.0 - th * th)
         f, m1, v1 = _relax(f0, ct, v, dw * ds, g * ds)
         if abs(fc * math.tanh(v1 / ve) - f0 - ct * (v1 - v)) > tol and ds > 1e-9:
